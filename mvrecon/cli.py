@@ -1,0 +1,69 @@
+"""The `mvrecon` command: argument parsing, logging, exit codes. No algorithm lives here.
+
+Each subcommand is a module in `mvrecon/commands/` with a docstring (its help line), an `ORDER` number (its
+place in `--help`), `add_arguments(parser)` and `run(args) -> int`; the module's name is the command's name
+(underscores become dashes). Command modules import heavy libraries inside `run`, so `mvrecon --help` stays fast.
+"""
+
+import argparse
+import importlib
+import logging
+import pkgutil
+import sys
+
+from . import __version__
+from .errors import InputError
+from .progress import set_enabled
+
+
+
+def _command_modules():
+    from . import commands
+
+    modules = [importlib.import_module(f"mvrecon.commands.{info.name}")
+               for info in pkgutil.iter_modules(commands.__path__) if not info.name.startswith("_")]
+    return sorted(modules, key=lambda m: (getattr(m, "ORDER", 100), m.__name__))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="mvrecon", description="Structure from motion in Python, validated against COLMAP.")
+    parser.add_argument("--version", action="version", version=f"mvrecon {__version__}")
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    common.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors, no progress bars")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for module in _command_modules():
+        name = module.__name__.rsplit(".", 1)[1]
+        doc = (module.__doc__ or "").strip()
+        first = doc.splitlines()[0] if doc else name
+        p = sub.add_parser(name.replace("_", "-"), parents=[common], help=first, description=doc,
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
+        module.add_arguments(p)
+        p.set_defaults(_module=module)
+    return parser
+
+
+def _setup_logging(verbose: int, quiet: bool) -> None:
+    level = logging.WARNING if quiet else (logging.DEBUG if verbose >= 2 else logging.INFO)
+    logging.basicConfig(level=level, format="%(message)s" if verbose == 0 else "%(asctime)s %(name)s: %(message)s",
+                        stream=sys.stderr)
+    logging.getLogger("mvrecon").setLevel(level)
+    set_enabled(not quiet)
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    _setup_logging(args.verbose, args.quiet)
+    try:
+        return int(args._module.run(args) or 0)
+    except InputError as exc:
+        print(f"mvrecon: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print("mvrecon: interrupted; finished work is kept in the workspace, rerun the same command to resume",
+              file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

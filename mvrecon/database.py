@@ -1,0 +1,147 @@
+"""The workspace's COLMAP SQLite database, read and written through `pycolmap.Database`.
+
+Because the schema is COLMAP's own, `pycolmap.incremental_mapping` can map our matches and our mapper can map
+COLMAP's. Coordinates stored here use COLMAP's pixel convention (top-left pixel centre at (0.5, 0.5)).
+The rest of mvrecon sees plain dataclasses and numpy arrays, never pycolmap objects.
+"""
+
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+# COLMAP's two-view configurations, by name (pycolmap.TwoViewGeometryConfiguration).
+CONFIGS = {m.name: int(m.value) for m in pycolmap.TwoViewGeometryConfiguration.__members__.values()}
+CONFIG_NAMES = {v: k for k, v in CONFIGS.items()}
+
+
+@dataclass(kw_only=True)
+class CameraInfo:
+    camera_id: int = -1
+    model: str
+    width: int
+    height: int
+    params: np.ndarray
+    prior_trusted: bool = False  # COLMAP's has_prior_focal_length: the focal length is known, not guessed
+
+
+@dataclass(kw_only=True)
+class ImageInfo:
+    image_id: int
+    name: str
+    camera_id: int
+
+
+@dataclass(kw_only=True)
+class PairGeometry:
+    """A verified image pair: inlier matches as (N,2) keypoint indices, and the geometry that explains them."""
+
+    image_id1: int
+    image_id2: int
+    config: str  # a key of CONFIGS: CALIBRATED, UNCALIBRATED, PLANAR, PANORAMIC, PLANAR_OR_PANORAMIC, DEGENERATE...
+    inliers: np.ndarray
+    F: np.ndarray | None = None
+    E: np.ndarray | None = None
+    H: np.ndarray | None = None
+
+
+@dataclass(kw_only=True)
+class Correspondences:
+    """Everything the mapper needs from a database: cameras, images, keypoints and verified pairs."""
+
+    cameras: dict[int, CameraInfo] = field(default_factory=dict)
+    images: dict[int, ImageInfo] = field(default_factory=dict)
+    keypoints: dict[int, np.ndarray] = field(default_factory=dict)  # image_id -> (N,2) pixels, COLMAP convention
+    pairs: list[PairGeometry] = field(default_factory=list)
+
+
+@contextmanager
+def open_database(path):
+    """Open (creating if needed) a COLMAP database and close it however the block ends."""
+    db = pycolmap.Database.open(str(path))
+    try:
+        yield db
+    finally:
+        db.close()
+
+
+def write_camera(db, cam: CameraInfo) -> int:
+    c = pycolmap.Camera(model=cam.model, width=int(cam.width), height=int(cam.height),
+                        params=np.asarray(cam.params, dtype=float), has_prior_focal_length=bool(cam.prior_trusted))
+    if cam.camera_id > 0:
+        c.camera_id = cam.camera_id
+        return db.write_camera(c, use_camera_id=True)
+    return db.write_camera(c)
+
+
+def write_image(db, name: str, camera_id: int) -> int:
+    return db.write_image(pycolmap.Image(name=name, camera_id=int(camera_id)))
+
+
+def write_features(db, image_id: int, keypoints: np.ndarray, descriptors: np.ndarray) -> None:
+    """Keypoints (N,4): x, y (COLMAP convention), scale, orientation in radians; descriptors (N,128) uint8."""
+    kp = np.ascontiguousarray(keypoints, dtype=np.float32).reshape(-1, 4)
+    desc = np.ascontiguousarray(descriptors, dtype=np.uint8).reshape(len(kp), -1)
+    db.write_keypoints(int(image_id), kp)
+    db.write_descriptors(int(image_id), pycolmap.FeatureDescriptors(type=pycolmap.FeatureExtractorType.SIFT,
+                                                                    data=desc))
+
+
+def write_matches(db, image_id1: int, image_id2: int, matches: np.ndarray) -> None:
+    """Raw (putative) matches, (N,2) keypoint indices of image 1 and image 2."""
+    db.write_matches(int(image_id1), int(image_id2), np.ascontiguousarray(matches, dtype=np.uint32).reshape(-1, 2))
+
+
+def write_two_view_geometry(db, pair: PairGeometry) -> None:
+    kwargs = {"config": CONFIGS[pair.config],
+              "inlier_matches": np.ascontiguousarray(pair.inliers, dtype=np.uint32).reshape(-1, 2)}
+    for name in ("F", "E", "H"):
+        value = getattr(pair, name)
+        if value is not None:
+            kwargs[name] = np.asarray(value, dtype=float)
+    db.write_two_view_geometry(int(pair.image_id1), int(pair.image_id2), pycolmap.TwoViewGeometry(**kwargs))
+
+
+def _camera_info(c) -> CameraInfo:
+    return CameraInfo(camera_id=int(c.camera_id), model=c.model.name, width=int(c.width), height=int(c.height),
+                      params=np.asarray(c.params, dtype=float), prior_trusted=bool(c.has_prior_focal_length))
+
+
+def read_cameras(db) -> dict[int, CameraInfo]:
+    return {int(c.camera_id): _camera_info(c) for c in db.read_all_cameras()}
+
+
+def read_images(db) -> dict[int, ImageInfo]:
+    return {int(i.image_id): ImageInfo(image_id=int(i.image_id), name=i.name, camera_id=int(i.camera_id))
+            for i in db.read_all_images()}
+
+
+def read_correspondences(path, min_inliers: int = 0) -> Correspondences:
+    """Load cameras, images, keypoint positions and verified pairs (with at least `min_inliers` inliers)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such database")
+    out = Correspondences()
+    with open_database(path) as db:
+        out.cameras = read_cameras(db)
+        out.images = read_images(db)
+        for image_id in out.images:
+            kp = np.asarray(db.read_keypoints(image_id), dtype=float)
+            out.keypoints[image_id] = kp[:, :2].copy() if kp.size else np.zeros((0, 2))
+        pair_ids, geometries = db.read_two_view_geometries()
+        for pair_id, g in zip(pair_ids, geometries):
+            inliers = np.asarray(g.inlier_matches, dtype=np.int64).reshape(-1, 2)
+            if len(inliers) == 0 or len(inliers) < min_inliers:
+                continue
+            id1, id2 = pycolmap.pair_id_to_image_pair(int(pair_id))
+            out.pairs.append(PairGeometry(
+                image_id1=int(id1), image_id2=int(id2), config=CONFIG_NAMES.get(int(g.config), "UNDEFINED"),
+                inliers=inliers, F=_matrix_or_none(g.F), E=_matrix_or_none(g.E), H=_matrix_or_none(g.H)))
+    return out
+
+
+def _matrix_or_none(m):
+    m = np.asarray(m, dtype=float)
+    return None if m.shape != (3, 3) or not np.any(m) else m
