@@ -1,0 +1,1 @@
+"""Evaluation against ground truth and against COLMAP: metrics, alignment, comparison runs and reports."""

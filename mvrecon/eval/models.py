@@ -1,0 +1,41 @@
+"""Poses and statistics out of COLMAP models (pycolmap), in the plain form `eval.metrics` works on."""
+
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+
+def load_reconstruction(path) -> pycolmap.Reconstruction:
+    """A COLMAP model folder (binary or text); FileNotFoundError names the folder when it holds no model."""
+    path = Path(path)
+    if not (path / "images.bin").exists() and not (path / "images.txt").exists():
+        raise FileNotFoundError(f"{path}: no COLMAP model (images.bin or images.txt) here")
+    return pycolmap.Reconstruction(str(path))
+
+
+def poses(rec: pycolmap.Reconstruction) -> dict:
+    """image name -> (R, t) world-to-camera, for registered images."""
+    out = {}
+    for image in rec.images.values():
+        if image.has_pose:
+            T = image.cam_from_world()
+            out[image.name] = (np.asarray(T.rotation.matrix()), np.asarray(T.translation))
+    return out
+
+
+def model_stats(rec: pycolmap.Reconstruction) -> dict:
+    """Registered images, points, mean track length, mean reprojection error (px)."""
+    n_points = rec.num_points3D()
+    return {"registered": rec.num_reg_images(), "points": n_points,
+            "mean_track_length": float(rec.compute_mean_track_length()) if n_points else 0.0,
+            "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()) if n_points else float("nan")}
+
+
+def sparse_models(sparse_dir) -> list[pycolmap.Reconstruction]:
+    """All models under `sparse/` (folders 0, 1, ...), largest first."""
+    sparse_dir = Path(sparse_dir)
+    dirs = sorted((d for d in sparse_dir.iterdir() if d.is_dir() and d.name.isdigit()), key=lambda d: int(d.name)) \
+        if sparse_dir.is_dir() else []
+    recs = [load_reconstruction(d) for d in dirs]
+    return sorted(recs, key=lambda r: r.num_reg_images(), reverse=True)

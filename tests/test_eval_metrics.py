@@ -1,0 +1,63 @@
+"""The shared accuracy metrics: AUC as COLMAP's benchmark defines it, relative-pose and aligned absolute errors."""
+
+import numpy as np
+import pycolmap
+import pytest
+
+from mvrecon.eval import metrics, models
+from mvrecon.geometry.rotation import angle_axis_to_rotmat
+
+
+@pytest.fixture(scope="module")
+def gt():
+    opts = pycolmap.SyntheticDatasetOptions(num_rigs=1, num_frames_per_rig=8, num_points3D=50)
+    return models.poses(pycolmap.synthesize_dataset(opts))
+
+
+def similar_copy(poses, scale=2.0, rvec=(0.2, 0.5, -0.3), shift=(1, 2, 3)):
+    R, t = angle_axis_to_rotmat(rvec), np.asarray(shift, float)
+    out = {}
+    for name, (Ri, ti) in poses.items():
+        C = scale * R @ metrics.camera_center(Ri, ti) + t
+        R2 = Ri @ R.T
+        out[name] = (R2, -R2 @ C)
+    return out
+
+
+def test_auc_values_by_hand():
+    auc = metrics.pose_auc([0, 0.5, 1, 20])
+    assert auc[0.5] == pytest.approx(0.25)
+    assert auc[1.0] == pytest.approx(0.4375)
+    assert auc[10.0] == pytest.approx(0.725)
+    assert metrics.pose_auc([180, 180])[10.0] == 0.0
+
+
+def test_similar_model_scores_perfectly(gt):
+    s = metrics.accuracy_summary([similar_copy(gt)], gt)
+    assert s["auc@0.5"] > 0.999 and s["registered"] == len(gt) and s["components"] == 1
+    assert s["max_rotation_error_deg"] < 1e-6 and s["median_center_error_pct"] < 1e-6
+
+
+def test_missing_and_split_images_count_as_failed_pairs(gt):
+    names = sorted(gt)
+    est = similar_copy(gt)
+    first = {n: est[n] for n in names[:5]}
+    second = {n: est[n] for n in names[5:7]}  # names[7] unregistered
+    errors = metrics.relative_pose_errors([first, second], gt)
+    n = len(names)
+    assert len(errors) == n * (n - 1) // 2
+    good_pairs = 5 * 4 // 2 + 1  # pairs inside the first model, and the one pair inside the second
+    assert np.sum(errors < 1e-3) == good_pairs
+    assert np.sum(errors == metrics.FAILED_DEG) == len(errors) - good_pairs
+
+
+def test_alignment_reports_the_perturbed_image(gt):
+    est = similar_copy(gt)
+    name = sorted(gt)[3]
+    R, t = est[name]
+    R2 = angle_axis_to_rotmat([0, 0, np.radians(2.0)]) @ R
+    est[name] = (R2, -R2 @ metrics.camera_center(R, t))  # same centre, turned by 2 degrees
+    al = metrics.align_and_compare(est, gt)
+    assert al.rotation_errors_deg[name] == pytest.approx(2.0, abs=1e-6)
+    others = [v for k, v in al.rotation_errors_deg.items() if k != name]
+    assert max(others) < 1e-6
