@@ -28,6 +28,10 @@ def _command_modules():
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mvrecon", description="Structure from motion in Python, validated against COLMAP.")
     parser.add_argument("--version", action="version", version=f"mvrecon {__version__}")
+    # -v/-q are accepted before the command too (`mvrecon -q reconstruct ...`); own dests, as a subcommand's
+    # defaults would overwrite the same dest
+    parser.add_argument("-v", "--verbose", dest="global_verbose", action="count", default=0, help=argparse.SUPPRESS)
+    parser.add_argument("-q", "--quiet", dest="global_quiet", action="store_true", help=argparse.SUPPRESS)
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
     common.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors, no progress bars")
@@ -53,7 +57,7 @@ def _setup_logging(verbose: int, quiet: bool) -> None:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    _setup_logging(args.verbose, args.quiet)
+    _setup_logging(args.verbose + args.global_verbose, args.quiet or args.global_quiet)
     try:
         return int(args._module.run(args) or 0)
     except InputError as exc:

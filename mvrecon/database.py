@@ -145,3 +145,49 @@ def read_correspondences(path, min_inliers: int = 0) -> Correspondences:
 def _matrix_or_none(m):
     m = np.asarray(m, dtype=float)
     return None if m.shape != (3, 3) or not np.any(m) else m
+
+
+# --- resumable stages (features, matching): what is done, one transaction per unit of work ---
+
+@contextmanager
+def transaction(db):
+    """All writes in the block land together or not at all (a Ctrl-C loses only the unit in progress)."""
+    with pycolmap.DatabaseTransaction(db):
+        yield db
+
+
+def has_features(db, image_id: int) -> bool:
+    return bool(db.exists_keypoints(int(image_id)) and db.exists_descriptors(int(image_id)))
+
+
+def num_keypoints(db, image_id: int) -> int:
+    return int(db.num_keypoints_for_image(int(image_id))) if db.exists_keypoints(int(image_id)) else 0
+
+
+def read_features(db, image_id: int) -> tuple[np.ndarray, np.ndarray]:
+    """(N,4+) float keypoints (x, y in COLMAP pixels first) and (N,128) uint8 descriptors of one image."""
+    kp = np.asarray(db.read_keypoints(int(image_id)), dtype=float)
+    desc = np.asarray(db.read_descriptors(int(image_id)).data, dtype=np.uint8)
+    return kp.reshape(len(kp), -1), desc.reshape(len(kp), -1)
+
+
+def has_two_view_geometry(db, image_id1: int, image_id2: int) -> bool:
+    return bool(db.exists_two_view_geometry(int(image_id1), int(image_id2)))
+
+
+def clear_matches(db) -> None:
+    """Drop raw matches and verified geometries (when the matching config changes)."""
+    db.clear_matches()
+    db.clear_two_view_geometries()
+
+
+def read_verified_pairs(db) -> list[tuple[int, int, str, int]]:
+    """(image_id1, image_id2, configuration name, inlier count) of every pair with at least one inlier."""
+    out = []
+    pair_ids, geometries = db.read_two_view_geometries()
+    for pair_id, g in zip(pair_ids, geometries):
+        n = len(np.asarray(g.inlier_matches).reshape(-1, 2))
+        if n:
+            id1, id2 = pycolmap.pair_id_to_image_pair(int(pair_id))
+            out.append((int(id1), int(id2), CONFIG_NAMES.get(int(g.config), "UNDEFINED"), n))
+    return out

@@ -39,3 +39,22 @@ def sparse_models(sparse_dir) -> list[pycolmap.Reconstruction]:
         if sparse_dir.is_dir() else []
     recs = [load_reconstruction(d) for d in dirs]
     return sorted(recs, key=lambda r: r.num_reg_images(), reverse=True)
+
+
+def reconstruction_from_poses(poses_by_name: dict, width: int = 2, height: int = 2) -> pycolmap.Reconstruction:
+    """A camera-only pycolmap model of plain poses, so ground truth in any format meets pycolmap's own tools
+    (e.g. `align_reconstructions_via_proj_centers`). Intrinsics are placeholders; only poses carry meaning."""
+    from ..geometry.rotation import rotmat_to_quat
+
+    rec = pycolmap.Reconstruction()
+    cam = pycolmap.Camera(model="SIMPLE_PINHOLE", width=width, height=height, params=[1.0, width / 2, height / 2])
+    cam.camera_id = 1
+    rec.add_camera_with_trivial_rig(cam)
+    for image_id, name in enumerate(sorted(poses_by_name), start=1):
+        R, t = poses_by_name[name]
+        w, x, y, z = rotmat_to_quat(R)
+        image = pycolmap.Image(name=name, camera_id=1)
+        image.image_id = image_id
+        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d([x, y, z, w]),
+                                                                 np.asarray(t, dtype=float)))
+    return rec

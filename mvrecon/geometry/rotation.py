@@ -48,9 +48,12 @@ def angle_axis_to_rotmat(rvec) -> np.ndarray:
 
 
 def rotation_angle_deg(R) -> float:
-    """Angle of a rotation matrix in degrees (clipped against round-off)."""
-    c = (np.trace(np.asarray(R, dtype=float)) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+    """Angle of a rotation matrix in degrees; atan2 of the skew and trace parts stays exact near zero,
+    where arccos of the trace alone loses everything below about 1e-6 degrees."""
+    R = np.asarray(R, dtype=float)
+    s = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    c = (np.trace(R) - 1.0) / 2.0
+    return float(np.degrees(np.arctan2(s, c)))
 
 
 def rotation_error_deg(R_a, R_b) -> float:

@@ -1,0 +1,91 @@
+"""Which images share a camera, and the starting intrinsics of each camera.
+
+COLMAP's rule is the default: images of the same size taken with the same make/model/focal length share one
+camera (and so one set of intrinsics to refine), which makes bundle adjustment far better conditioned than one
+camera per image. The focal prior comes from EXIF when it can (35 mm equivalent, else focal length in mm times the
+sensor's pixel density) and is then *trusted* (COLMAP's has_prior_focal_length: the verifier may estimate an
+essential matrix with it); otherwise it is COLMAP's guess 1.2 * max(width, height), not trusted. Known intrinsics
+given by the user are trusted as they are.
+"""
+
+from dataclasses import dataclass
+from pathlib import PurePosixPath
+
+from .database import CameraInfo
+from .errors import InputError
+from .geometry import camera as camera_model
+from .io.images import ImageMeta
+
+CAMERA_MODES = ("auto", "single", "per-folder", "per-image")
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    model: str = "SIMPLE_RADIAL"  # SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL or OPENCV
+    mode: str = "auto"  # auto: same size + EXIF make/model/focal share a camera; single; per-folder; per-image
+    params: tuple[float, ...] = ()  # known intrinsics in the model's COLMAP order; trusted; empty = from EXIF
+    default_focal_factor: float = 1.2  # focal guess without EXIF = factor * max(width, height), as COLMAP
+
+    def validate(self) -> "CameraConfig":
+        if self.mode not in CAMERA_MODES:
+            raise InputError(f"--camera-mode {self.mode}: expected one of {', '.join(CAMERA_MODES)}")
+        try:
+            camera_model.check_model(self.model, self.params if self.params else
+                                     camera_model.default_params(self.model, 1.0, 2, 2))
+        except ValueError as exc:
+            raise InputError(f"--camera-params/--camera-model: {exc}") from None
+        return self
+
+
+def focal_prior(meta: ImageMeta, default_factor: float = 1.2) -> tuple[float, bool]:
+    """(focal length in pixels, trusted) for an image, from its EXIF when possible."""
+    long_side = max(meta.width, meta.height)
+    if meta.focal_35mm:
+        return meta.focal_35mm / 36.0 * long_side, True  # the 35 mm frame is 36 mm on its long side
+    if meta.focal_px_from_sensor:
+        return meta.focal_px_from_sensor, True
+    return default_factor * long_side, False
+
+
+def group_cameras(names: list[str], metas: dict[str, ImageMeta],
+                  config: CameraConfig) -> list[tuple[CameraInfo, list[str]]]:
+    """Cameras (camera_id unset) and the images of each, in the order of `names`."""
+    config.validate()
+    groups: dict[tuple, list[str]] = {}
+    for name in names:
+        m = metas[name]
+        if config.mode == "single":
+            key = ()
+        elif config.mode == "per-image":
+            key = (name,)
+        elif config.mode == "per-folder":
+            key = (str(PurePosixPath(name).parent), m.width, m.height)
+        else:
+            key = (m.width, m.height, m.make, m.model, m.focal_mm, m.focal_35mm)
+        groups.setdefault(key, []).append(name)
+    out = []
+    for members in groups.values():
+        sizes = {(metas[n].width, metas[n].height) for n in members}
+        if len(sizes) > 1:
+            shown = ", ".join(f"{w}x{h}" for w, h in sorted(sizes))
+            raise InputError(f"{members[0]}: --camera-mode {config.mode} needs images of one size, "
+                             f"found {shown}")
+        first = metas[members[0]]
+        if config.params:
+            params, trusted = camera_model.check_model(config.model, config.params), True
+        else:
+            focal, trusted = focal_prior(first, config.default_focal_factor)
+            params = camera_model.default_params(config.model, focal, first.width, first.height)
+        out.append((CameraInfo(model=config.model, width=first.width, height=first.height, params=params,
+                               prior_trusted=trusted), members))
+    return out
+
+
+def parse_camera_params(text: str | None) -> tuple[float, ...]:
+    """'f,cx,cy,k' (commas or spaces) -> floats; an unparsable list is an InputError naming the value."""
+    if not text:
+        return ()
+    try:
+        return tuple(float(v) for v in text.replace(",", " ").split())
+    except ValueError:
+        raise InputError(f"--camera-params {text!r}: expected numbers separated by commas") from None

@@ -1,0 +1,105 @@
+"""The front end's command-line options, shared by every command that extracts or matches features.
+
+`add_camera_options`, `add_feature_options`, `add_matching_options` and `add_run_options` add one argument group
+each (`add_frontend_options` adds all four); `frontend_config_from_args(args)` builds the `FrontendConfig` from
+the defaults, then a `--config` TOML file, then the flags actually given. Commands such as `reconstruct` reuse these
+instead of redefining flags, so the same words mean the same thing everywhere.
+"""
+
+import argparse
+
+from ..cameras import CAMERA_MODES, CameraConfig, parse_camera_params
+from ..config import load_toml, with_overrides
+from ..geometry.camera import MODELS
+
+
+def add_camera_options(parser: argparse.ArgumentParser) -> None:
+    g = parser.add_argument_group("cameras")
+    g.add_argument("--camera-model", choices=MODELS, default=None,
+                   help=f"camera model (default {CameraConfig.model})")
+    g.add_argument("--camera-mode", choices=CAMERA_MODES, default=None,
+                   help="which images share intrinsics: auto = same size and EXIF make/model/focal (default), "
+                        "single, per-folder, per-image")
+    g.add_argument("--camera-params", default=None, metavar="P1,P2,...",
+                   help="known intrinsics in the model's COLMAP order, e.g. 'f,cx,cy,k' for SIMPLE_RADIAL "
+                        "(trusted)")
+
+
+def add_feature_options(parser: argparse.ArgumentParser) -> None:
+    g = parser.add_argument_group("SIFT features")
+    g.add_argument("--max-features", type=int, default=None, help="keypoints per image (default 8192)")
+    g.add_argument("--max-image-size", type=int, default=None,
+                   help="shrink images to this long side before detection (default 3200)")
+    g.add_argument("--peak-threshold", type=float, default=None,
+                   help="DoG peak threshold as COLMAP's (default 0.00667; lower finds more keypoints)")
+    g.add_argument("--upright", action="store_true", default=None,
+                   help="no orientation (cameras that never roll)")
+    g.add_argument("--no-root-sift", dest="root_sift", action="store_false", default=None,
+                   help="plain L2-normalised SIFT instead of RootSIFT")
+
+
+def add_matching_options(parser: argparse.ArgumentParser) -> None:
+    g = parser.add_argument_group("matching")
+    g.add_argument("--pairs", default=None, metavar="SPEC",
+                   help="exhaustive (default), sequential:K (each image with the next K), or a file of "
+                        "'name1 name2' lines")
+    g.add_argument("--ratio", type=float, default=None, help="Lowe's ratio test threshold (default 0.8)")
+    g.add_argument("--max-error", type=float, default=None,
+                   help="RANSAC inlier threshold in pixels (default 4)")
+    g.add_argument("--min-inliers", type=int, default=None,
+                   help="inliers for a pair to count as verified (default 15)")
+
+
+def add_run_options(parser: argparse.ArgumentParser) -> None:
+    g = parser.add_argument_group("run")
+    g.add_argument("--config", default=None, metavar="TOML",
+                   help="config overrides, e.g. [sift] max_num_features = 4096 (flags win over the file)")
+    g.add_argument("--workers", type=int, default=None, help="parallel processes (default: all cores)")
+    g.add_argument("--overwrite", action="store_true",
+                   help="recompute instead of refusing when the workspace was made with other settings")
+
+
+def add_frontend_options(parser: argparse.ArgumentParser) -> None:
+    add_camera_options(parser)
+    add_feature_options(parser)
+    add_matching_options(parser)
+    add_run_options(parser)
+
+
+_FLAG_FIELDS = {  # argparse dest -> (config section, field)
+    "camera_model": ("camera", "model"),
+    "camera_mode": ("camera", "mode"),
+    "max_features": ("sift", "max_num_features"),
+    "max_image_size": ("sift", "max_image_size"),
+    "peak_threshold": ("sift", "peak_threshold"),
+    "upright": ("sift", "upright"),
+    "root_sift": ("sift", "root_sift"),
+    "pairs": (None, "pairs"),
+    "ratio": ("matcher", "max_ratio"),
+    "max_error": ("verify", "max_error"),
+    "min_inliers": ("verify", "min_num_inliers"),
+    "workers": (None, "workers"),
+}
+
+
+def frontend_config_from_args(args: argparse.Namespace):
+    """FrontendConfig = defaults < --config TOML < flags given on the command line."""
+    from ..pipeline import FrontendConfig
+
+    config = FrontendConfig()
+    if getattr(args, "config", None):
+        config = with_overrides(config, load_toml(args.config), source=args.config)
+    overrides: dict = {}
+    for dest, (section, name) in _FLAG_FIELDS.items():
+        value = getattr(args, dest, None)
+        if value is None:
+            continue
+        if section is None:
+            overrides[name] = value
+        else:
+            overrides.setdefault(section, {})[name] = value
+    if getattr(args, "camera_params", None):
+        overrides.setdefault("camera", {})["params"] = list(parse_camera_params(args.camera_params))
+    config = with_overrides(config, overrides, source="command line")
+    config.camera.validate()
+    return config

@@ -1,0 +1,73 @@
+"""Calibrate a camera (or a stereo rig) from chessboard images; writes camera.toml for `stereo` and `reconstruct`.
+
+Examples:
+  mvrecon calibrate boards/ -o camera.toml                       (board size found automatically)
+  mvrecon calibrate boards/ -o camera.toml --size 9x6 --square 25
+  mvrecon calibrate pairs/ -o rig.toml --stereo --square 25      (pairs named left*/right*, e.g. left01.jpg)
+
+The file holds the OPENCV model in COLMAP pixels (fx, fy, cx, cy, k1, k2, p1, p2), the RMS reprojection error per
+view, the dropped outlier views and, with --stereo, R, t (x_right = R x_left + t, in square units).
+Use it with `mvrecon stereo L R --camera rig.toml`, or pass its `colmap_params` line to
+`--camera-model OPENCV --camera-params`.
+"""
+
+ORDER = 62
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("images", help="folder with the chessboard images")
+    parser.add_argument("-o", "--output", required=True, help="camera file to write (TOML)")
+    parser.add_argument("--pattern", choices=("chessboard",), default="chessboard", help="calibration target")
+    parser.add_argument("--size", default="auto", help="inner corners CxR, e.g. 9x6, or 'auto' (default)")
+    parser.add_argument("--square", type=float, default=1.0, help="square size (sets the unit of the baseline)")
+    parser.add_argument("--stereo", action="store_true", help="stereo rig: pair images named left*/right*")
+
+
+def _board(text: str):
+    from mvrecon.errors import InputError
+
+    if text == "auto":
+        return None
+    try:
+        cols, rows = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise InputError(f"--size {text!r}: expected CxR inner corners such as 9x6, or auto") from None
+    if cols < 2 or rows < 2:
+        raise InputError(f"--size {text!r}: a chessboard needs at least 2x2 inner corners")
+    return cols, rows
+
+
+def run(args) -> int:
+    import logging
+    from pathlib import Path
+
+    from mvrecon.errors import InputError
+    from mvrecon.io.images import list_images, read_image
+    from mvrecon.stereo.calibrate import (CalibrationConfig, calibrate_mono, calibrate_stereo, stereo_pairs,
+                                          write_camera_toml)
+
+    log = logging.getLogger("mvrecon.calibrate")
+    config = CalibrationConfig(board=_board(args.size), square=args.square)
+    folder = Path(args.images)
+    names, _ = list_images(folder)
+    if args.stereo:
+        lefts, rights, pairs = stereo_pairs(names)
+        if not pairs:
+            raise InputError(f"{folder}: no left/right image pairs (names must differ only by left <-> right)")
+        result = calibrate_stereo({n: read_image(folder / n) for n in lefts},
+                                  {n: read_image(folder / n) for n in rights}, pairs, config)
+        mono = [("left", result.left), ("right", result.right)]
+    else:
+        result = calibrate_mono({n: read_image(folder / n) for n in names}, config)
+        mono = [("camera", result)]
+    write_camera_toml(args.output, result, config)
+    for label, m in mono:
+        fx, fy, cx, cy, k1, k2, p1, p2 = m.camera.params
+        log.info("%s: fx %.2f fy %.2f cx %.2f cy %.2f k1 %.4f k2 %.4f; RMS %.3f px over %d views%s", label, fx, fy,
+                 cx, cy, k1, k2, m.rms_px, len(m.per_view_rms_px),
+                 f"; dropped {', '.join(m.dropped)}" if m.dropped else "")
+    if args.stereo:
+        log.info("stereo: baseline %.4g (square units), RMS %.3f px over %d pairs", float((result.t ** 2).sum()) ** 0.5,
+                 result.rms_px, len(result.per_pair_rms_px))
+    print(f"wrote {args.output}")
+    return 0

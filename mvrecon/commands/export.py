@@ -1,0 +1,46 @@
+"""Export a reconstruction: undistorted images + PINHOLE model for nerfstudio / Gaussian splatting.
+
+Reads OUT/sparse/0 (or --model) of a `mvrecon reconstruct` run, takes the images from the run's image folder
+(recorded in OUT/config.json) or --image-dir, and writes DIR/images/ and DIR/sparse/0/.
+
+Example:
+  mvrecon export out/ --undistort -o out/splat
+  ns-train splatfacto colmap --data out/splat     (nerfstudio)
+"""
+
+ORDER = 32
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("run", help="output folder of `mvrecon reconstruct` (holds sparse/0)")
+    parser.add_argument("--undistort", action="store_true", required=True,
+                        help="write undistorted images and a PINHOLE model (the only export so far)")
+    parser.add_argument("-o", "--output", required=True, help="export folder")
+    parser.add_argument("--model", default=None, help="model folder (default: RUN/sparse/0, the largest)")
+    parser.add_argument("--image-dir", default=None,
+                        help="images (default: the folder the run was made from)")
+    parser.add_argument("--max-image-size", type=int, default=-1, help="downscale so the long side fits")
+    parser.add_argument("--text", action="store_true", help="also write the model as text")
+
+
+def run(args) -> int:
+    import logging
+    from pathlib import Path
+
+    from ..errors import InputError
+    from ..io.undistort import export_undistorted
+    from ..workspace import Workspace
+
+    run_dir = Path(args.run)
+    model = Path(args.model) if args.model else run_dir / "sparse" / "0"
+    image_dir = args.image_dir
+    if image_dir is None:
+        features = Workspace(run_dir).stage_config("features") if run_dir.is_dir() else None
+        if not features or "images" not in features:
+            raise InputError(f"{run_dir}: cannot tell where its images are; pass --image-dir")
+        image_dir = features["images"]
+    target = export_undistorted(model, image_dir, args.output, max_image_size=args.max_image_size,
+                                text=args.text)
+    logging.getLogger("mvrecon").info("%s: undistorted images in %s, PINHOLE model in %s", args.output,
+                                      Path(args.output) / "images", target)
+    return 0

@@ -1,0 +1,30 @@
+"""Detect SIFT features in a folder of images into a workspace database.
+
+Finds every JPEG/PNG/TIFF under IMAGES (recursively), groups them into cameras, and writes cameras, images,
+keypoints and descriptors to WORKSPACE/database.db (COLMAP's schema). A rerun skips images already done; a
+different config is refused unless --overwrite.
+
+example:  mvrecon features photos/ -w work/
+"""
+
+ORDER = 10
+
+
+def add_arguments(parser):
+    from ._options import add_camera_options, add_feature_options, add_run_options
+
+    parser.add_argument("images", help="folder of images (searched recursively)")
+    parser.add_argument("-w", "--workspace", required=True, help="workspace folder (created if missing)")
+    add_camera_options(parser)
+    add_feature_options(parser)
+    add_run_options(parser)
+
+
+def run(args) -> int:
+    from ..pipeline import extract_features
+    from ._options import frontend_config_from_args
+
+    summary = extract_features(frontend_config_from_args(args), args.images, args.workspace,
+                               overwrite=args.overwrite)
+    print(summary.text())
+    return 0

@@ -1,0 +1,38 @@
+"""Map an existing workspace database (ours, or one COLMAP made) with the incremental SfM engine.
+
+Reads WORKSPACE/database.db (keypoints and verified two-view geometries) and writes WORKSPACE/sparse/0..k/,
+WORKSPACE/points.ply and WORKSPACE/report.json. This is how mapper differences are separated from front-end
+differences: COLMAP's matches through our mapper, or ours through COLMAP's.
+
+Example:
+  mvrecon map -w out/ --image-dir images/
+"""
+
+ORDER = 31
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("-w", "--workspace", required=True, help="folder holding database.db")
+    parser.add_argument("--image-dir", default=None, help="images, only used to colour the points")
+    from .reconstruct import add_mapper_options
+
+    add_mapper_options(parser)
+
+
+def run(args) -> int:
+    import logging
+    import time
+
+    from ..pipeline import _database_counts, _peak_mem_mb, map_workspace, write_report
+    from .reconstruct import mapper_config
+
+    config = mapper_config(args)
+    start = time.perf_counter()
+    summary = map_workspace(config, args.workspace, image_dir=args.image_dir, text=args.text,
+                            resume=args.resume, overwrite=args.overwrite)
+    stage = {"wall_s": time.perf_counter() - start, "peak_mem_mb": _peak_mem_mb()}
+    write_report(args.workspace, config_hash=config.hash(), seed=config.seed, summary=summary,
+                 stages={"mapping": stage}, total=stage,
+                 counts=_database_counts(f"{args.workspace}/database.db"))
+    logging.getLogger("mvrecon").info("%s", summary.text())
+    return 0

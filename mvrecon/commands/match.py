@@ -1,0 +1,27 @@
+"""Match and geometrically verify image pairs of a workspace (after `mvrecon features`).
+
+Selects pairs (exhaustive, sequential:K or a pairs file), matches SIFT descriptors (ratio test, mutual check),
+verifies each pair with F/E/H (USAC MAGSAC++) and stores raw matches and verified two-view geometries in
+WORKSPACE/database.db, ready for a mapper (ours or COLMAP's). A rerun skips pairs already done.
+
+example:  mvrecon match -w work/ --pairs sequential:10
+"""
+
+ORDER = 20
+
+
+def add_arguments(parser):
+    from ._options import add_matching_options, add_run_options
+
+    parser.add_argument("-w", "--workspace", required=True, help="workspace folder made by `mvrecon features`")
+    add_matching_options(parser)
+    add_run_options(parser)
+
+
+def run(args) -> int:
+    from ..pipeline import match
+    from ._options import frontend_config_from_args
+
+    summary = match(frontend_config_from_args(args), args.workspace, overwrite=args.overwrite)
+    print(summary.text())
+    return 0

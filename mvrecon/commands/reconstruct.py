@@ -1,0 +1,64 @@
+"""Reconstruct a folder of images: features, matches, incremental SfM; writes COLMAP models.
+
+Writes OUT/database.db (COLMAP schema), OUT/sparse/0..k/ (binary COLMAP models, 0 = largest; --text adds
+.txt),
+OUT/points.ply (coloured points of the largest model) and OUT/report.json (per-image status and reason, model
+statistics, per-stage wall time and peak memory). A finished run with the same settings is not redone; an
+interrupted one resumes (features and matches are kept; --resume continues mapping from its snapshot).
+
+Examples:
+  mvrecon reconstruct images/ -o out/
+  mvrecon reconstruct images/ -o out/ --camera-model PINHOLE --camera-params 1520,1520,302,246 --text
+"""
+
+ORDER = 30
+
+
+def add_mapper_options(parser, *, overwrite: bool = True) -> None:
+    """Mapper flags shared by `reconstruct` and `map` (`reconstruct` takes --overwrite from the front
+    end's)."""
+    g = parser.add_argument_group("mapping")
+    g.add_argument("--seed", type=int, default=0, help="random seed: equal inputs and seed give equal models")
+    g.add_argument("--optimizer", choices=("sfm", "lm"), default="sfm",
+                   help="GTSAM optimizer for bundle adjustment: SfmLevenbergMarquardt with Schur elimination "
+                        "(default) or plain LM")
+    g.add_argument("--fix-intrinsics", action="store_true", help="do not refine focal length and distortion")
+    g.add_argument("--text", action="store_true", help="also write the models as COLMAP text files")
+    g.add_argument("--resume", action="store_true", help="continue an interrupted mapping from its snapshot")
+    if overwrite:
+        g.add_argument("--overwrite", action="store_true", help="start mapping over even with a snapshot")
+
+
+def mapper_config(args):
+    from ..sfm.config import MapperConfig
+
+    return MapperConfig(seed=args.seed, optimizer=args.optimizer, refine_intrinsics=not args.fix_intrinsics)
+
+
+def add_arguments(parser) -> None:
+    from ._options import add_frontend_options
+
+    parser.add_argument("images", help="folder of images (searched recursively)")
+    parser.add_argument("-o", "--output", required=True, help="output folder (the workspace)")
+    add_frontend_options(parser)
+    add_mapper_options(parser, overwrite=False)
+
+
+def run(args) -> int:
+    import logging
+    from pathlib import Path
+
+    from ..errors import InputError
+    from ..pipeline import ReconstructConfig, reconstruct
+    from ._options import frontend_config_from_args
+
+    if not Path(args.images).is_dir():
+        raise InputError(f"{args.images}: not a folder of images")
+    config = ReconstructConfig(frontend=frontend_config_from_args(args), mapper=mapper_config(args))
+    report = reconstruct(config, args.images, args.output, text=args.text, resume=args.resume,
+                         overwrite=args.overwrite)
+    log = logging.getLogger("mvrecon")
+    registered = sum(1 for s in report["images"].values() if s["status"] == "registered")
+    log.info("%s: %d of %d images registered in %d model(s); wrote sparse/, points.ply, report.json",
+             args.output, registered, len(report["images"]), len(report["models"]))
+    return 0

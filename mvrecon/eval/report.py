@@ -1,0 +1,208 @@
+"""The comparison report: `index.html` (one self-contained file that opens offline), `metrics.json`, `metrics.csv`.
+
+The page is built from the same metrics dict that metrics.json holds; `format_value` is the one way a number is
+printed, so a test (or a reader) can match any cell of the page to the file.
+"""
+
+import base64
+import csv
+import html
+import json
+from pathlib import Path
+
+from . import figures
+
+INTEGER_METRICS = {"registered", "components", "points", "verified_pairs", "alignment_inliers"}
+
+
+def format_value(metric: str, value) -> str:
+    """How a metric's value is printed in the page ("—" when there is none)."""
+    if value is None:
+        return "—"
+    if metric in INTEGER_METRICS:
+        return f"{int(round(value)):d}"
+    if metric.startswith("auc@"):
+        return f"{value:.3f}"
+    if metric in ("registered_pct", "keypoints_per_image", "mean_inliers_per_pair", "peak_mem_mb"):
+        return f"{value:.1f}"
+    if metric == "time_ratio_vs_colmap":
+        return f"{value:.2f}"
+    if metric.endswith("wall_s"):
+        return f"{value:.2f}"
+    return f"{value:.4g}"
+
+
+def write_report(comparison, report_dir) -> Path:
+    """Write index.html, metrics.json and metrics.csv into REPORT_DIR; returns the page's path."""
+    report_dir = Path(report_dir)
+    report_dir.mkdir(parents=True, exist_ok=True)
+    m = comparison.metrics
+    (report_dir / "metrics.json").write_text(json.dumps(m, indent=1))
+    write_csv(m, report_dir / "metrics.csv")
+    page = report_dir / "index.html"
+    page.write_text(render_html(comparison), encoding="utf-8")
+    return page
+
+
+def write_csv(m: dict, path) -> None:
+    """Long format, one number per line: section (summary, stage, image), engine, item, metric, value."""
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["section", "engine", "item", "metric", "value"])
+        for row in m["rows"]:
+            for engine, value in row["values"].items():
+                w.writerow(["summary", engine, "", row["metric"], "" if value is None else value])
+        for engine, e in m["engines"].items():
+            for stage, s in e["stages"].items():
+                for key, value in s.items():
+                    w.writerow(["stage", engine, stage, key, value])
+            for name, v in e["per_image"].items():
+                w.writerow(["image", engine, name, "registered", int(v["status"] == "registered")])
+                if v.get("model") is not None:
+                    w.writerow(["image", engine, name, "model", v["model"]])
+                for key in ("rotation_error_deg", "center_error", "center_error_pct"):
+                    if v.get(key) is not None:
+                        w.writerow(["image", engine, name, key, v[key]])
+
+
+def _img(png: bytes | None, alt: str) -> str:
+    if png is None:
+        return f"<p class='muted'>{html.escape(alt)}: nothing to plot (no model could be compared).</p>"
+    return f"<img alt='{html.escape(alt)}' src='data:image/png;base64,{base64.b64encode(png).decode()}'>"
+
+
+def _summary_table(m: dict) -> str:
+    engines = list(m["engines"])
+    head = "".join(f"<th data-engine='{html.escape(n)}'>{html.escape(n)}"
+                   f"<div class='role'>{m['engines'][n]['role']}</div></th>" for n in engines)
+    body = []
+    for row in m["rows"]:
+        arrow = {"higher": " ↑", "lower": " ↓"}.get(row["better"], "")
+        unit = f" ({html.escape(row['unit'])})" if row["unit"] else ""
+        cells = []
+        for n in engines:
+            value = row["values"].get(n)
+            text = format_value(row["metric"], value)
+            if value is None and m["engines"][n]["role"] == "reference" and row["metric"] in _accuracy_metrics():
+                text = "ref"
+            win = n in row["winners"]
+            cells.append(f"<td class='{'winner' if win else ''}' data-engine='{html.escape(n)}' "
+                         f"data-metric='{html.escape(row['metric'])}'><span class='v'>{text}</span>"
+                         f"{'<span class=star title=winner> ★</span>' if win else ''}</td>")
+        body.append(f"<tr data-metric='{html.escape(row['metric'])}'><th>{html.escape(row['label'])}{unit}"
+                    f"<span class='muted'>{arrow}</span></th>{''.join(cells)}</tr>")
+    return (f"<table id='summary' class='grid'><thead><tr><th>metric</th>{head}</tr></thead>"
+            f"<tbody>{''.join(body)}</tbody></table>")
+
+
+def _accuracy_metrics():
+    from .compare import ACCURACY_KEYS
+
+    return ACCURACY_KEYS
+
+
+def _unregistered(m: dict) -> str:
+    parts = []
+    for n, e in m["engines"].items():
+        missing = {img: v for img, v in e["per_image"].items() if v["status"] != "registered"}
+        other = {img: v for img, v in e["per_image"].items() if v["status"] == "registered" and v.get("model")}
+        head = f"<h3>{html.escape(n)}: {len(missing)} of {len(e['per_image'])} images not registered</h3>"
+        if e["error"]:
+            head += f"<p class='error'>The run failed: {html.escape(e['error'])}</p>"
+        rows = "".join(f"<tr><td>{html.escape(img)}</td><td>{html.escape(v['reason'] or '')}</td></tr>"
+                       for img, v in missing.items())
+        rows += "".join(f"<tr><td>{html.escape(img)}</td><td>registered, but in model {v['model']} (not the "
+                        f"largest): no absolute errors</td></tr>" for img, v in other.items())
+        table = (f"<table class='grid unreg' data-engine='{html.escape(n)}'><tr><th>image</th><th>reason</th></tr>"
+                 f"{rows}</table>") if rows else "<p class='muted'>every image is in the largest model.</p>"
+        parts.append(head + table)
+    return "".join(parts)
+
+
+def _per_image_table(m: dict) -> str:
+    engines = [n for n, e in m["engines"].items() if e["role"] != "reference"]
+    head = "".join(f"<th colspan=2>{html.escape(n)}</th>" for n in engines)
+    sub = "".join("<th>rot (deg)</th><th>centre (%)</th>" for _ in engines)
+    rows = []
+    for img in m["images"]:
+        cells = []
+        for n in engines:
+            v = m["engines"][n]["per_image"].get(img, {})
+            if v.get("status") != "registered":
+                cells.append("<td colspan=2 class='muted'>not registered</td>")
+            else:
+                cells.append(f"<td>{format_value('rotation_error_deg', v.get('rotation_error_deg'))}</td>"
+                             f"<td>{format_value('center_error_pct', v.get('center_error_pct'))}</td>")
+        rows.append(f"<tr><td>{html.escape(img)}</td>{''.join(cells)}</tr>")
+    return (f"<table class='grid small'><tr><th rowspan=2>image</th>{head}</tr><tr>{sub}</tr>"
+            f"{''.join(rows)}</table>")
+
+
+CSS = """
+body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:24px auto;max-width:1280px;color:#222;
+padding:0 16px}
+h1{margin-bottom:4px} h2{margin-top:36px;border-bottom:1px solid #ddd;padding-bottom:4px}
+.muted{color:#888;font-weight:normal} .error{color:#b00020}
+table.grid{border-collapse:collapse;font-size:14px} table.grid td,table.grid th{border:1px solid #ddd;
+padding:4px 10px;text-align:right} table.grid th:first-child,table.grid td:first-child{text-align:left}
+table.grid thead th{background:#f4f4f4} .role{font-size:11px;color:#888;font-weight:normal}
+td.winner{background:#e3f4e1;font-weight:600} .star{color:#2e7d32}
+table.small{font-size:12px} table.unreg td{text-align:left}
+img{max-width:100%;border:1px solid #eee;margin:8px 0}
+.meta{color:#555;font-size:14px;line-height:1.5} #scene3d{border:1px solid #eee}
+"""
+
+
+def render_html(comparison) -> str:
+    m = comparison.metrics
+    ref = m["reference"]
+    machine = m["machine"]
+    extent = next((e["alignment"]["scene_extent"] for e in m["engines"].values() if e.get("alignment")), None)
+    scene = figures.scene_3d_html(comparison.geometry, extent) if comparison.geometry else \
+        "<p class='muted'>no model to draw.</p>"
+    reference_line = (f"ground truth ({html.escape(str(ref['source']))}, {ref['images']} images)"
+                      if ref["name"] == "ground truth" else
+                      f"the <b>{html.escape(str(ref['name']))}</b> model (no ground truth given): its own accuracy "
+                      "cells read 'ref', and images it did not register cannot be scored")
+    note = f"<p class='error'>{html.escape(ref['note'])}</p>" if ref.get("note") else ""
+    folders = ", ".join(html.escape(e["out_dir"]) for e in m["engines"].values())
+    return f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>mvrecon compare: {html.escape(m['title'])}</title>
+<meta name="viewport" content="width=device-width, initial-scale=1"><style>{CSS}</style></head>
+<body>
+<h1>mvrecon vs COLMAP: {html.escape(m['title'])}</h1>
+<div class="meta">{len(m['images'])} images from <code>{html.escape(m['source'])}</code><br>
+Reference: {reference_line}<br>
+Run {html.escape(m['created'])} on {html.escape(str(machine['cpu']))}, {machine['cores']} cores,
+{machine['memory_gb']} GB, {html.escape(machine['system'])}, Python {html.escape(machine['python'])}</div>{note}
+
+<h2>Summary</h2>
+<p class="meta">★ marks the best value of a row among the end-to-end engines (↑ higher is better, ↓ lower);
+ties and rows without a direction have no star. <i>colmap-same-matches</i> is COLMAP's mapper on mvrecon's own
+matches: where it beats mvrecon the mapper is to blame, where it matches mvrecon the front end is.
+Accuracy: relative-pose AUC over all image pairs (a pair with an unregistered image or split across models counts
+180 deg); absolute errors after a robust Sim3 of the largest model's camera centres onto the reference, checked
+against pycolmap's own alignment ("our Sim3 vs pycolmap's": largest disagreement of the placed centres).</p>
+{_summary_table(m)}
+
+<h2>Cumulative errors</h2>
+{_img(figures.cumulative_errors_png(m), "cumulative error curves")}
+
+<h2>Per-image errors</h2>
+{_img(figures.per_image_errors_png(m), "per-image errors")}
+<details><summary>the numbers</summary>{_per_image_table(m)}</details>
+
+<h2>Time and memory</h2>
+{_img(figures.timing_png(m), "per-stage timing")}
+
+<h2>Images not registered</h2>
+{_unregistered(m)}
+
+<h2>3D view (aligned to the reference)</h2>
+<p class="meta">Drag to rotate, scroll to zoom; click a legend entry to hide or show a model's cameras or points.</p>
+{scene}
+
+<p class="meta">Every number on this page is in <a href="metrics.json">metrics.json</a> and
+<a href="metrics.csv">metrics.csv</a>. Engine folders: {folders}.</p>
+</body></html>
+"""

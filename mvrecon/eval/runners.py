@@ -1,0 +1,409 @@
+"""Run the engines under comparison on the same images, each in its own subprocess, into one `report.json` schema.
+
+- `run_mvrecon`: our `mvrecon reconstruct` CLI, exactly as a user runs it.
+- `run_colmap`: pycolmap's extract_features + match_exhaustive + incremental_mapping (or global_mapping), CPU,
+  with the same camera mode and model; engine "colmap" (or "colmap-global").
+- `run_colmap_on_database`: COLMAP's incremental mapper on mvrecon's own database ("same matches"), which separates
+  front-end differences from mapper differences.
+
+Each run happens in a subprocess so its wall time and peak memory are its own and a crash cannot take the caller
+down. A finished OUT (its `runner.json` says so, with the same options) is read back instead of rerun, and so is a
+run that timed out (rerunning would only time out again); a run that failed otherwise is retried next time. OUT
+with a run made with other options is refused, so numbers from different settings never mix. Delete OUT to rerun
+after changing an engine.
+"""
+
+import argparse
+import json
+import logging
+import os
+import resource
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from ..errors import InputError
+
+log = logging.getLogger("mvrecon.eval.runners")
+
+CAMERA_MODES = ("auto", "single", "per-folder", "per-image")
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """Settings both engines get, so a comparison differs only in the engine."""
+
+    camera_mode: str = "auto"  # auto: images of one size and EXIF camera share intrinsics (mvrecon's rule, both)
+    camera_model: str = "SIMPLE_RADIAL"  # COLMAP's model name; both engines' default
+    camera_params: tuple[float, ...] = ()  # known intrinsics in camera_model's layout (trusted); empty: estimate
+    seed: int = 0  # random seed of both engines (COLMAP's RANSAC and mapper, mvrecon's --seed)
+    mvrecon_args: tuple[str, ...] = ()  # extra flags for `mvrecon reconstruct` only (e.g. matcher settings)
+
+    def __post_init__(self):
+        if self.camera_mode not in CAMERA_MODES:
+            raise InputError(f"camera mode {self.camera_mode!r}: expected one of {', '.join(CAMERA_MODES)}")
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["camera_params"], d["mvrecon_args"] = list(self.camera_params), list(self.mvrecon_args)
+        return d
+
+
+@dataclass(kw_only=True)
+class RunResult:
+    """One engine's run: its folder, its report.json, its models (largest first), and what it cost."""
+
+    engine: str
+    out_dir: Path
+    report: dict = field(default_factory=dict)
+    models: list = field(default_factory=list)  # pycolmap.Reconstruction, largest first
+    wall_s: float = float("nan")  # wall time of the whole subprocess, measured the same way for every engine
+    peak_mem_mb: float = float("nan")  # largest summed RSS of the run's process tree (else report.json's total)
+    error: str | None = None  # why the run produced no report (crash, timeout, bad input), else None
+
+    @property
+    def poses(self) -> list[dict]:
+        """name -> (R, t) per model, largest first: what `eval.metrics` takes."""
+        from .models import poses
+
+        return [poses(m) for m in self.models]
+
+
+def run_mvrecon(image_dir, out_dir, options: RunOptions = RunOptions(), timeout: float | None = None) -> RunResult:
+    """`mvrecon reconstruct IMAGE_DIR -o OUT_DIR` with the options' camera settings and seed.
+
+    Known intrinsics (`camera_params`) are held fixed, as `run_colmap` holds them in COLMAP's bundle adjustment."""
+    cmd = [sys.executable, "-m", "mvrecon.cli", "reconstruct", str(image_dir), "-o", str(out_dir), "-q",
+           "--seed", str(options.seed), "--camera-mode", options.camera_mode, "--camera-model", options.camera_model]
+    if options.camera_params:  # known intrinsics stay fixed, in both engines
+        cmd += ["--camera-params", ",".join(f"{p:.17g}" for p in options.camera_params), "--fix-intrinsics"]
+    cmd += list(options.mvrecon_args)
+    return _run("mvrecon", cmd, Path(image_dir), Path(out_dir), options, timeout)
+
+
+def run_colmap(image_dir, out_dir, options: RunOptions = RunOptions(), global_mapper: bool = False,
+               timeout: float | None = None) -> RunResult:
+    """pycolmap end to end on the CPU: extract_features, match_exhaustive, incremental (or global) mapping."""
+    engine = "colmap-global" if global_mapper else "colmap"
+    cmd = [sys.executable, "-m", "mvrecon.eval.runners", "colmap", str(image_dir), str(out_dir),
+           "--options", json.dumps(options.to_dict())] + (["--global-mapper"] if global_mapper else [])
+    return _run(engine, cmd, Path(image_dir), Path(out_dir), options, timeout)
+
+
+def run_colmap_on_database(database_path, out_dir, image_dir=None, options: RunOptions = RunOptions(),
+                           timeout: float | None = None) -> RunResult:
+    """COLMAP's incremental mapper on a copy of another engine's database (the original is left untouched).
+
+    `image_dir` only serves to colour the points.
+    """
+    database_path = Path(database_path)
+    if not database_path.is_file():
+        raise InputError(f"{database_path}: no such database")
+    cmd = [sys.executable, "-m", "mvrecon.eval.runners", "colmap-db", str(database_path), str(out_dir),
+           "--options", json.dumps(options.to_dict())] + (["--image-dir", str(image_dir)] if image_dir else [])
+    return _run("colmap-same-matches", cmd, database_path, Path(out_dir), options, timeout)
+
+
+def load_run(out_dir, engine: str | None = None) -> RunResult:
+    """A finished engine folder (ours or any OUT with report.json and sparse/), without running anything."""
+    from .models import sparse_models
+
+    out_dir = Path(out_dir)
+    report_path = out_dir / "report.json"
+    if not report_path.is_file():
+        raise InputError(f"{out_dir}: no report.json (not a finished mvrecon/colmap run)")
+    report = json.loads(report_path.read_text())
+    meta = _read_json(out_dir / "runner.json")
+    total = report.get("total", {})
+    return RunResult(engine=engine or report.get("engine", "unknown"), out_dir=out_dir, report=report,
+                     models=sparse_models(out_dir / "sparse"),
+                     wall_s=float(meta.get("wall_s", total.get("wall_s", float("nan")))),
+                     # sampling the tree can miss a short spike that the main process's own max RSS saw
+                     peak_mem_mb=max(float(meta.get("peak_tree_mem_mb") or 0.0),
+                                     float(total.get("peak_mem_mb") or 0.0)) or float("nan"))
+
+
+def _read_json(path) -> dict:
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout) -> RunResult:
+    if not source.exists():
+        raise InputError(f"{source}: not found")
+    identity = {"engine": engine, "source": str(source.resolve()), "options": options.to_dict()}
+    meta_path = out_dir / "runner.json"
+    meta = _read_json(meta_path)
+    if meta:
+        differing = [k for k in identity if meta.get(k) != identity[k]]
+        if differing:
+            raise InputError(f"{out_dir}: holds a run with a different {', '.join(differing)} "
+                             f"({meta.get('engine')} on {meta.get('source')}); use another folder or delete it")
+        if meta.get("finished"):
+            return _result(engine, out_dir, meta)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    meta_path.write_text(json.dumps({**identity, "finished": False}, indent=1))
+    log.debug("running %s on %s -> %s", engine, source, out_dir)
+    start = time.perf_counter()
+    with open(out_dir / "run.log", "w") as logf:
+        proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, start_new_session=True,
+                                env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        try:
+            code, peak_mb = _wait_measuring_memory(proc, timeout)
+            error = None if code == 0 else _failure_line(out_dir / "run.log", code)
+        except subprocess.TimeoutExpired:
+            peak_mb = None
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+            error = f"timed out after {timeout:g} s"
+        except BaseException:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+            raise
+    timed_out = error is not None and error.startswith("timed out")
+    meta = {**identity, "finished": error is None or timed_out, "wall_s": time.perf_counter() - start,
+            "peak_tree_mem_mb": peak_mb, "error": error, "command": cmd}
+    meta_path.write_text(json.dumps(meta, indent=1))
+    return _result(engine, out_dir, meta)
+
+
+def _wait_measuring_memory(proc, timeout, interval: float = 0.2) -> tuple[int, float]:
+    """Wait for the run; return its exit code and the largest summed RSS (MB) of its whole process tree.
+
+    Sampled by the parent in the same way for every engine, so worker processes (mvrecon's feature pool) count
+    as much as threads (COLMAP's) do. Raises subprocess.TimeoutExpired after `timeout` seconds.
+    """
+    import psutil
+
+    deadline = None if timeout is None else time.monotonic() + timeout
+    peak = 0.0
+    root = psutil.Process(proc.pid)
+    while True:
+        try:
+            code = proc.wait(timeout=interval)
+            return code, peak / 2 ** 20
+        except subprocess.TimeoutExpired:
+            if deadline is not None and time.monotonic() > deadline:
+                raise
+        rss = 0
+        try:
+            for p in [root, *root.children(recursive=True)]:
+                try:
+                    rss += p.memory_info().rss
+                except psutil.Error:
+                    pass
+        except psutil.Error:
+            pass
+        peak = max(peak, rss)
+
+
+def _failure_line(log_path: Path, code: int) -> str:
+    lines = [ln.strip() for ln in log_path.read_text(errors="replace").splitlines() if ln.strip()]
+    errors = [ln for ln in lines if "error" in ln.lower()]
+    return f"exit code {code}: {(errors or lines or ['no output'])[-1][:300]}"
+
+
+def _result(engine, out_dir: Path, meta: dict) -> RunResult:
+    if meta.get("error") or not (out_dir / "report.json").is_file():
+        return RunResult(engine=engine, out_dir=out_dir, wall_s=float(meta.get("wall_s", float("nan"))),
+                         error=meta.get("error") or "the run wrote no report.json")
+    result = load_run(out_dir, engine)
+    result.error = None
+    return result
+
+
+# --- the COLMAP side, run inside the subprocess ---------------------------------------------------------------
+
+class _Stages:
+    """Wall time and the process's max RSS at the end of each stage (report.json's `stages`)."""
+
+    def __init__(self):
+        self.start = time.perf_counter()
+        self.stages = {}
+        self._t = self.start
+
+    def done(self, name: str) -> None:
+        now = time.perf_counter()
+        self.stages[name] = {"wall_s": now - self._t, "peak_mem_mb": _peak_mem_mb()}
+        self._t = now
+
+    def total(self) -> dict:
+        return {"wall_s": time.perf_counter() - self.start, "peak_mem_mb": _peak_mem_mb()}
+
+
+def _peak_mem_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux reports KiB
+
+
+def _colmap_main(image_dir: Path, out_dir: Path, options: dict, global_mapper: bool) -> None:
+    import pycolmap
+
+    pycolmap.set_random_seed(int(options["seed"]))
+    db = out_dir / "database.db"
+    if db.exists():
+        db.unlink()  # an unfinished earlier attempt: start clean
+    stages = _Stages()
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = options["camera_model"]
+    if options["camera_params"]:
+        reader.camera_params = ",".join(f"{p:.17g}" for p in options["camera_params"])
+    mode = {"auto": pycolmap.CameraMode.AUTO, "single": pycolmap.CameraMode.SINGLE,
+            "per-folder": pycolmap.CameraMode.PER_FOLDER, "per-image": pycolmap.CameraMode.PER_IMAGE}
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.use_gpu = False
+    if options["camera_mode"] == "auto":
+        for names in _camera_groups(image_dir):  # one SINGLE-camera extraction per group of mvrecon's auto rule
+            pycolmap.extract_features(db, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                                      reader_options=reader, extraction_options=extraction,
+                                      device=pycolmap.Device.cpu)
+    else:
+        pycolmap.extract_features(db, image_dir, camera_mode=mode[options["camera_mode"]], reader_options=reader,
+                                  extraction_options=extraction, device=pycolmap.Device.cpu)
+    stages.done("features")
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.use_gpu = False
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = int(options["seed"])
+    pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification,
+                              device=pycolmap.Device.cpu)
+    stages.done("matching")
+    models = _map(db, image_dir, out_dir, options, global_mapper)
+    stages.done("mapping")
+    _write_outputs(out_dir, "colmap-global" if global_mapper else "colmap", options, models, db, stages)
+
+
+def _colmap_db_main(database: Path, out_dir: Path, options: dict, image_dir: Path | None) -> None:
+    import pycolmap
+
+    pycolmap.set_random_seed(int(options["seed"]))
+    db = out_dir / "database.db"
+    shutil.copyfile(database, db)
+    stages = _Stages()
+    models = _map(db, image_dir, out_dir, options, False)
+    stages.done("mapping")
+    _write_outputs(out_dir, "colmap-same-matches", options, models, db, stages)
+
+
+def _camera_groups(image_dir: Path) -> list[list[str]]:
+    """Images that share a camera under mvrecon's `auto` rule (same size and EXIF make/model/focal).
+
+    COLMAP's own CameraMode.AUTO gives every image without EXIF focal length a camera of its own (19 cameras for
+    templeRing's 19 PNGs), while mvrecon shares one; grouping the same way keeps "same camera settings" true.
+    """
+    from ..cameras import CameraConfig, group_cameras
+    from ..io.images import image_metadata, list_images
+
+    names, _ = list_images(image_dir)
+    metas = {n: image_metadata(image_dir / n) for n in names}
+    return [members for _, members in group_cameras(names, metas, CameraConfig(mode="auto"))]
+
+
+def _map(db: Path, image_dir, out_dir: Path, options: dict, global_mapper: bool) -> list:
+    import pycolmap
+
+    with tempfile.TemporaryDirectory(dir=out_dir, prefix="mapper-") as tmp:
+        if global_mapper:
+            opts = pycolmap.GlobalPipelineOptions()
+            opts.random_seed = int(options["seed"])
+            found = pycolmap.global_mapping(db, image_dir or "", tmp, opts)
+        else:
+            opts = pycolmap.IncrementalPipelineOptions()
+            opts.random_seed = int(options["seed"])
+            if options["camera_params"]:
+                opts.ba_refine_focal_length = False
+                opts.ba_refine_extra_params = False
+            found = pycolmap.incremental_mapping(db, image_dir or "", tmp, opts)
+        return sorted(found.values(), key=lambda r: r.num_reg_images(), reverse=True)
+
+
+def _write_outputs(out_dir: Path, engine: str, options: dict, models: list, db: Path, stages: _Stages) -> None:
+    from .. import __version__
+    from ..database import read_correspondences
+    from .models import model_stats
+
+    sparse = out_dir / "sparse"
+    if sparse.exists():
+        shutil.rmtree(sparse)
+    for k, rec in enumerate(models):
+        (sparse / str(k)).mkdir(parents=True)
+        rec.write(str(sparse / str(k)))
+    if models:
+        models[0].export_PLY(str(out_dir / "points.ply"))
+    corr = read_correspondences(db)
+    model_of = {}
+    for k, rec in enumerate(models):
+        for im in rec.images.values():
+            if im.has_pose:
+                model_of.setdefault(im.name, k)
+    paired = {i for p in corr.pairs for i in (p.image_id1, p.image_id2)}
+    images = {}
+    for image_id, info in sorted(corr.images.items(), key=lambda kv: kv[1].name):
+        if info.name in model_of:
+            images[info.name] = {"status": "registered", "model": model_of[info.name], "reason": None}
+            continue
+        if len(corr.keypoints.get(image_id, ())) == 0:
+            reason = "no keypoints"
+        elif image_id not in paired:
+            reason = "no verified pairs"
+        else:
+            reason = "COLMAP's mapper did not register it (it gives no reason)"
+        images[info.name] = {"status": "unregistered", "model": None, "reason": reason}
+    report = {
+        "engine": engine, "version": f"pycolmap {_pycolmap_version()} via mvrecon {__version__}",
+        "config_hash": "", "seed": int(options["seed"]), "images": images,
+        "models": [{"index": k, **model_stats(rec)} for k, rec in enumerate(models)],
+        "stages": stages.stages, "total": stages.total(), "counts": database_counts(db),
+    }
+    (out_dir / "report.json").write_text(json.dumps(report, indent=1))
+
+
+def database_counts(db) -> dict:
+    """Images, keypoints per image, verified pairs and mean inliers per pair of a COLMAP database.
+
+    Counted the same way for every engine: a pair is verified when its two-view geometry is neither undefined,
+    degenerate nor a watermark and keeps inlier matches.
+    """
+    from ..database import read_correspondences
+
+    corr = read_correspondences(db)
+    pairs = [p for p in corr.pairs if p.config not in ("UNDEFINED", "DEGENERATE", "WATERMARK")]
+    n_kp = [len(corr.keypoints.get(i, ())) for i in corr.images]
+    return {"images": len(corr.images), "keypoints_per_image": float(sum(n_kp) / max(len(n_kp), 1)),
+            "verified_pairs": len(pairs),
+            "mean_inliers_per_pair": float(sum(len(p.inliers) for p in pairs) / max(len(pairs), 1))}
+
+
+def _pycolmap_version() -> str:
+    import pycolmap
+
+    return pycolmap.__version__
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m mvrecon.eval.runners",
+                                     description="The COLMAP side of a comparison (used by run_colmap*).")
+    parser.add_argument("mode", choices=("colmap", "colmap-db"))
+    parser.add_argument("source", type=Path, help="image folder (colmap) or database (colmap-db)")
+    parser.add_argument("out_dir", type=Path)
+    parser.add_argument("--options", required=True, help="RunOptions as JSON")
+    parser.add_argument("--global-mapper", action="store_true")
+    parser.add_argument("--image-dir", type=Path)
+    args = parser.parse_args(argv)
+    options = json.loads(args.options)
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    if args.mode == "colmap":
+        _colmap_main(args.source, args.out_dir, options, args.global_mapper)
+    else:
+        _colmap_db_main(args.source, args.out_dir, options, args.image_dir)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,135 @@
+"""A local process pool for per-item work (feature extraction, pair batches), results yielded as they finish.
+
+Processes rather than threads because SIFT and RANSAC hold the GIL in their Python glue and because a crash in
+native code then takes down one worker, not the run. While the parent has not loaded OpenCV, workers are plain
+forks (instant, modules inherited). Once it has, they come from a `forkserver` that preloaded the heavy modules,
+because forking a process whose OpenCV thread pool is running can deadlock. Each worker runs its native
+libraries single-threaded: the pool already uses every core, and oversubscription only adds contention.
+
+With `workers <= 1` everything runs in the calling process, which keeps tracebacks simple and tests fast.
+"""
+
+import ctypes
+import logging
+import multiprocessing
+import os
+import sys
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
+
+_PRELOAD = ["numpy", "cv2", "mvrecon.features.sift"]  # what extraction workers need; no pycolmap
+_SINGLE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+_context = None
+
+
+def default_workers() -> int:
+    """Cores this process may use."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:
+        return max(1, os.cpu_count() or 1)
+
+
+def _get_context():
+    global _context
+    if "cv2" not in sys.modules:
+        # Nothing here has started OpenCV's thread pool yet, so plain fork is safe, and it is instant: the
+        # workers inherit the loaded modules instead of importing them (~1 s saved per run on small sets).
+        return multiprocessing.get_context("fork")
+    if _context is None:
+        ctx = multiprocessing.get_context("forkserver")
+        ctx.set_forkserver_preload(_PRELOAD)
+        # The forkserver inherits the environment at its start; BLAS reads these when numpy is first imported.
+        saved = {k: os.environ.get(k) for k in _SINGLE_THREAD_ENV}
+        os.environ.update(_SINGLE_THREAD_ENV)
+        try:
+            from multiprocessing import forkserver
+            forkserver.ensure_running()
+        finally:
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
+        _context = ctx
+    return _context
+
+
+def warm_up(workers: int) -> None:
+    """Start the worker server now (it imports OpenCV/numpy in the background) so that its start-up overlaps
+    whatever the caller does before `parallel_map`, e.g. listing and probing the images."""
+    if workers > 1:
+        _get_context()
+
+
+def _init_worker():
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
+def parallel_map(func: Callable, items: Iterable, workers: int | None = None) -> Iterator:
+    """Yield `func(item)` for every item, in completion order, using up to `workers` processes.
+
+    `func` must be a module-level function and its result picklable; `func` should catch its own expected
+    errors and return them as values, so one bad item does not end the whole map. Closing the iterator early
+    (an exception or Ctrl-C in the consumer) terminates the workers.
+    """
+    items = list(items)
+    workers = default_workers() if workers is None else workers
+    workers = min(workers, len(items))
+    if workers <= 1:
+        for item in items:
+            yield func(item)
+        return
+    ctx = _get_context()
+    logging.getLogger(__name__).debug("process pool: %d %s workers", workers, ctx.get_start_method())
+    pool = ctx.Pool(workers, initializer=_init_worker)
+    finished = False
+    try:
+        yield from pool.imap_unordered(func, items, chunksize=1)
+        finished = True
+    finally:
+        if finished:
+            pool.close()
+        else:
+            pool.terminate()
+        pool.join()
+
+
+def _openblas_controls():
+    """(get, set) thread-count functions of every OpenBLAS this process has loaded (numpy's, scipy's)."""
+    try:
+        with open("/proc/self/maps") as fh:
+            paths = sorted({line.split()[-1] for line in fh if "openblas" in line.lower() and "/" in line})
+    except OSError:
+        return []
+    controls = []
+    for path in paths:
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for prefix, suffix in (("scipy_openblas", "64_"), ("scipy_openblas", ""),
+                               ("openblas", "64_"), ("openblas", "")):
+            get, set_ = f"{prefix}_get_num_threads{suffix}", f"{prefix}_set_num_threads{suffix}"
+            if hasattr(lib, get) and hasattr(lib, set_):
+                controls.append((getattr(lib, get), getattr(lib, set_)))
+                break
+    return controls
+
+
+@contextmanager
+def blas_threads(n: int):
+    """Run the block with BLAS limited to `n` threads. When the caller already runs one task per core, BLAS's
+    own threads only compete with them, and OpenBLAS threads spin while they wait: on a busy 2-core machine
+    descriptor matching ran 3x slower with them than without."""
+    controls = _openblas_controls()
+    saved = [get() for get, _ in controls]
+    for _, set_ in controls:
+        set_(int(n))
+    try:
+        yield
+    finally:
+        for (_, set_), value in zip(controls, saved):
+            set_(int(value))

@@ -1,0 +1,1 @@
+"""Feature detection and description (SIFT via OpenCV, keypoints in COLMAP's pixel convention)."""

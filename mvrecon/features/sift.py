@@ -1,0 +1,80 @@
+"""SIFT keypoints and descriptors with OpenCV, in COLMAP's conventions.
+
+`extract_sift(image, config) -> (keypoints, descriptors)`:
+- `image`: any array `read_image` returns (grey or RGB, 8 or 16 bit);
+- `keypoints`: (N,4) float32 x, y, scale, orientation. x, y are in COLMAP's pixel convention (top-left pixel
+  centre at (0.5, 0.5): subtract 0.5 for OpenCV drawing/geometry); scale is the blob's sigma in full-resolution
+  pixels (OpenCV's `size` / 2); orientation is OpenCV's angle in radians;
+- `descriptors`: (N,128) uint8, L2-unit (or RootSIFT) vectors scaled by 512 and clipped at 255, as COLMAP stores
+  them, so `descriptors / 512` is (nearly) unit length.
+
+Images larger than `max_image_size` on their long side are shrunk first (SIFT on a 6000 px photo costs a lot and
+finds mostly noise-scale blobs) and the keypoints are mapped back to full-resolution coordinates.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..io.images import read_image, to_gray_uint8
+
+
+@dataclass(frozen=True)
+class SiftConfig:
+    max_num_features: int = 8192  # keep the strongest responses, as COLMAP's max_num_features
+    max_image_size: int = 3200  # long side in pixels before detection; keypoints are mapped back
+    peak_threshold: float = 0.02 / 3  # COLMAP/VLFeat DoG threshold on [0,1] intensities; lower = more points
+    edge_threshold: float = 10.0  # reject edge-like responses (ratio of principal curvatures)
+    num_octave_layers: int = 3  # DoG layers per octave
+    upright: bool = False  # all orientations 0 (faster, better when the camera never rolls)
+    root_sift: bool = True  # RootSIFT (L1 normalise, square root): better matching, COLMAP's default
+
+
+def extract_sift(image: np.ndarray, config: SiftConfig = SiftConfig()) -> tuple[np.ndarray, np.ndarray]:
+    """SIFT on an image array: (N,4) keypoints in full-resolution COLMAP pixels, (N,128) uint8 descriptors."""
+    import cv2
+
+    gray = to_gray_uint8(image)
+    h, w = gray.shape
+    factor = min(1.0, config.max_image_size / max(h, w))
+    if factor < 1.0:
+        size = (max(1, round(w * factor)), max(1, round(h * factor)))
+        gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
+    sx, sy = w / gray.shape[1], h / gray.shape[0]
+    # OpenCV compares |DoG| with 0.5 * contrastThreshold / nOctaveLayers; VLFeat/COLMAP with peak_threshold.
+    sift = cv2.SIFT_create(nfeatures=config.max_num_features, nOctaveLayers=config.num_octave_layers,
+                           contrastThreshold=2.0 * config.peak_threshold * config.num_octave_layers,
+                           edgeThreshold=config.edge_threshold)
+    if config.upright:
+        kps = sift.detect(gray, None)
+        unique = {}
+        for kp in kps:  # OpenCV duplicates a blob for each dominant orientation; upright needs it once
+            unique.setdefault((round(kp.pt[0], 2), round(kp.pt[1], 2), round(kp.size, 2)), kp)
+        kps = [cv2.KeyPoint(k.pt[0], k.pt[1], k.size, 0.0, k.response, k.octave, k.class_id)
+               for k in unique.values()]
+        kps, desc = sift.compute(gray, kps) if kps else ((), None)
+    else:
+        kps, desc = sift.detectAndCompute(gray, None)
+    if not kps or desc is None:
+        return np.zeros((0, 4), np.float32), np.zeros((0, 128), np.uint8)
+    keypoints = np.array([(k.pt[0], k.pt[1], k.size, k.angle) for k in kps], dtype=np.float64)
+    keypoints[:, 0] = (keypoints[:, 0] + 0.5) * sx  # OpenCV pixel centre (0,0) -> COLMAP (0.5,0.5), full size
+    keypoints[:, 1] = (keypoints[:, 1] + 0.5) * sy
+    keypoints[:, 2] *= 0.5 * (sx + sy) / 2
+    keypoints[:, 3] = np.radians(keypoints[:, 3])
+    return keypoints.astype(np.float32), descriptors_to_uint8(desc, root=config.root_sift)
+
+
+def descriptors_to_uint8(desc: np.ndarray, root: bool) -> np.ndarray:
+    """COLMAP's storage: unit vectors (L2, or RootSIFT) * 512, clipped to 255, as uint8."""
+    d = np.asarray(desc, dtype=np.float32)
+    if root:
+        d = np.sqrt(d / np.maximum(d.sum(axis=1, keepdims=True), 1e-12))
+    else:
+        d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    return np.clip(np.round(d * 512.0), 0, 255).astype(np.uint8)
+
+
+def extract_sift_from_file(path, config: SiftConfig = SiftConfig()) -> tuple[np.ndarray, np.ndarray]:
+    """`read_image` + `extract_sift`; an undecodable file raises InputError naming it."""
+    return extract_sift(read_image(path), config)

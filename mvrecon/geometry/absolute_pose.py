@@ -1,0 +1,65 @@
+"""Absolute camera pose from 2D-3D matches: P3P in RANSAC (OpenCV), then refinement with or without the focal.
+
+Image points are "ideal" pixels: distortion removed but the focal length and principal point kept, so the
+RANSAC threshold stays in pixels. Poses are cam_from_world (x = K (R X + t)).
+"""
+
+import numpy as np
+
+
+def pnp_ransac(X, uv, K, threshold_px: float, seed: int = 0, confidence: float = 0.9999,
+               max_iterations: int = 10000):
+    """(R, t, inlier mask) or None: P3P minimal samples in RANSAC, EPnP on the inliers, then LM on them."""
+    import cv2
+
+    X = np.ascontiguousarray(X, dtype=np.float64).reshape(-1, 3)
+    uv = np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 2)
+    if len(X) < 4:
+        return None
+    cv2.setRNGSeed(int(seed))
+    ok, rvec, tvec, inliers = cv2.solvePnPRansac(X, uv, K, None, iterationsCount=max_iterations,
+                                                 reprojectionError=float(threshold_px), confidence=confidence,
+                                                 flags=cv2.SOLVEPNP_P3P)
+    if not ok or inliers is None or len(inliers) < 4:
+        return None
+    mask = np.zeros(len(X), bool)
+    mask[inliers.ravel()] = True
+    rvec, tvec = cv2.solvePnPRefineLM(X[mask], uv[mask], K, None, rvec, tvec)
+    R = cv2.Rodrigues(rvec)[0]
+    t = tvec.ravel()
+    err = reprojection_errors(X, uv, K, R, t)
+    return R, t, err < threshold_px
+
+
+def reprojection_errors(X, uv, K, R, t) -> np.ndarray:
+    """Pixel distance of each projected point to its observation; inf behind the camera."""
+    Xc = np.asarray(X) @ R.T + t
+    z = Xc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        proj = (Xc[:, :2] / z[:, None]) * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+    err = np.linalg.norm(proj - uv, axis=1)
+    err[~(z > 0) | ~np.isfinite(err)] = np.inf
+    return err
+
+
+def refine_pose_and_focal(X, uv, K, R, t):
+    """Least-squares pose and focal length (one f for x and y) on inlier matches: (R, t, f).
+
+    Used when the camera's focal length is only a guess and no registered image shares the camera yet, as
+    COLMAP's estimate_focal_length does; the Huber loss keeps a few bad matches from pulling the focal.
+    """
+    import cv2
+    from scipy.optimize import least_squares
+
+    rvec0 = cv2.Rodrigues(np.asarray(R, dtype=float))[0].ravel()
+    f0 = float(K[0, 0])
+    cx, cy = K[0, 2], K[1, 2]
+
+    def fun(p):
+        Rm = cv2.Rodrigues(p[:3])[0]
+        Xc = X @ Rm.T + p[3:6]
+        f = f0 * np.exp(p[6])
+        return ((Xc[:, :2] / Xc[:, 2:3]) * f + [cx, cy] - uv).ravel()
+
+    res = least_squares(fun, np.r_[rvec0, t, 0.0], loss="huber", f_scale=2.0, max_nfev=100)
+    return cv2.Rodrigues(res.x[:3])[0], res.x[3:6], f0 * float(np.exp(res.x[6]))

@@ -1,0 +1,58 @@
+"""Relative pose of two calibrated views from normalised correspondences (five-point essential matrix in
+RANSAC).
+
+OpenCV's estimator is used with the identity camera matrix on normalised coordinates, so its pixel threshold
+is
+given in normalised units (pixels divided by the focal length).
+"""
+
+import numpy as np
+
+
+def relative_pose(x1, x2, threshold: float, seed: int = 0, confidence: float = 0.9999):
+    """(R, t, inlier mask) with x2 ~ R x1 + t and |t| = 1, or None when no essential matrix is found.
+
+    x1, x2: (N,2) undistorted normalised coordinates. The returned mask keeps only the inliers in front of
+    both
+    cameras (cheirality check of the chosen decomposition).
+    """
+    import cv2
+
+    x1 = np.ascontiguousarray(x1, dtype=np.float64).reshape(-1, 2)
+    x2 = np.ascontiguousarray(x2, dtype=np.float64).reshape(-1, 2)
+    if len(x1) < 5:
+        return None
+    cv2.setRNGSeed(int(seed))
+    E, mask = cv2.findEssentialMat(x1, x2, np.eye(3), method=cv2.RANSAC, prob=confidence, threshold=threshold,
+                                   maxIters=10000)
+    if E is None or E.shape != (3, 3) or mask is None:
+        return None
+    n, R, t, mask2 = cv2.recoverPose(E, x1, x2, np.eye(3), mask=mask.copy())
+    inliers = (mask2.ravel() > 0)
+    if n < 5:
+        return None
+    return R, t.ravel() / np.linalg.norm(t), inliers
+
+
+def focal_from_fundamental(F, principal_point1, principal_point2) -> tuple[float, float]:
+    """Focal lengths (f1, f2) of two views from F with known principal points (Bougnoux 1998).
+
+    Each is NaN when the formula gives a negative f^2 (noise, or a degenerate configuration such as optical
+    axes meeting in a point); callers fall back to their prior then.
+    """
+    F = np.asarray(F, dtype=float)
+    p1 = np.r_[np.asarray(principal_point1, float), 1.0]
+    p2 = np.r_[np.asarray(principal_point2, float), 1.0]
+    Ib = np.diag([1.0, 1.0, 0.0])
+
+    def one(F, pa, pb):
+        # focal of the view whose point is pa, with epipole eb in the other view (F^T eb = 0)
+        U, _, Vt = np.linalg.svd(F)
+        eb = U[:, 2]
+        ex = np.array([[0, -eb[2], eb[1]], [eb[2], 0, -eb[0]], [-eb[1], eb[0], 0]])
+        num = -(pb @ ex @ Ib @ F @ pa) * (pa @ F.T @ pb)
+        den = pb @ ex @ Ib @ F @ Ib @ F.T @ pb
+        f2 = num / den if abs(den) > 1e-300 else np.nan
+        return float(np.sqrt(f2)) if f2 > 0 else float("nan")
+
+    return one(F, p1, p2), one(F.T, p2, p1)

@@ -1,0 +1,78 @@
+"""Our `sfm.model.Reconstruction` -> `pycolmap.Reconstruction`, written as COLMAP `sparse/N` folders.
+
+Only registered images go into a model (each with a trivial rig and frame, as COLMAP 3.12+ stores them), with
+all
+their keypoints as 2D points so point2D indices stay the database's keypoint indices. Point colours are
+sampled
+from the images when the image folder is given.
+"""
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from .ply import write_ply
+
+log = logging.getLogger("mvrecon.io")
+
+
+def to_pycolmap(model) -> pycolmap.Reconstruction:
+    """A pycolmap reconstruction holding the registered images, their cameras and the alive points."""
+    rec = pycolmap.Reconstruction()
+    used = np.unique(model.camera_of[model.registered])
+    for cid in used:
+        cam = model.cameras[int(cid)]
+        rec.add_camera_with_trivial_rig(pycolmap.Camera(model=cam.model, width=int(cam.width),
+                                                        height=int(cam.height), params=np.asarray(cam.params),
+                                                        camera_id=int(cid),
+                                                        has_prior_focal_length=bool(cam.prior_trusted)))
+    for i in model.registration_order:
+        image = pycolmap.Image(name=model.names[i],
+                               keypoints=np.asarray(model.keypoints[i], dtype=np.float64),
+                               camera_id=int(model.camera_of[i]), image_id=int(model.image_ids[i]))
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(model.R[i])), np.asarray(model.t[i]))
+        rec.add_image_with_trivial_frame(image, pose)
+    obs = model.alive_observations()
+    op = model.obs_point.data[obs]
+    order = np.argsort(op, kind="stable")
+    obs, op = obs[order], op[order]
+    uniq, start = np.unique(op, return_index=True)
+    ends = np.r_[start[1:], len(op)]
+    img_ids = model.image_ids[model.obs_image.data[obs]]
+    kps = model.obs_kp.data[obs]
+    xyz = model.xyz.data
+    for p, s, e in zip(uniq, start, ends):
+        track = pycolmap.Track()
+        for a, b in zip(img_ids[s:e], kps[s:e]):
+            track.add_element(int(a), int(b))
+        rec.add_point3D(xyz[p], track)
+    rec.update_point_3d_errors()
+    return rec
+
+
+def write_models(models, sparse_dir, image_dir=None, text: bool = False) -> list[pycolmap.Reconstruction]:
+    """Write models (largest first) to sparse_dir/0, 1, ...; colours from image_dir when given."""
+    sparse_dir = Path(sparse_dir)
+    out = []
+    for k, model in enumerate(models):
+        rec = to_pycolmap(model)
+        if image_dir is not None:
+            rec.extract_colors_for_all_images(str(image_dir))
+        d = sparse_dir / str(k)
+        d.mkdir(parents=True, exist_ok=True)
+        rec.write_binary(str(d))
+        if text:
+            rec.write_text(str(d))
+        out.append(rec)
+    return out
+
+
+def write_points_ply(rec: pycolmap.Reconstruction, path) -> int:
+    """Coloured PLY of a model's points; returns the number of points."""
+    pts = list(rec.points3D.values())
+    xyz = np.array([p.xyz for p in pts]).reshape(-1, 3)
+    rgb = np.array([p.color for p in pts], dtype=np.uint8).reshape(-1, 3)
+    write_ply(path, xyz, rgb)
+    return len(pts)

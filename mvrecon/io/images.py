@@ -1,0 +1,212 @@
+"""Images in: find them in a folder, decode them (8/16 bit, grey/RGB/RGBA) upright, and read their EXIF.
+
+The two functions other modules need:
+
+- `list_images(folder) -> (names, skipped)`: every JPEG/PNG/TIFF under `folder` (recursively), as POSIX paths
+  relative to it, sorted. Non-image files are listed in ONE warning; image files whose header cannot be read are
+  warned about one by one, with the reason. Both land in `skipped` (name -> reason). A missing path, a file instead
+  of a folder, or a folder with no readable image raises `InputError`.
+- `read_image(path) -> np.ndarray`: HxW (grey) or HxWx3 (RGB) in the file's own depth (uint8 or uint16), with the
+  EXIF orientation applied and any alpha channel dropped. A file that cannot be decoded raises `InputError`.
+
+Pixels are decoded by OpenCV (which keeps 16-bit colour; Pillow does not) and EXIF is read by Pillow (OpenCV only
+applies orientation when it also converts depth). `image_metadata` gives the upright size and the camera EXIF
+without decoding pixels, which is all the camera grouping needs.
+"""
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from PIL import ExifTags, Image
+
+from ..errors import InputError
+
+log = logging.getLogger(__name__)
+
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+_ORIENTATION = 0x0112
+# Orientations 5-8 swap width and height.
+_TRANSPOSED = {5, 6, 7, 8}
+
+
+@dataclass(frozen=True, kw_only=True)
+class ImageMeta:
+    """What the camera grouping needs to know about an image, read from its header only."""
+
+    width: int  # upright (after EXIF orientation)
+    height: int
+    orientation: int = 1
+    make: str = ""
+    model: str = ""
+    focal_mm: float | None = None  # EXIF FocalLength
+    focal_35mm: float | None = None  # EXIF FocalLengthIn35mmFilm
+    focal_px_from_sensor: float | None = None  # FocalLength * FocalPlaneXResolution, in this image's pixels
+
+
+def list_images(folder) -> tuple[list[str], dict[str, str]]:
+    """Image names (POSIX, relative to `folder`, sorted) and the skipped files (name -> reason)."""
+    folder = Path(folder)
+    if not folder.exists():
+        raise InputError(f"{folder}: no such folder")
+    if not folder.is_dir():
+        raise InputError(f"{folder}: not a folder (give the folder that holds the images)")
+    names, non_images, skipped = [], [], {}
+    for path in sorted(folder.rglob("*")):
+        rel = path.relative_to(folder)
+        if any(part.startswith(".") for part in rel.parts) or not path.is_file():
+            continue
+        name = rel.as_posix()
+        if path.suffix.lower() not in IMAGE_EXTENSIONS:
+            non_images.append(name)
+            skipped[name] = "not a JPEG, PNG or TIFF file"
+            continue
+        reason = _header_problem(path)
+        if reason:
+            log.warning("skipping %s: %s", path, reason)
+            skipped[name] = reason
+            continue
+        names.append(name)
+    if non_images:
+        more = f" and {len(non_images) - 10} more" if len(non_images) > 10 else ""
+        shown = ", ".join(non_images[:10]) + more
+        log.warning("skipping %d non-image file(s) in %s: %s", len(non_images), folder, shown)
+    if not names:
+        raise InputError(f"{folder}: no readable JPEG, PNG or TIFF images found"
+                         + (f" ({len(skipped)} file(s) skipped)" if skipped else ""))
+    return names, skipped
+
+
+def _header_problem(path: Path) -> str | None:
+    try:
+        with Image.open(path) as im:
+            w, h = im.size
+            im.getexif()  # walks the file's metadata blocks: catches most truncated files without decoding
+    except Exception as exc:  # Pillow raises many types for broken files; the message is what the user needs
+        return f"cannot read image header ({type(exc).__name__}: {exc})"
+    if w <= 0 or h <= 0:
+        return f"empty image ({w}x{h})"
+    return None
+
+
+def image_metadata(path) -> ImageMeta:
+    """Upright size and camera EXIF (make, model, focal length in mm and 35 mm equivalent), without decoding."""
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            w, h = im.size
+            exif = im.getexif()
+    except Exception as exc:
+        raise InputError(f"{path}: cannot read image header ({exc})") from None
+    orientation = int(exif.get(_ORIENTATION, 1) or 1)
+    if orientation in _TRANSPOSED:
+        w, h = h, w
+    sub = exif.get_ifd(ExifTags.IFD.Exif) if exif else {}
+
+    def number(tag):
+        value = sub.get(tag, exif.get(tag))
+        try:
+            value = float(value)
+        except (TypeError, ValueError, ZeroDivisionError):
+            return None
+        return value if np.isfinite(value) and value > 0 else None
+
+    def text(tag):
+        value = exif.get(tag)
+        return str(value).strip("\x00 ").strip() if value else ""
+
+    focal_mm = number(ExifTags.Base.FocalLength)
+    return ImageMeta(width=w, height=h, orientation=orientation, make=text(ExifTags.Base.Make),
+                     model=text(ExifTags.Base.Model), focal_mm=focal_mm,
+                     focal_35mm=number(ExifTags.Base.FocalLengthIn35mmFilm),
+                     focal_px_from_sensor=_focal_from_sensor(focal_mm, sub, exif, w if orientation not in
+                                                             _TRANSPOSED else h))
+
+
+# EXIF FocalPlaneResolutionUnit: 2 = inch, 3 = cm, 4 = mm, 5 = micrometre.
+_UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}
+
+
+def _focal_from_sensor(focal_mm, sub, exif, stored_width) -> float | None:
+    """Focal length in pixels from the sensor's pixel density (the 'sensor width' EXIF carries), scaled from the
+    sensor's full width (PixelXDimension) to the stored width in case the image was resized after capture."""
+    try:
+        xres = float(sub.get(ExifTags.Base.FocalPlaneXResolution, 0) or 0)
+        unit = _UNIT_MM.get(int(sub.get(ExifTags.Base.FocalPlaneResolutionUnit, 2) or 2))
+        full_width = float(sub.get(ExifTags.Base.ExifImageWidth, 0)
+                           or exif.get(ExifTags.Base.ExifImageWidth, 0) or stored_width)
+    except (TypeError, ValueError, ZeroDivisionError):
+        return None
+    if not focal_mm or xres <= 0 or not unit or full_width <= 0:
+        return None
+    return focal_mm * xres / unit * stored_width / full_width
+
+
+def read_image(path) -> np.ndarray:
+    """Decode an image upright: HxW grey or HxWx3 RGB, uint8 or uint16 as stored; alpha is dropped."""
+    import cv2
+
+    path = Path(path)
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read file ({exc.strerror or exc})") from None
+    # A failed decode is reported below, by file name; OpenCV's own log lines would only repeat it.
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if image is None or image.size == 0:
+        raise InputError(f"{path}: cannot decode image (corrupt, truncated or unsupported)")
+    if image.dtype not in (np.uint8, np.uint16):
+        if np.issubdtype(image.dtype, np.floating):
+            finite = image[np.isfinite(image)]
+            top = float(finite.max()) if finite.size else 1.0
+            scaled = np.nan_to_num(image) / (top if top > 0 else 1.0) * 65535
+            image = np.clip(scaled, 0, 65535).astype(np.uint16)
+        else:
+            image = np.clip(image, 0, 65535).astype(np.uint16)
+    if image.ndim == 3:
+        channels = image.shape[2]
+        if channels <= 2:  # grey, or grey + alpha
+            image = image[:, :, 0]
+        elif channels == 4:
+            image = cv2.cvtColor(image, cv2.COLOR_BGRA2RGB)
+        else:
+            image = cv2.cvtColor(image[:, :, :3], cv2.COLOR_BGR2RGB)
+    return apply_orientation(image, _orientation(path))
+
+
+def _orientation(path: Path) -> int:
+    try:
+        with Image.open(path) as im:
+            return int(im.getexif().get(_ORIENTATION, 1) or 1)
+    except Exception:
+        return 1
+
+
+def apply_orientation(image: np.ndarray, orientation: int) -> np.ndarray:
+    """Turn a stored image upright given its EXIF orientation (1-8), the way viewers display it."""
+    ops = {
+        2: lambda a: a[:, ::-1],
+        3: lambda a: a[::-1, ::-1],
+        4: lambda a: a[::-1],
+        5: lambda a: np.swapaxes(a, 0, 1),
+        6: lambda a: np.swapaxes(a, 0, 1)[:, ::-1],
+        7: lambda a: np.swapaxes(a, 0, 1)[::-1, ::-1],
+        8: lambda a: np.swapaxes(a, 0, 1)[::-1],
+    }
+    op = ops.get(int(orientation))
+    return np.ascontiguousarray(op(image)) if op else image
+
+
+def to_gray_uint8(image: np.ndarray) -> np.ndarray:
+    """8-bit grey for feature detection. 16-bit images are stretched by their own maximum so that 10/12-bit
+    sensor data stored in 16 bits keeps its contrast instead of collapsing into the bottom 8 levels."""
+    import cv2
+
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    if image.dtype == np.uint16:
+        top = int(image.max())
+        image = (image.astype(np.float32) * (255.0 / max(top, 1))).round().astype(np.uint8)
+    return image

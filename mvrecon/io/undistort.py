@@ -1,0 +1,51 @@
+"""Export a model for NeRF / Gaussian-splatting trainers: undistorted images and a PINHOLE COLMAP model.
+
+The layout is the one nerfstudio (`ns-process-data` output, `colmap` data parser) and the Gaussian-splatting
+reference code (`convert.py` output) read:
+
+    DIR/images/<name>        undistorted images (distortion removed, same names, sub-folders kept)
+    DIR/sparse/0/            cameras/images/points3D .bin with PINHOLE cameras matching those images
+
+COLMAP's own undistorter does the resampling (`pycolmap.undistort_images`), so the result is exactly what
+`colmap image_undistorter` gives; it writes `sparse/` flat, which is moved to `sparse/0/` here.
+"""
+
+import shutil
+from pathlib import Path
+
+from ..errors import InputError
+
+
+def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -1,
+                       text: bool = False) -> Path:
+    """Undistort the images of the model in `model_dir` into `out_dir`; returns out_dir/sparse/0."""
+    import pycolmap
+
+    model_dir, image_dir, out_dir = Path(model_dir), Path(image_dir), Path(out_dir)
+    if not (model_dir / "images.bin").is_file() and not (model_dir / "images.txt").is_file():
+        raise InputError(f"{model_dir}: no COLMAP model here (images.bin or images.txt)")
+    if not image_dir.is_dir():
+        raise InputError(f"{image_dir}: image folder not found (pass --image-dir)")
+    if out_dir.exists() and any(out_dir.iterdir()):
+        if not (out_dir / "sparse" / "0").is_dir():
+            raise InputError(f"{out_dir}: exists and is not an export folder; choose an empty or new folder")
+        shutil.rmtree(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    options = pycolmap.UndistortCameraOptions(max_image_size=int(max_image_size))
+    pycolmap.undistort_images(str(out_dir), str(model_dir), str(image_dir), output_type="COLMAP",
+                              undistort_options=options)
+    flat = out_dir / "sparse"
+    target = flat / "0"
+    target.mkdir(parents=True, exist_ok=True)
+    for f in list(flat.iterdir()):
+        if f.is_file():
+            shutil.move(str(f), str(target / f.name))
+    for extra in ("stereo", "run-colmap-geometric.sh", "run-colmap-photometric.sh"):
+        p = out_dir / extra
+        if p.is_dir():
+            shutil.rmtree(p)
+        elif p.exists():
+            p.unlink()
+    if text:
+        pycolmap.Reconstruction(str(target)).write_text(str(target))
+    return target

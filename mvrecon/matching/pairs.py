@@ -1,0 +1,68 @@
+"""Which image pairs to match: all of them, a sliding window over the sorted names (video), or a pairs file.
+
+A spec string selects the strategy: `exhaustive`, `sequential:K` (each image with the next K images in name
+order) or the path of a text file with one `name1 name2` pair per line (COLMAP's match-list format; `#` starts a
+comment). Pairs come back as (name1, name2) in a stable order with no duplicates and no self-pairs.
+"""
+
+from pathlib import Path
+
+from ..errors import InputError
+
+
+def exhaustive_pairs(names: list[str]) -> list[tuple[str, str]]:
+    return [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
+
+
+def sequential_pairs(names: list[str], window: int) -> list[tuple[str, str]]:
+    """Each image with the next `window` images (names sorted: frame order for video)."""
+    names = sorted(names)
+    return [(a, names[j]) for i, a in enumerate(names) for j in range(i + 1, min(len(names), i + 1 + window))]
+
+
+def pairs_from_file(path, names: list[str]) -> list[tuple[str, str]]:
+    """Read `name1 name2` lines; unknown names and malformed lines are InputErrors naming file and line."""
+    path = Path(path)
+    try:
+        lines = path.read_text().splitlines()
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read pairs file ({exc.strerror or exc})") from None
+    known = set(names)
+    seen, out = set(), []
+    for number, line in enumerate(lines, 1):
+        text = line.split("#", 1)[0].strip()
+        if not text:
+            continue
+        parts = text.split()
+        if len(parts) != 2:
+            raise InputError(f"{path}:{number}: expected two image names, got {text!r}")
+        for name in parts:
+            if name not in known:
+                raise InputError(f"{path}:{number}: unknown image {name!r}")
+        key = tuple(sorted(parts))
+        if parts[0] != parts[1] and key not in seen:
+            seen.add(key)
+            out.append((parts[0], parts[1]))
+    return out
+
+
+def check_spec(spec: str) -> str:
+    """Validate a --pairs value early (before any work); returns it unchanged."""
+    if spec == "exhaustive" or Path(spec).is_file():
+        return spec
+    if spec.startswith("sequential:"):
+        value = spec.split(":", 1)[1]
+        if value.isdigit() and int(value) > 0:
+            return spec
+        raise InputError(f"--pairs {spec}: the window must be a positive integer, e.g. sequential:10")
+    raise InputError(f"--pairs {spec}: expected exhaustive, sequential:K or an existing pairs file")
+
+
+def select_pairs(spec: str, names: list[str]) -> list[tuple[str, str]]:
+    """Pairs for a spec string (see module doc)."""
+    check_spec(spec)
+    if spec == "exhaustive":
+        return exhaustive_pairs(sorted(names))
+    if spec.startswith("sequential:") and not Path(spec).is_file():
+        return sequential_pairs(names, int(spec.split(":", 1)[1]))
+    return pairs_from_file(spec, names)

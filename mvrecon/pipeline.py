@@ -1,0 +1,424 @@
+"""The reconstruction pipeline as stage functions: `stage(config, inputs, workspace) -> summary`.
+
+Each stage is callable from Python, the CLI and tests alike, records its config in the workspace, and skips the
+work already in the database, committing per unit of work (one image, one batch of pairs), so an interrupted run
+loses at most the unit in progress and a rerun of the same command resumes.
+
+- `extract_features(config, image_dir, workspace)`: images -> cameras, keypoints, descriptors.
+- `match(config, workspace)`: pairs -> putative matches -> verified two-view geometries.
+"""
+
+import logging
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import database as dbmod
+from .cameras import CameraConfig, group_cameras
+from .config import to_dict
+from .errors import InputError
+from .executor import blas_threads, default_workers, parallel_map, warm_up
+from .features.sift import SiftConfig
+from .io.images import IMAGE_EXTENSIONS, image_metadata, list_images
+from .matching.matcher import MatcherConfig, match_descriptors, normalize_descriptors
+from .matching.pairs import check_spec, select_pairs
+from .matching.verify import VerifyConfig, verify_pair
+from .progress import progress
+from .workspace import Workspace
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class FrontendConfig:
+    """Everything that decides the features and matches of a run (see each part's own defaults)."""
+
+    camera: CameraConfig = CameraConfig()
+    sift: SiftConfig = SiftConfig()
+    pairs: str = "exhaustive"  # exhaustive | sequential:K | path of a pairs file
+    matcher: MatcherConfig = MatcherConfig()
+    verify: VerifyConfig = VerifyConfig()
+    workers: int = field(default=0, metadata={"hash": False})  # processes/threads; 0 = all cores
+
+
+def _workers(config: FrontendConfig) -> int:
+    return config.workers if config.workers > 0 else default_workers()
+
+
+def _workspace(workspace) -> Workspace:
+    return workspace if isinstance(workspace, Workspace) else Workspace(workspace)
+
+
+def _stats(values) -> str:
+    v = np.asarray(values, dtype=float)
+    if not v.size:
+        return "none"
+    return f"{v.mean():.0f} on average (min {v.min():.0f}, max {v.max():.0f})"
+
+
+# ---------------------------------------------------------------- features
+
+@dataclass(kw_only=True)
+class FeatureSummary:
+    num_images: int  # images of the folder with features in the database
+    num_extracted: int  # of which extracted in this run (the rest were already there)
+    keypoints: dict[str, int]  # name -> keypoint count
+    failed: dict[str, str] = field(default_factory=dict)  # unreadable images: name -> reason
+    skipped: dict[str, str] = field(default_factory=dict)  # every file left out (not an image, unreadable)
+    num_cameras: int = 0
+    seconds: float = 0.0
+
+    def text(self) -> str:
+        parts = [f"Features: {self.num_images} images ({self.num_extracted} extracted now, "
+                 f"{self.num_images - self.num_extracted} already done) in {self.seconds:.1f} s, "
+                 f"{self.num_cameras} camera(s); keypoints per image: {_stats(list(self.keypoints.values()))}."]
+        if self.failed:
+            parts.append(f"{len(self.failed)} unreadable image(s) skipped: {', '.join(sorted(self.failed))}.")
+        others = len(set(self.skipped) - set(self.failed))
+        if others:
+            parts.append(f"{others} non-image file(s) skipped.")
+        return " ".join(parts)
+
+
+def _extract_job(job):
+    """Worker: (path, name, sift config) -> (name, (keypoints, descriptors)) or (name, error message)."""
+    from .features.sift import extract_sift_from_file
+
+    path, name, sift_config = job
+    try:
+        return name, extract_sift_from_file(path, sift_config)
+    except InputError as exc:
+        return name, str(exc)
+    except Exception as exc:  # OpenCV or memory errors on one image must not stop the run
+        return name, f"{path}: {type(exc).__name__}: {exc}"
+
+
+def _too_few(folder: Path, usable: int, failed: dict[str, str]):
+    why = f" (skipped {'; '.join(failed.values())})" if failed else ""
+    raise InputError(f"{folder}: only {usable} usable image(s), need at least 2{why}")
+
+
+def extract_features(config: FrontendConfig, image_dir, workspace, *, overwrite: bool = False,
+                     on_image: Callable[[str], None] | None = None) -> FeatureSummary:
+    """Detect SIFT in every image of `image_dir` not yet in the workspace; `on_image(name)` after each commit."""
+    start = time.perf_counter()
+    ws = _workspace(workspace)
+    folder = Path(image_dir)
+    warm_up(_workers(config))
+    names, skipped = list_images(folder)
+    config.camera.validate()
+    failed = {n: f"{folder / n}: {r}" for n, r in skipped.items() if Path(n).suffix.lower() in IMAGE_EXTENSIONS}
+    if len(names) < 2:
+        _too_few(folder, len(names), failed)
+    metas = {}
+    for name in names:
+        try:
+            metas[name] = image_metadata(folder / name)
+        except InputError as exc:
+            log.warning("skipping %s", exc)
+            failed[name] = str(exc)
+    names = [n for n in names if n in metas]
+    groups = group_cameras(names, metas, config.camera)
+    record = {"images": str(folder.resolve()), "camera": to_dict(config.camera), "sift": to_dict(config.sift)}
+    if ws.begin_stage("features", record, overwrite):
+        for suffix in ("", "-wal", "-shm", "-journal"):
+            Path(f"{ws.database_path}{suffix}").unlink(missing_ok=True)
+    group_of = {name: gi for gi, (_, members) in enumerate(groups) for name in members}
+    extracted = 0
+    with dbmod.open_database(ws.database_path) as db:
+        existing = {info.name: info for info in dbmod.read_images(db).values()}
+        camera_ids: dict[int, int] = {}
+        for name, info in existing.items():
+            if name in group_of:
+                camera_ids.setdefault(group_of[name], info.camera_id)
+        todo = [n for n in names if n not in existing or not dbmod.has_features(db, existing[n].image_id)]
+        jobs = [(folder / n, n, config.sift) for n in todo]
+        results = parallel_map(_extract_job, jobs, workers=_workers(config))
+        try:
+            for name, result in progress(results, total=len(jobs), desc="features", unit="image"):
+                if isinstance(result, str):
+                    log.warning("skipping %s", result)
+                    failed[name] = result
+                    continue
+                keypoints, descriptors = result
+                gi = group_of[name]
+                with dbmod.transaction(db):
+                    if gi not in camera_ids:
+                        camera_ids[gi] = dbmod.write_camera(db, groups[gi][0])
+                    image_id = existing[name].image_id if name in existing else \
+                        dbmod.write_image(db, name, camera_ids[gi])
+                    dbmod.write_features(db, image_id, keypoints, descriptors)
+                existing[name] = dbmod.ImageInfo(image_id=image_id, name=name, camera_id=camera_ids[gi])
+                extracted += 1
+                if on_image is not None:
+                    on_image(name)
+        finally:
+            results.close()
+        counts = {n: dbmod.num_keypoints(db, existing[n].image_id) for n in names if n in existing}
+        counts = {n: c for n, c in counts.items() if n not in failed}
+        num_cameras = len({existing[n].camera_id for n in counts})
+    if len(counts) < 2:
+        _too_few(folder, len(counts), failed)
+    return FeatureSummary(num_images=len(counts), num_extracted=extracted, keypoints=counts, failed=failed,
+                          skipped=skipped, num_cameras=num_cameras, seconds=time.perf_counter() - start)
+
+
+# ---------------------------------------------------------------- matching
+
+@dataclass(kw_only=True)
+class MatchSummary:
+    num_images: int
+    num_pairs: int  # pairs selected
+    num_matched: int  # of which matched in this run (the rest were already there)
+    inliers: dict[tuple[str, str], int]  # verified pairs -> inlier count
+    configs: dict[str, int]  # configuration name -> number of pairs
+    seconds: float = 0.0
+
+    @property
+    def num_verified(self) -> int:
+        return len(self.inliers)
+
+    def text(self) -> str:
+        kinds = ", ".join(f"{n} {k.lower()}" for k, n in sorted(self.configs.items(), key=lambda kv: -kv[1]))
+        return (f"Matching: {self.num_images} images, {self.num_pairs} pairs ({self.num_matched} matched now, "
+                f"{self.num_pairs - self.num_matched} already done) in {self.seconds:.1f} s; "
+                f"{self.num_verified} verified pairs ({kinds or 'none'}); "
+                f"inliers per verified pair: {_stats(list(self.inliers.values()))}.")
+
+
+def _match_one(task):
+    (kp1, d1, cam1), (kp2, d2, cam2), config = task
+    matches = match_descriptors(d1, d2, config.matcher)
+    return matches, verify_pair(kp1, kp2, matches, cam1, cam2, config.verify)
+
+
+def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
+          on_batch: Callable[[int], None] | None = None, batch_size: int = 16,
+          max_cached_images: int = 256) -> MatchSummary:
+    """Match and verify every selected pair not yet in the workspace; `on_batch(pairs_done)` after each commit.
+
+    Descriptors are read once per image and kept (at most `max_cached_images`, least recently used dropped;
+    re-reading one costs far less than the matrix product of a pair)."""
+    start = time.perf_counter()
+    ws = _workspace(workspace)
+    check_spec(config.pairs)
+    ws.require_stage("features", "run `mvrecon features IMAGES -w WORKSPACE` first")
+    record = {"pairs": config.pairs, "matcher": to_dict(config.matcher), "verify": to_dict(config.verify)}
+    dropped = ws.begin_stage("matching", record, overwrite)
+    with dbmod.open_database(ws.database_path) as db:
+        if dropped:
+            dbmod.clear_matches(db)
+        images = {i.image_id: i for i in dbmod.read_images(db).values() if dbmod.has_features(db, i.image_id)}
+        cameras = dbmod.read_cameras(db)
+        by_name = {i.name: i.image_id for i in images.values()}
+        pairs = []
+        for a, b in select_pairs(config.pairs, sorted(by_name)):
+            id1, id2 = sorted((by_name[a], by_name[b]))
+            pairs.append((id1, id2))
+        todo = [p for p in pairs if not dbmod.has_two_view_geometry(db, *p)]
+        remaining = {}  # image -> number of todo pairs still needing it, to free its descriptors early
+        for p in todo:
+            for i in p:
+                remaining[i] = remaining.get(i, 0) + 1
+        cache = OrderedDict()  # image -> (keypoints, unit descriptors, camera), least recently used first
+
+        def features(image_id):
+            if image_id in cache:
+                cache.move_to_end(image_id)
+            else:
+                kp, desc = dbmod.read_features(db, image_id)
+                cache[image_id] = (kp, normalize_descriptors(desc), cameras[images[image_id].camera_id])
+                while len(cache) > max_cached_images:  # bounded memory: ~4 MB per 8192-feature image
+                    cache.popitem(last=False)
+            return cache[image_id]
+
+        bar = progress(total=len(todo), desc="matching", unit="pair")
+        with ThreadPoolExecutor(max_workers=_workers(config)) as pool, blas_threads(1):
+            for b in range(0, len(todo), batch_size):
+                batch = todo[b:b + batch_size]
+                tasks = [(features(i), features(j), config) for i, j in batch]
+                results = list(pool.map(_match_one, tasks))
+                with dbmod.transaction(db):
+                    for (i, j), (matches, geometry) in zip(batch, results):
+                        dbmod.write_matches(db, i, j, matches)
+                        dbmod.write_two_view_geometry(db, dbmod.PairGeometry(
+                            image_id1=i, image_id2=j, config=geometry.config, inliers=geometry.inliers,
+                            F=geometry.F, E=geometry.E, H=geometry.H))
+                for i, j in batch:
+                    for k in (i, j):
+                        remaining[k] -= 1
+                        if remaining[k] == 0:
+                            cache.pop(k, None)
+                bar.update(len(batch))
+                if on_batch is not None:
+                    on_batch(b + len(batch))
+        bar.close()
+        selected = set(pairs)
+        verified, configs = {}, {}
+        for id1, id2, kind, n in dbmod.read_verified_pairs(db):
+            if (id1, id2) in selected:
+                verified[(images[id1].name, images[id2].name)] = n
+                configs[kind] = configs.get(kind, 0) + 1
+    return MatchSummary(num_images=len(images), num_pairs=len(pairs), num_matched=len(todo), inliers=verified,
+                        configs=configs, seconds=time.perf_counter() - start)
+
+
+# ---------------------------------------------------------------- mapping (the SfM engine, issue 4)
+
+from .config import config_hash  # noqa: E402  (the mapping section is appended after the front end's)
+from .sfm.config import MapperConfig  # noqa: E402
+
+@dataclass(frozen=True)
+class ReconstructConfig:
+    """Front end and mapper settings of one `reconstruct` run."""
+
+    frontend: FrontendConfig = FrontendConfig()
+    mapper: MapperConfig = MapperConfig()
+
+
+@dataclass(kw_only=True)
+class MapSummary:
+    models: list  # sfm.model.Reconstruction, largest first
+    status: dict  # image name -> {"status", "model", "reason"}
+    model_stats: list  # per model: registered, points, mean_track_length, mean_reprojection_error_px
+    seconds: float = 0.0
+
+    def text(self) -> str:
+        n = sum(1 for s in self.status.values() if s["status"] == "registered")
+        parts = [f"Mapping: {n} of {len(self.status)} images registered in {len(self.models)} model(s) "
+                 f"in {self.seconds:.1f} s."]
+        for k, s in enumerate(self.model_stats):
+            parts.append(f"Model {k}: {s['registered']} images, {s['points']} points, mean track length "
+                         f"{s['mean_track_length']:.2f}, mean reprojection error "
+                         f"{s['mean_reprojection_error_px']:.3f} px.")
+        missing = {name: s["reason"] for name, s in self.status.items() if s["status"] != "registered"}
+        for name, reason in sorted(missing.items())[:20]:
+            parts.append(f"  {name}: {reason}")
+        if len(missing) > 20:
+            parts.append(f"  ... and {len(missing) - 20} more (see report.json)")
+        return "\n".join(parts)
+
+
+def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resume: bool = False,
+                  overwrite: bool = False) -> MapSummary:
+    """Run the incremental mapper on the workspace's database and write `sparse/N/` and `points.ply`.
+
+    `config` is a MapperConfig. With `resume`, mapping continues from the last snapshot in the workspace
+    (`snapshots/mapper.pkl`); without it mapping starts over. `image_dir` colours the points.
+    """
+    import shutil
+
+    from .io.colmap_model import write_models, write_points_ply
+    from .sfm.incremental import map_correspondences
+
+    start = time.perf_counter()
+    ws = _workspace(workspace)
+    if not ws.database_path.is_file():
+        raise InputError(f"{ws.path}: no database.db here; run `mvrecon reconstruct IMAGES -o {ws.path}` "
+                         "first")
+    ws.begin_stage("mapping", to_dict(config), overwrite or not resume)
+    corr = dbmod.read_correspondences(ws.database_path)
+    if not corr.pairs:
+        raise InputError(f"{ws.database_path}: no verified image pairs among {len(corr.images)} images; the "
+                         "images do not overlap or have too little texture (nothing to reconstruct)")
+    snapshot = ws.path / "snapshots" / "mapper.pkl"
+    result = map_correspondences(corr, config, snapshot_path=snapshot, resume=resume)
+    sparse = ws.path / "sparse"
+    if sparse.exists():
+        shutil.rmtree(sparse)
+    recs = write_models(result.models, sparse, image_dir=image_dir, text=text)
+    if recs:
+        write_points_ply(recs[0], ws.path / "points.ply")
+    else:
+        (ws.path / "points.ply").unlink(missing_ok=True)
+    stats = []
+    for m in result.models:
+        s = m.stats()
+        stats.append({k: s[k] for k in ("registered", "points", "mean_track_length",
+                                         "mean_reprojection_error_px")})
+    return MapSummary(models=result.models, status=result.status, model_stats=stats,
+                      seconds=time.perf_counter() - start)
+
+
+def _peak_mem_mb() -> float:
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def write_report(out_dir, *, config_hash: str, seed: int, summary: MapSummary, stages: dict, total: dict,
+                 counts: dict, skipped: dict | None = None) -> dict:
+    """OUT/report.json in the schema the compare and study tools read (see docs/sfm.md)."""
+    import json
+
+    from . import __version__
+
+    images = {name: dict(s) for name, s in summary.status.items()}
+    for name, reason in (skipped or {}).items():
+        images[name] = {"status": "skipped", "model": None, "reason": reason}
+    report = {"engine": "mvrecon", "version": __version__, "config_hash": config_hash, "seed": seed,
+              "images": dict(sorted(images.items())),
+              "models": [{"index": k, **s} for k, s in enumerate(summary.model_stats)],
+              "stages": stages, "total": total, "counts": counts}
+    path = Path(out_dir) / "report.json"
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(report, indent=1) + "\n")
+    tmp.replace(path)
+    return report
+
+
+def _database_counts(db_path) -> dict:
+    corr = dbmod.read_correspondences(db_path)
+    kp = [len(k) for k in corr.keypoints.values()]
+    inl = [len(p.inliers) for p in corr.pairs]
+    return {"images": len(corr.images), "keypoints_per_image": float(np.mean(kp)) if kp else 0.0,
+            "verified_pairs": len(inl), "mean_inliers_per_pair": float(np.mean(inl)) if inl else 0.0}
+
+
+def reconstruct(config: ReconstructConfig, image_dir, out_dir, *, text: bool = False, resume: bool = False,
+                overwrite: bool = False) -> dict:
+    """Images -> features -> matches -> models: OUT/database.db, sparse/N/, points.ply, report.json.
+
+    A finished run with the same config is not redone (its report is returned); an interrupted one resumes:
+    features and matches already in the database are kept, and mapping continues from its snapshot when
+    `resume` is set. Returns the report dict.
+    """
+    import json
+
+    out = Path(out_dir)
+    mapper = config.mapper
+    full_hash = config_hash({"frontend": to_dict(config.frontend), "mapper": to_dict(mapper)})
+    report_path = out / "report.json"
+    if report_path.is_file() and not overwrite:
+        try:
+            old = json.loads(report_path.read_text())
+        except json.JSONDecodeError:
+            old = {}
+        if old.get("config_hash") == full_hash and (out / "sparse").is_dir():
+            log.info("%s: finished run with the same config found; not redone", out)
+            return old
+    report_path.unlink(missing_ok=True)
+    ws = Workspace(out).create()
+    stages = {}
+    t0 = time.perf_counter()
+    features = extract_features(config.frontend, image_dir, ws, overwrite=overwrite)
+    log.info("%s", features.text())
+    stages["features"] = {"wall_s": time.perf_counter() - t0, "peak_mem_mb": _peak_mem_mb()}
+    t1 = time.perf_counter()
+    matches = match(config.frontend, ws, overwrite=overwrite)
+    log.info("%s", matches.text())
+    stages["matching"] = {"wall_s": time.perf_counter() - t1, "peak_mem_mb": _peak_mem_mb()}
+    t2 = time.perf_counter()
+    summary = map_workspace(mapper, ws, image_dir=image_dir, text=text, resume=resume, overwrite=overwrite)
+    stages["mapping"] = {"wall_s": time.perf_counter() - t2, "peak_mem_mb": _peak_mem_mb()}
+    log.info("%s", summary.text())
+    skipped = dict(features.failed)
+    return write_report(out, config_hash=full_hash, seed=mapper.seed, summary=summary, stages=stages,
+                        total={"wall_s": time.perf_counter() - t0, "peak_mem_mb": _peak_mem_mb()},
+                        counts=_database_counts(ws.database_path), skipped=skipped)
+

@@ -1,0 +1,335 @@
+"""Turn a catalog entry (a parsed TOML table) into a scene folder: geometry, cameras, renders, ground truth.
+
+One function per scene kind: `perspective` (images + COLMAP model + depth), `stereo` (adds Middlebury
+disparity, occlusion mask and calib.txt), `sem_tilt` (orthographic tilt series + height map) and
+`colmap_synthetic` (COLMAP's own synthetic generator). All randomness comes from the entry's seed.
+"""
+
+import inspect
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..progress import progress
+from . import cameras, meshes
+from .render import Hits, Renderer, RenderSettings
+from .textures import TextureSpec
+from .writers import write_colmap_model, write_depth, write_disparity, write_image, write_middlebury_calib
+
+TRAJECTORIES = {
+    "orbit": cameras.orbit,
+    "forward": cameras.forward,
+    "hemisphere": cameras.hemisphere,
+    "inward": cameras.inward,
+    "stereo": cameras.stereo_pair,
+    "tilt": cameras.tilt_series,
+}
+
+
+OBJECT_KEYS = {
+    "quad": {"origin", "u", "v", "texture", "uv_repeat"},
+    "box": {"center", "size", "yaw_deg", "texture", "textures"},
+    "room": {"center", "size", "yaw_deg", "texture", "textures"},
+    "sphere": {"center", "radius", "texture", "segments"},
+    "heightfield": {"origin", "u", "v", "resolution", "relief", "amplitude", "features", "texture",
+                    "uv_repeat"},
+    "mesh": {"path", "texture", "scale", "translate"},
+}
+
+
+def _call(func, kwargs: dict, what: str):
+    """func(**kwargs) with a ValueError that names the entry and the accepted keys when a key is wrong."""
+    params = inspect.signature(func).parameters
+    unknown = set(kwargs) - set(params)
+    if unknown:
+        raise ValueError(f"{what}: unknown keys {sorted(unknown)}; accepted: {', '.join(params)}")
+    return func(**kwargs)
+
+
+def build_object(spec: dict, seed: int, base_dir: Path) -> meshes.TexturedMesh:
+    """One `[[objects]]` table -> a textured mesh. Texture seeds default to `seed` + face index."""
+    spec = dict(spec)
+    kind = spec.pop("type", None)
+    if kind not in OBJECT_KEYS:
+        raise ValueError(f"unknown object type {kind!r}; expected one of {', '.join(OBJECT_KEYS)}")
+    unknown = set(spec) - OBJECT_KEYS[kind]
+    if unknown:
+        accepted = ", ".join(sorted(OBJECT_KEYS[kind]))
+        raise ValueError(f"{kind}: unknown keys {sorted(unknown)}; accepted: {accepted}")
+
+    def tex(value, k=0):
+        return TextureSpec.parse(value, default_seed=seed + k)
+
+    if kind == "quad":
+        return meshes.quad(
+            spec["origin"], spec["u"], spec["v"], tex(spec["texture"]), spec.get("uv_repeat", (1, 1))
+        )
+    if kind in ("box", "room"):
+        textures = spec.get("textures", [spec.get("texture", "noise")])
+        textures = [tex(t, k) for k, t in enumerate(textures)]
+        if len(textures) == 1:
+            textures = [TextureSpec(**{**textures[0].__dict__, "seed": seed + k}) for k in range(6)]
+        return meshes.box(
+            spec["center"], spec["size"], textures, spec.get("yaw_deg", 0.0), inward=kind == "room"
+        )
+    if kind == "sphere":
+        return meshes.uv_sphere(
+            spec["center"], spec["radius"], tex(spec["texture"]), spec.get("segments", 64)
+        )
+    if kind == "heightfield":
+        u, v = np.asarray(spec["u"], float), np.asarray(spec["v"], float)
+        nu, nv = spec.get("resolution", (200, 200))
+        heights = meshes.relief(
+            spec.get("relief", "bumps"),
+            (nv, nu),
+            (np.linalg.norm(u), np.linalg.norm(v)),
+            spec.get("amplitude", 0.1),
+            seed,
+            spec.get("features", 40),
+        )
+        return meshes.grid(spec["origin"], u, v, heights, tex(spec["texture"]), spec.get("uv_repeat", (1, 1)))
+    return meshes.load_mesh(  # kind == "mesh"
+        base_dir / spec["path"],
+        tex(spec.get("texture", "noise")),
+        spec.get("scale", 1.0),
+        spec.get("translate", (0, 0, 0)),
+    )
+
+
+def build_mesh(entry: dict, base_dir: Path) -> meshes.TexturedMesh:
+    seed = int(entry.get("seed", 0))
+    objects = entry.get("objects", [])
+    if not objects:
+        raise ValueError("a rendered scene needs at least one [[objects]] table")
+    return meshes.merge([build_object(o, seed * 1000 + 100 * k, base_dir) for k, o in enumerate(objects)])
+
+
+def build_poses(entry: dict) -> list:
+    traj = dict(entry.get("trajectory", {}))
+    kind = traj.pop("type", None)
+    if kind not in TRAJECTORIES:
+        raise ValueError(f"trajectory type {kind!r}; expected one of {', '.join(TRAJECTORIES)}")
+    if kind == "hemisphere":
+        traj.setdefault("seed", int(entry.get("seed", 0)))
+    return _call(TRAJECTORIES[kind], traj, f"trajectory {kind}")
+
+
+def build_camera(entry: dict):
+    c = dict(entry.get("camera", {}))
+    if c.pop("orthographic", False):
+        return _call(cameras.OrthographicCamera, c, "camera")
+    if "focal" in c:
+        from ..geometry.camera import default_params
+
+        params = default_params(c["model"], c.pop("focal"), c["width"], c["height"])
+        for name, value in c.pop("distortion", {}).items():
+            from ..geometry.camera import PARAM_NAMES
+
+            params[PARAM_NAMES[c["model"]].index(name)] = value
+        c["params"] = tuple(params)
+    return _call(cameras.PerspectiveCamera, c, "camera")
+
+
+def render_settings(entry: dict) -> tuple[RenderSettings, float]:
+    r = dict(entry.get("render", {}))
+    jitter = float(r.pop("exposure_jitter", 0.0))
+    for key in ("light", "background"):
+        if key in r:
+            r[key] = tuple(float(x) for x in r[key])
+    return _call(RenderSettings, r, "render"), jitter
+
+
+def _render_all(
+    renderer: Renderer, cam, poses, names, out: Path, seed: int, jitter: float, grey: bool = False
+):
+    rng = np.random.default_rng(seed)
+    exposures = 1.0 + jitter * rng.uniform(-1.0, 1.0, len(poses))
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    (out / "gt" / "depth").mkdir(parents=True, exist_ok=True)
+    depths = []
+    for k in progress(range(len(poses)), desc="render", unit="image"):
+        image, depth = renderer.render(cam, poses[k], exposure=float(exposures[k]), seed=seed * 7919 + k)
+        if grey:
+            image = np.round(image.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32))
+            image = np.clip(image, 0, 255).astype(np.uint8)
+        write_image(out / "images" / names[k], image)
+        write_depth(out / "gt" / "depth" / (Path(names[k]).stem + ".npy"), depth)
+        depths.append(depth)
+    return depths
+
+
+def surface_points(renderer: Renderer, count: int, seed: int):
+    """Seeded surface samples: positions (N,3), unit normals (N,3), colours (N,3) uint8 from the texture."""
+    pts, tri, bary = meshes.sample_surface(renderer.mesh, count, seed)
+    v = renderer.mesh.vertices[renderer.mesh.triangles[tri]]
+    normals = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    hits = Hits(np.ones(len(pts), np.float32), tri, bary.astype(np.float32), normals.astype(np.float32))
+    colors = np.clip(np.round(renderer.albedo(hits) * 255), 0, 255).astype(np.uint8)
+    return pts, normals, colors
+
+
+def observations(
+    renderer: Renderer, cam, pose, points: np.ndarray, normals: np.ndarray, min_cos: float = 0.1
+) -> tuple[np.ndarray, np.ndarray]:
+    """Which points a perspective camera sees, and where: (indices, pixels (N,2)).
+
+    Seen = in front, inside the image, on the pixel's rendered ray, not at a grazing angle (|cos| >= min_cos
+    between the viewing ray and the surface normal) and nothing between the camera centre and the point
+    (ray cast).
+    """
+    R, t = pose
+    X_cam = points @ R.T + t
+    uv = cam.project(X_cam)
+    ok = (X_cam[:, 2] > 0) & np.all(np.isfinite(uv), axis=1)
+    ok &= (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+    # Distortion polynomials fold far-off-axis points back into the image; keep a point only when the
+    # renderer's ray through its pixel (the inverse distortion) really points at it.
+    with np.errstate(invalid="ignore", divide="ignore"):
+        xy = X_cam[:, :2] / X_cam[:, 2:3]
+    idx = np.flatnonzero(ok)
+    ok[idx] = np.linalg.norm(cam.ray_directions(uv[idx])[:, :2] - xy[idx], axis=1) < 1e-7 * (
+        1 + np.abs(xy[idx]).max(1)
+    )
+    centre = -R.T @ t
+    view = points - centre
+    cos = np.abs(np.sum(view * normals, axis=1)) / np.linalg.norm(view, axis=1)
+    ok &= cos >= min_cos
+    idx = np.flatnonzero(ok)
+    visible = ~renderer.occluded(np.tile(centre, (len(idx), 1)), points[idx])
+    idx = idx[visible]
+    return idx, uv[idx]
+
+
+def perspective(entry: dict, base_dir: Path, out: Path) -> dict:
+    """Images, per-image depth and the ground-truth COLMAP model of a perspective scene."""
+    return _perspective(entry, base_dir, out)[0]
+
+
+def _perspective(entry: dict, base_dir: Path, out: Path, names: list[str] | None = None):
+    seed = int(entry.get("seed", 0))
+    cam = build_camera(entry)
+    poses = build_poses(entry)
+    settings, jitter = render_settings(entry)
+    renderer = Renderer(build_mesh(entry, base_dir), settings)
+    ext = "jpg" if entry.get("image_format", "png") in ("jpg", "jpeg") else "png"
+    names = names or [f"{k:04d}.{ext}" for k in range(len(poses))]
+    _render_all(renderer, cam, poses, names, out, seed, jitter)
+    pts, normals, colors = surface_points(renderer, int(entry.get("points", 4000)), seed + 1)
+    obs = [observations(renderer, cam, p, pts, normals) for p in poses]
+    write_colmap_model(out / "gt" / "sparse", cam, names, poses, pts, colors, obs)
+    info = {
+        "images": len(poses),
+        "camera": {"model": cam.model, "width": cam.width, "height": cam.height, "params": list(cam.params)},
+    }
+    return info, renderer, cam, poses
+
+
+def stereo(entry: dict, base_dir: Path, out: Path) -> dict:
+    """A rectified pair im0/im1 plus Middlebury ground truth: disp0GT.pfm, mask0nocc.png, calib.txt."""
+    if entry.get("camera", {}).get("model") not in ("PINHOLE", "SIMPLE_PINHOLE"):
+        raise ValueError("a rectified stereo pair needs a PINHOLE or SIMPLE_PINHOLE camera")
+    info, renderer, cam, poses = _perspective(entry, base_dir, out, names=["im0.png", "im1.png"])
+    fx, cx, cy = cam.params[0], cam.params[-2], cam.params[-1]
+    (R0, t0), (_, t1) = poses
+    c0, c1 = -R0.T @ t0, -R0.T @ t1
+    baseline = float(np.linalg.norm(c1 - c0))
+    depth = np.load(out / "gt" / "depth" / "im0.npy").astype(np.float64)
+    disparity, mask = disparity_from_depth(renderer, cam, (R0, t0), c1, depth, baseline)
+    write_disparity(out / "disp0GT.pfm", disparity)
+    write_image(out / "mask0nocc.png", mask)
+    finite = disparity[np.isfinite(disparity)]
+    ndisp = int(16 * np.ceil((finite.max() + 1) / 16)) if finite.size else 16
+    write_middlebury_calib(out / "calib.txt", fx, cx, cy, baseline, cam.width, cam.height, ndisp)
+    info.update({"baseline": baseline, "ndisp": ndisp})
+    return info
+
+
+def disparity_from_depth(renderer: Renderer, cam, pose0, c1: np.ndarray, depth: np.ndarray, baseline: float):
+    """Left disparity fx*B/Z (inf without surface) and the Middlebury mask: 255 visible in the right image,
+    128 occluded there (or outside it), 0 unknown."""
+    R, t = pose0
+    h, w = depth.shape
+    disparity = np.where(np.isfinite(depth), cam.params[0] * baseline / depth, np.inf)
+    px = cameras.pixel_grid(w, h)
+    rays = cam.ray_directions(px)
+    valid = np.isfinite(depth.ravel())
+    X = ((rays[valid] * depth.ravel()[valid, None]) - t) @ R  # world points of the left pixel centres
+    u_right = px[valid, 0] - disparity.ravel()[valid]
+    seen = (u_right >= 0) & ~renderer.occluded(np.tile(c1, (len(X), 1)), X, rel_tol=1e-3)
+    mask = np.zeros(h * w, np.uint8)
+    mask[np.flatnonzero(valid)] = np.where(seen, 255, 128)
+    return disparity.astype(np.float32), mask.reshape(h, w)
+
+
+def sem_tilt(entry: dict, base_dir: Path, out: Path) -> dict:
+    """Orthographic grey tilt series tilt_<angle>.png, per-tilt depth, the height map on the 0-degree grid."""
+    seed = int(entry.get("seed", 0))
+    cam = build_camera(entry)
+    if not isinstance(cam, cameras.OrthographicCamera):
+        raise ValueError("an SEM tilt series needs an orthographic camera (camera.orthographic = true)")
+    traj = dict(entry["trajectory"])
+    poses = build_poses(entry)
+    angles = [float(a) for a in traj["angles_deg"]]
+    settings, jitter = render_settings(entry)
+    renderer = Renderer(build_mesh(entry, base_dir), settings)
+    names = [f"tilt_{a:+.1f}.png" for a in angles]
+    _render_all(renderer, cam, poses, names, out, seed, jitter, grey=True)
+    zero = cameras.tilt_series(
+        [0.0], traj["distance"], traj.get("axis", "y"), traj.get("eucentric", (0, 0, 0))
+    )[0]
+    R, t = zero
+    origins, dirs = cameras.CameraRays(cam, 1).centres
+    centre = -R.T @ t
+    hits = renderer.cast(origins @ R + centre, dirs @ R)
+    height = np.where(hits.valid, (centre @ [0, 0, 1.0]) - hits.t, np.nan).reshape(cam.height, cam.width)
+    np.save(out / "gt" / "height.npy", height.astype(np.float32))
+    projections = {
+        name: {
+            "cam_from_world_R": np.asarray(R_, float).round(12).tolist(),
+            "cam_from_world_t": np.asarray(t_, float).round(12).tolist(),
+        }
+        for name, (R_, t_) in zip(names, poses)
+    }
+    meta = {
+        "pixel_size_um": cam.pixel_size,
+        "tilt_angles_deg": angles,
+        "tilt_axis": traj.get("axis", "y"),
+        "tilt_axis_in_image": "vertical (image y)"
+        if traj.get("axis", "y") == "y"
+        else "horizontal (image x)",
+        "units": "micrometres",
+        "width": cam.width,
+        "height": cam.height,
+        "height_map": "world z of the surface seen by each pixel of the 0-degree image (NaN: no surface)",
+        "projection": "orthographic: pixel = (R X + t)[:2] / pixel_size_um + (width/2, height/2)",
+        "images": projections,
+    }
+    (out / "gt" / "height.json").write_text(json.dumps(meta, indent=1))
+    return {"images": len(poses), "pixel_size_um": cam.pixel_size, "tilt_angles_deg": angles}
+
+
+def colmap_synthetic(entry: dict, base_dir: Path, out: Path) -> dict:
+    """COLMAP's own synthetic generator: random cameras and points, images with COLMAP's feature patches."""
+    import pycolmap
+
+    opts = dict(entry.get("synthetic", {}))
+    if "camera_model" in opts:
+        opts["camera_model_id"] = pycolmap.CameraModelId.__members__[opts.pop("camera_model")]
+    image_opts = opts.pop("images", {})
+    pycolmap.set_random_seed(int(entry.get("seed", 0)))
+    rec = pycolmap.synthesize_dataset(pycolmap.SyntheticDatasetOptions(**opts))
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    pycolmap.synthesize_images(pycolmap.SyntheticImageOptions(**image_opts), rec, str(out / "images"))
+    (out / "gt" / "sparse").mkdir(parents=True, exist_ok=True)
+    rec.write_binary(str(out / "gt" / "sparse"))
+    return {"images": rec.num_images(), "points": rec.num_points3D()}
+
+
+KINDS = {
+    "perspective": perspective,
+    "stereo": stereo,
+    "sem_tilt": sem_tilt,
+    "colmap_synthetic": colmap_synthetic,
+}

@@ -1,0 +1,225 @@
+"""Scene cameras and trajectories: which rays each pixel casts, and where the cameras stand.
+
+Poses are COLMAP's cam_from_world (R, t): x right, y down, z forward, centre -R^T t. Perspective cameras
+cast rays through the distortion model (pixel -> undistorted normalised coordinates), so distortion in the
+images is exactly the one stored in the ground-truth camera. Orthographic cameras (SEM) cast parallel rays;
+their scale is the pixel size in scene units (micrometres for SEM).
+"""
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from ..geometry import camera as camera_model
+
+
+@dataclass(frozen=True)
+class PerspectiveCamera:
+    """A COLMAP camera: model name, image size and parameter tuple (COLMAP pixel convention)."""
+
+    model: str
+    width: int
+    height: int
+    params: tuple[float, ...]
+
+    def __post_init__(self):
+        object.__setattr__(
+            self, "params", tuple(float(p) for p in camera_model.check_model(self.model, self.params))
+        )
+
+    def ray_directions(self, pixels: np.ndarray) -> np.ndarray:
+        """Camera-frame directions (N,3) with z = 1 through pixels (N,2): a hit's t is its z-depth."""
+        xy = camera_model.pixels_to_normalized(self.model, self.params, pixels)
+        return np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+
+    def ray_origins(self, pixels: np.ndarray) -> np.ndarray:
+        return np.zeros((len(pixels), 3))
+
+    def project(self, points_cam: np.ndarray) -> np.ndarray:
+        return camera_model.project(self.model, self.params, points_cam)
+
+
+@dataclass(frozen=True)
+class OrthographicCamera:
+    """Parallel projection along the camera z axis; pixel (u, v) sees camera x = (u - w/2) * pixel_size."""
+
+    width: int
+    height: int
+    pixel_size: float  # scene units (micrometres for SEM) per pixel
+
+    def ray_directions(self, pixels: np.ndarray) -> np.ndarray:
+        return np.tile([0.0, 0.0, 1.0], (len(pixels), 1))
+
+    def ray_origins(self, pixels: np.ndarray) -> np.ndarray:
+        xy = (np.asarray(pixels, float) - [self.width / 2, self.height / 2]) * self.pixel_size
+        return np.concatenate([xy, np.zeros((len(xy), 1))], axis=1)
+
+    def project(self, points_cam: np.ndarray) -> np.ndarray:
+        return np.asarray(points_cam, float)[..., :2] / self.pixel_size + [self.width / 2, self.height / 2]
+
+
+def pixel_grid(width: int, height: int, supersample: int = 1) -> np.ndarray:
+    """Sample positions (H*s*W*s, 2), row-major, at the centres of an s x s split of each pixel (COLMAP)."""
+    s = supersample
+    offsets = (np.arange(s) + 0.5) / s
+    u = (np.arange(width)[:, None] + offsets[None, :]).ravel()
+    v = (np.arange(height)[:, None] + offsets[None, :]).ravel()
+    U, V = np.meshgrid(u, v)
+    return np.stack([U.ravel(), V.ravel()], axis=1)
+
+
+@dataclass(frozen=True)
+class CameraRays:
+    """Camera-frame rays of every sample of one camera, computed once and reused for each pose."""
+
+    cam: PerspectiveCamera | OrthographicCamera
+    supersample: int
+
+    @cached_property
+    def samples(self) -> tuple[np.ndarray | None, np.ndarray]:
+        """(origins or None when all rays start at the centre, directions), float32, camera frame."""
+        return self._rays(pixel_grid(self.cam.width, self.cam.height, self.supersample))
+
+    @cached_property
+    def centres(self) -> tuple[np.ndarray | None, np.ndarray]:
+        return self._rays(pixel_grid(self.cam.width, self.cam.height, 1))
+
+    def _rays(self, px):
+        origins = (
+            None if isinstance(self.cam, PerspectiveCamera) else self.cam.ray_origins(px).astype(np.float32)
+        )
+        return origins, self.cam.ray_directions(px).astype(np.float32)
+
+
+def look_at(center, target, up=(0.0, 0.0, 1.0), roll_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """cam_from_world (R, t) of a camera at `center` looking at `target`, world `up` up in the image."""
+    center, target, up = (np.asarray(a, dtype=float) for a in (center, target, up))
+    z = target - center
+    z /= np.linalg.norm(z)
+    x = np.cross(-up, z)
+    if np.linalg.norm(x) < 1e-9:  # looking straight along up: any right vector will do
+        x = np.cross([0.0, 1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    if roll_deg:
+        c, s = np.cos(np.radians(roll_deg)), np.sin(np.radians(roll_deg))
+        R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]) @ R
+    return R, -R @ center
+
+
+def orbit(
+    count: int,
+    radius: float,
+    height: float,
+    target=(0, 0, 0),
+    start_deg: float = 0.0,
+    arc_deg: float = 360.0,
+    height_wobble: float = 0.0,
+    roll_wobble_deg: float = 0.0,
+) -> list:
+    """Cameras on a horizontal circle around `target`, all looking at it (a turntable seen from outside).
+
+    A full circle spaces `count` views evenly; a partial arc includes both ends. The wobbles vary height, roll
+    sinusoidally so that the centres are not coplanar and rotations are not all about one axis.
+    """
+    target = np.asarray(target, float)
+    full = abs(arc_deg - 360.0) < 1e-9
+    angles = start_deg + arc_deg * np.arange(count) / (count if full else max(count - 1, 1))
+    poses = []
+    for k, a in enumerate(np.radians(angles)):
+        phase = 2 * np.pi * k / max(count, 1) * 2
+        c = target + [radius * np.cos(a), radius * np.sin(a), height + height_wobble * np.sin(phase)]
+        poses.append(look_at(c, target, roll_deg=roll_wobble_deg * np.cos(phase)))
+    return poses
+
+
+def forward(
+    count: int,
+    start,
+    direction,
+    step: float,
+    look_distance: float = 10.0,
+    sway: float = 0.0,
+    yaw_wobble_deg: float = 0.0,
+) -> list:
+    """A camera moving along `direction` (a street or a video): `step` apart, sideways `sway` wobble."""
+    start, direction = np.asarray(start, float), np.asarray(direction, float)
+    direction /= np.linalg.norm(direction)
+    side = np.cross(direction, [0.0, 0.0, 1.0])
+    poses = []
+    for k in range(count):
+        phase = 2 * np.pi * k / 20.0
+        c = start + k * step * direction + sway * np.sin(phase) * side
+        yaw = np.radians(yaw_wobble_deg * np.sin(phase + 1.0))
+        look = np.cos(yaw) * direction + np.sin(yaw) * side
+        poses.append(look_at(c, c + look_distance * look))
+    return poses
+
+
+def hemisphere(
+    count: int,
+    radius_min: float,
+    radius_max: float,
+    target=(0, 0, 0),
+    elevation_min_deg: float = 15.0,
+    elevation_max_deg: float = 70.0,
+    seed: int = 0,
+) -> list:
+    """Random (seeded) views on a shell above `target`, all looking at it."""
+    rng = np.random.default_rng(seed)
+    target = np.asarray(target, float)
+    poses = []
+    for _ in range(count):
+        az = rng.uniform(0, 2 * np.pi)
+        el = np.radians(rng.uniform(elevation_min_deg, elevation_max_deg))
+        r = rng.uniform(radius_min, radius_max)
+        c = target + r * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        poses.append(look_at(c, target))
+    return poses
+
+
+def inward(
+    count: int,
+    radius: float,
+    height: float,
+    center=(0, 0, 0),
+    look_height: float | None = None,
+    across: float = 3.0,
+) -> list:
+    """Cameras inside a room on a circle of `radius`, each looking across the centre at the opposite wall."""
+    center = np.asarray(center, float)
+    poses = []
+    for a in 2 * np.pi * np.arange(count) / count:
+        d = np.array([np.cos(a), np.sin(a), 0.0])
+        c = center + radius * d + [0, 0, height]
+        t = center - across * d + [0, 0, height if look_height is None else look_height]
+        poses.append(look_at(c, t))
+    return poses
+
+
+def stereo_pair(center, target, baseline: float) -> list:
+    """A rectified pair: the same rotation, the right camera `baseline` along the left camera's x axis."""
+    R, t = look_at(center, target)
+    c1 = np.asarray(center, float) + baseline * R[0]
+    return [(R, t), (R.copy(), -R @ c1)]
+
+
+def tilt_series(angles_deg, distance: float, axis: str = "y", eucentric=(0.0, 0.0, 0.0)) -> list:
+    """Orthographic views of a specimen in the world x-y plane, tilted about a world axis through `eucentric`.
+
+    At 0 degrees the camera looks straight down (-z) with image x along world x and image y along world -y,
+    so the 0-degree image grid is the specimen's top view. `distance` puts the ray origins above the specimen.
+    """
+    from ..geometry.rotation import angle_axis_to_rotmat
+
+    axis_vec = {"x": [1.0, 0, 0], "y": [0, 1.0, 0]}[axis]
+    R0 = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])
+    p = np.asarray(eucentric, float)
+    poses = []
+    for a in angles_deg:
+        R = R0 @ angle_axis_to_rotmat(np.radians(a) * np.asarray(axis_vec)).T  # the specimen turns by +a
+        t = -R @ p + [0.0, 0.0, distance]
+        poses.append((R, t))
+    return poses

@@ -1,0 +1,119 @@
+"""The scene catalog: TOML entries shipped in `scenes/catalog/`, and `make_scene` that renders one on demand.
+
+A scene folder is complete when its `scene.json` says so and carries the hash of the TOML (plus the generator
+version) it was made from; asking again for the same scene into the same folder then returns at once.
+"""
+
+import hashlib
+import json
+import logging
+import shutil
+import time
+import tomllib
+from pathlib import Path
+
+from ..errors import InputError
+
+CATALOG_DIR = Path(__file__).resolve().parent / "catalog"
+GENERATOR_VERSION = "3"  # bump when rendering changes, so cached scenes are rebuilt
+UNITS = {
+    "perspective": "scene units (metres)",
+    "stereo": "scene units (metres)",
+    "sem_tilt": "micrometres",
+    "colmap_synthetic": "COLMAP synthetic units",
+}
+_OWNED = ("images", "gt", "disp0GT.pfm", "mask0nocc.png", "calib.txt")
+
+log = logging.getLogger("mvrecon.scenes")
+
+
+def list_scenes() -> list[str]:
+    """Names of the catalog's scenes, sorted."""
+    return sorted(p.stem for p in CATALOG_DIR.glob("*.toml"))
+
+
+def entry_path(name: str) -> Path:
+    """The TOML of a catalog name, or a path to a TOML file outside the catalog."""
+    if name.endswith(".toml"):
+        path = Path(name)
+        if not path.is_file():
+            raise InputError(f"{name}: no such scene file")
+        return path
+    path = CATALOG_DIR / f"{name}.toml"
+    if not path.is_file():
+        raise InputError(f"{name}: no such scene; known scenes: {', '.join(list_scenes())}")
+    return path
+
+
+def load_entry(name: str) -> tuple[dict, str, Path]:
+    """(parsed entry, hash of its bytes and the generator version, its path)."""
+    path = entry_path(name)
+    data = path.read_bytes()
+    try:
+        entry = tomllib.loads(data.decode("utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: not valid TOML ({exc})") from None
+    digest = hashlib.sha256(data + GENERATOR_VERSION.encode()).hexdigest()
+    return entry, digest, path
+
+
+def read_scene_info(out_dir) -> dict | None:
+    """The scene.json of a folder, or None."""
+    path = Path(out_dir) / "scene.json"
+    try:
+        return json.loads(path.read_text())
+    except (FileNotFoundError, json.JSONDecodeError):
+        return None
+
+
+def make_scene(name: str, out_dir) -> Path:
+    """Render catalog scene `name` (or a .toml path) into out_dir and return out_dir.
+
+    Deterministic: the same TOML gives the same bytes. Cached: when out_dir already holds the complete scene
+    made from the same TOML, nothing is recomputed. A folder holding other files than a scene's is refused.
+    """
+    from .build import KINDS
+
+    entry, digest, path = load_entry(name)
+    out = Path(out_dir)
+    info = read_scene_info(out)
+    if info and info.get("hash") == digest and info.get("complete"):
+        log.info("%s: scene %s is up to date", out, entry.get("name", path.stem))
+        return out
+    if info is None and (out / "images").exists():
+        raise InputError(f"{out}: holds an images/ folder but no scene.json; refusing to overwrite it")
+    kind = entry.get("kind", "perspective")
+    if kind not in KINDS:
+        raise InputError(f"{path}: unknown kind {kind!r}; expected one of {', '.join(KINDS)}")
+    for item in _OWNED:  # remove what an older version of this scene left behind
+        target = out / item
+        if target.is_dir():
+            shutil.rmtree(target)
+        elif target.exists():
+            target.unlink()
+    out.mkdir(parents=True, exist_ok=True)
+    scene_name = entry.get("name", path.stem)
+    meta = {
+        "name": scene_name,
+        "kind": kind,
+        "hash": digest,
+        "units": entry.get("units", UNITS[kind]),
+        "description": entry.get("description", ""),
+        "seed": int(entry.get("seed", 0)),
+        "complete": False,
+    }
+    _write_json(out / "scene.json", meta)
+    start = time.perf_counter()
+    try:
+        details = KINDS[kind](entry, path.parent, out)
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"{path}: {type(exc).__name__}: {exc}") from None
+    meta.update(details)
+    meta["complete"] = True
+    _write_json(out / "scene.json", meta)
+    log.info("%s: made scene %s (%s) in %.1f s", out, scene_name, kind, time.perf_counter() - start)
+    return out
+
+
+def _write_json(path: Path, data: dict) -> None:
+    path.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")

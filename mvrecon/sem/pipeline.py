@@ -1,0 +1,349 @@
+"""The `mvrecon sem` run: SIFT for every image pair, affine verification, joint tilt solution, per-pair heights
+from parallax merged by ICP, a height map on the reference grid, and the outputs (PLY, TIFF, PNG, report.json).
+
+The seed paper (section 3) picks the image pairs with the most matches, computes each pair's 3D points by
+parallel-projection photogrammetry from the tilt angles and the scale, and integrates the pairs' point sets with
+ICP. Unknown tilts (common on real microscopes) come from the joint solution of all images (`factorization.py`),
+which also supplies the frame the pair sets are merged into.
+"""
+
+import json
+import logging
+import re
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..features.sift import SiftConfig
+from ..matching.matcher import MatcherConfig
+from ..progress import progress
+from .affine import AffineRansacConfig, ransac_affine_fundamental, tilt_axis_from_affine_fundamental
+from .factorization import build_tracks, solve_tilt_series
+from .heightmap import DenseConfig, dense_heights, grid_heights, height_outliers, profile
+from .icp import IcpConfig, icp
+from .parallax import axis_vectors, heights_from_parallax
+
+log = logging.getLogger("mvrecon.sem")
+
+
+@dataclass(frozen=True)
+class SemConfig:
+    """tilts_deg: one known tilt per image, or None to estimate them (>= 3 images). axis_deg: in-plane tilt axis
+    (deg from image +x towards +y; 90 = vertical), None to estimate. pixel_size_um: size of an input pixel; None
+    reports heights in input pixels. max_size: shrink images so the long side is at most this (None: full size).
+    reference: image whose grid the height map uses (None: the tilt closest to 0, or the middle image when tilts
+    are estimated). pairs: how many best-matched pairs give per-pair point sets (the paper uses 2).
+    icp_method: kdtree | brute | open3d-point | open3d-plane. densify: SGBM on the rectified pair of the
+    reference and the image tilted farthest from it. profile: (x0, y0, x1, y1) in input pixels, None = the line
+    across the tilt axis through the image centre."""
+
+    tilts_deg: tuple | None = None
+    axis_deg: float | None = None
+    pixel_size_um: float | None = None
+    max_size: int | None = None
+    reference: int | None = None
+    pairs: int = 2
+    icp_method: str = "kdtree"
+    densify: bool = False
+    profile: tuple | None = None
+    sift: SiftConfig = field(default_factory=lambda: SiftConfig(max_num_features=8192))
+    matcher: MatcherConfig = field(default_factory=MatcherConfig)
+    ransac: AffineRansacConfig = field(default_factory=AffineRansacConfig)
+    icp: IcpConfig = field(default_factory=IcpConfig)
+    dense: DenseConfig = field(default_factory=DenseConfig)
+
+
+def parse_length_um(text) -> float:
+    """'0.05um', '50nm', '0.05 µm', '1e-3mm' or a bare number (micrometres) -> micrometres."""
+    m = re.fullmatch(r"\s*([0-9.eE+-]+)\s*(nm|um|µm|mm)?\s*", str(text))
+    try:
+        value = float(m.group(1)) if m else float("nan")
+    except ValueError:
+        value = float("nan")
+    if not m or not np.isfinite(value) or value <= 0:
+        raise ValueError(f"pixel size must be a positive length like 0.05um or 50nm, got {text!r}")
+    return value * {"nm": 1e-3, "mm": 1e3}.get(m.group(2) or "um", 1.0)
+
+
+def _natural_key(name: str):
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
+
+
+def resolve_images(inputs) -> list[Path]:
+    """Image files from a list of files and/or folders (a folder gives its images in natural name order)."""
+    from ..io.images import list_images
+
+    paths = []
+    for item in inputs:
+        p = Path(item)
+        if p.is_dir():
+            names, _ = list_images(p)
+            paths += [p / n for n in sorted(names, key=_natural_key)]
+        elif p.is_file():
+            paths.append(p)
+        else:
+            raise InputError(f"{p}: no such file or folder")
+    return paths
+
+
+def _load(paths, max_size):
+    import cv2
+
+    from ..io.images import read_image, to_gray_uint8
+
+    images = [to_gray_uint8(read_image(p)) for p in paths]
+    shapes = {im.shape for im in images}
+    if len(shapes) > 1:
+        raise InputError(f"{paths[0].parent}: the tilt series mixes image sizes {sorted(shapes)}; "
+                         "all images must share one size")
+    h, w = images[0].shape
+    factor = min(1.0, max_size / max(h, w)) if max_size else 1.0
+    if factor < 1.0:
+        size = (max(1, round(w * factor)), max(1, round(h * factor)))
+        images = [cv2.resize(im, size, interpolation=cv2.INTER_AREA) for im in images]
+        factor = images[0].shape[1] / w
+    return images, factor
+
+
+def _match_all(images, config: SemConfig):
+    """Keypoints (OpenCV pixel convention) per image and the affine-verified matches of every pair."""
+    from ..features.sift import extract_sift
+    from ..matching.matcher import match_descriptors, normalize_descriptors
+
+    keypoints, descriptors = [], []
+    for im in progress(images, desc="SIFT", unit="image"):
+        kp, desc = extract_sift(im, config.sift)
+        keypoints.append(kp[:, :2].astype(float) - 0.5)  # COLMAP pixel centres -> OpenCV
+        descriptors.append(normalize_descriptors(desc))
+    pairs = {}
+    pair_list = [(i, j) for i in range(len(images)) for j in range(i + 1, len(images))]
+    for i, j in progress(pair_list, desc="match + affine F", unit="pair"):
+        m = match_descriptors(descriptors[i], descriptors[j], config.matcher)
+        F, inliers = ransac_affine_fundamental(keypoints[i][m[:, 0]], keypoints[j][m[:, 1]], config.ransac)
+        pairs[(i, j)] = {"matches": int(len(m)), "verified": int(inliers.sum()), "F": F, "index": m[inliers]}
+    return keypoints, pairs
+
+
+def _reference(config: SemConfig, n: int) -> int:
+    if config.reference is not None:
+        if not 0 <= config.reference < n:
+            raise InputError(f"--reference {config.reference}: must be an image index in 0..{n - 1}")
+        return config.reference
+    if config.tilts_deg is not None:
+        return int(np.argmin(np.abs(np.asarray(config.tilts_deg, float))))
+    return n // 2
+
+
+def _cell_average(points: np.ndarray, shape) -> np.ndarray:
+    """One point per grid cell (the mean of those falling in it): near-duplicates from several point sets would
+    otherwise make slivers in the triangulation and turn their small disagreements into spikes."""
+    h, w = shape
+    col = np.clip(np.round(points[:, 0]).astype(int), 0, w - 1)
+    row = np.clip(np.round(points[:, 1]).astype(int), 0, h - 1)
+    cell = row * w + col
+    uniq, inv, counts = np.unique(cell, return_inverse=True, return_counts=True)
+    out = np.zeros((len(uniq), 3))
+    np.add.at(out, inv, points)
+    return out / counts[:, None]
+
+
+def run_sem(image_paths, out_dir, config: SemConfig = SemConfig()) -> dict:
+    """Run the whole SEM pipeline and write the outputs to `out_dir`; returns the report (also report.json)."""
+    timings, t0 = {}, time.perf_counter()
+    paths = [Path(p) for p in image_paths]
+    n = len(paths)
+    if n < 2:
+        raise InputError(f"{paths[0] if paths else 'IMAGES'}: a tilt series needs at least 2 images, got {n}")
+    if config.tilts_deg is not None and len(config.tilts_deg) != n:
+        raise InputError(f"--tilts: {len(config.tilts_deg)} angles given for {n} images; give one per image")
+    if config.tilts_deg is None and n < 3:
+        raise InputError(f"{paths[0]}: estimating tilts needs at least 3 images (got {n}); give --tilts")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    ref = _reference(config, n)
+
+    images, factor = _load(paths, config.max_size)
+    h, w = images[0].shape
+    center = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
+    timings["load_s"] = time.perf_counter() - t0
+
+    t = time.perf_counter()
+    keypoints, pairs = _match_all(images, config)
+    timings["match_s"] = time.perf_counter() - t
+    ranked = sorted((p for p in pairs if pairs[p]["verified"] > 0), key=lambda p: -pairs[p]["verified"])
+    if not ranked:
+        raise InputError(f"{paths[0].parent}: no image pair has verified matches "
+                         "(" + ", ".join(f"{i}-{j}: {v['matches']} raw" for (i, j), v in pairs.items()) + ")")
+    log.info("verified matches per pair: %s",
+             ", ".join(f"{i}-{j}: {pairs[(i, j)]['verified']}/{pairs[(i, j)]['matches']}" for i, j in pairs))
+
+    # joint solution of all images: tilts (given or estimated), axis, drifts, points
+    t = time.perf_counter()
+    axis_guess = tilt_axis_from_affine_fundamental(pairs[ranked[0]]["F"])
+    obs = build_tracks({p: pairs[p]["index"] for p in ranked}, [k - center for k in keypoints])
+    try:
+        solution = solve_tilt_series(obs, n, ref, tilts_deg=config.tilts_deg, axis_deg=config.axis_deg,
+                                     axis_guess_deg=axis_guess)
+    except ValueError as exc:
+        raise InputError(f"{paths[0].parent}: {exc}") from None
+    timings["joint_s"] = time.perf_counter() - t
+    tilts, axis = solution.tilts_deg, solution.axis_deg
+    log.info("tilts %s deg about the axis at %.2f deg; joint adjustment RMS %.3f px over %d observations",
+             ", ".join(f"{x:.3f}" for x in tilts), axis, solution.rms_px, solution.observations_used)
+
+    # the paper's step: per-pair point sets from parallax, merged with ICP into the joint frame
+    t = time.perf_counter()
+    anchor = solution.points[np.isfinite(solution.points).all(axis=1)]
+    anchor_outliers = height_outliers(anchor)
+    anchor = anchor[~anchor_outliers]
+    merged, pair_reports = [anchor], []
+    for i, j in ranked[:max(1, config.pairs)]:
+        idx = pairs[(i, j)]["index"]
+        cloud = heights_from_parallax(keypoints[i][idx[:, 0]], keypoints[j][idx[:, 1]], tilts[i], tilts[j], axis,
+                                      center)
+        outliers = height_outliers(cloud)
+        cloud = cloud[~outliers]
+        init = np.eye(4)
+        init[:3, 3] = np.median(anchor, axis=0) - np.median(cloud, axis=0)
+        result = icp(cloud, anchor, config.icp_method, config.icp, init)
+        merged.append(result.apply(cloud))
+        pair_reports.append({"pair": [i, j], "images": [paths[i].name, paths[j].name], "points": int(len(cloud)),
+                             "height_outliers": int(outliers.sum()), "icp": {"method": result.method, "iterations": result.iterations,
+                                     "rms_px": result.rms, "pairs": result.pairs, "seconds": result.seconds,
+                                     "translation_px": result.matrix[:3, 3].tolist()}})
+    timings["pairs_icp_s"] = time.perf_counter() - t
+    merged = np.vstack(merged)
+    merged_outliers = height_outliers(merged)
+    merged = merged[~merged_outliers]
+
+    # height map on the reference grid (working resolution)
+    t = time.perf_counter()
+    cells = _cell_average(np.column_stack([merged[:, :2] + center, merged[:, 2]]), (h, w))
+    height = grid_heights(cells[:, :2], cells[:, 2], (h, w))
+    dense_report = None
+    if config.densify:
+        height, dense_report = _densify(images, ref, tilts, axis, solution, pairs, height, config.dense)
+    timings["heightmap_s"] = time.perf_counter() - t
+
+    unit = "um" if config.pixel_size_um else "px"
+    to_unit = (config.pixel_size_um or 1.0) / factor  # working pixels -> micrometres (or input pixels)
+    height_u = height * to_unit
+    merged_u = merged * to_unit
+    finite = np.isfinite(height_u)
+    line = _profile_line(config.profile, factor, axis, center, (h, w))
+    _write_outputs(out, images[ref], height_u, merged_u, merged, center, line, unit, to_unit)
+    timings["total_s"] = time.perf_counter() - t0
+
+    report = {
+        "images": [str(p) for p in paths],
+        "reference": ref,
+        "working_size": [w, h],
+        "downscale": factor,
+        "pixel_size_um": config.pixel_size_um,
+        "working_pixel_size": to_unit,
+        "units": unit,
+        "tilts_deg": [float(x) for x in tilts],
+        "tilts_given": config.tilts_deg is not None,
+        "tilt_steps_deg": [float(x) for x in np.diff(tilts)],
+        "axis_deg": axis,
+        "axis_given": config.axis_deg is not None,
+        "axis_from_affine_F_deg": axis_guess,
+        "keypoints": [int(len(k)) for k in keypoints],
+        "pairs": [{"pair": [i, j], "matches": v["matches"], "verified": v["verified"]} for (i, j), v in pairs.items()],
+        "joint": {"rms_px": solution.rms_px, "observations": solution.observations_used,
+                  "tracks": int(obs.num_points), "points": int(len(anchor)),
+                  "drift_px": solution.shifts.tolist()},
+        "pair_point_sets": pair_reports,
+        "merged_points": int(len(merged)),
+        "height_outliers": {"joint": int(anchor_outliers.sum()), "merged": int(merged_outliers.sum())},
+        "height_map": {"valid_fraction": float(finite.mean()),
+                       "min": float(np.nanmin(height_u)) if finite.any() else None,
+                       "max": float(np.nanmax(height_u)) if finite.any() else None,
+                       "profile_line_px": [float(v / factor) for v in line]},
+        "dense": dense_report,
+        "config": {k: v for k, v in asdict(config).items()
+                   if k in ("pairs", "icp_method", "densify", "max_size", "reference")},
+        "timings": timings,
+    }
+    (out / "report.json").write_text(json.dumps(report, indent=1))
+    return report
+
+
+def _densify(images, ref, tilts, axis, solution, pairs, sparse_height, dense_config):
+    """SGBM heights of the pair (reference, image tilted farthest from it), holes filled from the sparse map."""
+    candidates = [j for j in range(len(images)) if j != ref and pairs[tuple(sorted((ref, j)))]["verified"] > 0]
+    if not candidates:
+        return sparse_height, {"used": False, "reason": "the reference image has no verified pair"}
+    other = max(candidates, key=lambda j: abs(tilts[j] - tilts[ref]))
+    tr, to = np.radians(tilts[ref]), np.radians(tilts[other])
+    z = solution.points[np.isfinite(solution.points).all(axis=1), 2]
+    disparities = z * np.sin(tr - to) / np.cos(to)
+    dense = dense_heights(images[ref], images[other], tilts[ref], tilts[other], axis, solution.shifts[other],
+                          (np.percentile(disparities, 1), np.percentile(disparities, 99)), dense_config)
+    both = np.isfinite(dense) & np.isfinite(sparse_height)
+    diff = float(np.median(np.abs(dense[both] - sparse_height[both]))) if both.any() else float("nan")
+    filled = np.where(np.isfinite(dense), dense, sparse_height)
+    return filled, {"used": True, "pair": [ref, other], "dense_fraction": float(np.isfinite(dense).mean()),
+                    "median_abs_difference_to_sparse_px": diff}
+
+
+def _profile_line(spec, factor, axis, center, shape):
+    """(x0, y0, x1, y1) in working pixels: the given line (input pixels), or across the axis through the centre."""
+    if spec is not None:
+        return tuple(float(v) * factor for v in spec)
+    h, w = shape
+    _, nvec = axis_vectors(axis)
+    half = 0.45 * min(w / max(abs(nvec[0]), 1e-9), h / max(abs(nvec[1]), 1e-9), np.hypot(w, h))
+    x0, y0 = center - half * nvec
+    x1, y1 = center + half * nvec
+    return (float(x0), float(y0), float(x1), float(y1))
+
+
+def _write_outputs(out: Path, ref_image, height, merged_u, merged_px, center, line, unit, to_unit):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import tifffile
+
+    from ..io.ply import write_ply
+
+    h, w = height.shape
+    tifffile.imwrite(out / "height.tif", height.astype(np.float32))
+    # coloured PLY of the merged points (y flipped so the cloud is right-handed with heights up)
+    col = np.clip(np.round(merged_px[:, 0] + center[0]).astype(int), 0, w - 1)
+    row = np.clip(np.round(merged_px[:, 1] + center[1]).astype(int), 0, h - 1)
+    grey = ref_image[row, col]
+    write_ply(out / "points.ply", np.column_stack([merged_u[:, 0], -merged_u[:, 1], merged_u[:, 2]]),
+              colors=np.repeat(grey[:, None], 3, axis=1))
+    step = max(1, int(np.ceil(np.sqrt(h * w / 300_000))))
+    gy, gx = np.mgrid[0:h:step, 0:w:step]
+    hz = height[gy, gx]
+    ok = np.isfinite(hz)
+    surface = np.column_stack([(gx[ok] - center[0]) * to_unit, -(gy[ok] - center[1]) * to_unit, hz[ok]])
+    write_ply(out / "surface.ply", surface, colors=np.repeat(ref_image[gy, gx][ok][:, None], 3, axis=1))
+
+    finite = np.isfinite(height)
+    lo, hi = (np.nanpercentile(height, [1, 99]) if finite.any() else (0.0, 1.0))
+    fig, ax = plt.subplots(figsize=(7, 7 * h / w + 0.5), dpi=120)
+    im = ax.imshow(np.ma.masked_invalid(height), cmap="viridis", vmin=lo, vmax=hi)
+    ax.plot([line[0], line[2]], [line[1], line[3]], "r-", lw=1)
+    ax.set_title(f"height ({unit}), reference grid; red: profile line")
+    fig.colorbar(im, ax=ax, label=f"height ({unit})", shrink=0.8)
+    fig.tight_layout()
+    fig.savefig(out / "height.png")
+    plt.close(fig)
+
+    dist, values = profile(height, line[:2], line[2:])
+    fig, ax = plt.subplots(figsize=(8, 3), dpi=120)
+    ax.plot(dist * to_unit, values, "k-", lw=1)
+    ax.set_xlabel(f"distance along the line ({unit})")
+    ax.set_ylabel(f"height ({unit})")
+    ax.set_title("height profile")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out / "profile.png")
+    plt.close(fig)

@@ -1,0 +1,262 @@
+"""Bundle adjustment with GTSAM: poses, points and one shared calibration per camera, Huber loss.
+
+Variables: X(i) = world_from_camera Pose3 of each optimised image, L(p) = Point3, K(c) = calibration of
+camera c (COLMAP model -> GTSAM: SIMPLE_PINHOLE/SIMPLE_RADIAL/RADIAL -> Cal3Bundler, PINHOLE -> Cal3_S2, OPENCV ->
+Cal3DS2). A view of an optimised image is a GeneralSFMFactor2 (pose, point, calibration); a view of a constant
+image (outside a local window) is a TriangulationFactor on the point alone, so constant cameras add no
+variables. Calibration entries COLMAP keeps fixed (principal point, skew, the k2 of SIMPLE_RADIAL) or that
+are not refined are pinned by a tight prior on the calibration.
+
+Gauge: 7 degrees of freedom (similarity) are free in SfM. With two or more constant images the window is
+anchored. Otherwise the first registered image is pinned by a tight pose prior and the scale by a tight prior
+on one translation component (along the baseline) of the second image, COLMAP's choice.
+
+The graph is built once per call in a single pass over the observation arrays; `optimizer="sfm"` runs
+gtsam.SfmLevenbergMarquardtOptimizer with Schur elimination of the points, "lm" plain Levenberg-Marquardt.
+"""
+
+import logging
+import os
+import sys
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import numpy as np
+
+from .config import MapperConfig
+
+log = logging.getLogger("mvrecon.sfm")
+_TIGHT = 1e-6
+_LOOSE = 1e6
+
+
+@dataclass
+class BundleResult:
+    initial_error: float
+    final_error: float
+    iterations: int
+    seconds: float
+    num_observations: int
+
+
+_FOCAL_ENTRIES = {"Cal3Bundler": [0], "Cal3_S2": [0, 1], "Cal3DS2": [0, 1]}
+
+
+def _calibration_layout(model: str, params):
+    """(gtsam class name, gtsam calibration vector, mask of the tangent entries that may be refined)."""
+    p = np.asarray(params, dtype=float)
+    if model == "SIMPLE_PINHOLE":
+        return "Cal3Bundler", [p[0], 0.0, 0.0, p[1], p[2]], [True, False, False]
+    if model == "SIMPLE_RADIAL":
+        return "Cal3Bundler", [p[0], p[3], 0.0, p[1], p[2]], [True, True, False]
+    if model == "RADIAL":
+        return "Cal3Bundler", [p[0], p[3], p[4], p[1], p[2]], [True, True, True]
+    if model == "PINHOLE":
+        return "Cal3_S2", [p[0], p[1], 0.0, p[2], p[3]], [True, True, False, False, False]
+    if model == "OPENCV":
+        return "Cal3DS2", [p[0], p[1], 0.0, p[2], p[3], *p[4:8]], [True, True, False, False, False,
+                                                                    True, True, True, True]
+    raise ValueError(f"camera model {model} is not supported by bundle adjustment (use one of "
+                     "SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL, PINHOLE, OPENCV)")
+
+
+def _make_calibration(gtsam, kind, v):
+    return getattr(gtsam, kind)(*v)
+
+
+def _params_from_calibration(model: str, cal) -> np.ndarray:
+    if model == "SIMPLE_PINHOLE":
+        return np.array([cal.fx(), cal.px(), cal.py()])
+    if model == "SIMPLE_RADIAL":
+        return np.array([cal.fx(), cal.px(), cal.py(), cal.k1()])
+    if model == "RADIAL":
+        return np.array([cal.fx(), cal.px(), cal.py(), cal.k1(), cal.k2()])
+    if model == "PINHOLE":
+        return np.array([cal.fx(), cal.fy(), cal.px(), cal.py()])
+    k = cal.k()
+    return np.array([cal.fx(), cal.fy(), cal.px(), cal.py(), k[0], k[1], k[2], k[3]])
+
+
+def _pose3(gtsam, R, t):
+    Rt = np.asarray(R).T
+    return gtsam.Pose3(gtsam.Rot3(Rt), -Rt @ np.asarray(t))
+
+
+def bundle_adjust(model, variable_images, config: MapperConfig, *, point_ids=None, refine_intrinsics=False,
+                  refine_distortion=True, max_iterations=None, optimizer=None) -> BundleResult:
+    """Optimise the poses of `variable_images`, the points they see (or `point_ids`) and, when asked, the
+    intrinsics of cameras whose registered images are all variable (the focal only, without
+    `refine_distortion`). Other registered images stay constant."""
+    import gtsam
+    from gtsam.symbol_shorthand import K, L, X
+
+    start = time.perf_counter()
+    variable = np.zeros(len(model.image_ids), bool)
+    variable[np.asarray(variable_images, dtype=np.int64)] = True
+    variable &= model.registered
+    if point_ids is None:
+        point_ids = np.unique(model.obs_point.data[model.observations_of_images(np.flatnonzero(variable))])
+    obs = model.observations_of_points(point_ids)
+    obs_img, obs_pt, obs_kp = model.obs_image.data[obs], model.obs_point.data[obs], model.obs_kp.data[obs]
+    if len(obs) == 0:
+        return BundleResult(0.0, 0.0, 0, 0.0, 0)
+
+    noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(config.huber_px),
+                                           gtsam.noiseModel.Isotropic.Sigma(2, 1.0))
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+
+    reg = model.registered
+    var_cams = set(np.unique(model.camera_of[variable]).tolist())
+    refined_cams = set()
+    if refine_intrinsics:
+        for c in var_cams:
+            users = reg & (model.camera_of == c)
+            if np.all(variable[users]):
+                refined_cams.add(c)
+    cal_kind = {}
+    for c in var_cams:
+        cam = model.cameras[c]
+        kind, vec, free = _calibration_layout(cam.model, cam.params)
+        cal_kind[c] = kind
+        values.insert(K(c), _make_calibration(gtsam, kind, vec))
+        free = np.asarray(free) & (c in refined_cams)
+        if not refine_distortion:
+            free &= np.isin(np.arange(len(free)), _FOCAL_ENTRIES[kind])
+        sig = np.where(free, _LOOSE, _TIGHT)
+        graph.add(getattr(gtsam, f"PriorFactor{kind}")(K(c), _make_calibration(gtsam, kind, vec),
+                                                       gtsam.noiseModel.Diagonal.Sigmas(sig)))
+    for i in np.flatnonzero(variable):
+        values.insert(X(int(i)), _pose3(gtsam, model.R[i], model.t[i]))
+
+    # constant images: a fixed camera object each, factors on the point only
+    fixed_cams = {}
+    for i in np.unique(obs_img[~variable[obs_img]]):
+        cam = model.camera(i)
+        kind, vec, _ = _calibration_layout(cam.model, cam.params)
+        fixed_cams[int(i)] = (kind, getattr(gtsam, f"PinholeCamera{kind}")(
+            _pose3(gtsam, model.R[i], model.t[i]), _make_calibration(gtsam, kind, vec)))
+
+    points = np.unique(obs_pt)
+    xyz = model.xyz.data
+    for p in points:
+        values.insert(L(int(p)), xyz[p])
+
+    uv = np.empty((len(obs), 2))
+    for i in np.unique(obs_img):
+        m = obs_img == i
+        uv[m] = model.keypoints[i][obs_kp[m]]
+    cam_of = model.camera_of
+    factor = {kind: getattr(gtsam, f"GeneralSFMFactor2{kind}") for kind in set(cal_kind.values())}
+    tri = {kind: getattr(gtsam, f"TriangulationFactor{kind}")
+           for kind in ("Cal3Bundler", "Cal3_S2", "Cal3DS2")}
+    for o in range(len(obs)):
+        i, p = int(obs_img[o]), int(obs_pt[o])
+        if variable[i]:
+            c = int(cam_of[i])
+            graph.add(factor[cal_kind[c]](uv[o], noise, X(i), L(p), K(c)))
+        else:
+            kind, camera = fixed_cams[i]
+            graph.add(tri[kind](camera, uv[o], noise, L(p)))
+
+    _fix_gauge(gtsam, graph, model, variable, len(fixed_cams), X)
+
+    iterations = max_iterations or config.global_ba_iterations
+    initial = graph.error(values)
+    ordering = gtsam.Ordering()  # points first: the Schur complement, and no COLAMD run per call
+    keys = [L(int(p)) for p in points] + [K(c) for c in var_cams]
+    for key in keys + [X(int(i)) for i in np.flatnonzero(variable)]:
+        ordering.push_back(key)
+    result, used = _optimize(gtsam, graph, values, optimizer or config.optimizer, iterations,
+                             config.ba_relative_tolerance, ordering)
+    final = graph.error(result)
+
+    for i in np.flatnonzero(variable):
+        pose = result.atPose3(X(int(i)))
+        R = np.asarray(pose.rotation().matrix()).T
+        model.R[i] = R
+        model.t[i] = -R @ np.asarray(pose.translation())
+    for p in points:
+        xyz[p] = result.atPoint3(L(int(p)))
+    for c in refined_cams:
+        cal = getattr(result, f"at{cal_kind[c]}")(K(c))
+        model.cameras[c].params = _params_from_calibration(model.cameras[c].model, cal)
+    out = BundleResult(float(initial), float(final), used, time.perf_counter() - start, len(obs))
+    log.debug("BA %d images (%d constant), %d points, %d observations: cost %.4g -> %.4g in %d iterations, "
+              "%.3f s", int(variable.sum()), len(fixed_cams), len(points), len(obs), out.initial_error,
+              out.final_error, used, out.seconds)
+    return out
+
+
+def _optimize(gtsam, graph, values, kind: str, iterations: int, relative_tolerance: float, ordering):
+    """(optimised values, iterations). Ceres-style LM settings (diagonal damping, lambda 1e-4, factor 2): with
+    GTSAM's legacy defaults a tiny lambda let the first steps of a two-view problem jump points behind the
+    cameras, which the Sfm optimizer reports as an error. Plain LM gets the points-first `ordering` (its
+    COLAMD ordering cost ~0.6 s per call on 5000 points); the Sfm optimizer builds its own Schur ordering."""
+    if kind == "sfm":
+        params = gtsam.SfmLevenbergMarquardtParams.ceresDefaults()
+        params.setEliminationMode(gtsam.SfmEliminationMode.Schur)
+        make = gtsam.SfmLevenbergMarquardtOptimizer
+    elif kind == "lm":
+        params = gtsam.LevenbergMarquardtParams.CeresDefaults()
+        params.setLinearSolverType("SEQUENTIAL_CHOLESKY")  # measured faster than multifrontal here
+        params.setOrdering(ordering)
+        make = gtsam.LevenbergMarquardtOptimizer
+    else:
+        raise ValueError(f"unknown optimizer {kind!r}; use 'sfm' or 'lm'")
+    params.setMaxIterations(iterations)
+    params.setRelativeErrorTol(relative_tolerance)
+    opt = make(graph, values, params)
+    try:
+        with _native_stdout_silenced():
+            return opt.optimize(), int(opt.iterations())
+    except RuntimeError:
+        if kind != "sfm":
+            raise
+        # the Sfm optimizer raises (with no message) when a trial step puts a point behind a camera
+        log.warning("SfmLevenbergMarquardtOptimizer failed; retrying this bundle adjustment with plain LM")
+        return _optimize(gtsam, graph, values, "lm", iterations, relative_tolerance, ordering)
+
+
+def _fix_gauge(gtsam, graph, model, variable, num_fixed_images, X):
+    """Anchor the similarity gauge when constant images do not (see the module docstring)."""
+    if num_fixed_images >= 2:
+        return
+    order = [i for i in model.registration_order if variable[i]]
+    if not order:
+        return
+    if num_fixed_images == 0:
+        first = order[0]
+        graph.add(gtsam.PriorFactorPose3(X(first), _pose3(gtsam, model.R[first], model.t[first]),
+                                         gtsam.noiseModel.Isotropic.Sigma(6, _TIGHT)))
+        others = order[1:]
+    else:
+        others = order
+    if not others:
+        return
+    second = others[0]
+    centers = model.centers()
+    anchor = model.registration_order[0]
+    baseline_in_cam = model.R[second] @ (centers[second] - centers[anchor])
+    axis = int(np.argmax(np.abs(baseline_in_cam)))
+    sig = np.full(6, _LOOSE)
+    sig[3 + axis] = _TIGHT
+    graph.add(gtsam.PriorFactorPose3(X(second), _pose3(gtsam, model.R[second], model.t[second]),
+                                     gtsam.noiseModel.Diagonal.Sigmas(sig)))
+
+
+@contextmanager
+def _native_stdout_silenced():
+    """GTSAM's C++ factors print every CheiralityException of a trial step to stdout; those steps are simply
+    rejected by the optimizer, so the lines are noise for the user (and would fill logs of long runs)."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 1)
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+        os.close(devnull)

@@ -1,0 +1,75 @@
+"""The mapper's settings: one frozen dataclass whose defaults follow COLMAP's incremental mapper."""
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass
+
+
+@dataclass(frozen=True)
+class MapperConfig:
+    """Incremental mapping options. Pixel thresholds are in pixels of the (distorted) image.
+
+    Initial pair (COLMAP: init_min_num_inliers=100, init_min_tri_angle=16, init_max_error=4):
+    init_min_inliers: verified matches a pair needs to be tried as the initial pair.
+    init_min_tri_angles_deg: median triangulation angles tried in order; the first pair meeting one wins, so a
+        scene without a 16 degree baseline still starts (COLMAP relaxes its thresholds the same way).
+    init_max_pairs: at most this many candidate pairs are tried per angle threshold.
+    two_view_max_error_px: epipolar inlier threshold for the relative pose.
+
+    Registration (COLMAP: abs_pose_max_error=12, abs_pose_min_num_inliers=30, abs_pose_min_inlier_ratio=0.25):
+    abs_pose_*: RANSAC threshold, minimum inliers and inlier ratio of the absolute pose.
+    max_register_trials: how many times an image is tried before it is given up (it is retried only after
+        the model has grown since its last trial).
+    candidates_per_round: how many best-scored images are tried before the mapper gives up growing.
+
+    Triangulation and filtering (COLMAP: tri_min_angle=1.5, tri_complete/merge_max_reproj_error=4,
+    filter_max_reproj_error=4, filter_min_tri_angle=1.5):
+    min_tri_angle_deg, max_reproj_error_px, filter_max_reproj_error_px, filter_min_tri_angle_deg.
+
+    Bundle adjustment (COLMAP: ba_local_num_images=6, ba_global_images_ratio=1.1,
+    ba_local_max_num_iterations=25):
+    local_ba_images: the new image plus its most connected neighbours that are optimised.
+    global_ba_growth: a global BA runs when the registered count grows by this factor.
+    ba_relative_tolerance: LM stops when the cost falls by less than this fraction in an iteration.
+    huber_px: Huber loss width (pixels); refine_intrinsics: focal and distortion refined in global BA.
+    focal_min_images: intrinsics stay fixed in the two-view BA of the initial pair, where the focal length is
+        not observable (it collapses towards zero with the depths).
+    distortion_min_images: below this many registered images only the focal is refined: two or three views
+        fit a wrong distortion that then pushes the periphery of the next image past the PnP threshold.
+    optimizer: "sfm" for gtsam.SfmLevenbergMarquardtOptimizer with Schur elimination of the points (measured
+        as fast or faster, tools/bench_ba.py), "lm" for plain Levenberg-Marquardt.
+
+    Models: min_model_size images or more keep a model; max_models bounds how many are started.
+    seed: every random choice (RANSAC) is seeded from it, so equal inputs give equal models.
+    """
+
+    init_min_inliers: int = 100
+    init_min_tri_angles_deg: tuple = (16.0, 8.0, 4.0, 2.0)
+    init_max_pairs: int = 40
+    two_view_max_error_px: float = 4.0
+    abs_pose_max_error_px: float = 12.0
+    abs_pose_min_inliers: int = 30
+    abs_pose_min_inlier_ratio: float = 0.25
+    max_register_trials: int = 3
+    candidates_per_round: int = 5
+    min_tri_angle_deg: float = 1.5
+    max_reproj_error_px: float = 4.0
+    filter_max_reproj_error_px: float = 4.0
+    filter_min_tri_angle_deg: float = 1.5
+    local_ba_images: int = 6
+    local_ba_iterations: int = 25
+    global_ba_iterations: int = 50
+    global_ba_growth: float = 1.1
+    ba_relative_tolerance: float = 1e-4
+    huber_px: float = 1.0
+    refine_intrinsics: bool = True
+    focal_min_images: int = 3
+    distortion_min_images: int = 6
+    optimizer: str = "sfm"
+    min_model_size: int = 3
+    max_models: int = 10
+    seed: int = 0
+
+    def hash(self) -> str:
+        """Short stable hash of the settings, stored in reports and snapshots to refuse mixing configs."""
+        return hashlib.sha1(json.dumps(asdict(self), sort_keys=True).encode()).hexdigest()[:12]

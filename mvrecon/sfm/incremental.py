@@ -1,0 +1,299 @@
+"""The incremental mapper: initial pair, then register / triangulate / bundle-adjust image by image.
+
+Loop per model (COLMAP's IncrementalMapper): pick the best next images by visibility score, register one with
+robust absolute pose, continue existing points into it and triangulate its new tracks, run a local BA over it
+and its most connected neighbours, filter; whenever the model has grown by 10% run a global BA with
+intrinsics,
+retriangulate and filter, and write a snapshot. When no image can be added, the model is finished (a last
+global refinement) and a new model is started from the images that are left, so scenes that do not connect
+give several models. Every image that ends unregistered gets a reason.
+"""
+
+import logging
+import os
+import pickle
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..progress import progress
+from . import filtering
+from .bundle import bundle_adjust as _bundle_adjust
+from .config import MapperConfig
+from .initialize import find_initial_pair
+from .model import Camera, Reconstruction
+from .register import rank_candidates, register_image
+from .tracks import build_tracks
+from .triangulate import continue_points, retriangulate, tracks_of_image, triangulate_tracks
+
+log = logging.getLogger("mvrecon.sfm")
+SNAPSHOT_VERSION = 1
+
+
+@dataclass
+class MappingResult:
+    models: list  # Reconstruction, largest first
+    status: dict  # image name -> {"status", "model", "reason"}
+    stats: dict = field(default_factory=dict)
+
+
+class _Snapshot:
+    """Pickled mapper state; refused when the config or the input correspondences differ."""
+
+    def __init__(self, path, signature):
+        self.path = Path(path) if path else None
+        self.signature = signature
+
+    def save(self, state: dict) -> None:
+        if self.path is None:
+            return
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.path.with_suffix(".tmp")
+        with open(tmp, "wb") as f:
+            pickle.dump({"version": SNAPSHOT_VERSION, "signature": self.signature, "state": state}, f)
+        os.replace(tmp, self.path)
+
+    def load(self) -> dict | None:
+        if self.path is None or not self.path.is_file():
+            return None
+        with open(self.path, "rb") as f:
+            data = pickle.load(f)
+        if data.get("version") != SNAPSHOT_VERSION or data.get("signature") != self.signature:
+            log.warning("%s: snapshot from a different config or database; starting over", self.path)
+            return None
+        return data["state"]
+
+
+def _signature(corr, config: MapperConfig) -> tuple:
+    return (config.hash(), len(corr.images), len(corr.pairs),
+            int(sum(len(p.inliers) for p in corr.pairs)), int(sum(len(k) for k in corr.keypoints.values())))
+
+
+class IncrementalMapper:
+    def __init__(self, corr, config: MapperConfig = MapperConfig(), snapshot_path=None):
+        self.config = config
+        ids = sorted(corr.images)
+        self.image_ids = np.array(ids, dtype=np.int64)
+        self.names = [corr.images[i].name for i in ids]
+        self.camera_of = np.array([corr.images[i].camera_id for i in ids], dtype=np.int64)
+        self.cameras = {cid: Camera(c.model, int(c.width), int(c.height), np.asarray(c.params, float),
+                                    bool(c.prior_trusted), 0.0) for cid, c in corr.cameras.items()}
+        for cam in self.cameras.values():
+            cam.prior_focal = cam.focal()
+        self.keypoints = [np.asarray(corr.keypoints.get(i, np.zeros((0, 2))), float) for i in ids]
+        index_of = {int(i): k for k, i in enumerate(ids)}
+        self.pairs = {}
+        for p in corr.pairs:
+            a, b = index_of.get(p.image_id1), index_of.get(p.image_id2)
+            if a is not None and b is not None and len(p.inliers):
+                self.pairs[(a, b) if a < b else (b, a)] = p if a < b else _swapped(p)
+        self.tracks = build_tracks(self.image_ids, [len(k) for k in self.keypoints], corr.pairs)
+        self.snapshot = _Snapshot(snapshot_path, _signature(corr, config))
+        self.finished: list[Reconstruction] = []
+        self.tried_init: set = set()
+        self.reasons: dict[int, str] = {}
+        self.current: Reconstruction | None = None
+        self.last_global = 0
+        self.attempts: dict[int, tuple[int, int]] = {}
+        self.ba_calls, self.ba_seconds = 0, 0.0
+
+    def _bundle(self, m, images, **kwargs):
+        out = _bundle_adjust(m, images, self.config, **kwargs)
+        self.ba_calls += 1
+        self.ba_seconds += out.seconds
+        return out
+
+    # ----- state -----
+    def _new_model(self) -> Reconstruction:
+        return Reconstruction(self.image_ids, self.names, self.camera_of, self.cameras, self.keypoints,
+                              len(self.tracks))
+
+    def _save(self) -> None:
+        self.snapshot.save({"finished": [m.state() for m in self.finished],
+                            "current": self.current.state() if self.current is not None else None,
+                            "tried_init": set(self.tried_init), "reasons": dict(self.reasons),
+                            "last_global": self.last_global, "attempts": dict(self.attempts)})
+
+    def _restore(self, s: dict) -> None:
+        self.finished = [Reconstruction.from_state(m, self.keypoints) for m in s["finished"]]
+        self.current = Reconstruction.from_state(s["current"], self.keypoints) if s["current"] else None
+        self.tried_init, self.reasons = s["tried_init"], s["reasons"]
+        self.last_global, self.attempts = s["last_global"], s["attempts"]
+
+    # ----- main loop -----
+    def run(self, resume: bool = False) -> MappingResult:
+        state = self.snapshot.load() if resume else None
+        if state is not None:
+            self._restore(state)
+            log.info("resuming from %s: %d finished models, current model with %d images", self.snapshot.path,
+                     len(self.finished), int(self.current.registered.sum()) if self.current else 0)
+        bar = progress(total=len(self.image_ids), desc="mapping", unit="img")
+        bar.update(sum(int(m.registered.sum()) for m in self.finished))
+        while len(self.finished) < self.config.max_models:
+            if self.current is None and not self._start_model():
+                break
+            bar.update(int(self.current.registered.sum()))
+            self._grow(self.current, bar)
+            self._finish_model(self.current)
+            self.current = None
+            self._save()
+        bar.close()
+        self.finished.sort(key=lambda m: -int(m.registered.sum()))
+        return MappingResult(self.finished, self._status(),
+                             {"tracks": len(self.tracks),
+                              "split_inconsistent_tracks": self.tracks.split_inconsistent,
+                              "ba_calls": self.ba_calls, "ba_seconds": self.ba_seconds})
+
+    def _excluded(self) -> set:
+        out = set()
+        for m in self.finished:
+            out.update(np.flatnonzero(m.registered).tolist())
+        return out
+
+    def _start_model(self) -> bool:
+        scratch = self._new_model()
+        init = find_initial_pair(scratch, self.pairs, self._excluded(), self.config, self.tried_init)
+        if init is None:
+            return False
+        m = scratch
+        m.register(init.image1, np.eye(3), np.zeros(3))
+        m.register(init.image2, init.R, init.t)
+        t1 = self.tracks.track_of[init.image1][init.keypoints1]
+        t2 = self.tracks.track_of[init.image2][init.keypoints2]
+        ok = (t1 >= 0) & (t1 == t2)
+        t1 = np.unique(t1[ok])
+        n_init = triangulate_tracks(m, self.tracks, t1, self.config, self.config.seed)
+        log.info("initial pair %s / %s: %d points, median triangulation angle %.1f deg",
+                 self.names[init.image1], self.names[init.image2], n_init, init.median_angle_deg)
+        self._global_refine(m)
+        if m.stats()["points"] < self.config.abs_pose_min_inliers:
+            return self._start_model()
+        self.current, self.last_global, self.attempts = m, 2, {}
+        self._save()
+        return True
+
+    def _grow(self, m: Reconstruction, bar) -> None:
+        cfg = self.config
+        excluded = self._excluded()
+        while True:
+            num_reg = int(m.registered.sum())
+            pool = [i for i in range(len(self.image_ids))
+                    if not m.registered[i] and i not in excluded
+                    and self.attempts.get(i, (0, -1))[0] < cfg.max_register_trials
+                    and self.attempts.get(i, (0, -1))[1] != num_reg]
+            ranked = [r for r in rank_candidates(m, self.tracks, pool) if r[1] > 0]
+            added = False
+            for _, n_matches, i in ranked[:cfg.candidates_per_round]:
+                count = self.attempts.get(i, (0, -1))[0]
+                self.attempts[i] = (count + 1, num_reg)
+                reg = register_image(m, self.tracks, i, cfg, seed=cfg.seed + i)
+                if not reg.ok:
+                    self.reasons[i] = reg.reason
+                    log.debug("%s: %s", self.names[i], reg.reason)
+                    continue
+                self.reasons.pop(i, None)
+                self._after_registration(m, i)
+                bar.update(1)
+                added = True
+                break
+            if not added:
+                return
+
+    def _after_registration(self, m: Reconstruction, i: int) -> None:
+        """Triangulate the new image's tracks, then a local BA, or a global one when the model grew enough
+        (a local BA right before a global one would optimise nearly the same problem twice)."""
+        cfg = self.config
+        continue_points(m, self.tracks, cfg, images=[i])
+        triangulate_tracks(m, self.tracks, tracks_of_image(m, self.tracks, i), cfg, cfg.seed + i)
+        log.debug("registered %s (%d images, %d points)", self.names[i], int(m.registered.sum()),
+                  len(m.alive_points()))
+        if m.registered.sum() >= cfg.global_ba_growth * self.last_global:
+            self._global_refine(m)
+            self.last_global = int(m.registered.sum())
+            self._save()
+            return
+        window = self._local_window(m, i)
+        pts = np.unique(m.obs_point.data[m.observations_of_images(window)])
+        self._bundle(m, window, point_ids=pts, max_iterations=cfg.local_ba_iterations)
+        continue_points(m, self.tracks, cfg, images=window)
+        filtering.filter_observations(m, cfg, point_ids=pts)
+        filtering.filter_small_angle_points(m, cfg, point_ids=pts)
+
+    def _local_window(self, m: Reconstruction, i: int) -> np.ndarray:
+        """The new image and the registered images sharing the most points with it."""
+        pts = m.obs_point.data[m.observations_of_images([i])]
+        others = m.obs_image.data[m.observations_of_points(np.unique(pts))]
+        counts = np.bincount(others, minlength=len(m.image_ids))
+        counts[i] = 0
+        best = [int(j) for j in np.argsort(-counts, kind="stable")[:self.config.local_ba_images - 1]
+                if counts[j] > 0]
+        return np.array([i, *best], dtype=np.int64)
+
+    def _global_refine(self, m: Reconstruction, rounds: int = 1) -> None:
+        cfg = self.config
+        for _ in range(rounds):
+            self._bundle(m, m.registered_images(), point_ids=m.alive_points(),
+                         refine_intrinsics=(cfg.refine_intrinsics
+                                            and m.registered.sum() >= cfg.focal_min_images),
+                         refine_distortion=m.registered.sum() >= cfg.distortion_min_images,
+                         max_iterations=cfg.global_ba_iterations)
+            retriangulate(m, self.tracks, cfg, cfg.seed)
+            filtering.filter_observations(m, cfg)
+            filtering.filter_small_angle_points(m, cfg)
+        for cid in filtering.degenerate_cameras(m):
+            for i in np.flatnonzero(m.registered & (m.camera_of == cid)):
+                if len(m.registration_order) > 2:
+                    m.deregister(i)
+                    self.reasons[int(i)] = "degenerate camera parameters after bundle adjustment"
+
+    def _finish_model(self, m: Reconstruction) -> None:
+        # two rounds of global BA + retriangulation, one when the last registration already ran a global BA
+        self._global_refine(m, rounds=1 if self.last_global == int(m.registered.sum()) else 2)
+        if int(m.registered.sum()) >= self.config.min_model_size:
+            self.finished.append(m)
+            log.info("model %d: %d images, %d points", len(self.finished) - 1, int(m.registered.sum()),
+                     len(m.alive_points()))
+        else:
+            log.info("discarded a model of %d images (< %d)", int(m.registered.sum()),
+                     self.config.min_model_size)
+
+    # ----- report -----
+    def _status(self) -> dict:
+        model_of = {}
+        for k, m in enumerate(self.finished):
+            for i in np.flatnonzero(m.registered):
+                model_of.setdefault(int(i), k)
+        paired = np.zeros(len(self.image_ids), bool)
+        for a, b in self.pairs:
+            paired[a] = paired[b] = True
+        in_tracks = np.array([np.any(t >= 0) for t in self.tracks.track_of], bool)
+        out = {}
+        for i, name in enumerate(self.names):
+            if i in model_of:
+                out[name] = {"status": "registered", "model": model_of[i], "reason": None}
+                continue
+            if not paired[i]:
+                reason = "no verified pairs with any other image"
+            elif not in_tracks[i]:
+                reason = "no consistent feature tracks (all its matches conflict)"
+            elif i in self.reasons:
+                reason = self.reasons[i]
+            else:
+                reason = "too few 2D-3D matches: it shares no triangulated points with a model"
+            out[name] = {"status": "unregistered", "model": None, "reason": reason}
+        return out
+
+
+def _swapped(p):
+    from dataclasses import replace
+
+    return replace(p, image_id1=p.image_id2, image_id2=p.image_id1, inliers=p.inliers[:, ::-1].copy(),
+                   F=None if p.F is None else p.F.T, E=None if p.E is None else p.E.T, H=None if p.H is None
+                   else np.linalg.inv(p.H))
+
+
+def map_correspondences(corr, config: MapperConfig = MapperConfig(), snapshot_path=None,
+                        resume: bool = False) -> MappingResult:
+    """Run the incremental mapper on a database's correspondences (see `database.read_correspondences`)."""
+    return IncrementalMapper(corr, config, snapshot_path).run(resume=resume)

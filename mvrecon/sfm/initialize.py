@@ -1,0 +1,124 @@
+"""The initial pair: two views with many verified matches and a wide enough baseline to triangulate well.
+
+Candidates are tried in order of inlier count (COLMAP also favours images with many correspondences); for each
+the relative pose comes from the essential matrix (with the camera's focal prior when it is not known) and is
+accepted when enough points triangulate with a median angle above the threshold. Thresholds are relaxed in
+turn
+(16 deg, then 8, 4, 2) so scenes without a wide baseline still start, as COLMAP relaxes its own.
+Pure rotation and planar-with-no-baseline pairs fail the angle check; that is how they are rejected.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..geometry.triangulation import refine_points, residuals, triangulate_dlt, triangulation_angle_deg
+from ..geometry.two_view import focal_from_fundamental, relative_pose
+from .config import MapperConfig
+
+
+@dataclass
+class InitialPair:
+    image1: int  # internal indices
+    image2: int
+    R: np.ndarray  # cam2_from_cam1 (image1 is the world frame)
+    t: np.ndarray
+    keypoints1: np.ndarray  # the matched keypoints that triangulated well
+    keypoints2: np.ndarray
+    points: np.ndarray  # (n,3) in image1's frame
+    median_angle_deg: float
+
+
+def two_view_points(R, t, x1, x2):
+    """Triangulate normalised matches for cam1 = [I|0], cam2 = [R|t]; returns points, depths (n,2), errors
+    (n,2)."""
+    n = len(x1)
+    Rs = np.stack([np.tile(np.eye(3), (n, 1, 1)), np.tile(R, (n, 1, 1))], axis=1)
+    ts = np.stack([np.zeros((n, 3)), np.tile(t, (n, 1))], axis=1)
+    xs = np.stack([x1, x2], axis=1)
+    mask = np.ones((n, 2), bool)
+    X = refine_points(triangulate_dlt(Rs, ts, xs, mask), Rs, ts, xs, mask, iterations=3)
+    r, z = residuals(X, Rs, ts, xs, mask)
+    return X, z, np.linalg.norm(r, axis=-1)
+
+
+def try_pair(model, pair, i1: int, i2: int, min_angle: float, config: MapperConfig) -> InitialPair | None:
+    """Relative pose and points of one candidate pair, or None when it fails the initial-pair criteria."""
+    k1, k2 = pair.inliers[:, 0], pair.inliers[:, 1]
+    _focal_from_pair(model, i1, i2, k1, k2)
+    x1 = model.normalized_keypoints(i1)[k1]
+    x2 = model.normalized_keypoints(i2)[k2]
+    f = 0.5 * (model.camera(i1).focal() + model.camera(i2).focal())
+    est = relative_pose(x1, x2, config.two_view_max_error_px / f, seed=config.seed)
+    if est is None:
+        return None
+    R, t, inl = est
+    if inl.sum() < config.init_min_inliers:
+        return None
+    X, z, err = two_view_points(R, t, x1[inl], x2[inl])
+    angle = triangulation_angle_deg(np.zeros(3), -R.T @ t, X)
+    good = (z > 0).all(axis=1) & (err.max(axis=1) * f < config.max_reproj_error_px)
+    good &= np.isfinite(X).all(axis=1)
+    good &= angle >= config.min_tri_angle_deg
+    if good.sum() < config.init_min_inliers:
+        return None
+    median_angle = float(np.median(angle[good]))
+    if median_angle < min_angle:
+        return None
+    return InitialPair(i1, i2, R, t, k1[inl][good], k2[inl][good], X[good], median_angle)
+
+
+_FOCAL_RANGE = (0.5, 2.0)
+
+
+def _focal_from_pair(model, i1: int, i2: int, k1, k2) -> None:
+    """Replace guessed focal lengths (not trusted, from 1.2 * max(w, h)) by the ones the pair's fundamental
+    matrix implies, when that estimate is plausible; a wrong focal prior skews the whole initial model.
+
+    Bougnoux's formula degenerates when the optical axes nearly meet (orbits around an object); then the
+    estimate is NaN or implausible and the prior stays.
+    """
+    import cv2
+
+    c1, c2 = model.camera(i1), model.camera(i2)
+    if c1.prior_trusted and c2.prior_trusted:
+        return
+    for cam in (c1, c2):
+        if not cam.prior_trusted:
+            cam.set_focal(cam.prior_focal)
+    u1, u2 = model.keypoints[i1][k1], model.keypoints[i2][k2]
+    F, mask = cv2.findFundamentalMat(u1, u2, cv2.FM_RANSAC, 1.0, 0.999, 5000)
+    if F is None or F.shape != (3, 3):
+        return
+    f1, f2 = focal_from_fundamental(F, c1.K()[:2, 2], c2.K()[:2, 2])
+    if c1 is c2:
+        good = [f for f in (f1, f2) if np.isfinite(f)]
+        estimates = {id(c1): float(np.exp(np.mean(np.log(good)))) if good else np.nan}
+    else:
+        estimates = {id(c1): f1, id(c2): f2}
+    for cam in (c1, c2):
+        f = estimates[id(cam)]
+        plausible = np.isfinite(f) and _FOCAL_RANGE[0] < f / cam.prior_focal < _FOCAL_RANGE[1]
+        if not cam.prior_trusted and plausible:
+            cam.set_focal(f)
+
+
+def find_initial_pair(model, pairs_by_index, excluded, config: MapperConfig,
+                      tried: set) -> InitialPair | None:
+    """First pair meeting the criteria; `pairs_by_index` maps (i1, i2) internal indices -> PairGeometry.
+
+    excluded: images already in another model; tried: pairs that failed before (updated in place).
+    """
+    candidates = sorted(((len(p.inliers), key) for key, p in pairs_by_index.items()
+                         if key[0] not in excluded and key[1] not in excluded
+                         and len(p.inliers) >= config.init_min_inliers),
+                        key=lambda c: (-c[0], c[1]))
+    for min_angle in config.init_min_tri_angles_deg:
+        for _, key in candidates[:config.init_max_pairs]:
+            if (key, min_angle) in tried:
+                continue
+            tried.add((key, min_angle))
+            found = try_pair(model, pairs_by_index[key], key[0], key[1], min_angle, config)
+            if found is not None:
+                return found
+    return None

@@ -1,0 +1,271 @@
+"""The one in-memory reconstruction type: cameras, image poses, 3D points and their observations, as numpy
+arrays.
+
+Images are addressed by their internal index (position in `image_ids`), points by a point id (row in the point
+arrays), observations by an observation id. Deleted points and observations stay in the arrays with their
+`alive` flag cleared, so ids never move while the mapper runs; `compacted()` is for writing out.
+Poses are COLMAP's cam_from_world: x_cam = R @ X + t.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..geometry import camera as cammodel
+
+
+@dataclass
+class Camera:
+    """One calibration shared by all images that use it. prior_focal: the focal the database started with."""
+
+    model: str
+    width: int
+    height: int
+    params: np.ndarray
+    prior_trusted: bool = False
+    prior_focal: float = 0.0
+
+    def K(self) -> np.ndarray:
+        return cammodel.calibration_matrix(self.model, self.params)
+
+    def focal(self) -> float:
+        return cammodel.focal_length(self.model, self.params)
+
+    def set_focal(self, focal: float) -> None:
+        """Scale fx and fy (or set f) so the mean focal length becomes `focal`."""
+        p = self.params.copy()
+        if self.model in ("PINHOLE", "OPENCV"):
+            p[:2] *= focal / self.focal()
+        else:
+            p[0] = focal
+        self.params = p
+
+
+class _Buffer:
+    """A numpy array that grows by amortised doubling; `.data` is a writable view of the filled rows."""
+
+    def __init__(self, dtype, shape=()):
+        self._a = np.zeros((16, *shape), dtype=dtype)
+        self.n = 0
+
+    def append(self, values) -> np.ndarray:
+        values = np.asarray(values, dtype=self._a.dtype).reshape(-1, *self._a.shape[1:])
+        need = self.n + len(values)
+        if need > len(self._a):
+            grown = np.zeros((max(need, 2 * len(self._a)), *self._a.shape[1:]), dtype=self._a.dtype)
+            grown[:self.n] = self._a[:self.n]
+            self._a = grown
+        self._a[self.n:need] = values
+        ids = np.arange(self.n, need)
+        self.n = need
+        return ids
+
+    @property
+    def data(self) -> np.ndarray:
+        return self._a[:self.n]
+
+    @classmethod
+    def of(cls, array) -> "_Buffer":
+        array = np.asarray(array)
+        b = cls(array.dtype, array.shape[1:])
+        b.append(array)
+        return b
+
+
+class Reconstruction:
+    """A model under construction. keypoints: per image (K_i, 2) pixels, COLMAP convention."""
+
+    def __init__(self, image_ids, names, camera_of, cameras: dict, keypoints, num_tracks: int):
+        self.image_ids = np.asarray(image_ids, dtype=np.int64)
+        self.names = list(names)
+        self.camera_of = np.asarray(camera_of, dtype=np.int64)
+        self.cameras = {int(k): Camera(c.model, c.width, c.height, np.array(c.params, float), c.prior_trusted,
+                                       c.prior_focal) for k, c in cameras.items()}
+        self.keypoints = [np.asarray(k, dtype=float) for k in keypoints]
+        n = len(self.image_ids)
+        self.R = np.tile(np.eye(3), (n, 1, 1))
+        self.t = np.zeros((n, 3))
+        self.registered = np.zeros(n, bool)
+        self.registration_order: list[int] = []
+        self.obs_of_kp = [np.full(len(k), -1, np.int64) for k in self.keypoints]
+        self.point_of_track = np.full(num_tracks, -1, np.int64)
+        self.xyz = _Buffer(float, (3,))
+        self.point_track = _Buffer(np.int64)
+        self.point_alive = _Buffer(bool)
+        self.obs_point = _Buffer(np.int64)
+        self.obs_image = _Buffer(np.int64)
+        self.obs_kp = _Buffer(np.int64)
+        self.obs_alive = _Buffer(bool)
+        self._normalized_cache: dict = {}
+
+    # ----- images -----
+    def register(self, i: int, R, t) -> None:
+        self.R[i], self.t[i] = R, t
+        if not self.registered[i]:
+            self.registered[i] = True
+            self.registration_order.append(int(i))
+
+    def deregister(self, i: int) -> None:
+        """Remove an image and all its observations (points left with < 2 observations are deleted)."""
+        obs = self.obs_of_kp[i][self.obs_of_kp[i] >= 0]
+        self.remove_observations(obs)
+        self.registered[i] = False
+        self.registration_order.remove(int(i))
+
+    def registered_images(self) -> np.ndarray:
+        return np.flatnonzero(self.registered)
+
+    def centers(self) -> np.ndarray:
+        return -np.einsum("nji,nj->ni", self.R, self.t)
+
+    def camera(self, i: int) -> Camera:
+        return self.cameras[int(self.camera_of[i])]
+
+    def normalized_keypoints(self, i: int) -> np.ndarray:
+        """Undistorted normalised coordinates of image i's keypoints, cached per camera parameter set."""
+        cam = self.camera(i)
+        key = (i, cam.model, tuple(np.round(cam.params, 12)))
+        hit = self._normalized_cache.get(i)
+        if hit is None or hit[0] != key:
+            hit = (key, cammodel.pixels_to_normalized(cam.model, cam.params, self.keypoints[i]))
+            self._normalized_cache[i] = hit
+        return hit[1]
+
+    # ----- points and observations -----
+    def add_points(self, xyz, tracks, obs_point_local, obs_image, obs_kp) -> np.ndarray:
+        """Add points with their observations; obs_point_local indexes into the new points. Returns point
+        ids."""
+        pids = self.xyz.append(xyz)
+        self.point_track.append(tracks)
+        self.point_alive.append(np.ones(len(pids), bool))
+        self.point_of_track[np.asarray(tracks, dtype=np.int64)] = pids
+        self.add_observations(pids[np.asarray(obs_point_local, dtype=np.int64)], obs_image, obs_kp)
+        return pids
+
+    def add_observations(self, points, images, kps) -> None:
+        points, images, kps = (np.asarray(a, dtype=np.int64).ravel() for a in (points, images, kps))
+        oids = self.obs_point.append(points)
+        self.obs_image.append(images)
+        self.obs_kp.append(kps)
+        self.obs_alive.append(np.ones(len(oids), bool))
+        for i in np.unique(images):
+            m = images == i
+            self.obs_of_kp[i][kps[m]] = oids[m]
+
+    def remove_observations(self, obs) -> None:
+        """Drop observations; points that keep fewer than two are deleted with their remaining observation."""
+        obs = np.asarray(obs, dtype=np.int64)
+        obs = obs[self.obs_alive.data[obs]]
+        if len(obs) == 0:
+            return
+        self._clear_observations(obs)
+        touched = np.unique(self.obs_point.data[obs])
+        counts = self.point_num_observations()
+        self.delete_points(touched[counts[touched] < 2])
+
+    def _clear_observations(self, obs) -> None:
+        self.obs_alive.data[obs] = False
+        images, kps = self.obs_image.data[obs], self.obs_kp.data[obs]
+        for i in np.unique(images):
+            m = images == i
+            self.obs_of_kp[i][kps[m]] = -1
+
+    def delete_points(self, pids) -> None:
+        pids = np.asarray(pids, dtype=np.int64)
+        pids = pids[self.point_alive.data[pids]]
+        if len(pids) == 0:
+            return
+        self.point_alive.data[pids] = False
+        self.point_of_track[self.point_track.data[pids]] = -1
+        dead = np.zeros(self.xyz.n, bool)
+        dead[pids] = True
+        obs = np.flatnonzero(self.obs_alive.data & dead[self.obs_point.data])
+        self._clear_observations(obs)
+
+    def alive_observations(self) -> np.ndarray:
+        return np.flatnonzero(self.obs_alive.data)
+
+    def alive_points(self) -> np.ndarray:
+        return np.flatnonzero(self.point_alive.data)
+
+    def point_num_observations(self) -> np.ndarray:
+        obs = self.alive_observations()
+        return np.bincount(self.obs_point.data[obs], minlength=self.xyz.n)
+
+    def observations_of_images(self, images) -> np.ndarray:
+        """Alive observation ids made in any of `images`."""
+        mask = np.zeros(len(self.image_ids), bool)
+        mask[np.asarray(images, dtype=np.int64)] = True
+        obs = self.alive_observations()
+        return obs[mask[self.obs_image.data[obs]]]
+
+    def observations_of_points(self, pids) -> np.ndarray:
+        mask = np.zeros(self.xyz.n, bool)
+        mask[np.asarray(pids, dtype=np.int64)] = True
+        obs = self.alive_observations()
+        return obs[mask[self.obs_point.data[obs]]]
+
+    # ----- errors and statistics -----
+    def project(self, images, xyz) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels (n,2) and depths (n,) of points xyz (n,3) in images (n,), with each image's camera model."""
+        images = np.asarray(images, dtype=np.int64)
+        Xc = np.einsum("nij,nj->ni", self.R[images], xyz) + self.t[images]
+        uv = np.full((len(images), 2), np.nan)
+        cams = self.camera_of[images]
+        for cid in np.unique(cams):
+            m = cams == cid
+            cam = self.cameras[int(cid)]
+            uv[m] = cammodel.project(cam.model, cam.params, Xc[m])
+        return uv, Xc[:, 2]
+
+    def reprojection_errors(self, obs) -> tuple[np.ndarray, np.ndarray]:
+        """Reprojection error (px; inf behind the camera) and depth of each observation id."""
+        obs = np.asarray(obs, dtype=np.int64)
+        images = self.obs_image.data[obs]
+        uv, depth = self.project(images, self.xyz.data[self.obs_point.data[obs]])
+        kp = np.empty((len(obs), 2))
+        for i in np.unique(images):
+            m = images == i
+            kp[m] = self.keypoints[i][self.obs_kp.data[obs[m]]]
+        err = np.linalg.norm(uv - kp, axis=1)
+        err[~np.isfinite(err) | (depth <= 0)] = np.inf
+        return err, depth
+
+    def stats(self) -> dict:
+        obs = self.alive_observations()
+        pts = self.alive_points()
+        err = self.reprojection_errors(obs)[0] if len(obs) else np.zeros(0)
+        return {"registered": int(self.registered.sum()), "points": int(len(pts)),
+                "observations": int(len(obs)),
+                "mean_track_length": float(len(obs) / len(pts)) if len(pts) else 0.0,
+                "mean_reprojection_error_px": float(np.mean(err)) if len(err) else float("nan")}
+
+    # ----- snapshots -----
+    _ARRAYS = ("image_ids", "camera_of", "R", "t", "registered", "point_of_track")
+    _BUFFERS = ("xyz", "point_track", "point_alive", "obs_point", "obs_image", "obs_kp", "obs_alive")
+
+    def state(self) -> dict:
+        """Everything needed to rebuild the model (see `from_state`), as plain arrays and lists."""
+        s = {k: getattr(self, k).copy() for k in self._ARRAYS}
+        s.update({k: getattr(self, k).data.copy() for k in self._BUFFERS})
+        s["names"] = list(self.names)
+        s["registration_order"] = list(self.registration_order)
+        s["cameras"] = {k: (c.model, c.width, c.height, c.params.copy(), c.prior_trusted, c.prior_focal)
+                        for k, c in self.cameras.items()}
+        return s
+
+    @classmethod
+    def from_state(cls, s: dict, keypoints) -> "Reconstruction":
+        cams = {k: Camera(*v) for k, v in s["cameras"].items()}
+        m = cls(s["image_ids"], s["names"], s["camera_of"], cams, keypoints, len(s["point_of_track"]))
+        for k in cls._ARRAYS:
+            setattr(m, k, s[k].copy())
+        for k in cls._BUFFERS:
+            setattr(m, k, _Buffer.of(s[k]))
+        m.registration_order = list(s["registration_order"])
+        for i in range(len(m.image_ids)):
+            m.obs_of_kp[i][:] = -1
+        obs = m.alive_observations()
+        for o in obs:
+            m.obs_of_kp[m.obs_image.data[o]][m.obs_kp.data[o]] = o
+        return m

@@ -1,0 +1,121 @@
+"""Feature tracks: connected components of the verified-match graph over all keypoints (a union-find).
+
+A track is one physical point seen in several images. A component that holds two keypoints of the same image
+is inconsistent (a wrong match somewhere links two different points): it is split by re-running the union over
+its matches, strongest pairs first, refusing every union that would put two keypoints of one image in a set
+(the matches that would do so are dropped), so every image contributes at most one keypoint to a track.
+Because tracks are whole components, points that grow from different image pairs and belong together share a
+track from the start: track merging is implicit.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+
+@dataclass
+class Tracks:
+    """Tracks in CSR form: the elements of track k are `image[ptr[k]:ptr[k+1]]`, `keypoint[ptr[k]:ptr[k+1]]`.
+
+    `image` holds internal image indices (positions in `image_ids`), `track_of[i]` maps keypoints of image i
+    to their track (-1 when the keypoint is in no track).
+    """
+
+    image_ids: np.ndarray
+    ptr: np.ndarray
+    image: np.ndarray
+    keypoint: np.ndarray
+    track_of: list
+    split_inconsistent: int  # inconsistent components that were split into consistent tracks
+
+    def __len__(self) -> int:
+        return len(self.ptr) - 1
+
+    def lengths(self) -> np.ndarray:
+        return np.diff(self.ptr)
+
+
+def build_tracks(image_ids, num_keypoints, pairs) -> Tracks:
+    """Tracks from verified pairs. image_ids: database ids; num_keypoints: per image; pairs: PairGeometry
+    list."""
+    image_ids = np.asarray(image_ids, dtype=np.int64)
+    index_of = {int(i): k for k, i in enumerate(image_ids)}
+    counts = np.asarray(num_keypoints, dtype=np.int64)
+    offset = np.r_[0, np.cumsum(counts)]
+    rows, cols = [], []
+    for p in sorted(pairs, key=lambda p: -len(p.inliers)):
+        if p.image_id1 not in index_of or p.image_id2 not in index_of or len(p.inliers) == 0:
+            continue
+        rows.append(offset[index_of[p.image_id1]] + p.inliers[:, 0])
+        cols.append(offset[index_of[p.image_id2]] + p.inliers[:, 1])
+    n = int(offset[-1])
+    empty = Tracks(image_ids, np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64),
+                   [np.full(c, -1, np.int64) for c in counts], 0)
+    if not rows or n == 0:
+        return empty
+    rows, cols = np.concatenate(rows), np.concatenate(cols)
+    graph = coo_matrix((np.ones(len(rows), np.int8), (rows, cols)), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    node_image = np.repeat(np.arange(len(counts)), counts)
+    node_kp = np.arange(n) - offset[node_image]
+    label, num_split = _split_inconsistent(label.astype(np.int64), node_image, rows, cols, len(counts))
+    size = np.bincount(label)
+    good = size >= 2
+    keep = good[label]
+    new_id = np.full(len(size), -1, np.int64)
+    new_id[good] = np.arange(int(good.sum()))
+    tid = new_id[label[keep]]
+    order = np.argsort(tid, kind="stable")
+    tid_sorted = tid[order]
+    ptr = np.r_[0, np.cumsum(np.bincount(tid_sorted, minlength=int(good.sum())))]
+    track_of_all = np.full(n, -1, np.int64)
+    track_of_all[keep] = tid
+    track_of = [track_of_all[offset[i]:offset[i + 1]] for i in range(len(counts))]
+    return Tracks(image_ids, ptr, node_image[keep][order], node_kp[keep][order], track_of, num_split)
+
+
+def _split_inconsistent(label, node_image, rows, cols, num_images):
+    """Relabel nodes so no component holds two keypoints of one image; returns (labels, components split).
+
+    Only the matches inside inconsistent components are replayed (a Python union-find over a small share of
+    the matches), in their given order, skipping unions whose two sets share an image.
+    """
+    size = np.bincount(label)
+    key = label * num_images + node_image
+    distinct = np.bincount(label[np.unique(key, return_index=True)[1]], minlength=len(size))
+    bad = distinct < size
+    if not bad.any():
+        return label, 0
+    inside = bad[label[rows]]
+    parent = {}
+    images = {}
+
+    def find(a):
+        root = a
+        while parent.get(root, root) != root:
+            root = parent[root]
+        while a != root:  # path compression
+            parent[a], a = root, parent[a]
+        return root
+
+    for a, b in zip(rows[inside].tolist(), cols[inside].tolist()):
+        ra, rb = find(a), find(b)
+        if ra == rb:
+            continue
+        ia = images.setdefault(ra, {int(node_image[ra])})
+        ib = images.setdefault(rb, {int(node_image[rb])})
+        if ia & ib:
+            continue
+        if len(ia) < len(ib):
+            ra, rb, ia, ib = rb, ra, ib, ia
+        parent[rb] = ra
+        ia |= ib
+        del images[rb]
+    nodes = np.flatnonzero(bad[label])
+    roots = np.array([find(int(v)) for v in nodes], dtype=np.int64)
+    label = label.copy()
+    label[nodes] = len(size) + roots  # fresh labels, one per new set
+    _, label = np.unique(label, return_inverse=True)
+    return label.astype(np.int64), int(bad.sum())

@@ -1,0 +1,159 @@
+"""Triangulation of tracks and continuation of existing points, vectorised over tracks.
+
+A track gets a 3D point once two or more of its images are registered: multi-view DLT over all its registered
+views, Gauss-Newton refinement, then the checks (positive depth, reprojection <= 4 px, largest triangulation
+angle >= 1.5 deg). When an outlier view spoils the joint solution, two-view hypotheses are tried (a small
+RANSAC
+over view pairs) and the best is refined on its inliers. Existing points are continued into newly registered
+images (and into views rejected earlier) when they reproject within the threshold.
+"""
+
+import numpy as np
+
+from ..geometry.triangulation import max_triangulation_angle_deg, refine_points, residuals, triangulate_dlt
+from .config import MapperConfig
+
+_PAIR_HYPOTHESES = 8
+
+
+def _flat_obs_of_kp(model):
+    offsets = np.r_[0, np.cumsum([len(o) for o in model.obs_of_kp])]
+    return np.concatenate(model.obs_of_kp) if offsets[-1] else np.zeros(0, np.int64), offsets
+
+
+def _registered_elements(model, tracks, track_ids):
+    """Padded (n,k) image / keypoint / mask arrays of the registered views of each track."""
+    lengths = tracks.lengths()[track_ids]
+    starts = tracks.ptr[track_ids]
+    kmax = int(lengths.max()) if len(lengths) else 0
+    idx = starts[:, None] + np.arange(kmax)[None, :]
+    inside = np.arange(kmax)[None, :] < lengths[:, None]
+    idx = np.where(inside, idx, 0)
+    images = tracks.image[idx]
+    kps = tracks.keypoint[idx]
+    mask = inside & model.registered[images]
+    # compact the registered views to the left so k shrinks to the largest registered count
+    order = np.argsort(~mask, axis=1, kind="stable")
+    images = np.take_along_axis(images, order, 1)
+    kps = np.take_along_axis(kps, order, 1)
+    mask = np.take_along_axis(mask, order, 1)
+    k = int(mask.sum(axis=1).max()) if len(mask) else 0
+    return images[:, :k], kps[:, :k], mask[:, :k]
+
+
+def _normalized(model, images, kps, mask):
+    x = np.zeros((*images.shape, 2))
+    for i in np.unique(images[mask]):
+        m = mask & (images == i)
+        x[m] = model.normalized_keypoints(i)[kps[m]]
+    return x
+
+
+def _check(model, X, images, R, t, x, mask, config):
+    """Inlier views (reprojection in pixels and depth) and the triangulation angle over them."""
+    r, z = residuals(X, R, t, x, mask)
+    focal = np.array([model.cameras[int(c)].focal() for c in model.camera_of])[images]
+    err_px = np.linalg.norm(r, axis=-1) * focal
+    inl = mask & (z > 0) & (err_px <= config.max_reproj_error_px) & np.isfinite(X).all(axis=1)[:, None]
+    centers = model.centers()[images]
+    angle = max_triangulation_angle_deg(X, centers, inl)
+    ok = (inl.sum(axis=1) >= 2) & (angle >= config.min_tri_angle_deg)
+    return inl, ok
+
+
+def triangulate_tracks(model, tracks, track_ids, config: MapperConfig, seed: int = 0) -> int:
+    """Create points for the given tracks that have none yet and >= 2 registered views. Returns points
+    added."""
+    track_ids = np.unique(np.asarray(track_ids, dtype=np.int64))
+    track_ids = track_ids[model.point_of_track[track_ids] < 0]
+    if len(track_ids) == 0:
+        return 0
+    images, kps, mask = _registered_elements(model, tracks, track_ids)
+    keep = mask.sum(axis=1) >= 2
+    track_ids, images, kps, mask = track_ids[keep], images[keep], kps[keep], mask[keep]
+    if len(track_ids) == 0:
+        return 0
+    R, t = model.R[images], model.t[images]
+    x = _normalized(model, images, kps, mask)
+    X = refine_points(triangulate_dlt(R, t, x, mask), R, t, x, mask)
+    inl, ok = _check(model, X, images, R, t, x, mask, config)
+
+    # Joint solution spoiled by an outlier view: best of a few two-view hypotheses, refined on its inliers.
+    retry = np.flatnonzero(~ok & (mask.sum(axis=1) >= 3))
+    if len(retry):
+        rng = np.random.default_rng(seed)
+        nview = mask[retry].sum(axis=1)
+        best_count = np.full(len(retry), -1)
+        best_X = X[retry].copy()
+        rr = np.arange(len(retry))
+        Rr, tr, xr, mr = R[retry], t[retry], x[retry], mask[retry]
+        for _ in range(_PAIR_HYPOTHESES):
+            a = (rng.random(len(retry)) * nview).astype(int)
+            b = (a + 1 + (rng.random(len(retry)) * (nview - 1)).astype(int)) % nview
+            sub = np.zeros_like(mr)
+            sub[rr, a] = True
+            sub[rr, b] = True
+            Xh = triangulate_dlt(Rr, tr, xr, sub)
+            inl_h, _ = _check(model, Xh, images[retry], Rr, tr, xr, mr, config)
+            count = inl_h.sum(axis=1)
+            better = count > best_count
+            best_count[better], best_X[better] = count[better], Xh[better]
+        X[retry] = best_X
+        inl_r, _ = _check(model, best_X, images[retry], Rr, tr, xr, mr, config)
+        X[retry] = refine_points(best_X, Rr, tr, xr, inl_r)
+        inl[retry], ok[retry] = _check(model, X[retry], images[retry], Rr, tr, xr, inl_r, config)
+
+    partial = ok & (inl.sum(axis=1) < mask.sum(axis=1))
+    if partial.any():  # refit on the inlier views only
+        p = np.flatnonzero(partial)
+        X[p] = refine_points(X[p], R[p], t[p], x[p], inl[p], iterations=3)
+        inl[p], ok[p] = _check(model, X[p], images[p], R[p], t[p], x[p], inl[p], config)
+
+    sel = np.flatnonzero(ok)
+    if len(sel) == 0:
+        return 0
+    local, view = np.nonzero(inl[sel])
+    model.add_points(X[sel], track_ids[sel], local, images[sel][local, view], kps[sel][local, view])
+    return len(sel)
+
+
+def continue_points(model, tracks, config: MapperConfig, images=None) -> int:
+    """Add observations of existing points in registered views of their tracks (restricted to `images` when
+    given) that reproject within the threshold. Returns observations added."""
+    elem_track = np.repeat(np.arange(len(tracks)), tracks.lengths())
+    pid = model.point_of_track[elem_track]
+    cand = (pid >= 0) & model.registered[tracks.image]
+    if images is not None:
+        wanted = np.zeros(len(model.image_ids), bool)
+        wanted[np.asarray(images, dtype=np.int64)] = True
+        cand &= wanted[tracks.image]
+    flat, offsets = _flat_obs_of_kp(model)
+    cand &= flat[offsets[tracks.image] + tracks.keypoint] < 0
+    e = np.flatnonzero(cand)
+    if len(e) == 0:
+        return 0
+    img, kp, p = tracks.image[e], tracks.keypoint[e], pid[e]
+    uv, depth = model.project(img, model.xyz.data[p])
+    obs_uv = np.empty((len(e), 2))
+    for i in np.unique(img):
+        m = img == i
+        obs_uv[m] = model.keypoints[i][kp[m]]
+    err = np.linalg.norm(uv - obs_uv, axis=1)
+    good = (depth > 0) & np.isfinite(err) & (err <= config.max_reproj_error_px)
+    model.add_observations(p[good], img[good], kp[good])
+    return int(good.sum())
+
+
+def tracks_of_image(model, tracks, image: int) -> np.ndarray:
+    t = tracks.track_of[image]
+    return np.unique(t[t >= 0])
+
+
+def retriangulate(model, tracks, config: MapperConfig, seed: int = 0) -> tuple[int, int]:
+    """Continue all points into every registered view and triangulate every track still without a point
+    (COLMAP's retriangulation after global BA, which recovers points lost to earlier poor poses)."""
+    added_obs = continue_points(model, tracks, config)
+    registered_count = np.bincount(np.repeat(np.arange(len(tracks)), tracks.lengths()),
+                                   weights=model.registered[tracks.image], minlength=len(tracks))
+    cand = np.flatnonzero((registered_count >= 2) & (model.point_of_track < 0))
+    return triangulate_tracks(model, tracks, cand, config, seed), added_obs

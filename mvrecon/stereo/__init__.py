@@ -1,0 +1,1 @@
+"""The seed paper's two-view stereo: rectification, disparity (gee, sgbm, best), evaluation, depth, figures."""

@@ -1,0 +1,328 @@
+"""The seed paper's two-view stereo run: matches -> F (our eight-point RANSAC, checked against OpenCV) ->
+rectification -> disparity (gee | sgbm | best) -> depth, point cloud, figures, and scores against ground truth.
+
+`run_stereo(config, left_path, right_path, out_dir, ...)` is what `mvrecon stereo` calls; it returns the report
+dict it also writes to `out_dir/report.json`.
+"""
+
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..geometry.fundamental import RansacConfig, ransac_fundamental, sampson_distance
+from ..geometry.rectification import apply_homography, calibrated_rectification, fit_to_canvas, hartley_rectification
+from ..io.pfm import read_pfm, write_pfm
+from .best import BestConfig, best_disparity
+from .calib import read_calib
+from .gee import GEEConfig, gee_disparity
+from .sgbm import SGBMConfig, sgbm_disparity
+
+log = logging.getLogger("mvrecon.stereo")
+
+METHODS = ("gee", "sgbm", "best")
+
+
+@dataclass(frozen=True)
+class StereoConfig:
+    """method: disparity algorithm; min/num_disparities: search range (None: from calib.txt's ndisp or from the
+    inlier matches); ransac: F estimation; ratio: Lowe's ratio for SIFT matches; the per-method configs hold the
+    method parameters (their search range is overwritten by the one chosen here)."""
+
+    method: str = "best"
+    min_disparity: int | None = None
+    num_disparities: int | None = None
+    ransac: RansacConfig = RansacConfig()
+    ratio: float = 0.8
+    max_features: int = 8192
+    gee: GEEConfig = GEEConfig()
+    sgbm: SGBMConfig = SGBMConfig()
+    best: BestConfig = BestConfig()
+
+
+def as_uint8(image) -> np.ndarray:
+    """8-bit copy (16-bit images stretched by their maximum); the matchers here work on 8-bit data."""
+    img = np.asarray(image)
+    if img.dtype == np.uint8:
+        return img
+    top = float(np.nanmax(img)) if img.size else 1.0
+    return np.clip(img.astype(np.float32) * (255.0 / max(top, 1e-9)), 0, 255).round().astype(np.uint8)
+
+
+def to_gray(image) -> np.ndarray:
+    import cv2
+
+    img = as_uint8(image)
+    return cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img
+
+
+def sift_matches(left, right, ratio: float = 0.8, max_features: int = 8192) -> tuple[np.ndarray, np.ndarray]:
+    """Front-end SIFT matches (mutual nearest neighbours passing Lowe's ratio) as (x1, x2) pixel arrays with pixel
+    centres at integers, the convention of the image arrays (the front end stores COLMAP's +0.5)."""
+    from ..features.sift import SiftConfig, extract_sift
+    from ..matching.matcher import MatcherConfig, match_descriptors
+
+    sift = SiftConfig(max_num_features=max_features)
+    k1, d1 = extract_sift(left, sift)
+    k2, d2 = extract_sift(right, sift)
+    if len(k1) < 2 or len(k2) < 2:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    pairs = np.asarray(match_descriptors(d1, d2, MatcherConfig(max_ratio=ratio)), dtype=int).reshape(-1, 2)
+    return (k1[pairs[:, 0], :2].astype(float) - 0.5, k2[pairs[:, 1], :2].astype(float) - 0.5)
+
+
+def load_ground_truth(path, scale: float = 1.0) -> np.ndarray:
+    """Disparity ground truth as float32 with NaN where unknown: PFM (inf = unknown), npz (first array, inf =
+    unknown), TIFF (0 = unknown) or PNG (0 = unknown; divide by `scale`, e.g. 4 for Middlebury 2003 PNGs)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: ground-truth disparity not found")
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".pfm":
+            gt = read_pfm(path)
+        elif suffix == ".npz":
+            with np.load(path) as data:
+                gt = np.asarray(data[data.files[0]], dtype=np.float32)
+        elif suffix in (".tif", ".tiff"):
+            import tifffile
+
+            gt = tifffile.imread(path).astype(np.float32)
+            gt[gt == 0] = np.nan
+        else:
+            from PIL import Image
+
+            gt = np.asarray(Image.open(path), dtype=np.float32)
+            gt[gt == 0] = np.nan
+    except (ValueError, OSError) as exc:
+        raise InputError(f"{path}: cannot read ground truth ({exc})") from None
+    if gt.ndim == 3:
+        gt = gt[..., 0]
+    gt = gt / scale
+    gt[~np.isfinite(gt)] = np.nan
+    return gt.astype(np.float32)
+
+
+def load_mask(path) -> np.ndarray:
+    """Non-occluded mask: the brightest value of the mask image (255 in Middlebury 2014, 1 in the Cones palette)."""
+    from PIL import Image
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: non-occlusion mask not found")
+    m = np.asarray(Image.open(path))
+    if m.ndim == 3:
+        m = m[..., 0]
+    return m == m.max()
+
+
+def read_pair(left_path, right_path) -> tuple[np.ndarray, np.ndarray]:
+    from ..io.images import read_image
+
+    left, right = read_image(left_path), read_image(right_path)
+    if left.shape[:2] != right.shape[:2]:
+        raise InputError(f"{right_path}: size {right.shape[1]}x{right.shape[0]} differs from the left image's "
+                         f"{left.shape[1]}x{left.shape[0]}; a stereo pair needs equal sizes")
+    if left.ndim != right.ndim:
+        left, right = to_gray(left), to_gray(right)
+    return as_uint8(left), as_uint8(right)
+
+
+def _disparity_range(d, margin_fraction: float = 0.25, margin: float = 8.0) -> tuple[int, int]:
+    """(min, num) search range around the 1-99 % range of the match disparities, num a multiple of 16."""
+    lo, hi = np.percentile(d, [1, 99])
+    pad = margin + margin_fraction * (hi - lo)
+    dmin = int(np.floor(lo - pad))
+    num = int(np.ceil((hi + pad - dmin) / 16.0) * 16)
+    return dmin, max(num, 16)
+
+
+def search_range(config: StereoConfig, calib, match_disparities, nonnegative: bool) -> tuple[int, int]:
+    """(min, num) disparities: the config's when set, else calib.txt's ndisp, else the matches' range with a margin
+    (clipped at 0 when disparities cannot be negative: Middlebury geometry, or after `fit_to_canvas`)."""
+    if calib is not None and calib.ndisp > 0:
+        dmin, num = 0, int(np.ceil(calib.ndisp / 16) * 16)
+    else:
+        dmin, num = _disparity_range(match_disparities)
+        if nonnegative and dmin < 0:
+            dmin, num = 0, int(np.ceil((num + dmin) / 16) * 16)
+    if config.min_disparity is not None:
+        dmin = config.min_disparity
+    if config.num_disparities is not None:
+        num = config.num_disparities
+    return dmin, num
+
+
+def compute_disparity(left, right, config: StereoConfig, min_disparity: int, num_disparities: int):
+    """(disparity float32 with NaN holes, extra info dict) by the configured method."""
+    if config.method == "gee":
+        result = gee_disparity(left, right, replace(config.gee, min_disparity=min_disparity,
+                                                    num_disparities=num_disparities))
+        return result.disparity, {"gee_threshold_Ve": result.threshold, "gee_reliability": result.reliability}
+    if config.method == "sgbm":
+        return sgbm_disparity(left, right, replace(config.sgbm, min_disparity=min_disparity,
+                                                   num_disparities=num_disparities)), {}
+    if config.method == "best":
+        return best_disparity(left, right, replace(config.best, min_disparity=min_disparity,
+                                                   num_disparities=num_disparities)), {}
+    raise InputError(f"unknown stereo method {config.method!r}; expected one of {', '.join(METHODS)}")
+
+
+def _rectify_with_camera(left, right, camera, x1, x2):
+    """Undistort and rectify with a stereo calibration from `mvrecon calibrate --stereo`."""
+    import cv2
+
+    if camera.get("stereo") is None or camera.get("right") is None:
+        raise InputError(f"{camera['path']}: camera file has no [stereo] section; run `mvrecon calibrate --stereo`")
+    (K1, D1), (K2, D2) = camera["left"].opencv(), camera["right"].opencv()
+    rect = calibrated_rectification(K1, K2, camera["stereo"]["R"], camera["stereo"]["t"])
+    h, w = left.shape[:2]
+    maps = [cv2.initUndistortRectifyMap(K, D, R, Kn, (w, h), cv2.CV_32FC1)
+            for K, D, R, Kn in ((K1, D1, rect.R1, rect.K1), (K2, D2, rect.R2, rect.K2))]
+    out = [cv2.remap(img, mx, my, cv2.INTER_LINEAR) for img, (mx, my) in zip((left, right), maps)]
+    # pixels of the rectified left view that come from inside the left image
+    inside = cv2.remap(np.ones((h, w), np.uint8), *maps[0], cv2.INTER_NEAREST, borderValue=0) > 0
+    p1 = cv2.undistortPoints(x1.reshape(-1, 1, 2), K1, D1, R=rect.R1, P=rect.K1).reshape(-1, 2)
+    p2 = cv2.undistortPoints(x2.reshape(-1, 1, 2), K2, D2, R=rect.R2, P=rect.K2).reshape(-1, 2)
+    geometry = {"focal": float(rect.K1[0, 0]), "baseline": rect.baseline, "cx": float(rect.K1[0, 2]),
+                "cy": float(rect.K1[1, 2]), "doffs": float(rect.K2[0, 2] - rect.K1[0, 2])}
+    return out[0], out[1], p1, p2, geometry, inside
+
+
+def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=None, camera_path=None,
+               gt_path=None, mask_path=None, gt_scale: float = 1.0, rectified: bool = False) -> dict:
+    """The whole two-view run; writes rectified images, disparity/depth PFM and PNG, cloud.ply, figures, report.
+
+    rectified=True takes the pair as already rectified without a calib.txt (disparity only, no metric depth)."""
+    import cv2
+
+    from . import figures
+    from .depth import disparity_to_depth, write_point_cloud
+    from .evaluate import error_map, evaluate
+
+    if calib_path is not None and camera_path is not None:
+        raise InputError("give either --calib or --camera, not both")
+    calib = read_calib(calib_path) if calib_path is not None else None
+    camera = None
+    if camera_path is not None:
+        from .calibrate import read_camera_toml
+
+        camera = read_camera_toml(camera_path)
+    gt = load_ground_truth(gt_path, gt_scale) if gt_path is not None else None
+    mask = load_mask(mask_path) if mask_path is not None else None
+    left, right = read_pair(left_path, right_path)
+    if gt is not None and gt.shape != left.shape[:2]:
+        raise InputError(f"{gt_path}: ground truth is {gt.shape[1]}x{gt.shape[0]}, images are "
+                         f"{left.shape[1]}x{left.shape[0]}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    report: dict = {"left": str(left_path), "right": str(right_path), "method": config.method, "timings_s": {}}
+    t0 = time.perf_counter()
+
+    x1, x2 = sift_matches(left, right, config.ratio, config.max_features)
+    report["matches"] = int(len(x1))
+    if len(x1) < 8:
+        raise InputError(f"{left_path}, {right_path}: only {len(x1)} SIFT matches (8 needed for the fundamental "
+                         f"matrix); are these two views of the same scene?")
+    try:
+        F, inliers = ransac_fundamental(x1, x2, config.ransac)
+    except ValueError as exc:
+        raise InputError(f"{left_path}, {right_path}: {exc}") from None
+    report["timings_s"]["matching_and_F"] = time.perf_counter() - t0
+    report["inliers"] = int(inliers.sum())
+    report["F"] = F.tolist()
+    report["sampson_median_px"] = float(np.median(sampson_distance(F, x1[inliers], x2[inliers])))
+    F_cv, mask_cv = cv2.findFundamentalMat(x1, x2, cv2.FM_RANSAC, config.ransac.threshold, 0.999)
+    if F_cv is not None and F_cv.shape == (3, 3):
+        F_cv = F_cv / np.linalg.norm(F_cv)
+        report["opencv"] = {
+            "F": F_cv.tolist(), "inliers": int(mask_cv.sum()),
+            "sampson_median_px_of_our_inliers": float(np.median(sampson_distance(F_cv, x1[inliers], x2[inliers]))),
+            "our_F_sampson_median_px_of_its_inliers": float(np.median(
+                sampson_distance(F, x1[mask_cv.ravel() > 0], x2[mask_cv.ravel() > 0]))),
+        }
+    figures.matches_epipolar_figure(out / "matches_epipolar.png", left, right, x1, x2, F, inliers)
+    xi1, xi2 = x1[inliers], x2[inliers]
+
+    t0 = time.perf_counter()
+    geometry = None
+    if calib is not None or (rectified and camera is None):  # Middlebury pairs come rectified
+        rect_l, rect_r, p1, p2 = left, right, xi1, xi2
+        inside = np.ones(left.shape[:2], bool)
+        if calib is not None:  # calib.txt carries the rectified geometry
+            geometry = {"focal": calib.focal, "baseline": calib.baseline, "cx": float(calib.cam0[0, 2]),
+                        "cy": float(calib.cam0[1, 2]), "doffs": calib.doffs}
+            report["rectification"] = "calibrated (calib.txt: input already rectified)"
+        else:
+            report["rectification"] = "none (input declared rectified)"
+    elif camera is not None:
+        rect_l, rect_r, p1, p2, geometry, inside = _rectify_with_camera(left, right, camera, xi1, xi2)
+        report["rectification"] = "calibrated (camera file)"
+    else:
+        h, w = left.shape[:2]
+        H1, H2 = hartley_rectification(F, xi1, xi2, (w, h))
+        frame = fit_to_canvas(H1, H2, (w, h), xi1, xi2)
+        size = (frame.width, frame.height)
+        rect_l = cv2.warpPerspective(left, frame.H1, size, flags=cv2.INTER_LINEAR)
+        rect_r = cv2.warpPerspective(right, frame.H2, size, flags=cv2.INTER_LINEAR)
+        inside = cv2.warpPerspective(np.ones((h, w), np.uint8), frame.H1, size, flags=cv2.INTER_NEAREST) > 0
+        p1, p2 = apply_homography(frame.H1, xi1), apply_homography(frame.H2, xi2)
+        report["rectification"] = "uncalibrated (Hartley)"
+        report["H1"], report["H2"] = frame.H1.tolist(), frame.H2.tolist()
+    dy = np.abs(p1[:, 1] - p2[:, 1])
+    report["vertical_disparity_px"] = {"median": float(np.median(dy)), "p95": float(np.percentile(dy, 95)),
+                                       "max": float(dy.max())}
+    report["timings_s"]["rectification"] = time.perf_counter() - t0
+    cv2.imwrite(str(out / "rectified_left.png"), _bgr(rect_l))
+    cv2.imwrite(str(out / "rectified_right.png"), _bgr(rect_r))
+    figures.rectified_figure(out / "rectified_pair.png", rect_l, rect_r)
+
+    dmin, num = search_range(config, calib, p1[:, 0] - p2[:, 0], nonnegative=camera is None)
+    report["disparity_range"] = [dmin, dmin + num]
+    t0 = time.perf_counter()
+    disparity, extra = compute_disparity(rect_l, rect_r, config, dmin, num)
+    disparity[~inside] = np.nan  # canvas outside the warped left image has no disparity
+    report["timings_s"]["disparity"] = time.perf_counter() - t0
+    report.update(extra)
+    report["invalid_percent"] = float(100 * np.mean(~np.isfinite(disparity)))
+    write_pfm(out / "disparity.pfm", np.where(np.isfinite(disparity), disparity, np.inf))
+    figures.scalar_map_figure(out / "disparity.png", disparity, f"disparity ({config.method})", "disparity (px)")
+
+    if geometry is not None:
+        depth = disparity_to_depth(disparity, geometry["focal"], geometry["baseline"], geometry["doffs"])
+        write_pfm(out / "depth.pfm", np.where(np.isfinite(depth), depth, np.inf))
+        figures.scalar_map_figure(out / "depth.png", depth, "depth Z = f B / (d + doffs)", "depth (baseline units)",
+                                  cmap="viridis_r")
+        finite = depth[np.isfinite(depth)]
+        max_depth = float(20 * np.median(finite)) if finite.size else None
+        report["points"] = write_point_cloud(out / "cloud.ply", depth, rect_l, geometry["focal"], geometry["cx"],
+                                             geometry["cy"], max_depth)
+        report["geometry"] = geometry
+    else:
+        log.info("no calibration given: disparity only (no metric depth without --calib or --camera)")
+
+    if gt is not None:
+        if report["rectification"].startswith("uncalibrated"):
+            log.warning("ground truth is compared in the frame of the uncalibrated rectification; give --calib or "
+                        "--rectified for pairs that are already rectified")
+        if gt.shape == disparity.shape:
+            report["metrics"] = evaluate(disparity, gt, mask)
+            bad2 = report["metrics"]["all"]["bad-2"]
+            figures.error_map_figure(out / "error_map.png", error_map(disparity, gt),
+                                     f"{config.method}: bad-2.0 = {bad2:.2f} % (all, holes count as bad)")
+        else:
+            log.warning("rectified frame %s differs from the ground truth %s: not evaluated", disparity.shape,
+                        gt.shape)
+    report["config"] = asdict(config)
+    (out / "report.json").write_text(json.dumps(report, indent=2))
+    return report
+
+
+def _bgr(image):
+    import cv2
+
+    return cv2.cvtColor(image, cv2.COLOR_RGB2BGR) if image.ndim == 3 else image

@@ -1,0 +1,302 @@
+"""Image-quality degradations that imitate cheap cameras, motion and compression, applied in one fixed order.
+
+Why a fixed order: the result of composing degradations depends on their order, so the order follows the path
+light takes through a camera and its software, and a study that varies one degradation at a time stays
+comparable with one that combines them:
+
+    downscale -> blur -> motion_blur -> brightness -> poisson -> noise -> gamma -> sharpen -> jpeg
+
+(a lower-resolution sensor, lens blur, motion during the exposure, exposure gain, photon shot noise, read noise,
+the tone curve, in-camera sharpening, and finally the file's compression).
+
+Pixel values are handled as floats in [0, 1] of the image's full scale (255 or 65535), so 8-bit, 16-bit, grey,
+colour and alpha images all go through the same code; grey levels in parameters (the noise sigma) are 8-bit grey
+levels (a sigma of 10 adds 10/255 of full scale, i.e. 2570 levels in a 16-bit image). Alpha is never degraded.
+Random noise is seeded per image from (seed, file name), so the same command gives the same bytes whatever the
+order or the subset of files processed. Output files keep their names, formats and EXIF (updated for the new size
+when downscaled).
+"""
+
+import io
+import logging
+import struct
+import zlib
+from dataclasses import asdict, dataclass, fields, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+from PIL import Image
+
+from ..errors import InputError
+
+log = logging.getLogger(__name__)
+
+ORDER = ("downscale", "blur", "motion_blur", "brightness", "poisson", "noise", "gamma", "sharpen", "jpeg")
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff"}
+JPEG_SUFFIXES = {".jpg", ".jpeg"}
+# A JPEG input that is degraded but not asked to be re-compressed must still be re-encoded: as losslessly as
+# JPEG allows, so the requested degradations are the only visible ones.
+NEUTRAL_JPEG_QUALITY = 100
+_EXIF_HEADER = b"Exif\x00\x00"
+# TIFF tags that describe the pixel layout (size, depth, compression, strips, predictor), not the picture
+_TIFF_LAYOUT_TAGS = (256, 257, 258, 259, 262, 273, 277, 278, 279, 284, 317, 339)
+_EXIF_IFD = 0x8769
+_EXIF_WIDTH, _EXIF_HEIGHT = 0xA002, 0xA003
+
+
+@dataclass(frozen=True)
+class Degradation:
+    """Parameters of every degradation; the defaults leave an image unchanged (see ORDER for how they compose)."""
+
+    downscale: float = 1.0  # divide width and height by this (>= 1), area-averaging like a coarser sensor
+    blur_sigma: float = 0.0  # Gaussian (defocus) blur, standard deviation in pixels
+    motion_length: float = 0.0  # linear motion blur, length of the smear in pixels
+    motion_angle: float = 0.0  # direction of the smear in degrees, counter-clockwise from the image x axis
+    brightness: float = 1.0  # exposure gain (values multiplied, then clipped)
+    poisson_peak: float = 0.0  # shot noise: photo-electrons at full scale (lower = noisier); 0 = off
+    noise_sigma: float = 0.0  # additive Gaussian noise, standard deviation in 8-bit grey levels
+    gamma: float = 1.0  # tone curve out = in ** gamma (> 1 darkens mid-tones, < 1 brightens them)
+    sharpen_amount: float = 0.0  # unsharp mask: out = in + amount * (in - blur(in, sharpen_radius))
+    sharpen_radius: float = 1.0  # Gaussian sigma of the unsharp mask, pixels
+    jpeg_quality: int = 0  # JPEG re-compression quality 1..100; 0 = no re-compression
+
+    def __post_init__(self):
+        checks = [(self.downscale >= 1.0, "downscale must be >= 1"),
+                  (self.blur_sigma >= 0, "blur sigma must be >= 0"),
+                  (self.motion_length >= 0, "motion blur length must be >= 0"),
+                  (self.brightness > 0, "brightness must be > 0"),
+                  (self.poisson_peak >= 0, "Poisson peak must be >= 0"),
+                  (self.noise_sigma >= 0, "noise sigma must be >= 0"),
+                  (self.gamma > 0, "gamma must be > 0"),
+                  (self.sharpen_amount >= 0, "sharpen amount must be >= 0"),
+                  (self.sharpen_radius > 0, "sharpen radius must be > 0"),
+                  (self.jpeg_quality == 0 or 1 <= self.jpeg_quality <= 100, "JPEG quality must be 1..100 (0 = off)")]
+        for ok, message in checks:
+            if not ok:
+                raise InputError(f"degradation: {message}")
+
+    def active(self) -> list[str]:
+        """Names (from ORDER) of the steps that change an image, in the order they are applied."""
+        on = {"downscale": self.downscale > 1.0, "blur": self.blur_sigma > 0, "motion_blur": self.motion_length > 0,
+              "brightness": self.brightness != 1.0, "poisson": self.poisson_peak > 0, "noise": self.noise_sigma > 0,
+              "gamma": self.gamma != 1.0, "sharpen": self.sharpen_amount > 0, "jpeg": self.jpeg_quality > 0}
+        return [step for step in ORDER if on[step]]
+
+    def describe(self) -> str:
+        return ", ".join(f"{f.name}={getattr(self, f.name):g}" for f in fields(self)
+                         if getattr(self, f.name) != f.default) or "none"
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def with_level(base: Degradation, field: str, value: float) -> Degradation:
+    """`base` with one parameter changed (study grids vary one degradation at a time)."""
+    value = int(value) if field == "jpeg_quality" else float(value)
+    return replace(base, **{field: value})
+
+
+def image_seed(seed: int, name: str) -> np.random.SeedSequence:
+    """The random stream of one image depends only on the run's seed and the file's name (not on file order)."""
+    return np.random.SeedSequence([int(seed), zlib.crc32(name.encode("utf-8"))])
+
+
+# ---------------------------------------------------------------- pixel operations on float images in [0, 1]
+
+def _gaussian(img: np.ndarray, sigma: float) -> np.ndarray:
+    return cv2.GaussianBlur(img, (0, 0), sigmaX=sigma, sigmaY=sigma, borderType=cv2.BORDER_REFLECT_101)
+
+
+def motion_kernel(length: float, angle_deg: float) -> np.ndarray:
+    """A normalised line kernel `length` px long at `angle_deg`, anti-aliased by splatting sub-pixel samples."""
+    half = length / 2.0
+    size = 2 * int(np.ceil(half)) + 1
+    c = size // 2
+    kernel = np.zeros((size, size), np.float64)
+    a = np.deg2rad(angle_deg)
+    n = max(int(np.ceil(length * 8)), 1)
+    for s in -half + (np.arange(n) + 0.5) * length / n:  # sample midpoints: a uniform segment, no end bias
+        x, y = c + s * np.cos(a), c - s * np.sin(a)  # image y points down
+        x0, y0 = int(np.floor(x)), int(np.floor(y))
+        fx, fy = x - x0, y - y0
+        for dx, dy, w in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+            if 0 <= x0 + dx < size and 0 <= y0 + dy < size:
+                kernel[y0 + dy, x0 + dx] += w
+    return (kernel / kernel.sum()).astype(np.float32)
+
+
+def _jpeg_roundtrip(img: np.ndarray, quality: int) -> np.ndarray:
+    """Encode to JPEG in memory and decode (for outputs that are not JPEG files but must carry its artefacts)."""
+    u8 = np.clip(np.rint(img * 255.0), 0, 255).astype(np.uint8)
+    pil = Image.fromarray(u8 if u8.ndim == 2 else u8[..., ::-1])  # working images are BGR like OpenCV
+    buf = io.BytesIO()
+    pil.save(buf, "JPEG", quality=int(quality))
+    back = np.asarray(Image.open(buf))
+    back = back if back.ndim == 2 else back[..., ::-1]
+    return back.astype(np.float32) / 255.0
+
+
+def apply_pixels(img: np.ndarray, deg: Degradation, rng: np.random.Generator, *, encode_jpeg: bool) -> np.ndarray:
+    """Apply the degradations in ORDER to a float32 image in [0, 1] (H x W or H x W x C, colour channels only).
+
+    `encode_jpeg` False leaves the JPEG step to the file writer (the output is itself a JPEG file).
+    """
+    out = img.astype(np.float32, copy=True)
+    for step in deg.active():
+        if step == "downscale":
+            h, w = out.shape[:2]
+            size = (max(1, int(round(w / deg.downscale))), max(1, int(round(h / deg.downscale))))
+            out = cv2.resize(out, size, interpolation=cv2.INTER_AREA)
+        elif step == "blur":
+            out = _gaussian(out, deg.blur_sigma)
+        elif step == "motion_blur":
+            out = cv2.filter2D(out, -1, motion_kernel(deg.motion_length, deg.motion_angle),
+                               borderType=cv2.BORDER_REFLECT_101)
+        elif step == "brightness":
+            out = np.clip(out * deg.brightness, 0.0, 1.0)
+        elif step == "poisson":
+            out = (rng.poisson(np.clip(out, 0.0, 1.0) * deg.poisson_peak) / deg.poisson_peak).astype(np.float32)
+        elif step == "noise":
+            out = out + rng.normal(0.0, deg.noise_sigma / 255.0, out.shape).astype(np.float32)
+        elif step == "gamma":
+            out = np.power(np.clip(out, 0.0, 1.0), deg.gamma)
+        elif step == "sharpen":
+            out = out + deg.sharpen_amount * (out - _gaussian(out, deg.sharpen_radius))
+        elif step == "jpeg" and encode_jpeg:
+            out = _jpeg_roundtrip(np.clip(out, 0.0, 1.0), deg.jpeg_quality)
+        out = np.clip(out, 0.0, 1.0)  # the sensor saturates and the file's range is finite at every step
+    return out.astype(np.float32)
+
+
+# ---------------------------------------------------------------- files: read, degrade, write with EXIF
+
+def _read(path: Path) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)  # keeps 16 bits, grey and alpha; no EXIF rotation
+    if img is None:
+        raise InputError(f"{path}: cannot read this image")
+    if img.dtype not in (np.uint8, np.uint16):
+        raise InputError(f"{path}: {img.dtype} pixels are not supported (8- or 16-bit only)")
+    return img
+
+
+def _read_exif(path: Path) -> bytes | None:
+    """The EXIF block as stored (with the 'Exif\\0\\0' header), or None; TIFF tags are not EXIF blocks."""
+    with Image.open(path) as pil:
+        exif = pil.info.get("exif")
+    if exif and not exif.startswith(_EXIF_HEADER):
+        exif = _EXIF_HEADER + exif
+    return exif or None
+
+
+def _resized_exif(exif: bytes, width: int, height: int) -> bytes:
+    """EXIF with the pixel dimensions (PixelXDimension/PixelYDimension) updated after downscaling."""
+    parsed = Image.Exif()
+    parsed.load(exif)
+    sub = parsed.get_ifd(_EXIF_IFD)
+    if _EXIF_WIDTH in sub or _EXIF_HEIGHT in sub:
+        sub[_EXIF_WIDTH], sub[_EXIF_HEIGHT] = width, height
+    return parsed.tobytes()
+
+
+def _png_with_exif(png: bytes, exif: bytes) -> bytes:
+    """Insert an eXIf chunk (the EXIF block without its header) right after IHDR, as the PNG spec allows."""
+    body = exif[len(_EXIF_HEADER):] if exif.startswith(_EXIF_HEADER) else exif
+    chunk = struct.pack(">I", len(body)) + b"eXIf" + body + struct.pack(">I", zlib.crc32(b"eXIf" + body))
+    ihdr_end = 8 + 8 + 13 + 4  # signature + IHDR length/type + IHDR data + CRC
+    return png[:ihdr_end] + chunk + png[ihdr_end:]
+
+
+def _to_pil(pixels: np.ndarray) -> Image.Image:
+    if pixels.ndim == 2:
+        return Image.fromarray(pixels)
+    order = [2, 1, 0, 3][: pixels.shape[2]]
+    return Image.fromarray(np.ascontiguousarray(pixels[..., order]))
+
+
+def _write(path: Path, pixels: np.ndarray, src: Path, exif: bytes | None, jpeg_quality: int) -> None:
+    suffix = path.suffix.lower()
+    if suffix in JPEG_SUFFIXES:
+        with Image.open(src) as pil:
+            icc = pil.info.get("icc_profile")
+        extra = {"exif": exif} if exif else {}
+        if icc:
+            extra["icc_profile"] = icc
+        _to_pil(pixels).save(path, "JPEG", quality=jpeg_quality or NEUTRAL_JPEG_QUALITY, **extra)
+    elif suffix == ".png":
+        ok, buf = cv2.imencode(".png", pixels)
+        if not ok:
+            raise InputError(f"{path}: PNG encoding failed")
+        data = buf.tobytes()
+        path.write_bytes(_png_with_exif(data, exif) if exif else data)
+    else:  # TIFF: Pillow keeps the source's tags for the layouts it can hold, OpenCV writes the rest
+        with Image.open(src) as pil:
+            tags = pil.getexif()
+        for tag in _TIFF_LAYOUT_TAGS:  # the writer sets these for the new pixels
+            tags.pop(tag, None)
+        if pixels.dtype == np.uint8 or pixels.ndim == 2:
+            _to_pil(pixels).save(path, "TIFF", exif=tags)
+        else:
+            if len(tags):
+                log.warning("%s: 16-bit colour TIFF written without its metadata tags", path.name)
+            cv2.imwrite(str(path), pixels)
+
+
+def degrade_image(src: Path, dst: Path, deg: Degradation, seed: int = 0) -> None:
+    """Write a degraded copy of `src` to `dst` (same format as dst's suffix), keeping EXIF."""
+    raw = _read(src)
+    if not deg.active():  # nothing to do: the copy is the original's bytes
+        dst.write_bytes(src.read_bytes())
+        return
+    scale = 255.0 if raw.dtype == np.uint8 else 65535.0
+    has_alpha = raw.ndim == 3 and raw.shape[2] in (2, 4)
+    colour = raw[..., :-1] if has_alpha else raw
+    is_jpeg_file = dst.suffix.lower() in JPEG_SUFFIXES
+    rng = np.random.default_rng(image_seed(seed, src.name))
+    out = apply_pixels(colour.astype(np.float32) / scale, deg, rng, encode_jpeg=not is_jpeg_file)
+    if out.ndim == 2 and colour.ndim == 3:
+        out = out[..., None]  # OpenCV drops a single channel axis
+    pixels = np.clip(np.rint(out * scale), 0, scale).astype(raw.dtype)
+    if has_alpha:
+        alpha = raw[..., -1:]
+        if alpha.shape[:2] != pixels.shape[:2]:
+            alpha = cv2.resize(alpha, pixels.shape[1::-1], interpolation=cv2.INTER_AREA)[..., None]
+        pixels = np.concatenate([pixels, alpha], axis=2)
+    if is_jpeg_file and raw.dtype != np.uint8:
+        raise InputError(f"{src}: 16-bit JPEG files do not exist; cannot write {dst.name}")
+    exif = _read_exif(src)
+    if exif and pixels.shape[:2] != raw.shape[:2]:
+        exif = _resized_exif(exif, pixels.shape[1], pixels.shape[0])
+    _write(dst, pixels, src, exif, deg.jpeg_quality)
+
+
+def list_images(path) -> list[Path]:
+    """The images of a folder (sorted by name), or a single image file; InputError when there are none."""
+    path = Path(path)
+    if path.is_file():
+        files = [path]
+    elif path.is_dir():
+        files = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    else:
+        raise InputError(f"{path}: no such file or folder")
+    files = [p for p in files if p.suffix.lower() in IMAGE_SUFFIXES]
+    if not files:
+        raise InputError(f"{path}: no JPEG, PNG or TIFF images here")
+    return files
+
+
+def degrade_folder(images, out_dir, deg: Degradation, seed: int = 0, progress_desc: str = "degrade") -> list[Path]:
+    """Degrade every image of `images` into `out_dir` under the same names; returns the written paths."""
+    from ..progress import progress
+
+    files = list_images(images)
+    out_dir = Path(out_dir)
+    if out_dir.resolve() == files[0].parent.resolve():
+        raise InputError(f"{out_dir}: the output folder must differ from the input folder")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for src in progress(files, desc=progress_desc, unit="img"):
+        dst = out_dir / src.name
+        degrade_image(src, dst, deg, seed)
+        written.append(dst)
+    return written

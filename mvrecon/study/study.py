@@ -1,0 +1,283 @@
+"""Run a degradation study: degrade the images per cell, run every engine per cell, measure, tabulate.
+
+STUDY layout (everything is cached, so an interrupted study resumes and a wider grid reuses what exists):
+
+    study.json               the settings every cell was made with (a study refuses to mix settings)
+    images/<cell>/           degraded copies of the images (same names, EXIF kept); the clean cell uses IMAGES
+    images/<cell>.json       written once the cell's images are complete
+    runs/<engine>/<cell>/    each engine's workspace (report.json, sparse/), cached by eval.runners
+    study.csv                one row per engine x degradation x level (the clean row repeated per degradation)
+
+Accuracy is measured against the ground truth when given; otherwise against each engine's own reconstruction of
+the clean images (so the clean cell scores itself perfectly and the degraded cells show what was lost).
+"""
+
+import csv
+import json
+import logging
+import math
+import os
+import shutil
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..errors import InputError
+from ..eval.runners import RunOptions, RunResult, run_colmap, run_mvrecon
+from ..progress import progress
+from .degrade import Degradation, degrade_folder, list_images
+from .grid import CLEAN, Cell, Grid
+
+log = logging.getLogger(__name__)
+
+ENGINES = ("mvrecon", "colmap", "colmap-global")
+COLUMNS = ("engine", "degradation", "level", "registered_pct", "registered", "images", "components", "points",
+           "mean_track_length", "mean_reprojection_error_px", "auc@1", "auc@5", "auc@10", "keypoints_per_image",
+           "mean_inliers_per_pair", "verified_pairs", "wall_s", "peak_mem_mb", "reference", "error")
+
+
+@dataclass(frozen=True)
+class StudyConfig:
+    """What every cell of a study shares; a study folder keeps one config (the grid and engines may grow)."""
+
+    images: Path  # the clean images
+    gt: Path | None = None  # ground truth (any format eval.ground_truth reads); None: each engine's clean model
+    engines: tuple[str, ...] = ("mvrecon", "colmap")
+    seed: int = 0  # the degradations' noise and both engines' RANSAC/mapper seed
+    base: Degradation = field(default_factory=Degradation)  # parameters not varied (e.g. the motion angle)
+    run_options: RunOptions = field(default_factory=RunOptions)
+    jobs: int = 0  # cells run at the same time; 0: the machine's cores
+    timeout_s: float | None = None  # per engine run; a run past it counts as failed
+
+    def identity(self) -> dict:
+        """The settings that make cells comparable (the engines, jobs and timeout may change between runs)."""
+        return {"images": str(Path(self.images).resolve()), "gt": str(Path(self.gt).resolve()) if self.gt else None,
+                "seed": self.seed, "base": self.base.to_dict(), "run_options": self.run_options.to_dict()}
+
+
+def _runner(engine: str):
+    """run(image_dir, out_dir, options, timeout) -> RunResult for an engine name."""
+    if engine == "mvrecon":
+        return lambda images, out, options, timeout: run_mvrecon(images, out, options, timeout=timeout)
+    if engine in ("colmap", "colmap-global"):
+        return lambda images, out, options, timeout: run_colmap(images, out, options,
+                                                                global_mapper=engine == "colmap-global",
+                                                                timeout=timeout)
+    raise InputError(f"engine {engine!r}: expected one of {', '.join(ENGINES)}")
+
+
+def check_engines(engines) -> None:
+    """Refuse unknown engines, and mvrecon while its `reconstruct` command is not installed."""
+    import importlib.util
+
+    for engine in engines:
+        _runner(engine)
+    if "mvrecon" in engines and importlib.util.find_spec("mvrecon.commands.reconstruct") is None:
+        raise InputError("engine mvrecon: the `mvrecon reconstruct` command is not available in this install; "
+                         "use --engines colmap")
+
+
+def claim_study_dir(study_dir: Path, config: StudyConfig) -> None:
+    """Create STUDY or check it was made with the same settings (results from different settings never mix)."""
+    study_dir.mkdir(parents=True, exist_ok=True)
+    path = study_dir / "study.json"
+    identity = config.identity()
+    if path.is_file():
+        old = json.loads(path.read_text())
+        differing = sorted(k for k in identity if old.get(k) != identity[k])
+        if differing:
+            raise InputError(f"{study_dir}: made with a different {', '.join(differing)}; use another STUDY folder")
+    else:
+        path.write_text(json.dumps(identity, indent=1))
+
+
+def prepare_images(study_dir: Path, config: StudyConfig, cells: list[Cell]) -> dict[str, Path]:
+    """The image folder of each cell, degrading the ones not on disk yet (the clean cell is IMAGES itself)."""
+    folders = {}
+    todo = []
+    for cell in cells:
+        if cell.is_clean:
+            folders[cell.key] = Path(config.images).resolve()
+            continue
+        folder = study_dir / "images" / cell.key
+        folders[cell.key] = folder
+        if not (study_dir / "images" / f"{cell.key}.json").is_file():
+            todo.append(cell)
+    for cell in progress(todo, desc="degrade cells", unit="cell"):
+        deg = cell.degradation(config.base)
+        degrade_folder(config.images, folders[cell.key], deg, seed=config.seed, progress_desc=cell.key)
+        (study_dir / "images" / f"{cell.key}.json").write_text(json.dumps(
+            {"degradation": deg.to_dict(), "order": deg.active(), "seed": config.seed}, indent=1))
+    return folders
+
+
+def forget_failed_runs(study_dir: Path, engines, cells: list[Cell]) -> list[str]:
+    """Delete the cached runs that failed (crash, timeout), so they run again; returns their 'engine/cell' names."""
+    forgotten = []
+    for engine in engines:
+        for cell in cells:
+            folder = study_dir / "runs" / engine / cell.key
+            meta = folder / "runner.json"
+            if meta.is_file() and json.loads(meta.read_text()).get("error"):
+                shutil.rmtree(folder)
+                forgotten.append(f"{engine}/{cell.key}")
+    return forgotten
+
+
+def run_cells(study_dir: Path, config: StudyConfig, folders: dict[str, Path], cells: list[Cell]) -> dict:
+    """(engine, cell key) -> RunResult; the clean cells first, cells in parallel, finished runs read back."""
+    jobs = config.jobs or os.cpu_count() or 1
+    tasks = [(engine, cell.key) for cell in cells for engine in config.engines]
+    results = {}
+    bar = progress(total=len(tasks), desc="study cells", unit="cell")
+    pool = ThreadPoolExecutor(max_workers=jobs)  # the work is in the engines' subprocesses
+    try:
+        futures = {pool.submit(_runner(engine), folders[key], study_dir / "runs" / engine / key,
+                               config.run_options, config.timeout_s): (engine, key) for engine, key in tasks}
+        for future in as_completed(futures):
+            engine, key = futures[future]
+            results[(engine, key)] = future.result()
+            if results[(engine, key)].error:
+                log.warning("%s on %s failed: %s", engine, key, results[(engine, key)].error)
+            bar.update(1)
+    except BaseException:
+        pool.shutdown(wait=False, cancel_futures=True)
+        log.warning("stopping once the runs in progress finish (they are kept); rerun the same command to resume")
+        raise
+    finally:
+        bar.close()
+    pool.shutdown()
+    return results
+
+
+def load_reference(config: StudyConfig, image_names: list[str]):
+    """The ground truth restricted to the study's images, or None (then each engine's clean model is used)."""
+    if config.gt is None:
+        return None
+    from ..eval.ground_truth import load_ground_truth
+
+    gt = load_ground_truth(config.gt).subset(image_names)
+    if len(gt) < 2:
+        raise InputError(f"{config.gt}: ground truth for {len(gt)} of the {len(image_names)} images in "
+                         f"{config.images}; the names must match")
+    return gt
+
+
+def measure(result: RunResult, reference: dict, n_images: int) -> dict:
+    """The study's metrics for one run (failed runs: 0 registered, AUC 0, the rest NaN, with the error)."""
+    from ..eval.metrics import accuracy_summary
+
+    nan = float("nan")
+    report = result.report or {}
+    models = result.poses if not result.error else []
+    summary = accuracy_summary(models, reference) if reference else {}
+    registered = len(set().union(*[set(m) for m in models])) if models else 0
+    largest = (report.get("models") or [{}])[0]
+    counts = report.get("counts", {})
+    return {
+        "registered_pct": 100.0 * registered / max(n_images, 1), "registered": registered, "images": n_images,
+        "components": len(models), "points": largest.get("points", 0),
+        "mean_track_length": largest.get("mean_track_length", nan),
+        "mean_reprojection_error_px": largest.get("mean_reprojection_error_px", nan),
+        "auc@1": summary.get("auc@1", 0.0), "auc@5": summary.get("auc@5", 0.0),
+        "auc@10": summary.get("auc@10", 0.0),
+        "keypoints_per_image": counts.get("keypoints_per_image", nan),
+        "mean_inliers_per_pair": counts.get("mean_inliers_per_pair", nan),
+        "verified_pairs": counts.get("verified_pairs", nan), "wall_s": result.wall_s,
+        "peak_mem_mb": result.peak_mem_mb, "error": result.error or "",
+    }
+
+
+def tabulate(config: StudyConfig, grid: Grid, results: dict, image_names: list[str]) -> list[dict]:
+    """One row per engine x degradation x level; the clean row appears once per degradation at its identity."""
+    from .grid import AXES
+
+    gt = load_reference(config, image_names)
+    rows = []
+    for engine in config.engines:
+        clean = results[(engine, CLEAN)]
+        reference = gt if gt is not None else (clean.poses[0] if clean.poses and not clean.error else None)
+        ref_name = "ground truth" if gt is not None else f"{engine} on the clean images"
+        measured = {}
+        for (eng, key), result in results.items():
+            if eng == engine:
+                measured[key] = measure(result, reference, len(image_names))
+        for axis in grid.axes():
+            levels = [AXES[axis].identity] + grid.degraded_levels(axis)
+            for level in levels:
+                key = CLEAN if level == AXES[axis].identity else Cell(axis, level).key
+                rows.append({"engine": engine, "degradation": axis, "level": level, **measured[key],
+                             "reference": ref_name})
+    return rows
+
+
+def write_csv(rows: list[dict], path: Path) -> None:
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=COLUMNS)
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) and not math.isnan(v) else
+                                 ("" if isinstance(v, float) else v)) for k, v in row.items() if k in COLUMNS})
+
+
+def read_csv(path: Path) -> list[dict]:
+    """study.csv back as rows with numbers as floats (empty cells as NaN)."""
+    text_columns = {"engine", "degradation", "reference", "error"}
+    with open(path, newline="") as f:
+        return [{k: (v if k in text_columns else (float(v) if v != "" else float("nan"))) for k, v in row.items()}
+                for row in csv.DictReader(f)]
+
+
+def breaking_points(rows: list[dict], fraction: float = 0.5) -> dict:
+    """(engine, degradation) -> the first level (in the order given) where registered % or AUC@5 falls below
+    `fraction` of the clean value, with which metric broke; level None when it holds at every level tested.
+
+    The first row of each (engine, degradation) is the clean one (tabulate's order).
+    """
+    groups = {}
+    for row in rows:
+        groups.setdefault((row["engine"], row["degradation"]), []).append(row)
+    out = {}
+    for key, group in groups.items():
+        clean, degraded = group[0], group[1:]
+        verdict = {"level": None, "metric": None, "clean_registered_pct": clean["registered_pct"],
+                   "clean_auc@5": clean["auc@5"], "tested": [r["level"] for r in degraded]}
+        if clean["registered_pct"] == 0:
+            verdict["metric"] = "clean run failed"
+        for row in degraded if clean["registered_pct"] > 0 else []:
+            broke = [m for m in ("registered_pct", "auc@5")
+                     if clean[m] > 0 and not row[m] >= fraction * clean[m]]
+            if broke:
+                verdict.update(level=row["level"], metric=" and ".join(
+                    {"registered_pct": "registered %", "auc@5": "AUC@5"}[m] for m in broke))
+                break
+        out[key] = verdict
+    return out
+
+
+def run_study(config: StudyConfig, grid: Grid, study_dir, command: str | None = None,
+              retry_failed: bool = False) -> list[dict]:
+    """Everything `mvrecon study` does: cells, runs, study.csv, plots, contact sheet and study.html.
+
+    `retry_failed` reruns the cells whose engine run failed before (otherwise a failure is a cached result).
+    """
+    from .plots import contact_sheet, metric_plots
+    from .report import write_report
+
+    study_dir = Path(study_dir)
+    check_engines(config.engines)
+    image_names = [p.name for p in list_images(config.images)]
+    load_reference(config, image_names)  # fail on a bad ground truth before hours of runs
+    claim_study_dir(study_dir, config)
+    cells = grid.cells()
+    folders = prepare_images(study_dir, config, cells)
+    if retry_failed:
+        for name in forget_failed_runs(study_dir, config.engines, cells):
+            log.info("retrying %s (it failed before)", name)
+    results = run_cells(study_dir, config, folders, cells)
+    rows = tabulate(config, grid, results, image_names)
+    write_csv(rows, study_dir / "study.csv")
+    plots = metric_plots(rows, grid, study_dir / "plots")
+    sheet = contact_sheet(folders, grid, study_dir / "contact_sheet.png")
+    write_report(study_dir / "study.html", config, grid, rows, breaking_points(rows), plots, sheet, command)
+    return rows

@@ -1,0 +1,82 @@
+"""The workspace folder of one run: `database.db` (COLMAP's schema) and `config.json` (each stage's config + hash).
+
+Results are only reused when they were made with the same settings. Each stage (features, matching, later
+mapping) records its config dict and hash when it starts; a rerun with the same config resumes, a different one is
+refused with a message that names the differing fields, unless `overwrite` is set. Overwriting a stage also drops
+the record of every stage recorded after it, because their results were built on the old one; the caller clears
+the matching database tables (`begin_stage` returns the names of the stages it dropped).
+"""
+
+import json
+import os
+from pathlib import Path
+
+from . import config as cfgmod
+from .errors import InputError
+
+
+class Workspace:
+    def __init__(self, path):
+        self.path = Path(path)
+
+    @property
+    def database_path(self) -> Path:
+        return self.path / "database.db"
+
+    @property
+    def config_path(self) -> Path:
+        return self.path / "config.json"
+
+    def create(self) -> "Workspace":
+        if self.path.exists() and not self.path.is_dir():
+            raise InputError(f"{self.path}: workspace exists and is not a folder")
+        self.path.mkdir(parents=True, exist_ok=True)
+        return self
+
+    def stages(self) -> dict:
+        """{stage: {"hash": ..., "config": {...}}} in the order the stages were first run."""
+        if not self.config_path.is_file():
+            return {}
+        try:
+            return json.loads(self.config_path.read_text()).get("stages", {})
+        except (json.JSONDecodeError, AttributeError):
+            raise InputError(f"{self.config_path}: not a valid workspace config "
+                             "(delete it or use --overwrite)") from None
+
+    def stage_config(self, stage: str) -> dict | None:
+        record = self.stages().get(stage)
+        return None if record is None else record["config"]
+
+    def require_stage(self, stage: str, hint: str) -> dict:
+        """The stored config of a stage that must have run already; otherwise an InputError with `hint`."""
+        found = self.stage_config(stage)
+        if found is None or not self.database_path.is_file():
+            raise InputError(f"{self.path}: no {stage} in this workspace; {hint}")
+        return found
+
+    def begin_stage(self, stage: str, config: dict, overwrite: bool = False) -> list[str]:
+        """Record `config` for `stage`. Returns the stages (this one and later ones) whose results must be cleared:
+        [] when resuming with the same config or starting fresh, and refuses a different config unless overwrite."""
+        self.create()
+        stages = self.stages()
+        names = list(stages)
+        new_hash = cfgmod.config_hash(config)
+        dropped = []
+        if stage in stages:
+            if stages[stage]["hash"] == new_hash and not overwrite:
+                return []
+            if not overwrite:
+                changes = cfgmod.diff(stages[stage]["config"], config)
+                raise InputError(f"{self.path}: made with a different {stage} config ({'; '.join(changes)}); "
+                                 "rerun with --overwrite to recompute, or use another workspace")
+            dropped = names[names.index(stage):]
+            for name in dropped:
+                del stages[name]
+        stages[stage] = {"hash": new_hash, "config": config}
+        self._write(stages)
+        return dropped
+
+    def _write(self, stages: dict) -> None:
+        tmp = self.config_path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps({"stages": stages}, indent=2, sort_keys=False) + "\n")
+        os.replace(tmp, self.config_path)  # atomic: a crash never leaves half a config

@@ -1,0 +1,164 @@
+"""Chessboard calibration: a board rendered through known intrinsics and distortion must be recovered within
+0.5 %; the stereo rig of the ximea set is compared with its author's OpenCV result; camera.toml round-trips."""
+
+import functools
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mvrecon.cli import main
+from mvrecon.geometry.rotation import angle_axis_to_rotmat
+from mvrecon.stereo.calibrate import (CalibrationConfig, calibrate_mono, calibrate_stereo, read_camera_toml,
+                                      stereo_pairs, write_camera_toml)
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+XIMEA = DATA / "calib_stereo_chessboard_ximea"
+
+K_TRUE = np.array([[620.0, 0, 318.0], [0, 615.0, 244.0], [0, 0, 1]])
+DIST_TRUE = np.array([-0.18, 0.06, 0.0008, -0.0005])
+BOARD = (9, 6)  # inner corners
+SQUARE = 30.0  # mm
+
+
+@functools.cache
+def board_texture(px_per_mm: float = 4.0) -> tuple[np.ndarray, float]:
+    """White-margined (BOARD + 1) squares chessboard image and its pixels per mm."""
+    cols, rows = BOARD[0] + 1, BOARD[1] + 1
+    margin = SQUARE
+    w, h = int((cols * SQUARE + 2 * margin) * px_per_mm), int((rows * SQUARE + 2 * margin) * px_per_mm)
+    y, x = np.mgrid[0:h, 0:w] / px_per_mm - margin
+    inside = (x >= 0) & (x < cols * SQUARE) & (y >= 0) & (y < rows * SQUARE)
+    black = ((np.floor(x / SQUARE) + np.floor(y / SQUARE)) % 2 == 0) & inside
+    import cv2
+
+    texture = np.where(black, 20, 235).astype(np.float32)
+    return cv2.GaussianBlur(texture, (0, 0), px_per_mm * 0.6), px_per_mm  # ~1 image pixel of optical blur
+
+
+@functools.cache
+def undistorted_rays(size=(640, 480)) -> np.ndarray:
+    """Normalised undistorted coordinates of every pixel centre of the distorted image."""
+    import cv2
+
+    w, h = size
+    px = np.stack(np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64)), -1).reshape(-1, 1, 2)
+    return cv2.undistortPoints(px, K_TRUE, DIST_TRUE).reshape(-1, 2)
+
+
+def render_view(rvec, tvec, size=(640, 480), seed=0) -> np.ndarray:
+    """Image of the board (its first inner corner at the board origin) through K_TRUE and DIST_TRUE: every output
+    pixel is undistorted, its ray intersected with the board plane (a homography), and the texture sampled."""
+    import cv2
+
+    texture, ppm = board_texture()
+    w, h = size
+    norm = undistorted_rays(size)
+    R = angle_axis_to_rotmat(rvec)
+    H = np.column_stack([R[:, 0], R[:, 1], tvec])  # board (X, Y, 1) -> normalised camera ray
+    board = np.column_stack([norm, np.ones(len(norm))]) @ np.linalg.inv(H).T
+    bx, by = board[:, 0] / board[:, 2], board[:, 1] / board[:, 2]
+    # texture pixel of board point (X, Y): (X + SQUARE + SQUARE) * ppm (margin, plus the first square)
+    mapx = ((bx + 2 * SQUARE) * ppm).reshape(h, w).astype(np.float32)
+    mapy = ((by + 2 * SQUARE) * ppm).reshape(h, w).astype(np.float32)
+    img = cv2.remap(texture, mapx, mapy, cv2.INTER_LINEAR, borderValue=235)
+    img += np.random.default_rng(seed).normal(0, 2.0, img.shape)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+@functools.cache
+def synthetic_views(n=12):
+    rng = np.random.default_rng(7)
+    views = {}
+    centre = np.array([(BOARD[0] - 1) * SQUARE / 2, (BOARD[1] - 1) * SQUARE / 2, 0])
+    for i in range(n):
+        rvec = np.array([rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5), rng.uniform(-0.3, 0.3)])
+        R = angle_axis_to_rotmat(rvec)
+        target = np.array([rng.uniform(-60, 60), rng.uniform(-40, 40), rng.uniform(420, 560)])
+        tvec = target - R @ centre
+        views[f"view{i:02d}.png"] = render_view(rvec, tvec, seed=i)
+    return views
+
+
+def test_recovers_rendered_intrinsics_within_half_percent(tmp_path):
+    views = synthetic_views()
+    result = calibrate_mono(views, CalibrationConfig(square=SQUARE))  # board size found automatically
+    assert result.board == BOARD
+    K, dist = result.camera.opencv()
+    for got, want in ((K[0, 0], 620.0), (K[1, 1], 615.0), (K[0, 2], 318.0), (K[1, 2], 244.0)):
+        assert abs(got - want) / want < 0.005
+    assert abs(dist[0] - DIST_TRUE[0]) < 0.02
+    assert result.rms_px < 0.3
+    assert len(result.per_view_rms_px) + len(result.dropped) == len(views)
+    write_camera_toml(tmp_path / "camera.toml", result, CalibrationConfig(square=SQUARE))
+    cam = read_camera_toml(tmp_path / "camera.toml")
+    assert cam["left"].params[2] == pytest.approx(K[0, 2] + 0.5)  # COLMAP pixel convention in the file
+    assert cam["stereo"] is None
+
+
+def test_outlier_view_is_dropped():
+    import cv2
+
+    views = dict(list(synthetic_views().items())[:8])
+    name = "view03.png"
+    views[name] = cv2.GaussianBlur(views[name], (0, 0), 2.5)  # a badly blurred view
+    warp = views[name].astype(np.float32)
+    h, w = warp.shape
+    mapx, mapy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    mapx += (3 * np.sin(mapy / 15)).astype(np.float32)  # wavy lens distortion no model explains
+    views[name] = cv2.remap(warp, mapx, mapy, cv2.INTER_LINEAR).astype(np.uint8)
+    result = calibrate_mono(views, CalibrationConfig(board=BOARD, square=SQUARE))
+    assert name in result.dropped
+
+
+def test_stereo_pairs_by_name():
+    lefts, rights, pairs = stereo_pairs(["left01.jpg", "right01.jpg", "left02.jpg", "right03.jpg", "x.png",
+                                         "L/left/a.png", "L/right/a.png"])
+    assert sorted(pairs) == [("L/left/a.png", "L/right/a.png"), ("left01.jpg", "right01.jpg")]
+    assert sorted(lefts) == ["L/left/a.png", "left01.jpg"]
+
+
+def test_ximea_stereo_against_authors_result(tmp_path):
+    import cv2
+
+    if not XIMEA.is_dir():
+        pytest.skip(f"ximea chessboard set not found at {XIMEA}")
+    names = sorted(p.name for p in (XIMEA / "images").glob("*.jpg"))
+    lefts, rights, pairs = stereo_pairs(names)
+    pairs = pairs[::2]  # 13 of the 25 pairs keep the test fast
+    read = {n: cv2.imread(str(XIMEA / "images" / n), cv2.IMREAD_GRAYSCALE) for p in pairs for n in p}
+    result = calibrate_stereo({a: read[a] for a, _ in pairs}, {b: read[b] for _, b in pairs}, pairs,
+                              CalibrationConfig(square=1.0))
+    fs = cv2.FileStorage(str(XIMEA / "intrinsics.yml"), cv2.FILE_STORAGE_READ)
+    M1, M2 = fs.getNode("M1").mat(), fs.getNode("M2").mat()
+    fe = cv2.FileStorage(str(XIMEA / "extrinsics.yml"), cv2.FILE_STORAGE_READ)
+    R_ref, T_ref = fe.getNode("R").mat(), fe.getNode("T").mat().ravel()
+    K1, _ = result.left.camera.opencv()
+    K2, _ = result.right.camera.opencv()
+    assert result.left.board == (9, 6)
+    assert abs(K1[0, 0] - M1[0, 0]) / M1[0, 0] < 0.03
+    assert abs(K2[0, 0] - M2[0, 0]) / M2[0, 0] < 0.03
+    from mvrecon.geometry.rotation import rotation_error_deg, vector_angle_deg
+
+    assert rotation_error_deg(result.R, R_ref) < 1.0
+    assert vector_angle_deg(result.t, T_ref) < 3.0
+    assert result.rms_px < 1.0
+
+
+def test_cli_calibrate_and_stereo_use_the_camera_file(tmp_path, capsys):
+    import cv2
+
+    views = dict(list(synthetic_views().items())[:8])
+    folder = tmp_path / "boards"
+    folder.mkdir()
+    for name, img in views.items():
+        cv2.imwrite(str(folder / name), img)
+    assert main(["calibrate", str(folder), "-o", str(tmp_path / "camera.toml"), "--square", "30", "-q"]) == 0
+    cam = read_camera_toml(tmp_path / "camera.toml")
+    assert abs(cam["left"].params[0] - 620) / 620 < 0.005
+    capsys.readouterr()
+    assert main(["calibrate", str(tmp_path / "nothing"), "-o", str(tmp_path / "c.toml")]) == 2
+    assert "mvrecon: error:" in capsys.readouterr().err
+    assert main(["stereo", str(folder / "view00.png"), str(folder / "view01.png"), "-o", str(tmp_path / "s"),
+                 "--camera", str(tmp_path / "camera.toml")]) == 2
+    assert "no [stereo] section" in capsys.readouterr().err

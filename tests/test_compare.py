@@ -1,0 +1,317 @@
+"""`mvrecon compare`: ground-truth loaders on the real data sets, the COLMAP runners on a small synthetic scene,
+comparisons of existing models against ground truth (a perturbed camera is found, winners are right), the report
+files, and the command's errors."""
+
+import csv
+import json
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+
+from mvrecon.cli import main
+from mvrecon.errors import InputError
+from mvrecon.eval import ground_truth as G
+from mvrecon.eval.compare import CompareConfig, compare_images, compare_models, summary_rows
+from mvrecon.eval.metrics import accuracy_summary, camera_center
+from mvrecon.eval.report import format_value, write_report
+from mvrecon.eval.runners import RunOptions, load_run, run_colmap, run_colmap_on_database
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+OPTS = RunOptions(camera_mode="single")
+
+
+def data_set(name) -> Path:
+    path = DATA / name
+    if not path.is_dir():
+        pytest.skip(f"data set {name} not found at {path}")
+    return path
+
+
+def synthetic_scene(root: Path):
+    """8 images (640x480) of a pycolmap synthetic scene and its ground-truth model; made once per folder."""
+    images, gt = root / "images", root / "gt" / "sparse"
+    if not (gt / "images.bin").exists():
+        images.mkdir(parents=True, exist_ok=True)
+        gt.mkdir(parents=True, exist_ok=True)
+        pycolmap.set_random_seed(0)
+        rec = pycolmap.synthesize_dataset(pycolmap.SyntheticDatasetOptions(
+            num_rigs=1, num_frames_per_rig=8, num_points3D=300, camera_width=640, camera_height=480,
+            camera_params=[1200.0, 320.0, 240.0, 0.0]))
+        image_options = pycolmap.SyntheticImageOptions()
+        image_options.feature_patch_radius = 8  # apart enough for SIFT to tell the blobs apart
+        pycolmap.synthesize_images(image_options, rec, str(images))
+        rec.write(str(gt))
+    return images, gt
+
+
+def shared_runs(tmp_path_factory):
+    """COLMAP end to end and COLMAP on that database, once per test session (the runners cache finished runs)."""
+    root = tmp_path_factory.getbasetemp() / "compare-shared"
+    images, gt = synthetic_scene(root)
+    colmap = run_colmap(images, root / "runs" / "colmap", OPTS)  # where compare_images(images, root) looks
+    same = run_colmap_on_database(colmap.out_dir / "database.db", root / "colmap-on-colmap-db", images, OPTS)
+    return images, gt, colmap, same
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    return shared_runs(tmp_path_factory)
+
+
+# --- ground truth -------------------------------------------------------------------------------------------
+
+def assert_rotations(gt):
+    for R, t in gt.values():
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-5)
+        assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-5)
+
+
+def test_middlebury_par_ring():
+    gt = G.load_ground_truth(data_set("middlebury_templeRing") / "templeR_par.txt")
+    assert len(gt) == 47 and gt.kind == "middlebury"
+    np.testing.assert_allclose(gt.intrinsics["templeR0013.png"],
+                               [[1520.4, 0, 302.32], [0, 1525.9, 246.87], [0, 0, 1]])
+    assert_rotations(gt)
+    centres = np.array([camera_center(*p) for p in gt.values()])
+    middle = centres.mean(axis=0)
+    normal = np.linalg.svd(centres - middle)[2][2]
+    assert np.abs((centres - middle) @ normal).max() < 0.01  # the 47 centres lie in one plane...
+    radius = np.linalg.norm(centres - middle, axis=1)
+    assert radius.std() / radius.mean() < 0.05  # ...on a circle around the temple
+    for R, t in gt.values():  # and every camera looks at the ring's centre
+        assert (R @ middle + t)[2] > 0.5 * radius.mean()
+    sub = gt.subset(["templeR0013.png", "nope.png"])
+    assert list(sub) == ["templeR0013.png"] and list(sub.intrinsics) == ["templeR0013.png"]
+
+
+def test_find_ground_truth_of_every_set_that_has_one():
+    expected = {"middlebury_templeSparseRing": "templeSR_par.txt", "strecha_fountain_P11": "gt_dense_cameras",
+                "gtsfm_lund_door": "colmap_ground_truth", "imc_reichstag": "calibration", "opensfm_lund": None}
+    for name, found in expected.items():
+        path = G.find_ground_truth(data_set(name))
+        assert (path.name if path else None) == found, name
+
+
+def test_strecha_cameras_follow_P_equals_K_RT_minus_RT_C():
+    folder = data_set("strecha_herzjesu_P8") / "gt_dense_cameras"
+    gt = G.load_ground_truth(folder)
+    assert len(gt) == 8 and sorted(gt)[0] == "0000.jpg"
+    assert_rotations(gt)
+    raw = np.array((folder / "0003.jpg.camera").read_text().split(), dtype=float)
+    np.testing.assert_allclose(camera_center(*gt["0003.jpg"]), raw[21:24], atol=1e-9)
+    np.testing.assert_allclose(gt["0003.jpg"][0], raw[12:21].reshape(3, 3).T, atol=1e-5)
+    # the optical axes meet in front of every camera (the facade they all look at)
+    A, b = np.zeros((3, 3)), np.zeros(3)
+    for R, t in gt.values():
+        d, C = R[2], camera_center(R, t)
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ C
+    X = np.linalg.solve(A, b)
+    assert all((R @ X + t)[2] > 1.0 for R, t in gt.values())
+
+
+def test_colmap_reference_model_and_imc_calibration():
+    door = G.load_ground_truth(data_set("gtsfm_lund_door") / "colmap_ground_truth")
+    assert len(door) == 12 and door.kind == "colmap" and door.points.shape[1] == 3 and len(door.points) == 11384
+    assert door.intrinsics["DSC_0001.JPG"][0, 0] == pytest.approx(2435.38)
+    imc = G.load_ground_truth(data_set("imc_reichstag") / "calibration")
+    assert len(imc) == 10 and all((DATA / "imc_reichstag" / "images" / n).exists() for n in imc)
+    assert_rotations(imc)
+    raw = G.read_small_hdf5(DATA / "imc_reichstag" / "calibration" / "calibration_05461164_9050854768.h5")
+    assert sorted(raw) == ["K", "R", "T", "q"]
+    assert raw["K"][0, 0] == pytest.approx(799.419, abs=1e-3) and raw["K"][0, 2] == 524.0
+    np.testing.assert_allclose(imc["05461164_9050854768.jpg"][1], raw["T"])
+
+
+def test_bad_ground_truth_is_named(tmp_path):
+    with pytest.raises(InputError, match="nothing.txt: ground truth not found"):
+        G.load_ground_truth(tmp_path / "nothing.txt")
+    with pytest.raises(InputError, match="not a ground-truth format"):
+        G.load_ground_truth(tmp_path)
+    (tmp_path / "x_par.txt").write_text("2\na.png 1 2 3\n")
+    with pytest.raises(InputError, match="x_par.txt: not a Middlebury par file"):
+        G.load_ground_truth(tmp_path / "x_par.txt")
+    (tmp_path / "calibration_a.h5").write_bytes(b"not hdf5")
+    with pytest.raises(InputError, match="calibration_a.h5: cannot read this HDF5 file"):
+        G.read_small_hdf5(tmp_path / "calibration_a.h5")
+
+
+# --- runners ------------------------------------------------------------------------------------------------
+
+def test_colmap_runner_report_and_cache(runs):
+    images, gt, colmap, same = runs
+    assert colmap.error is None and colmap.engine == "colmap"
+    assert [m.num_reg_images() for m in colmap.models] == [8]
+    report = json.loads((colmap.out_dir / "report.json").read_text())
+    assert set(report) >= {"engine", "images", "models", "stages", "total", "counts"}
+    assert set(report["stages"]) == {"features", "matching", "mapping"}
+    assert all(v["status"] == "registered" and v["model"] == 0 for v in report["images"].values())
+    assert report["counts"]["verified_pairs"] >= 20 and report["counts"]["keypoints_per_image"] > 100
+    assert report["models"][0]["registered"] == 8 and report["models"][0]["mean_reprojection_error_px"] < 1.5
+    assert (colmap.out_dir / "points.ply").stat().st_size > 1000
+    # memory: the process tree's peak, sampled by the runner, at least what COLMAP's process saw itself
+    assert colmap.peak_mem_mb >= 0.9 * report["total"]["peak_mem_mb"] > 50
+    assert pycolmap.Reconstruction(str(colmap.out_dir / "sparse" / "0")).num_reg_images() == 8
+    # same matches: the database's keypoints are reused, so the mapper sees the same correspondences
+    assert same.report["counts"] == report["counts"] and set(same.report["stages"]) == {"mapping"}
+    # a finished run is read back, not rerun; other options in the same folder are refused
+    again = run_colmap(images, colmap.out_dir, OPTS)
+    assert again.wall_s == colmap.wall_s and again.report == colmap.report
+    with pytest.raises(InputError, match="holds a run with a different options"):
+        run_colmap(images, colmap.out_dir, RunOptions(camera_mode="per-image"))
+
+
+def test_failed_run_is_reported_not_raised(tmp_path):
+    (tmp_path / "imgs").mkdir()
+    (tmp_path / "imgs" / "a.png").write_bytes(b"no image")
+    result = run_colmap(tmp_path / "imgs", tmp_path / "out", OPTS, timeout=120)
+    assert result.models == [] and (result.error or result.report["models"] == [])
+
+
+# --- comparisons --------------------------------------------------------------------------------------------
+
+def perturbed_copy(model_dir: Path, out: Path, shift) -> str:
+    """The model with its first image moved by `shift` (world units); returns that image's name."""
+    rec = pycolmap.Reconstruction(str(model_dir))
+    image = rec.image(sorted(rec.reg_image_ids())[0])
+    frame = rec.frame(image.frame_id)
+    T = frame.rig_from_world
+    frame.rig_from_world = pycolmap.Rigid3d(T.rotation, np.asarray(T.translation) + np.asarray(shift, float))
+    out.mkdir(parents=True)
+    rec.write(str(out))
+    return image.name
+
+
+def test_compare_models_against_ground_truth(runs, tmp_path):
+    images, gt, colmap, same = runs
+    moved = perturbed_copy(colmap.out_dir / "sparse" / "0", tmp_path / "moved", [3.0, 0, 0])
+    cmp = compare_models([colmap.out_dir, tmp_path / "moved"], gt=gt, labels=["colmap", "moved"])
+    m = cmp.metrics
+    good, bad = m["engines"]["colmap"], m["engines"]["moved"]
+    assert m["reference"]["name"] == "ground truth" and m["reference"]["images"] == 8
+    assert good["summary"]["registered"] == 8 and good["summary"]["components"] == 1
+    assert good["summary"]["auc@5"] > 0.9 and good["summary"]["median_rotation_error_deg"] < 0.5
+    assert good["summary"]["median_center_error_pct"] < 1.0
+    # our Sim3 and pycolmap's put the cameras in the same places
+    assert good["summary"]["alignment_pycolmap_disagreement_pct"] < 1e-3
+    # the moved camera is an alignment outlier with a large centre error; the others stay as good
+    assert bad["summary"]["alignment_inliers"] == 7
+    assert bad["per_image"][moved]["alignment_inlier"] is False
+    assert bad["per_image"][moved]["center_error_pct"] > 20 * good["per_image"][moved]["center_error_pct"]
+    assert bad["summary"]["auc@5"] < good["summary"]["auc@5"]
+    rows = {r["metric"]: r for r in m["rows"]}
+    assert rows["auc@5"]["winners"] == ["colmap"] and rows["registered"]["winners"] == []  # 8 = 8: a tie
+    # every number in the table is in metrics.json and metrics.csv
+    page = write_report(cmp, tmp_path / "report")
+    saved = json.loads((tmp_path / "report" / "metrics.json").read_text())
+    assert saved["rows"] == m["rows"]
+    with open(tmp_path / "report" / "metrics.csv") as f:
+        lines = list(csv.DictReader(f))
+    summary = {(r["engine"], r["metric"]): r["value"] for r in lines if r["section"] == "summary"}
+    for row in m["rows"]:
+        for engine, value in row["values"].items():
+            text = summary[(engine, row["metric"])]
+            assert (text == "" and value is None) or math.isclose(float(text), value, rel_tol=1e-12)
+    html = page.read_text()
+    assert not re.search(r"<(script|link|img|iframe)[^>]+(src|href)=[\"']?(https?:)?//", html)  # nothing fetched
+    assert "data:image/png;base64," in html and "plotly.js" in html
+    assert f"<span class='v'>{format_value('auc@5', good['summary']['auc@5'])}</span>" in html
+
+
+def test_without_ground_truth_the_last_model_is_the_reference(runs):
+    images, gt, colmap, same = runs
+    m = compare_models([same.out_dir, colmap.out_dir]).metrics
+    assert m["reference"]["name"] == "colmap"
+    assert m["engines"]["colmap"]["role"] == "reference"
+    assert m["engines"]["colmap"]["summary"]["auc@5"] is None
+    # COLMAP's mapper on the same database gives nearly the same model (multithreaded BA: not bit-identical)
+    other = m["engines"]["colmap-same-matches"]["summary"]
+    assert other["registered"] == 8 and other["auc@5"] > 0.9 and other["max_rotation_error_deg"] < 0.5
+
+
+def test_unregistered_images_and_failed_runs_carry_reasons(runs, tmp_path):
+    images, gt, colmap, same = runs
+    rec = pycolmap.Reconstruction(str(colmap.out_dir / "sparse" / "0"))
+    dropped = rec.image(sorted(rec.reg_image_ids())[-1]).name
+    rec.deregister_frame(rec.image(sorted(rec.reg_image_ids())[-1]).frame_id)
+    (tmp_path / "partial").mkdir()
+    rec.write(str(tmp_path / "partial"))
+    m = compare_models([tmp_path / "partial", colmap.out_dir], gt=gt, labels=["partial", "full"]).metrics
+    e = m["engines"]["partial"]
+    assert e["summary"]["registered"] == 7 and e["per_image"][dropped]["status"] == "unregistered"
+    assert e["per_image"][dropped]["reason"] == "not in any model"
+    n = 8 * 7 // 2
+    assert sum(err == 180.0 for err in e["relative_pose_errors_deg"]) == 7  # every pair with the dropped image
+    assert len(e["relative_pose_errors_deg"]) == n
+
+
+def test_winner_rules():
+    def engine(role, **summary):
+        return {"role": role, "summary": summary}
+
+    engines = {"a": engine("engine", points=10, wall_s=5.0, registered=4),
+               "b": engine("engine", points=12, wall_s=7.0, registered=4),
+               "c": engine("diagnostic", points=99, wall_s=1.0, registered=9)}
+    rows = {r["metric"]: r for r in summary_rows(engines)}
+    assert rows["points"]["winners"] == ["b"] and rows["wall_s"]["winners"] == ["a"]
+    assert rows["registered"]["winners"] == []  # a tie among competitors; the diagnostic run does not compete
+    assert rows["keypoints_per_image"]["winners"] == []
+
+
+def test_cli_errors(tmp_path, capsys):
+    assert main(["compare", "-o", str(tmp_path / "r")]) == 2
+    assert "give either IMAGES or --models" in capsys.readouterr().err
+    assert main(["compare", "--models", str(tmp_path), "-o", str(tmp_path / "r")]) == 2
+    assert "at least two models" in capsys.readouterr().err
+    assert main(["compare", str(tmp_path / "none"), "-o", str(tmp_path / "r")]) == 2
+    assert "none: no such folder" in capsys.readouterr().err
+
+
+def test_cli_models_with_ground_truth(runs, tmp_path, capsys):
+    images, gt, colmap, same = runs
+    code = main(["compare", "-q", "--models", str(colmap.out_dir), str(same.out_dir), "--gt", str(gt),
+                 "-o", str(tmp_path / "rep")])
+    assert code == 0
+    out = capsys.readouterr().out
+    assert "relative-pose AUC@5" in out and "report:" in out
+    assert (tmp_path / "rep" / "index.html").is_file() and (tmp_path / "rep" / "metrics.csv").is_file()
+    m = json.loads((tmp_path / "rep" / "metrics.json").read_text())
+    assert list(m["engines"]) == ["colmap", "colmap-same-matches"]
+    assert load_run(colmap.out_dir).report["engine"] == "colmap"
+
+
+def test_compare_images_runs_all_three_and_scores_them_like_the_metrics_do(runs, tmp_path_factory):
+    images, gt, colmap, same = runs
+    root = colmap.out_dir.parents[1]
+    cmp = compare_images(images, root, gt=gt, config=CompareConfig(options=OPTS))
+    m = cmp.metrics
+    assert list(m["engines"]) == ["mvrecon", "colmap", "colmap-same-matches"]
+    assert all(e["error"] is None for e in m["engines"].values()), {k: e["error"] for k, e in m["engines"].items()}
+    mv = load_run(root / "runs" / "mvrecon")
+    assert mv.report["engine"] == "mvrecon" and mv.models
+    # COLMAP mapped mvrecon's own matches: same database content, a model of its own
+    assert m["engines"]["colmap-same-matches"]["summary"]["verified_pairs"] == \
+        m["engines"]["mvrecon"]["summary"]["verified_pairs"]
+    assert m["engines"]["colmap"]["out_dir"] == str(colmap.out_dir)  # reused, not rerun
+    for name, run in (("mvrecon", mv), ("colmap", colmap)):
+        expected = accuracy_summary(run.poses, G.load_ground_truth(gt))
+        got = m["engines"][name]["summary"]
+        for key in ("auc@1", "auc@5", "registered", "components", "median_rotation_error_deg"):
+            assert got[key] == pytest.approx(expected[key], rel=1e-9), (name, key)
+    ratio = m["engines"]["mvrecon"]["summary"]["time_ratio_vs_colmap"]
+    assert ratio == pytest.approx(mv.wall_s / colmap.wall_s)
+    assert m["engines"]["mvrecon"]["stages"].keys() >= {"features", "matching", "mapping"}
+
+
+def test_colmap_gets_mvrecons_auto_camera_groups(runs):
+    from mvrecon.eval.runners import _camera_groups
+
+    images = runs[0]
+    assert _camera_groups(images) == [sorted(p.name for p in images.glob("*.png"))]  # no EXIF, one size: one camera
+    imc = data_set("imc_reichstag") / "images"
+    assert len(_camera_groups(imc)) == 10  # ten sizes: ten cameras

@@ -1,0 +1,170 @@
+"""Images in (discovery, decoding, EXIF), camera grouping and focal priors, pair selection, config machinery."""
+
+import logging
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from mvrecon import config as cfgmod
+from mvrecon.cameras import CameraConfig, focal_prior, group_cameras, parse_camera_params
+from mvrecon.errors import InputError
+from mvrecon.features.sift import SiftConfig, extract_sift
+from mvrecon.io.images import image_metadata, list_images, read_image
+from mvrecon.matching.pairs import select_pairs
+from mvrecon.pipeline import FrontendConfig
+
+
+def pattern(h=60, w=80):
+    """An asymmetric RGB gradient: any flip or rotation changes it."""
+    y, x = np.mgrid[0:h, 0:w]
+    return np.stack([x * 3 % 256, y * 4 % 256, (x + 2 * y) % 256], axis=-1).astype(np.uint8)
+
+
+@pytest.mark.parametrize("orientation,expected", [
+    (1, lambda a: a), (3, lambda a: np.rot90(a, 2)), (6, lambda a: np.rot90(a, -1)), (8, lambda a: np.rot90(a, 1)),
+    (2, lambda a: a[:, ::-1]), (5, lambda a: np.swapaxes(a, 0, 1)),
+])
+def test_exif_orientation_is_applied(tmp_path, orientation, expected):
+    stored = pattern()
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    Image.fromarray(stored).save(tmp_path / "a.png", exif=exif)
+    image = read_image(tmp_path / "a.png")
+    np.testing.assert_array_equal(image, expected(stored))
+    meta = image_metadata(tmp_path / "a.png")
+    assert (meta.width, meta.height) == (image.shape[1], image.shape[0])
+
+
+def test_16_bit_grey_rgba_and_tiff_are_read(tmp_path):
+    cv2 = pytest.importorskip("cv2")
+    grey16 = (np.arange(60 * 80, dtype=np.uint16).reshape(60, 80) * 13)
+    cv2.imwrite(str(tmp_path / "g16.png"), grey16)
+    rgb16 = np.stack([grey16, grey16 // 2, grey16 // 3], axis=-1)
+    cv2.imwrite(str(tmp_path / "c16.tif"), rgb16[:, :, ::-1])  # OpenCV writes BGR
+    rgba = np.dstack([pattern(), np.full((60, 80), 7, np.uint8)])
+    Image.fromarray(rgba, "RGBA").save(tmp_path / "rgba.png")
+    Image.fromarray(pattern()[:, :, 0]).save(tmp_path / "grey.jpg", quality=100)
+
+    a = read_image(tmp_path / "g16.png")
+    assert a.dtype == np.uint16 and a.shape == (60, 80) and np.array_equal(a, grey16)
+    b = read_image(tmp_path / "c16.tif")
+    assert b.dtype == np.uint16 and np.array_equal(b, rgb16)
+    c = read_image(tmp_path / "rgba.png")
+    assert c.shape == (60, 80, 3) and np.array_equal(c, pattern())
+    d = read_image(tmp_path / "grey.jpg")
+    assert d.shape == (60, 80) and d.dtype == np.uint8
+    names, skipped = list_images(tmp_path)
+    assert names == ["c16.tif", "g16.png", "grey.jpg", "rgba.png"] and not skipped
+
+
+def test_sift_keypoints_follow_the_image_content_in_colmap_pixels():
+    """A textured image and its copy shifted by (7, 3) px: matched keypoints differ by exactly that shift, and
+    shrinking the image for detection maps keypoints back to full resolution."""
+    rng = np.random.default_rng(0)
+    base = (rng.random((260, 340)) * 255).astype(np.uint8)
+    import cv2
+
+    base = cv2.GaussianBlur(base, (0, 0), 2.0)
+    shifted = np.zeros_like(base)
+    shifted[3:, 7:] = base[:-3, :-7]
+    for config in (SiftConfig(), SiftConfig(max_image_size=170)):
+        k1, d1 = extract_sift(base, config)
+        k2, d2 = extract_sift(shifted, config)
+        from mvrecon.matching.matcher import match_descriptors
+
+        m = match_descriptors(d1, d2)
+        assert len(m) > 50
+        delta = k2[m[:, 1], :2] - k1[m[:, 0], :2]
+        assert np.median(np.abs(delta - [7, 3]), axis=0).max() < (0.05 if config.max_image_size > 340 else 0.5)
+        assert d1.dtype == np.uint8 and d1.shape[1] == 128 and k1.shape[1] == 4
+
+
+def test_listing_is_recursive_and_reports_non_images_and_corrupt_files(tmp_path, caplog):
+    (tmp_path / "sub" / "deeper").mkdir(parents=True)
+    Image.fromarray(pattern()).save(tmp_path / "b.jpg")
+    Image.fromarray(pattern()).save(tmp_path / "sub" / "deeper" / "a.PNG")
+    (tmp_path / "notes.txt").write_text("hello")
+    (tmp_path / "sub" / "calib.yml").write_text("k: 1")
+    (tmp_path / "broken.jpg").write_bytes(b"not a jpeg at all")
+    with caplog.at_level(logging.WARNING):
+        names, skipped = list_images(tmp_path)
+    assert names == ["b.jpg", "sub/deeper/a.PNG"]
+    assert set(skipped) == {"notes.txt", "sub/calib.yml", "broken.jpg"}
+    non_image_warnings = [r for r in caplog.records if "non-image" in r.getMessage()]
+    assert len(non_image_warnings) == 1 and "notes.txt" in non_image_warnings[0].getMessage()
+    assert any("broken.jpg" in r.getMessage() for r in caplog.records)
+
+
+def test_bad_folders_raise_input_errors(tmp_path):
+    with pytest.raises(InputError, match="no such folder"):
+        list_images(tmp_path / "missing")
+    with pytest.raises(InputError, match="no readable JPEG, PNG or TIFF"):
+        list_images(tmp_path)
+    (tmp_path / "x.png").write_bytes(b"\x89PNG\r\n\x1a\n garbage")
+    with pytest.raises(InputError, match="cannot decode image"):
+        read_image(tmp_path / "x.png")
+
+
+def test_focal_priors_and_camera_grouping(tmp_path):
+    sub = tmp_path / "left"
+    sub.mkdir()
+    Image.fromarray(pattern(60, 80)).save(tmp_path / "noexif.jpg")
+    exif = Image.Exif()
+    exif[0x010F], exif[0x0110] = "Cam", "X1"
+    exif.get_ifd(0x8769)[0xA405] = 28  # FocalLengthIn35mmFilm
+    exif.get_ifd(0x8769)[0x920A] = 4.0  # FocalLength
+    for name in ("a.jpg", "b.jpg", "left/c.jpg"):
+        Image.fromarray(pattern(60, 80)).save(tmp_path / name, exif=exif)
+    Image.fromarray(pattern(60, 80)).save(tmp_path / "plain.jpg")
+    Image.fromarray(pattern(40, 80)).save(tmp_path / "small.jpg")
+    names = ["a.jpg", "b.jpg", "noexif.jpg", "left/c.jpg", "plain.jpg", "small.jpg"]
+    metas = {n: image_metadata(tmp_path / n) for n in names}
+    assert metas["a.jpg"].focal_35mm == 28 and metas["a.jpg"].make == "Cam"
+    assert focal_prior(metas["a.jpg"]) == (pytest.approx(28 / 36 * 80), True)
+    assert focal_prior(metas["plain.jpg"]) == (pytest.approx(1.2 * 80), False)
+
+    auto = group_cameras(names, metas, CameraConfig())
+    assert sorted(sorted(m) for _, m in auto) == [["a.jpg", "b.jpg", "left/c.jpg"], ["noexif.jpg", "plain.jpg"],
+                                                  ["small.jpg"]]
+    exif_camera = next(c for c, m in auto if "a.jpg" in m)
+    assert exif_camera.prior_trusted and exif_camera.params[0] == pytest.approx(28 / 36 * 80)
+    folders = group_cameras(names[:5], metas, CameraConfig(mode="per-folder"))
+    assert sorted(len(m) for _, m in folders) == [1, 4]
+    assert len(group_cameras(names, metas, CameraConfig(mode="per-image"))) == 6
+    with pytest.raises(InputError, match="needs images of one size"):
+        group_cameras(names, metas, CameraConfig(mode="single"))
+    known = group_cameras(names[:2], metas, CameraConfig(model="PINHOLE", params=parse_camera_params("50,51,40,30")))
+    assert known[0][0].prior_trusted and list(known[0][0].params) == [50, 51, 40, 30]
+    with pytest.raises(InputError, match="PINHOLE takes 4 parameters"):
+        CameraConfig(model="PINHOLE", params=(1.0, 2.0)).validate()
+
+
+def test_pair_selection(tmp_path):
+    names = [f"f{i:02d}.jpg" for i in range(6)]
+    assert len(select_pairs("exhaustive", names)) == 15
+    seq = select_pairs("sequential:2", names)
+    assert seq[:3] == [("f00.jpg", "f01.jpg"), ("f00.jpg", "f02.jpg"), ("f01.jpg", "f02.jpg")] and len(seq) == 9
+    pairs_file = tmp_path / "pairs.txt"
+    pairs_file.write_text("# my pairs\nf00.jpg f03.jpg\nf03.jpg f00.jpg\n\nf01.jpg f05.jpg  # comment\n")
+    assert select_pairs(str(pairs_file), names) == [("f00.jpg", "f03.jpg"), ("f01.jpg", "f05.jpg")]
+    pairs_file.write_text("f00.jpg f03.jpg\nf00.jpg nope.jpg\n")
+    with pytest.raises(InputError, match=r"pairs.txt:2: unknown image 'nope.jpg'"):
+        select_pairs(str(pairs_file), names)
+    with pytest.raises(InputError, match="positive integer"):
+        select_pairs("sequential:x", names)
+
+
+def test_config_hash_overrides_and_diff(tmp_path):
+    base = FrontendConfig()
+    assert cfgmod.config_hash(base) == cfgmod.config_hash(FrontendConfig(workers=7))  # workers do not change results
+    toml = tmp_path / "c.toml"
+    toml.write_text('pairs = "sequential:3"\n[sift]\nmax_num_features = 1000\n')
+    changed = cfgmod.with_overrides(base, cfgmod.load_toml(toml), source=str(toml))
+    assert changed.sift.max_num_features == 1000 and changed.pairs == "sequential:3"
+    assert cfgmod.config_hash(changed) != cfgmod.config_hash(base)
+    assert cfgmod.diff(cfgmod.to_dict(base), cfgmod.to_dict(changed)) == [
+        "pairs: exhaustive -> sequential:3", "sift.max_num_features: 8192 -> 1000"]
+    toml.write_text("[sift]\nmax_features = 1\n")
+    with pytest.raises(InputError, match="unknown option 'max_features' in SiftConfig"):
+        cfgmod.with_overrides(base, cfgmod.load_toml(toml), source=str(toml))

@@ -1,0 +1,101 @@
+"""Descriptor matching and geometric verification against known geometry."""
+
+import numpy as np
+import pytest
+
+from mvrecon.database import CameraInfo
+from mvrecon.features.sift import extract_sift
+from mvrecon.geometry import camera as camera_model
+from mvrecon.geometry.rotation import angle_axis_to_rotmat
+from mvrecon.matching.matcher import MatcherConfig, match_descriptors
+from mvrecon.matching.verify import sampson_error, verify_pair
+
+K = [800.0, 320.0, 240.0, 0.0]
+CAM = CameraInfo(model="SIMPLE_RADIAL", width=640, height=480, params=np.array(K), prior_trusted=True)
+
+
+def test_matcher_recovers_a_permutation_and_applies_ratio_and_mutual_checks():
+    rng = np.random.default_rng(0)
+    d1 = rng.integers(0, 120, size=(500, 128)).astype(np.uint8)
+    perm = rng.permutation(500)
+    d2 = np.clip(d1[perm].astype(int) + rng.integers(-3, 4, size=(500, 128)), 0, 255).astype(np.uint8)
+    m = match_descriptors(d1, d2)
+    assert len(m) == 500 and np.array_equal(perm[m[:, 1]], m[:, 0])
+    # An exact duplicate in image 2 makes the best and second-best equal: the ratio test must drop that point.
+    d2_dup = np.vstack([d2, d2[:1]])
+    m = match_descriptors(d1, d2_dup)
+    assert perm[0] not in m[:, 0] and len(m) == 499
+    # Mutual check: two points of image 1 whose nearest neighbour is the same point of image 2 keep one match.
+    one = match_descriptors(np.vstack([d1[:1], d1[:1] // 2 + 1]), d1[:1], MatcherConfig(max_ratio=1.01))
+    assert len(one) == 1
+
+
+def two_view(points, R, t, cam=CAM, noise=0.3, seed=1):
+    rng = np.random.default_rng(seed)
+    uv1 = camera_model.project(cam.model, cam.params, points)
+    uv2 = camera_model.project(cam.model, cam.params, points @ R.T + t)
+    return uv1 + rng.normal(scale=noise, size=uv1.shape), uv2 + rng.normal(scale=noise, size=uv2.shape)
+
+
+def add_outliers(uv1, uv2, fraction=0.3, seed=2):
+    rng = np.random.default_rng(seed)
+    n = int(len(uv1) * fraction)
+    uv2 = uv2.copy()
+    uv2[:n] = rng.uniform([0, 0], [640, 480], size=(n, 2))
+    return uv1, uv2, n
+
+
+@pytest.mark.parametrize("scene,expected", [("general", "CALIBRATED"), ("plane", "PLANAR"),
+                                            ("rotation", "PANORAMIC"), ("uncalibrated", "UNCALIBRATED"),
+                                            ("random", "DEGENERATE")])
+def test_pairs_are_classified_like_colmap(scene, expected):
+    rng = np.random.default_rng(3)
+    n = 300
+    R = angle_axis_to_rotmat([0.02, 0.15, 0.01])
+    t = np.array([-0.6, 0.05, 0.1])
+    if scene == "plane":
+        X = np.column_stack([rng.uniform(-2, 2, n), rng.uniform(-1.5, 1.5, n), np.full(n, 5.0)])
+    else:
+        X = np.column_stack([rng.uniform(-2, 2, n), rng.uniform(-1.5, 1.5, n), rng.uniform(4, 8, n)])
+    if scene == "rotation":
+        t = np.zeros(3)
+    uv1, uv2 = two_view(X, R, t)
+    uv1, uv2, n_out = add_outliers(uv1, uv2)
+    if scene == "random":
+        uv2 = np.random.default_rng(4).uniform([0, 0], [640, 480], size=uv2.shape)
+    cam = CAM if scene != "uncalibrated" else CameraInfo(model="SIMPLE_RADIAL", width=640, height=480,
+                                                           params=np.array(K), prior_trusted=False)
+    matches = np.column_stack([np.arange(n), np.arange(n)])
+    result = verify_pair(uv1, uv2, matches, cam, cam)
+    assert result.config == expected, result.num_inliers
+    if expected != "DEGENERATE":
+        inlier_rows = set(result.inliers[:, 0])
+        accepted_outliers = len(inlier_rows & set(range(n_out)))
+        assert accepted_outliers <= 0.1 * n_out  # only the chance agreement of random points with the model
+        assert len(inlier_rows) >= 0.9 * (n - n_out)
+        assert (result.E is not None) == (cam.prior_trusted and expected != "UNCALIBRATED")
+    else:
+        assert len(result.inliers) == 0
+
+
+def test_motorcycle_fundamental_matrix_is_accurate_and_epipolar_lines_are_horizontal():
+    skimage_data = pytest.importorskip("skimage.data")
+    try:
+        left, right, _ = skimage_data.stereo_motorcycle()
+    except Exception as exc:  # the data may need a download on machines without the cache
+        pytest.skip(f"skimage stereo_motorcycle not available: {exc}")
+    k1, d1 = extract_sift(left)
+    k2, d2 = extract_sift(right)
+    matches = match_descriptors(d1, d2)
+    h, w = left.shape[:2]
+    cam = CameraInfo(model="SIMPLE_RADIAL", width=w, height=h, params=np.array([1.2 * w, w / 2, h / 2, 0.0]))
+    result = verify_pair(k1, k2, matches, cam, cam)
+    assert result.config in ("UNCALIBRATED", "PLANAR_OR_PANORAMIC") and len(result.inliers) > 300
+    p1, p2 = k1[result.inliers[:, 0], :2], k2[result.inliers[:, 1], :2]
+    assert np.median(sampson_error(result.F, p1, p2)) < 1.0
+    # Rectified pair: the epipolar line of every inlier in the right image is (nearly) horizontal.
+    lines = np.column_stack([p1, np.ones(len(p1))]) @ result.F.T
+    slopes_deg = np.degrees(np.arctan2(np.abs(lines[:, 0]), np.abs(lines[:, 1])))
+    assert np.median(slopes_deg) < 0.5 and np.percentile(slopes_deg, 95) < 2.0
+    # and matched points keep their row
+    assert np.median(np.abs(p1[:, 1] - p2[:, 1])) < 1.0

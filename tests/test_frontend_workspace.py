@@ -1,0 +1,150 @@
+"""Workspace behaviour: resume after an interruption, refusal of a changed config, bad input through the CLI."""
+
+import logging
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from mvrecon import database as dbmod
+from mvrecon.cli import main
+from mvrecon.errors import InputError
+from mvrecon.features.sift import SiftConfig
+from mvrecon.pipeline import FrontendConfig, extract_features, match
+from mvrecon.workspace import Workspace
+
+
+def textured_views(folder, count=6, size=(240, 320)):
+    """Overlapping crops of one blurred-noise texture: every pair shares content, SIFT finds it quickly."""
+    import cv2
+
+    rng = np.random.default_rng(0)
+    h, w = size
+    noise = (rng.random((h + 20 * count, w + 30 * count, 3)) * 255).astype(np.uint8)
+    texture = cv2.GaussianBlur(noise, (0, 0), 1.5)
+    folder.mkdir(parents=True, exist_ok=True)
+    for i in range(count):
+        Image.fromarray(texture[12 * i:12 * i + h, 20 * i:20 * i + w]).save(folder / f"view{i:02d}.png")
+    return folder
+
+
+class Stop(Exception):
+    pass
+
+
+def stop_after(k):
+    calls = []
+
+    def callback(item):
+        calls.append(item)
+        if len(calls) == k:
+            raise Stop
+
+    return callback
+
+
+def test_interrupted_features_and_matching_resume_without_recomputing(tmp_path):
+    images = textured_views(tmp_path / "images")
+    config = FrontendConfig(workers=1, sift=SiftConfig(max_num_features=800))
+    ws = tmp_path / "ws"
+    with pytest.raises(Stop):
+        extract_features(config, images, ws, on_image=stop_after(2))
+    with dbmod.open_database(ws / "database.db") as db:
+        done = {i.name: dbmod.read_features(db, i.image_id)[0] for i in dbmod.read_images(db).values()}
+    assert sorted(done) == ["view00.png", "view01.png"]
+
+    summary = extract_features(config, images, ws)
+    assert summary.num_extracted == 4 and summary.num_images == 6 and summary.num_cameras == 1
+    with dbmod.open_database(ws / "database.db") as db:
+        by_name = {i.name: i.image_id for i in dbmod.read_images(db).values()}
+        for name, keypoints in done.items():  # the first run's results were kept, not rewritten
+            np.testing.assert_array_equal(dbmod.read_features(db, by_name[name])[0], keypoints)
+    assert extract_features(config, images, ws).num_extracted == 0
+
+    with pytest.raises(Stop):
+        match(config, ws, on_batch=stop_after(1), batch_size=4)
+    resumed = match(config, ws, batch_size=4, max_cached_images=2)  # also exercises descriptor-cache eviction
+    assert resumed.num_pairs == 15 and resumed.num_matched == 11
+    assert resumed.num_verified == 15 and min(resumed.inliers.values()) >= 15
+    assert match(config, ws).num_matched == 0
+
+
+def test_a_changed_config_is_refused_unless_overwrite(tmp_path):
+    images = textured_views(tmp_path / "images", count=3)
+    config = FrontendConfig(workers=1, sift=SiftConfig(max_num_features=500))
+    ws = tmp_path / "ws"
+    extract_features(config, images, ws)
+    match(config, ws)
+    other = FrontendConfig(workers=1, sift=SiftConfig(max_num_features=300))
+    with pytest.raises(InputError, match=r"different features config \(sift.max_num_features: 500 -> 300\)"):
+        extract_features(other, images, ws)
+    with pytest.raises(InputError, match="pairs: exhaustive -> sequential:1"):
+        match(FrontendConfig(workers=1, pairs="sequential:1"), ws)
+    summary = extract_features(other, images, ws, overwrite=True)
+    assert summary.num_extracted == 3 and max(summary.keypoints.values()) <= 300
+    assert Workspace(ws).stage_config("matching") is None  # matches of the old features were dropped
+    with pytest.raises(InputError, match="no features in this workspace"):
+        match(config, tmp_path / "empty_ws")
+
+
+def run_cli(argv, capsys):
+    code = main(argv)
+    return code, capsys.readouterr()
+
+
+def test_cli_bad_input_exits_2_with_one_line(tmp_path, capsys):
+    code, out = run_cli(["features", str(tmp_path / "nope"), "-w", str(tmp_path / "ws")], capsys)
+    assert code == 2 and out.err.strip() == f"mvrecon: error: {tmp_path / 'nope'}: no such folder"
+    (tmp_path / "empty").mkdir()
+    code, out = run_cli(["features", str(tmp_path / "empty"), "-w", str(tmp_path / "ws")], capsys)
+    assert code == 2 and "no readable JPEG, PNG or TIFF images" in out.err and len(out.err.splitlines()) == 1
+    code, out = run_cli(["match", "-w", str(tmp_path / "ws"), "--pairs", "sequential:0"], capsys)
+    assert code == 2 and "positive integer" in out.err
+
+
+def test_cli_skips_corrupt_and_non_image_files(tmp_path, capsys, caplog):
+    images = textured_views(tmp_path / "images", count=2)
+    good = (images / "view00.png").read_bytes()
+    (images / "truncated.png").write_bytes(good[: len(good) // 2])  # caught when listing (header walk)
+    Image.fromarray(np.zeros((40, 50), np.uint8)).save(images / "half.tif")
+    tif = (images / "half.tif").read_bytes()
+    (images / "half.tif").write_bytes(tif[: len(tif) // 2])  # header fine, pixels cut: caught when decoding
+    (images / "readme.txt").write_text("not an image")
+    ws = tmp_path / "ws"
+    with caplog.at_level(logging.WARNING, logger="mvrecon"):
+        code, out = run_cli(["features", str(images), "-w", str(ws), "--max-features", "500"], capsys)
+    assert code == 0, out.err
+    assert "2 images" in out.out and "2 unreadable image(s) skipped: half.tif, truncated.png" in out.out
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert any("truncated.png" in w and "truncated" in w.split("truncated.png", 1)[1] for w in warnings)
+    assert any("half.tif: cannot decode image" in w for w in warnings)
+    assert sum("readme.txt" in w for w in warnings) == 1
+    code, out = run_cli(["match", "-w", str(ws)], capsys)
+    assert code == 0 and "1 verified pairs" in out.out
+
+    (images / "view01.png").unlink()
+    code, out = run_cli(["features", str(images), "-w", str(tmp_path / "ws2"), "--workers", "1"], capsys)
+    last = out.err.strip().splitlines()[-1]  # above it: progress bar and warnings
+    assert code == 2 and last.startswith("mvrecon: error: ") and "only 1 usable image(s), need at least 2" in last
+    assert "truncated.png" in last and "half.tif" in last
+
+
+def test_the_command_runs_as_a_fresh_process(tmp_path):
+    """The real entry point: a new interpreter (OpenCV not yet loaded, so the pool forks) with two workers."""
+    import subprocess
+    import sys
+
+    images = textured_views(tmp_path / "images", count=3)
+    ws = tmp_path / "ws"
+    def run(*argv):
+        done = subprocess.run([sys.executable, "-m", "mvrecon.cli", *argv], capture_output=True, text=True,
+                              timeout=120)
+        assert done.returncode == 0, done.stderr
+        return done
+
+    done = run("features", str(images), "-w", str(ws), "--max-features", "400", "--workers", "2", "-vv")
+    assert "3 images (3 extracted now" in done.stdout and "process pool: 2 fork workers" in done.stderr
+    done = run("match", "-w", str(ws), "--pairs", "sequential:1", "-q")
+    assert "2 pairs" in done.stdout and "2 verified pairs" in done.stdout
+    with dbmod.open_database(ws / "database.db") as db:
+        assert sorted(i.name for i in dbmod.read_images(db).values()) == [f"view{i:02d}.png" for i in range(3)]

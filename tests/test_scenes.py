@@ -1,0 +1,391 @@
+"""Ground-truth scenes: the renderer puts points where the cameras say, depth/disparity/height agree with the
+geometry, the catalog is deterministic and cached, COLMAP reconstructs a small scene to within 0.5 degrees."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from mvrecon.errors import InputError
+from mvrecon.eval.models import load_reconstruction
+from mvrecon.geometry.rotation import rotation_error_deg
+from mvrecon.io.pfm import read_pfm
+from mvrecon.scenes import cameras, list_scenes, make_scene, meshes
+from mvrecon.scenes.build import build_camera, build_mesh
+from mvrecon.scenes.catalog import load_entry
+from mvrecon.scenes.render import Renderer, RenderSettings
+from mvrecon.scenes.textures import TextureSpec
+
+
+@pytest.fixture(scope="module")
+def small_scene(tmp_path_factory):
+    return make_scene("object_orbit_small", tmp_path_factory.mktemp("object_orbit_small"))
+
+
+@pytest.fixture(scope="module")
+def small_renderer():
+    entry, _, path = load_entry("object_orbit_small")
+    return Renderer(build_mesh(entry, path.parent)), build_camera(entry)
+
+
+def shrunk_entry(name, tmp_path, replacements):
+    """A catalog entry's TOML with text replaced (smaller images and textures) written next to the test."""
+    text = load_entry(name)[2].read_text()
+    for old, new in replacements.items():
+        assert old in text, f"{name}.toml no longer contains {old!r}"
+        text = text.replace(old, new)
+    path = tmp_path / f"{name}_test.toml"
+    path.write_text(text)
+    return str(path)
+
+
+def bilinear(image, u, v):
+    """Values of image at COLMAP pixel positions (u, v) and whether all 4 neighbours agree within 2 %."""
+    x, y = u - 0.5, v - 0.5
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    h, w = image.shape
+    inside = (x0 >= 0) & (y0 >= 0) & (x0 + 1 < w) & (y0 + 1 < h)
+    x0, y0 = np.clip(x0, 0, w - 2), np.clip(y0, 0, h - 2)
+    fx, fy = x - x0, y - y0
+    q = np.stack([image[y0, x0], image[y0, x0 + 1], image[y0 + 1, x0], image[y0 + 1, x0 + 1]])
+    smooth = inside & np.all(np.isfinite(q), axis=0)
+    with np.errstate(invalid="ignore"):
+        smooth &= (q.max(0) - q.min(0)) < 0.02 * q.min(0)
+    value = (q[0] * (1 - fx) + q[1] * fx) * (1 - fy) + (q[2] * (1 - fx) + q[3] * fx) * fy
+    return value, smooth
+
+
+def test_catalog_has_the_required_scenes():
+    names = set(list_scenes())
+    assert {
+        "object_orbit",
+        "room",
+        "street",
+        "planar",
+        "wide_orbit",
+        "stereo_pair",
+        "sem_tilt",
+        "synthetic_colmap",
+        "object_orbit_small",
+    } <= names
+    counts = {n: load_entry(n)[0]["trajectory"]["count"] for n in ("object_orbit", "room", "street")}
+    assert counts == {"object_orbit": 24, "room": 30, "street": 40}
+    assert load_entry("wide_orbit")[0]["camera"]["model"] in ("OPENCV", "SIMPLE_RADIAL")
+    assert len(load_entry("sem_tilt")[0]["trajectory"]["angles_deg"]) == 5
+    for name in names:
+        camera = load_entry(name)[0].get("camera", {})
+        assert camera.get("width", 0) <= 1024 and camera.get("height", 0) <= 768
+
+
+def test_rendered_blobs_sit_where_the_distorted_camera_projects_them():
+    """Dark Gaussian dots on a tilted plane, rendered through an OPENCV lens: centroids vs projections."""
+    size, sigma = 512, 3.5
+    centres_uv = np.array([(s, t) for s in np.linspace(0.15, 0.85, 5) for t in np.linspace(0.15, 0.85, 4)])
+    texture = np.full((size, size), 0.9, np.float32)
+    offsets = np.arange(-20, 21)
+    for s, t in centres_uv:  # each dot drawn in a window of +-20 texels (5.7 sigma)
+        cx, cy = int(s * size), int(t * size)
+        yy, xx = np.meshgrid(cy + offsets + 0.5, cx + offsets + 0.5, indexing="ij")
+        dot = 0.8 * np.exp(-((xx - s * size) ** 2 + (yy - t * size) ** 2) / (2 * sigma**2))
+        texture[cy - 20 : cy + 21, cx - 20 : cx + 21] -= dot.astype(np.float32)
+    origin, u_edge, v_edge = np.array([-1.0, -0.75, 0.0]), np.array([2.0, 0, 0]), np.array([0, 1.5, 0])
+    mesh = meshes.quad(origin, u_edge, v_edge, TextureSpec())
+    settings = RenderSettings(supersample=2, ambient=1.0, noise_sigma=0.0)
+    renderer = Renderer(mesh, settings, texture_arrays=[np.repeat(texture[..., None], 3, axis=2)])
+    cam = cameras.PerspectiveCamera(
+        "OPENCV", 320, 240, (270.0, 273.0, 163.0, 118.0, -0.15, 0.03, 0.002, -0.001)
+    )
+    R, t = cameras.look_at([0.7, -0.9, 2.2], [0.05, 0.0, 0.0], roll_deg=8.0)
+    image, _ = renderer.render(cam, (R, t))
+    grey = image[..., 0].astype(np.float64)
+    points = (
+        origin + centres_uv[:, :1] * u_edge + (1 - centres_uv[:, 1:]) * v_edge
+    )  # texture rows run against v
+    projected = cam.project(points @ R.T + t)
+    errors = []
+    for pu, pv in projected:
+        c, r = int(pu), int(pv)
+        win = grey[r - 6 : r + 7, c - 6 : c + 7]
+        weight = np.clip(0.9 * 255 - win, 0, None)
+        rows, cols = np.mgrid[r - 6 : r + 7, c - 6 : c + 7] + 0.5
+        centroid = np.array([(weight * cols).sum(), (weight * rows).sum()]) / weight.sum()
+        errors.append(np.linalg.norm(centroid - [pu, pv]))
+    assert len(errors) == 20
+    assert max(errors) < 0.05, f"max centroid error {max(errors):.4f} px"
+
+
+def test_model_observations_lie_on_rendered_rays(small_scene, small_renderer):
+    """The renderer's ray through each stored observation hits the surface at the model's 3D point."""
+    renderer, cam = small_renderer
+    rec = load_reconstruction(small_scene / "gt" / "sparse")
+    assert rec.num_images() == 10 and rec.num_points3D() > 1000
+    worst = []
+    for image in rec.images.values():
+        T = image.cam_from_world()
+        R, t = np.asarray(T.rotation.matrix()), np.asarray(T.translation)
+        idx = [k for k, p in enumerate(image.points2D) if p.has_point3D()]
+        assert len(idx) > 300, f"{image.name}: only {len(idx)} observations"
+        uv = np.array([image.points2D[k].xy for k in idx])
+        X = np.array([rec.points3D[image.points2D[k].point3D_id].xyz for k in idx])
+        np.testing.assert_allclose(cam.project(X @ R.T + t), uv, atol=1e-6)
+        centre = -R.T @ t
+        dirs = cam.ray_directions(uv) @ R
+        hits = renderer.cast(np.tile(centre, (len(uv), 1)), dirs)
+        hit_points = centre + hits.t[:, None].astype(np.float64) * dirs
+        z = (X @ R.T + t)[:, 2]
+        worst.append(np.max(np.linalg.norm(hit_points - X, axis=1) * cam.params[0] / z))
+    assert max(worst) < 0.05, f"worst ray/point disagreement {max(worst):.4f} px"
+
+
+def test_depth_maps_agree_with_model_points(small_scene):
+    rec = load_reconstruction(small_scene / "gt" / "sparse")
+    rel = []
+    for image in rec.images.values():
+        depth = np.load(small_scene / "gt" / "depth" / (image.name.rsplit(".", 1)[0] + ".npy"))
+        assert depth.shape == (480, 640) and depth.dtype == np.float32
+        assert np.isinf(depth).any() and np.isfinite(depth).mean() > 0.5  # sky is inf, the scene is finite
+        T = image.cam_from_world()
+        pts = [p for p in image.points2D if p.has_point3D()]
+        uv = np.array([p.xy for p in pts])
+        z = np.array([T * rec.points3D[p.point3D_id].xyz for p in pts])[:, 2]
+        value, smooth = bilinear(depth, uv[:, 0], uv[:, 1])
+        assert smooth.mean() > 0.8
+        rel.append(np.abs(value[smooth] - z[smooth]) / z[smooth])
+    rel = np.concatenate(rel)
+    assert np.median(rel) < 1e-4 and np.percentile(rel, 99) < 2e-3, (np.median(rel), np.percentile(rel, 99))
+
+
+def test_textures_are_rich_enough_for_sift(small_scene):
+    import cv2
+
+    counts = [
+        len(cv2.SIFT_create().detect(cv2.imread(str(small_scene / "images" / f"{k:04d}.png"), 0)))
+        for k in (0, 5, 9)
+    ]
+    assert min(counts) > 1500, counts
+
+
+def test_pycolmap_reconstructs_the_small_scene(small_scene, tmp_path):
+    from mvrecon.scenes.validate import colmap_reconstruct, compare_with_ground_truth
+
+    run = colmap_reconstruct(small_scene, tmp_path / "colmap", num_threads=2)
+    summary = compare_with_ground_truth(small_scene, run["models"])
+    assert summary["registered"] == summary["images"] == 10
+    assert summary["components"] == 1
+    assert summary["max_rotation_error_deg"] < 0.5, summary
+
+
+def test_stereo_warp_leaves_only_noise(tmp_path):
+    import cv2
+
+    toml = shrunk_entry(
+        "stereo_pair_small",
+        tmp_path,
+        {
+            "width = 640": "width = 320",
+            "height = 480": "height = 240",
+            "params = [560.0, 560.0, 320.0, 240.0]": "params = [280.0, 280.0, 160.0, 120.0]",
+            "size = 2048": "size = 1024",
+        },
+    )
+    out = make_scene(toml, tmp_path / "stereo")
+    left = cv2.imread(str(out / "images" / "im0.png")).astype(np.float32)
+    right = cv2.imread(str(out / "images" / "im1.png")).astype(np.float32)
+    disparity = read_pfm(out / "disp0GT.pfm")
+    mask = cv2.imread(str(out / "mask0nocc.png"), cv2.IMREAD_GRAYSCALE)
+    calib = dict(line.split("=", 1) for line in (out / "calib.txt").read_text().splitlines())
+    assert float(calib["baseline"]) == pytest.approx(0.16) and int(calib["width"]) == 320
+    assert float(np.nanmax(disparity[np.isfinite(disparity)])) < int(calib["ndisp"])
+    nocc = mask == 255
+    assert 0.8 < nocc.mean() < 0.99 and (mask == 128).any()
+    depth = np.load(out / "gt" / "depth" / "im0.npy")
+    f = float(calib["cam0"].strip("[").split()[0])
+    np.testing.assert_allclose(float(calib["baseline"]) * f / disparity[nocc], depth[nocc], rtol=1e-5)
+    h, w = disparity.shape
+    u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    d = np.where(np.isfinite(disparity), disparity, 0).astype(np.float32)
+
+    def warp_error(shift):
+        warped = cv2.remap(right, u - d + shift, v, cv2.INTER_LINEAR)
+        return np.abs(warped - left).mean(axis=2)[nocc]
+
+    sigma = load_entry("stereo_pair_small")[0]["render"]["noise_sigma"]
+    floor = 2 * sigma / np.sqrt(np.pi)  # mean |difference| of two independent N(0, sigma) noises
+    err = warp_error(0.0)
+    # the median pixel is at the noise floor; the mean also carries bilinear resampling error at texture edges
+    assert np.median(err) < 1.2 * floor and err.mean() < 1.8 * floor, (np.median(err), err.mean(), floor)
+    # the true disparity is the best one: shifting it by a tenth of a pixel either way makes the warp worse
+    assert warp_error(-0.1).mean() > err.mean() < warp_error(0.1).mean()
+    assert warp_error(1.0).mean() > 2 * err.mean()
+
+
+def test_sem_tilt_depths_agree_with_the_height_map(tmp_path):
+    toml = shrunk_entry(
+        "sem_tilt_small",
+        tmp_path,
+        {
+            "width = 480": "width = 240",
+            "height = 480": "height = 240",
+            "pixel_size = 0.2": "pixel_size = 0.4",
+            "size = 2048": "size = 512",
+        },
+    )
+    out = make_scene(toml, tmp_path / "sem")
+    meta = json.loads((out / "gt" / "height.json").read_text())
+    height = np.load(out / "gt" / "height.npy")
+    ps, w, h = meta["pixel_size_um"], meta["width"], meta["height"]
+    assert meta["units"] == "micrometres" and meta["tilt_angles_deg"] == [-10.0, -5.0, 0.0, 5.0, 10.0]
+    assert height.shape == (h, w) and 3.0 < np.nanmax(height) - np.nanmin(height) < 9.0
+    names = sorted(meta["images"])
+    assert sorted(os.listdir(out / "images")) == names
+    v, u = np.mgrid[0:h:2, 0:w:2] + 0.5
+    hv = height[0:h:2, 0:w:2]
+    # the 0-degree camera looks down -z with image y along -y: pixel (u, v) sees world (x, y, height)
+    X = np.stack([(u - w / 2) * ps, -(v - h / 2) * ps, hv], -1).reshape(-1, 3)
+    R0 = np.array(meta["images"]["tilt_+0.0.png"]["cam_from_world_R"])
+    for name in names:
+        R, t = (
+            np.array(meta["images"][name]["cam_from_world_R"]),
+            np.array(meta["images"][name]["cam_from_world_t"]),
+        )
+        angle = float(name[5:-4])
+        assert rotation_error_deg(R, R0) == pytest.approx(abs(angle), abs=1e-9)
+        p = X @ R.T + t
+        pu, pv = p[:, 0] / ps + w / 2, p[:, 1] / ps + h / 2
+        depth = np.load(out / "gt" / "depth" / (name[:-4] + ".npy"))
+        value, smooth = bilinear(depth, pu, pv)
+        assert smooth.mean() > 0.7
+        err = np.abs(value[smooth] - p[smooth, 2])
+        assert np.median(err) < 0.01 * ps, (name, np.median(err))  # micrometres
+
+
+def test_synthetic_colmap_scene_wraps_colmaps_generator(tmp_path):
+    toml = shrunk_entry(
+        "synthetic_colmap",
+        tmp_path,
+        {
+            "num_frames_per_rig = 12": "num_frames_per_rig = 4",
+            "camera_width = 1024": "camera_width = 320",
+            "camera_height = 768": "camera_height = 240",
+            "[1280.0, 512.0, 384.0, 0.05]": "[400.0, 160.0, 120.0, 0.05]",
+        },
+    )
+    out = make_scene(toml, tmp_path / "syn")
+    rec = load_reconstruction(out / "gt" / "sparse")
+    names = sorted(im.name for im in rec.images.values())
+    assert len(names) == 4 and sorted(os.listdir(out / "images")) == names
+    assert rec.num_points3D() == 1500 and rec.compute_mean_reprojection_error() < 1e-6
+    assert next(iter(rec.cameras.values())).width == 320
+    assert _files(make_scene(toml, tmp_path / "again")) == _files(out)  # seeded: the same bytes again
+
+
+TINY = """
+name = "tiny"
+kind = "perspective"
+seed = 5
+points = 300
+[camera]
+model = "SIMPLE_RADIAL"
+width = 96
+height = 72
+params = [80.0, 48.0, 36.0, 0.01]
+[trajectory]
+type = "orbit"
+count = 3
+radius = 3.0
+height = 1.5
+[[objects]]
+type = "box"
+center = [0.0, 0.0, 0.0]
+size = [1.0, 1.0, 1.0]
+texture = { photo = "coffee", size = 128 }
+"""
+
+
+def _files(folder):
+    return {
+        p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()
+    }
+
+
+def test_make_scene_is_deterministic_and_cached(tmp_path):
+    toml = tmp_path / "tiny.toml"
+    toml.write_text(TINY)
+    a, b = make_scene(str(toml), tmp_path / "a"), make_scene(str(toml), tmp_path / "b")
+    files_a, files_b = _files(a), _files(b)
+    assert (
+        "images/0002.png" in files_a
+        and "gt/sparse/points3D.bin" in files_a
+        and "gt/depth/0000.npy" in files_a
+    )
+    assert files_a == files_b
+    stamp = (a / "images" / "0000.png").stat().st_mtime_ns
+    make_scene(str(toml), a)
+    assert (a / "images" / "0000.png").stat().st_mtime_ns == stamp  # up to date: nothing rewritten
+    toml.write_text(TINY.replace("count = 3", "count = 2"))
+    make_scene(str(toml), a)
+    assert sorted(os.listdir(a / "images")) == [
+        "0000.png",
+        "0001.png",
+    ]  # changed entry: rebuilt, stale files gone
+    assert json.loads((a / "scene.json").read_text())["complete"] is True
+
+
+def test_bad_scene_requests_are_input_errors(tmp_path):
+    with pytest.raises(InputError, match="no such scene"):
+        make_scene("no_such_scene", tmp_path / "x")
+    bad = tmp_path / "bad.toml"
+    bad.write_text(TINY.replace("radius = 3.0", "radius = 3.0\nwobble = 1"))
+    with pytest.raises(InputError, match="unknown keys.*wobble"):
+        make_scene(str(bad), tmp_path / "bad")
+    bad.write_text(TINY.replace("size = [1.0, 1.0, 1.0]", "size = [1.0, 1.0, 1.0]\ncentre = [0, 0, 0]"))
+    with pytest.raises(InputError, match="box: unknown keys.*centre"):
+        make_scene(str(bad), tmp_path / "bad")
+    (tmp_path / "user" / "images").mkdir(parents=True)
+    with pytest.raises(InputError, match="no scene.json"):
+        make_scene("object_orbit_small", tmp_path / "user")
+
+
+def test_scene_command_lists_and_reports_errors(capsys, tmp_path):
+    from mvrecon.cli import main
+
+    assert main(["scene", "list"]) == 0
+    assert "object_orbit_small" in capsys.readouterr().out
+    assert main(["scene", "make", "no_such_scene", "-o", str(tmp_path / "x")]) == 2
+    assert "no such scene" in capsys.readouterr().err
+
+
+def test_meshes_load_from_ply_files(tmp_path):
+    import open3d as o3d
+
+    box = o3d.geometry.TriangleMesh.create_box(1.0, 1.0, 1.0).translate([-0.5, -0.5, -0.5])
+    o3d.io.write_triangle_mesh(str(tmp_path / "cube.ply"), box)
+    toml = tmp_path / "cube.toml"
+    toml.write_text(
+        TINY.replace('type = "orbit"', 'type = "orbit"\ntarget = [0.0, 0.0, 0.0]')
+        .replace("height = 1.5", "height = 0.0")
+        .replace(
+            'type = "box"\ncenter = [0.0, 0.0, 0.0]\nsize = [1.0, 1.0, 1.0]',
+            'type = "mesh"\npath = "cube.ply"',
+        )
+    )
+    out = make_scene(str(toml), tmp_path / "cube")
+    depth = np.load(out / "gt" / "depth" / "0000.npy")
+    # the first orbit camera stands at (3, 0, 0) looking at the cube's centre: the face x = 0.5 is 2.5 away
+    assert depth[36, 48] == pytest.approx(2.5, abs=1e-5)
+    assert np.isinf(depth[0, 0])
+
+
+def test_exposure_and_vignetting_scale_the_image():
+    mesh = meshes.quad([-5.0, -5.0, 0.0], [10.0, 0, 0], [0, 10.0, 0], TextureSpec())
+    flat = [np.full((8, 8, 3), 0.8, np.float32)]
+    cam = cameras.PerspectiveCamera("PINHOLE", 64, 48, (60.0, 60.0, 32.0, 24.0))
+    pose = cameras.look_at([0.0, 0.0, 2.0], [0.0, 0.0, 0.0], up=(0.0, 1.0, 0.0))
+    plain = Renderer(mesh, RenderSettings(ambient=1.0, noise_sigma=0.0), flat).render(cam, pose)[0]
+    assert np.all(plain == round(0.8 * 255))
+    dim = Renderer(mesh, RenderSettings(ambient=1.0, noise_sigma=0.0, vignetting=0.3), flat)
+    image = dim.render(cam, pose, exposure=1.2)[0].astype(float)
+    r2 = ((0.5 - 32) ** 2 + (0.5 - 24) ** 2) / (32**2 + 24**2)
+    assert image[24, 32, 0] == pytest.approx(0.8 * 255 * 1.2, abs=1.0)
+    assert image[0, 0, 0] == pytest.approx(0.8 * 255 * 1.2 * (1 - 0.3 * r2), abs=1.0)

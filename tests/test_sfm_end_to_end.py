@@ -1,0 +1,84 @@
+"""End to end on the catalog's ground-truth scene through the CLI: demo, reconstruct outputs, rerun, export,
+and the clear failure when a database has no verified pairs."""
+
+import json
+
+import numpy as np
+import pycolmap
+import pytest
+
+from mvrecon import database
+from mvrecon.cli import main
+from mvrecon.eval.ground_truth import load_ground_truth
+from mvrecon.eval.metrics import accuracy_summary
+from mvrecon.eval.models import poses, sparse_models
+from mvrecon.io.ply import read_ply_points
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo")
+    assert main(["-q", "demo", "-o", str(out)]) == 0
+    return out
+
+
+def test_demo_scene_meets_accuracy_targets(demo):
+    acc = json.loads((demo / "accuracy.json").read_text())
+    assert acc["registered"] == acc["images"] == 10 and acc["models"] == 1
+    assert acc["median_rotation_error_deg"] < 0.1
+    assert acc["auc@1"] >= 0.9
+    assert acc["mean_reprojection_error_px"] < 1.0
+    # independent check from the written files
+    gt = load_ground_truth(demo / "scene" / "gt" / "sparse")
+    models = sparse_models(demo / "run" / "sparse")
+    assert accuracy_summary([poses(m) for m in models], gt)["auc@1"] == pytest.approx(acc["auc@1"])
+
+
+def test_reconstruct_outputs_follow_the_contract(demo):
+    run = demo / "run"
+    report = json.loads((run / "report.json").read_text())
+    assert report["engine"] == "mvrecon" and report["seed"] == 0 and report["config_hash"]
+    assert set(report["stages"]) == {"features", "matching", "mapping"}
+    assert all(s["wall_s"] > 0 and s["peak_mem_mb"] > 0 for s in report["stages"].values())
+    assert report["counts"]["images"] == 10 and report["counts"]["verified_pairs"] >= 9
+    assert [s["status"] for s in report["images"].values()] == ["registered"] * 10
+    rec = pycolmap.Reconstruction(str(run / "sparse" / "0"))
+    assert report["models"][0]["registered"] == rec.num_reg_images() == 10
+    assert report["models"][0]["points"] == rec.num_points3D()
+    pts, colors = read_ply_points(run / "points.ply")
+    assert len(pts) == rec.num_points3D() and colors is not None and colors.std() > 5
+    assert (run / "database.db").is_file()
+
+
+def test_rerun_does_not_redo_a_finished_run(demo):
+    run = demo / "run"
+    before = (run / "report.json").stat().st_mtime_ns
+    scene_images = demo / "scene" / "images"
+    assert main(["-q", "reconstruct", str(scene_images), "-o", str(run)]) == 0
+    assert (run / "report.json").stat().st_mtime_ns == before
+
+
+def test_export_undistorted_pinhole_model(demo, tmp_path):
+    out = tmp_path / "splat"
+    assert main(["-q", "export", str(demo / "run"), "--undistort", "-o", str(out)]) == 0
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    assert {c.model.name for c in rec.cameras.values()} == {"PINHOLE"}
+    assert rec.num_reg_images() == 10
+    names = sorted(p.name for p in (out / "images").iterdir())
+    assert names == sorted(im.name for im in rec.images.values())
+    original = pycolmap.Reconstruction(str(demo / "run" / "sparse" / "0"))
+    for image_id, im in rec.images.items():
+        np.testing.assert_allclose(im.cam_from_world().translation,
+                                   original.images[image_id].cam_from_world().translation, atol=1e-9)
+
+
+def test_map_without_verified_pairs_exits_2_with_a_message(tmp_path, capsys):
+    with database.open_database(tmp_path / "database.db") as db:
+        cam = database.write_camera(db, database.CameraInfo(model="SIMPLE_RADIAL", width=64, height=48,
+                                                            params=np.array([60.0, 32, 24, 0])))
+        for name in ("a.png", "b.png"):
+            image_id = database.write_image(db, name, cam)
+            database.write_features(db, image_id, np.zeros((5, 4)), np.zeros((5, 128), np.uint8))
+    assert main(["-q", "map", "-w", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "no verified image pairs among 2 images" in err and err.count("\n") == 1

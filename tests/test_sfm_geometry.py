@@ -1,0 +1,103 @@
+"""Exact checks of the engine's geometry: triangulation, relative and absolute pose, focal from F, tracks."""
+
+import numpy as np
+
+from mvrecon.database import PairGeometry
+from mvrecon.geometry.absolute_pose import pnp_ransac, refine_pose_and_focal
+from mvrecon.geometry.rotation import angle_axis_to_rotmat, rotation_error_deg, vector_angle_deg
+from mvrecon.geometry.triangulation import max_triangulation_angle_deg, refine_points, triangulate_dlt
+from mvrecon.geometry.two_view import focal_from_fundamental, relative_pose
+from mvrecon.sfm.tracks import build_tracks
+
+
+def _cameras(n, rng):
+    Rs = np.stack([angle_axis_to_rotmat(rng.normal(scale=0.2, size=3)) for _ in range(n)])
+    ts = rng.normal(scale=1.0, size=(n, 3))
+    return Rs, ts
+
+
+def _project(R, t, X):
+    Xc = X @ R.T + t
+    return Xc[:, :2] / Xc[:, 2:3]
+
+
+def test_multiview_dlt_and_refinement_recover_points():
+    rng = np.random.default_rng(0)
+    Rs, ts = _cameras(4, rng)
+    X = rng.normal(size=(200, 3)) + [0, 0, 8]
+    x = np.stack([_project(R, t, X) for R, t in zip(Rs, ts)], axis=1)  # (n,4,2)
+    n = len(X)
+    R = np.broadcast_to(Rs, (n, 4, 3, 3)).copy()
+    t = np.broadcast_to(ts, (n, 4, 3)).copy()
+    mask = np.ones((n, 4), bool)
+    mask[::3, 3] = False  # some points seen by 3 views only
+    np.testing.assert_allclose(triangulate_dlt(R, t, x, mask), X, atol=1e-8)
+    noisy = x + rng.normal(scale=1e-3, size=x.shape)
+    X0 = triangulate_dlt(R, t, noisy, mask)
+    X1 = refine_points(X0, R, t, noisy, mask)
+    err0 = np.linalg.norm(X0 - X, axis=1).mean()
+    err1 = np.linalg.norm(X1 - X, axis=1).mean()
+    assert err1 <= err0 * 1.001 and err1 < 0.05
+    centers = -np.einsum("nkji,nkj->nki", R, t)
+    assert np.all(max_triangulation_angle_deg(X, centers, mask) > 1.0)
+
+
+def test_relative_pose_from_essential_matches_truth():
+    rng = np.random.default_rng(1)
+    R = angle_axis_to_rotmat([0.05, 0.3, -0.02])
+    t = np.array([-1.0, 0.1, 0.2])
+    X = rng.uniform([-2, -2, 5], [2, 2, 9], size=(300, 3))
+    x1, x2 = _project(np.eye(3), np.zeros(3), X), _project(R, t, X)
+    x2[:30] += rng.uniform(-0.05, 0.05, size=(30, 2))  # outliers
+    R_est, t_est, inl = relative_pose(x1, x2, threshold=1e-3, seed=0)
+    assert rotation_error_deg(R_est, R) < 1e-3
+    assert vector_angle_deg(t_est, t) < 1e-2
+    assert inl[30:].mean() > 0.99 and inl[:30].mean() < 0.2
+
+
+def test_pnp_ransac_and_focal_refinement():
+    rng = np.random.default_rng(2)
+    R = angle_axis_to_rotmat([0.1, -0.2, 0.05])
+    t = np.array([0.3, -0.1, 0.5])
+    X = rng.uniform([-2, -2, 4], [2, 2, 8], size=(150, 3))
+    K = np.array([[700.0, 0, 320], [0, 700.0, 240], [0, 0, 1]])
+    uv = _project(R, t, X) * 700.0 + [320, 240]
+    uv[:20] += rng.uniform(-80, 80, size=(20, 2))
+    R_est, t_est, inl = pnp_ransac(X, uv, K, threshold_px=4.0, seed=0)
+    assert rotation_error_deg(R_est, R) < 1e-3 and np.linalg.norm(t_est - t) < 1e-3
+    assert not inl[:20].any() and inl[20:].all()
+    K_wrong = K.copy()
+    K_wrong[0, 0] = K_wrong[1, 1] = 630.0
+    R2, t2, f = refine_pose_and_focal(X[20:], uv[20:], K_wrong, R_est, t_est)
+    assert abs(f - 700.0) < 0.01 and rotation_error_deg(R2, R) < 1e-3
+
+
+def test_focal_from_fundamental_bougnoux():
+    f1, f2 = 800.0, 1000.0
+    K1 = np.array([[f1, 0, 320], [0, f1, 240], [0, 0, 1]])
+    K2 = np.array([[f2, 0, 300], [0, f2, 250], [0, 0, 1]])
+    R = angle_axis_to_rotmat([0.1, 0.3, 0.05])
+    t = np.array([1.0, 0.2, 0.3])
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    F = np.linalg.inv(K2).T @ tx @ R @ np.linalg.inv(K1)
+    np.testing.assert_allclose(focal_from_fundamental(F, [320, 240], [300, 250]), (f1, f2), rtol=1e-9)
+
+
+def test_tracks_union_find_splits_inconsistent_components():
+    pairs = [PairGeometry(image_id1=1, image_id2=2, config="CALIBRATED",
+                          inliers=np.array([[0, 0], [1, 1], [2, 2]])),
+             PairGeometry(image_id1=2, image_id2=3, config="CALIBRATED", inliers=np.array([[0, 5], [1, 6]])),
+             # with the last pair, keypoints 2 and 3 of image 1 end in one component: it must be split
+             PairGeometry(image_id1=1, image_id2=3, config="CALIBRATED", inliers=np.array([[3, 7], [0, 5]])),
+             PairGeometry(image_id1=2, image_id2=3, config="CALIBRATED", inliers=np.array([[2, 7]]))]
+    tracks = build_tracks([1, 2, 3], [4, 3, 8], pairs)
+    assert tracks.split_inconsistent == 1
+    elements = sorted(sorted(zip(tracks.image[a:b].tolist(), tracks.keypoint[a:b].tolist()))
+                      for a, b in zip(tracks.ptr[:-1], tracks.ptr[1:]))
+    # the stronger pairs' matches are kept; the weakest, which would join two image-1 keypoints, is dropped
+    assert elements == [[(0, 0), (1, 0), (2, 5)], [(0, 1), (1, 1), (2, 6)],
+                        [(0, 2), (1, 2)], [(0, 3), (2, 7)]]
+    for k, track in enumerate(zip(tracks.ptr[:-1], tracks.ptr[1:])):
+        for img, kp in zip(tracks.image[track[0]:track[1]], tracks.keypoint[track[0]:track[1]]):
+            assert tracks.track_of[img][kp] == k
+    assert tracks.track_of[2][0] == -1

@@ -1,0 +1,150 @@
+"""The study machinery: grid, breaking points, and a tiny real study (both engines, 6 templeRing views, half size)."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from mvrecon.cli import main
+from mvrecon.errors import InputError
+from mvrecon.study.degrade import Degradation, degrade_image
+from mvrecon.study.grid import Cell, Grid, parse_levels
+from mvrecon.study.study import breaking_points, read_csv
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "middlebury_templeRing"
+GT = DATA / "templeR_par.txt"
+
+
+def test_grid_cells_share_the_clean_run_and_keep_the_given_order():
+    grid = Grid({"noise": parse_levels("noise", "0,5,20"), "jpeg": parse_levels("jpeg", "95,50,10"),
+                 "downscale": parse_levels("downscale", "1,2")})
+    keys = [c.key for c in grid.cells()]
+    assert keys == ["clean", "noise-5", "noise-20", "jpeg-95", "jpeg-50", "jpeg-10", "downscale-2"]
+    assert Cell("jpeg", 50.0).degradation(Degradation(motion_angle=30)) == Degradation(jpeg_quality=50,
+                                                                                        motion_angle=30)
+    assert Cell(None, None).degradation(Degradation()).active() == []
+
+
+@pytest.mark.parametrize("axis, text, message", [
+    ("jpeg", "95,150", "JPEG quality must be 1..100"), ("noise", "0,a", "expected comma-separated numbers"),
+    ("blur", "1,1", "a level is repeated"), ("downscale", "0.5", "downscale must be >= 1")])
+def test_impossible_levels_are_refused(axis, text, message):
+    with pytest.raises(InputError, match=message):
+        parse_levels(axis, text)
+
+
+def test_empty_or_unknown_grid_is_refused():
+    with pytest.raises(InputError, match="grid is empty"):
+        Grid({})
+    with pytest.raises(InputError, match="unknown degradation"):
+        Grid({"fog": (1.0,)})
+
+
+def rows(engine, axis, values):
+    return [{"engine": engine, "degradation": axis, "level": float(lv), "registered_pct": reg, "auc@5": auc}
+            for lv, reg, auc in values]
+
+
+def test_breaking_point_is_the_first_level_below_half_of_clean():
+    table = (rows("a", "noise", [(0, 100, 0.8), (5, 95, 0.7), (10, 60, 0.39), (20, 10, 0.0)])
+             + rows("a", "blur", [(0, 100, 0.8), (1, 40, 0.7), (2, 0, 0.0)])
+             + rows("b", "noise", [(0, 100, 0.8), (5, 100, 0.8), (10, 100, 0.41)])
+             + rows("c", "noise", [(0, 0, 0.0), (5, 0, 0.0)]))
+    verdict = breaking_points(table)
+    assert verdict[("a", "noise")]["level"] == 10 and verdict[("a", "noise")]["metric"] == "AUC@5"
+    assert verdict[("a", "blur")]["level"] == 1 and verdict[("a", "blur")]["metric"] == "registered %"
+    assert verdict[("b", "noise")]["level"] is None and verdict[("b", "noise")]["tested"] == [5, 10]
+    assert verdict[("c", "noise")]["metric"] == "clean run failed"
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    """Six consecutive templeRing views at 320x240 (made with the degrade module itself)."""
+    if not DATA.is_dir():
+        pytest.skip(f"templeRing data not found at {DATA}")
+    out = tmp_path_factory.mktemp("temple6")
+    for src in sorted((DATA / "images").glob("*.png"))[:6]:
+        degrade_image(src, out / src.name, Degradation(downscale=2.0))
+    return out
+
+
+@pytest.fixture(scope="module")
+def study_with_gt(tiny_scene, tmp_path_factory):
+    study = tmp_path_factory.mktemp("study") / "s"
+    code = main(["study", "-q", str(tiny_scene), "-o", str(study), "--engines", "mvrecon,colmap", "--gt", str(GT),
+                 "--noise", "0,30", "--blur", "0,3", "--jobs", "2"])
+    assert code == 0
+    return study
+
+
+@pytest.mark.parametrize("engine", ["mvrecon", "colmap"])
+def test_study_measures_each_cell_against_ground_truth(study_with_gt, engine):
+    table = read_csv(study_with_gt / "study.csv")
+    assert [(r["engine"], r["degradation"], r["level"]) for r in table] == [
+        (e, axis, level) for e in ("mvrecon", "colmap") for axis in ("noise", "blur") for level in (0.0, {
+            "noise": 30.0, "blur": 3.0}[axis])]
+    clean, noisy, _, blurred = [r for r in table if r["engine"] == engine]
+    assert clean["registered_pct"] >= 80.0 and clean["images"] == 6 and clean["reference"] == "ground truth"
+    assert clean["auc@5"] > 0.2 and clean["points"] > 100 and clean["mean_reprojection_error_px"] < 1.0
+    assert blurred["keypoints_per_image"] < 0.5 * clean["keypoints_per_image"]  # blur removes SIFT features
+    assert noisy["mean_inliers_per_pair"] < 0.7 * clean["mean_inliers_per_pair"]  # noise spoils descriptors
+    assert noisy["auc@5"] < clean["auc@5"] and blurred["registered_pct"] < clean["registered_pct"]
+    assert all(r["wall_s"] > 0 for r in table)
+
+
+def test_study_report_is_self_contained_with_breaking_points(study_with_gt):
+    page = (study_with_gt / "study.html").read_text()
+    assert page.count("data:image/png;base64,") == 1 + 9  # the contact sheet and one plot per metric
+    assert "src='http" not in page and "src=\"http" not in page
+    assert "Breaking points" in page and "blur 3 (registered %" in page
+    assert len(list((study_with_gt / "plots").glob("*.png"))) == 9
+    assert (study_with_gt / "contact_sheet.png").stat().st_size > 10_000
+    for engine in ("mvrecon", "colmap"):  # each engine ran as itself (COLMAP: the incremental mapper)
+        assert json.loads((study_with_gt / "runs" / engine / "clean" / "report.json").read_text())["engine"] == engine
+    made = json.loads((study_with_gt / "images" / "noise-30.json").read_text())
+    assert made["degradation"]["noise_sigma"] == 30.0 and made["order"] == ["noise"]
+
+
+def test_wider_grid_reuses_finished_cells_and_other_settings_are_refused(study_with_gt, tiny_scene, capsys):
+    def finished_runs():
+        return {str(p.parent.relative_to(study_with_gt)): p.stat().st_mtime_ns
+                for p in (study_with_gt / "runs").glob("*/*/runner.json")}
+
+    before = finished_runs()
+    assert sorted(before) == [f"runs/{e}/{c}" for e in ("colmap", "mvrecon") for c in ("blur-3", "clean", "noise-30")]
+    code = main(["study", "-q", str(tiny_scene), "-o", str(study_with_gt), "--engines", "colmap", "--gt", str(GT),
+                 "--noise", "0,30", "--blur", "0,3", "--jpeg", "5"])
+    assert code == 0
+    after = finished_runs()
+    assert {k: after[k] for k in before} == before and set(after) - set(before) == {"runs/colmap/jpeg-5"}
+    assert [r["level"] for r in read_csv(study_with_gt / "study.csv") if r["degradation"] == "jpeg"] == [0.0, 5.0]
+    code = main(["study", "-q", str(tiny_scene), "-o", str(study_with_gt), "--engines", "colmap", "--gt", str(GT),
+                 "--noise", "0,30", "--seed", "3"])
+    err = capsys.readouterr().err
+    assert code == 2 and "made with a different" in err and "seed" in err
+
+
+def test_without_ground_truth_each_engine_is_measured_against_its_clean_model(tiny_scene, tmp_path):
+    args = ["study", "-q", str(tiny_scene), "-o", str(tmp_path / "s"), "--engines", "colmap", "--noise", "0,8"]
+    assert main(args + ["--timeout", "0.2"]) == 0  # every run times out: kept as failed cells
+    assert [r["error"] for r in read_csv(tmp_path / "s" / "study.csv")] == ["timed out after 0.2 s"] * 2
+    assert "clean run failed" in (tmp_path / "s" / "study.html").read_text()
+    assert main(args) == 0  # failures are cached results ...
+    assert read_csv(tmp_path / "s" / "study.csv")[0]["error"] == "timed out after 0.2 s"
+    assert main(args + ["--retry-failed"]) == 0  # ... until asked to retry
+    clean, noisy = read_csv(tmp_path / "s" / "study.csv")
+    assert clean["error"] == "" and noisy["error"] == ""
+    assert clean["reference"] == "colmap on the clean images"
+    assert clean["auc@1"] == pytest.approx(1.0)  # the clean model against itself
+    assert 0.0 < noisy["auc@5"] <= 1.0 and noisy["registered_pct"] > 50.0
+
+
+def test_study_input_errors_are_one_line(tiny_scene, tmp_path, capsys):
+    assert main(["study", "-q", str(tiny_scene), "-o", str(tmp_path / "s"), "--engines", "colmap"]) == 2
+    assert "grid is empty" in capsys.readouterr().err
+    assert main(["study", "-q", str(tiny_scene), "-o", str(tmp_path / "s"), "--engines", "nope",
+                 "--noise", "5"]) == 2
+    assert "engine 'nope'" in capsys.readouterr().err
+    assert main(["study", "-q", str(tiny_scene), "-o", str(tmp_path / "s"), "--engines", "colmap",
+                 "--noise", "5", "--gt", str(DATA / "templeR_ang.txt")]) == 2
+    assert "not a ground-truth format" in capsys.readouterr().err

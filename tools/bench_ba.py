@@ -1,0 +1,100 @@
+"""Benchmark GTSAM bundle adjustment: gtsam.SfmLevenbergMarquardtOptimizer (Schur) against plain LM.
+
+Two measurements on a workspace database (or a pycolmap synthetic scene when none is given):
+1. the whole incremental mapper with each optimizer: total BA time, number of BA calls, mapping time,
+registered
+   images, points and mean reprojection error;
+2. one global BA of the finished model after perturbing poses (0.5 deg, 1% of the scene) and points: time,
+   iterations, initial and final cost.
+
+Usage:
+  python tools/bench_ba.py --database out/database.db
+  python tools/bench_ba.py --synthetic 20
+"""
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from mvrecon import database  # noqa: E402
+from mvrecon.geometry.rotation import angle_axis_to_rotmat  # noqa: E402
+from mvrecon.sfm.bundle import bundle_adjust  # noqa: E402
+from mvrecon.sfm.config import MapperConfig  # noqa: E402
+from mvrecon.sfm.incremental import IncrementalMapper  # noqa: E402
+from mvrecon.sfm.model import Reconstruction  # noqa: E402
+
+
+def synthetic_database(path: Path, images: int) -> None:
+    import pycolmap
+
+    opts = pycolmap.SyntheticDatasetOptions(num_rigs=1, num_cameras_per_rig=1, num_frames_per_rig=images,
+                                            num_points3D=2000, camera_width=1024, camera_height=768)
+    with database.open_database(path) as db:
+        rec = pycolmap.synthesize_dataset(opts, db)
+        pycolmap.synthesize_noise(pycolmap.SyntheticNoiseOptions(point2D_stddev=0.5), rec, db)
+
+
+def perturbed(model: Reconstruction, mapper: IncrementalMapper, seed: int = 0) -> Reconstruction:
+    m = Reconstruction.from_state(model.state(), mapper.keypoints)
+    rng = np.random.default_rng(seed)
+    extent = np.ptp(m.centers()[m.registered], axis=0).max()
+    for i in m.registration_order[1:]:
+        dR = angle_axis_to_rotmat(rng.normal(scale=np.radians(0.5) / np.sqrt(3), size=3))
+        c = m.centers()[i] + rng.normal(scale=0.01 * extent / np.sqrt(3), size=3)
+        m.R[i] = dR @ m.R[i]
+        m.t[i] = -m.R[i] @ c
+    pts = m.alive_points()
+    m.xyz.data[pts] += rng.normal(scale=0.002 * extent, size=(len(pts), 3))
+    return m
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--database", default=None)
+    ap.add_argument("--synthetic", type=int, default=15, help="images of the synthetic scene (no --database)")
+    args = ap.parse_args(argv)
+    db = Path(args.database) if args.database else Path(tempfile.mkdtemp()) / "database.db"
+    if not args.database:
+        synthetic_database(db, args.synthetic)
+    corr = database.read_correspondences(db)
+    print(f"database: {db} ({len(corr.images)} images, {len(corr.pairs)} verified pairs)")
+    finals = {}
+    print(f"{'optimizer':10s} {'mapping s':>10s} {'BA s':>8s} {'BA calls':>9s} {'registered':>11s} "
+          f"{'points':>8s} {'reproj px':>10s}")
+    for kind in ("lm", "sfm"):
+        config = MapperConfig(optimizer=kind)
+        mapper = IncrementalMapper(corr, config)
+        start = time.perf_counter()
+        result = mapper.run()
+        wall = time.perf_counter() - start
+        s = result.models[0].stats() if result.models else {"registered": 0, "points": 0,
+                                                            "mean_reprojection_error_px": float("nan")}
+        print(f"{kind:10s} {wall:10.2f} {result.stats['ba_seconds']:8.2f} {result.stats['ba_calls']:9d} "
+              f"{s['registered']:11d} {s['points']:8d} {s['mean_reprojection_error_px']:10.3f}")
+        finals[kind] = (mapper, result)
+    mapper, result = finals["lm"]
+    if not result.models:
+        return 1
+    print("\none global BA of the finished model after a perturbation:")
+    print(f"{'optimizer':10s} {'seconds':>8s} {'iterations':>11s} {'initial cost':>13s} {'final cost':>11s}")
+    times = {}
+    for kind in ("lm", "sfm"):
+        m = perturbed(result.models[0], mapper)
+        out = bundle_adjust(m, m.registered_images(), MapperConfig(optimizer=kind),
+                            point_ids=m.alive_points(), refine_intrinsics=True, max_iterations=100)
+        times[kind] = out.seconds
+        print(f"{kind:10s} {out.seconds:8.2f} {out.iterations:11d} {out.initial_error:13.1f} "
+              f"{out.final_error:11.1f}")
+    print(f"\nratio sfm / lm (single global BA time): {times['sfm'] / times['lm']:.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

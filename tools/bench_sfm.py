@@ -1,0 +1,109 @@
+"""Benchmark: mvrecon vs pycolmap end to end on the same images, in one run, on this machine.
+
+Runs `mvrecon reconstruct` and pycolmap (extract_features + match_exhaustive + incremental_mapping, CPU, the
+same camera mode and model) each in its own subprocess (mvrecon.eval.runners), then prints registered images,
+models, points, mean reprojection error, relative-pose AUC@0.5/1/5/10 deg and median rotation error against
+the
+ground truth (found next to the images, or --gt), wall time and peak memory of both, and the ratios
+mvrecon / pycolmap. Without ground truth, the AUCs of mvrecon are computed against pycolmap's model.
+
+Usage:
+  python tools/bench_sfm.py ../shared/data/middlebury_templeSparseRing/images
+  python tools/bench_sfm.py IMAGES --gt MODEL_OR_PAR_FILE [--work DIR] [--camera-mode single]
+"""
+
+import argparse
+import json
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from mvrecon.eval.ground_truth import find_ground_truth, load_ground_truth  # noqa: E402
+from mvrecon.eval.metrics import AUC_THRESHOLDS, accuracy_summary  # noqa: E402
+from mvrecon.eval.models import model_stats  # noqa: E402
+from mvrecon.eval.runners import RunOptions, run_colmap, run_mvrecon  # noqa: E402
+
+
+def _basename_poses(result):
+    """Poses keyed by file name only (ground-truth files name images without folders)."""
+    return [{Path(k).name: v for k, v in p.items()} for p in result.poses]
+
+
+def summarize(result, gt):
+    row = {"error": result.error}
+    if result.error:
+        return row
+    stats = model_stats(result.models[0]) if result.models else {"registered": 0, "points": 0,
+                                                                 "mean_reprojection_error_px": float("nan")}
+    row.update(models=len(result.models), registered=sum(m.num_reg_images() for m in result.models),
+               largest=stats["registered"], points=stats["points"],
+               reproj=stats["mean_reprojection_error_px"], wall=result.wall_s, mem=result.peak_mem_mb)
+    if gt:
+        acc = accuracy_summary(_basename_poses(result), gt)
+        for key in ("registered", "registered_pct", "components"):  # counts of the run, not of the overlap
+            acc.pop(key)
+        row.update(acc)
+    return row
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("images")
+    ap.add_argument("--gt", default=None,
+                    help="ground truth (COLMAP model, *_par.txt, gt_dense_cameras/, ...)")
+    ap.add_argument("--work", default=None, help="keep the runs here (a finished run is reused)")
+    ap.add_argument("--camera-mode", default="auto")
+    ap.add_argument("--camera-model", default="SIMPLE_RADIAL")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    args = ap.parse_args(argv)
+
+    images = Path(args.images)
+    gt_path = args.gt or find_ground_truth(images) or find_ground_truth(images.parent)
+    gt = load_ground_truth(gt_path) if gt_path else None
+    work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="bench_sfm_"))
+    options = RunOptions(camera_mode=args.camera_mode, camera_model=args.camera_model, seed=args.seed)
+    ours = run_mvrecon(images, work / "mvrecon", options)
+    theirs = run_colmap(images, work / "colmap", options)
+    reference = gt
+    if reference is None and theirs.models:
+        reference = _basename_poses(theirs)[0]
+    rows = {"mvrecon": summarize(ours, reference), "pycolmap": summarize(theirs, gt)}
+
+    source = f"ground truth: {gt_path}" if gt else "no ground truth: AUC vs pycolmap"
+    print(f"images: {images}  ({source})")
+    keys = [("registered", "registered images", "{:d}"), ("models", "models", "{:d}"),
+            ("points", "points (largest model)", "{:d}"), ("reproj", "mean reprojection error px", "{:.3f}")]
+    keys += [(f"auc@{t:g}", f"AUC@{t:g}", "{:.3f}") for t in AUC_THRESHOLDS]
+    keys += [("median_rotation_error_deg", "median rotation error deg", "{:.3f}"),
+             ("wall", "wall time s", "{:.1f}"), ("mem", "peak memory MB", "{:.0f}")]
+    print(f"{'':30s} {'mvrecon':>10s} {'pycolmap':>10s} {'ratio':>8s}")
+    for key, label, fmt in keys:
+        a, b = rows["mvrecon"].get(key), rows["pycolmap"].get(key)
+        cell = lambda v: fmt.format(v) if isinstance(v, (int, float)) else "-"  # noqa: E731
+        ratio = f"{a / b:.2f}" if isinstance(a, (int, float)) and isinstance(b, (int, float)) and b else "-"
+        print(f"{label:30s} {cell(a):>10s} {cell(b):>10s} {ratio:>8s}")
+    for name, row in rows.items():
+        if row.get("error"):
+            print(f"{name} failed: {row['error']}")
+    if ours.report:
+        missing = {n: s["reason"] for n, s in ours.report.get("images", {}).items()
+                   if s["status"] != "registered"}
+        for n, r in sorted(missing.items()):
+            print(f"  mvrecon did not register {n}: {r}")
+        stages = ours.report.get("stages", {})
+        print("mvrecon stages: " + ", ".join(f"{k} {v['wall_s']:.1f} s" for k, v in stages.items()))
+    if theirs.report:
+        stages = theirs.report.get("stages", {})
+        print("pycolmap stages: " + ", ".join(f"{k} {v['wall_s']:.1f} s" for k, v in stages.items()))
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1, default=str) + "\n")
+    print(f"runs kept in {work}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
