@@ -130,7 +130,8 @@ def test_scene_known_tilts_end_to_end(sem_scene, tmp_path):
 def test_scene_estimated_tilts_end_to_end(sem_scene, tmp_path):
     root, images, tilts, meta = sem_scene
     out = tmp_path / "estimated"
-    assert main(["-q", "sem", *images, "-o", str(out), "--estimate-tilts",
+    # the folder itself: its images come in signed-number order (tilt_-10.0 ... tilt_+10.0)
+    assert main(["-q", "sem", str(root / "images"), "-o", str(out), "--estimate-tilts",
                  "--pixel-size", f"{meta['pixel_size_um']}um"]) == 0
     report = json.loads((out / "report.json").read_text())
     truth = np.array(tilts) - tilts[report["reference"]]

@@ -173,7 +173,7 @@ def _initial_shifts(obs: Observations, tilts_deg, axis_deg, reference: int, num_
 
 def _camera_jacobian(obs: Observations, tilts, axis, X, free, fit_tilts, fit_axis) -> np.ndarray:
     """(K,2,m) derivatives of each prediction by the camera parameters [axis, free tilts, free drifts] (degrees, px)."""
-    F, K = len(tilts), len(obs.image)
+    K = len(obs.image)
     cols = []
     if fit_axis:
         eps = 1e-5

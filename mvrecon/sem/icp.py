@@ -20,7 +20,8 @@ METHODS = ("kdtree", "brute", "open3d-point", "open3d-plane")
 
 @dataclass(frozen=True)
 class IcpConfig:
-    """max_iterations: cap on rigid-fit steps. tolerance: stop when the RMS changes by less than this fraction.
+    """max_iterations: cap on rigid-fit steps. tolerance: stop when the RMS changes by less than this fraction
+    (or is at rounding level, 1e-12 of the target's extent: an exact fit).
     max_distance: pairs farther apart than this (point units) are ignored, which keeps non-overlapping parts of
     two point sets from pulling the fit (inf: use all). chunk_elements: brute-force distance block size
     (query rows x target points), which bounds its memory (8 bytes per element)."""
@@ -92,6 +93,7 @@ def icp(source, target, method: str = "kdtree", config: IcpConfig = IcpConfig(),
     search = KDTreeSearch(target) if method == "kdtree" else (
         lambda q: nearest_brute_force(q, target, config.chunk_elements))
     M, prev_rms, rms, pairs, it = M0.copy(), np.inf, np.inf, 0, 0
+    exact = 1e-12 * float(np.linalg.norm(np.ptp(target, axis=0)))  # an exact fit: relative changes are just noise
     for it in range(1, config.max_iterations + 1):
         moved = source @ M[:3, :3].T + M[:3, 3]
         index, dist = search(moved)
@@ -102,7 +104,7 @@ def icp(source, target, method: str = "kdtree", config: IcpConfig = IcpConfig(),
         rms = float(np.sqrt(np.mean(dist[near] ** 2)))
         step = umeyama(moved[near], target[index[near]], with_scale=False)
         M = step.matrix() @ M
-        if abs(prev_rms - rms) <= config.tolerance * max(rms, 1e-300):
+        if abs(prev_rms - rms) <= config.tolerance * max(rms, 1e-300) or rms <= exact:
             break
         prev_rms = rms
     return IcpResult(M, it, rms, pairs, time.perf_counter() - start, method)

@@ -36,7 +36,9 @@ class SemConfig:
     reports heights in input pixels. max_size: shrink images so the long side is at most this (None: full size).
     reference: image whose grid the height map uses (None: the tilt closest to 0, or the middle image when tilts
     are estimated). pairs: how many best-matched pairs give per-pair point sets (the paper uses 2).
-    icp_method: kdtree | brute | open3d-point | open3d-plane. densify: SGBM on the rectified pair of the
+    icp_method: kdtree | brute | open3d-point | open3d-plane. height_source: "joint" grids the points of the
+    joint adjustment (every observation of a track, the most precise), "merged" grids the ICP-merged union of
+    the joint points and the pair point sets (the paper's integration). densify: SGBM on the rectified pair of the
     reference and the image tilted farthest from it. profile: (x0, y0, x1, y1) in input pixels, None = the line
     across the tilt axis through the image centre."""
 
@@ -47,6 +49,7 @@ class SemConfig:
     reference: int | None = None
     pairs: int = 2
     icp_method: str = "kdtree"
+    height_source: str = "joint"
     densify: bool = False
     profile: tuple | None = None
     sift: SiftConfig = field(default_factory=lambda: SiftConfig(max_num_features=8192))
@@ -69,11 +72,14 @@ def parse_length_um(text) -> float:
 
 
 def _natural_key(name: str):
-    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
+    """Names compared with their signed numbers as numbers: tilt_-10.0 < tilt_-5.0 < tilt_+0.0 < tilt_+10.0."""
+    parts = re.split(r"([+-]?\d+(?:\.\d+)?)", name)
+    return [(0, float(t), "") if i % 2 else (1, 0.0, t.lower()) for i, t in enumerate(parts)]
 
 
 def resolve_images(inputs) -> list[Path]:
-    """Image files from a list of files and/or folders (a folder gives its images in natural name order)."""
+    """Image files from a list of files and/or folders (a folder gives its images in natural name order, signed
+    numbers compared as numbers)."""
     from ..io.images import list_images
 
     paths = []
@@ -221,7 +227,8 @@ def run_sem(image_paths, out_dir, config: SemConfig = SemConfig()) -> dict:
 
     # height map on the reference grid (working resolution)
     t = time.perf_counter()
-    cells = _cell_average(np.column_stack([merged[:, :2] + center, merged[:, 2]]), (h, w))
+    source = anchor if config.height_source == "joint" else merged
+    cells = _cell_average(np.column_stack([source[:, :2] + center, source[:, 2]]), (h, w))
     height = grid_heights(cells[:, :2], cells[:, 2], (h, w))
     dense_report = None
     if config.densify:
@@ -265,7 +272,7 @@ def run_sem(image_paths, out_dir, config: SemConfig = SemConfig()) -> dict:
                        "profile_line_px": [float(v / factor) for v in line]},
         "dense": dense_report,
         "config": {k: v for k, v in asdict(config).items()
-                   if k in ("pairs", "icp_method", "densify", "max_size", "reference")},
+                   if k in ("pairs", "icp_method", "height_source", "densify", "max_size", "reference")},
         "timings": timings,
     }
     (out / "report.json").write_text(json.dumps(report, indent=1))
