@@ -191,3 +191,17 @@ def read_verified_pairs(db) -> list[tuple[int, int, str, int]]:
             id1, id2 = pycolmap.pair_id_to_image_pair(int(pair_id))
             out.append((int(id1), int(id2), CONFIG_NAMES.get(int(g.config), "UNDEFINED"), n))
     return out
+
+
+def database_counts(path) -> dict:
+    """Images, keypoints per image, verified pairs and mean inliers per pair of a COLMAP database.
+
+    One definition for every engine's report: a pair is verified when its two-view geometry is neither
+    undefined, degenerate nor a watermark and keeps inlier matches.
+    """
+    corr = read_correspondences(path)
+    pairs = [p for p in corr.pairs if p.config not in ("UNDEFINED", "DEGENERATE", "WATERMARK")]
+    n_kp = [len(corr.keypoints.get(i, ())) for i in corr.images]
+    return {"images": len(corr.images), "keypoints_per_image": float(sum(n_kp) / max(len(n_kp), 1)),
+            "verified_pairs": len(pairs),
+            "mean_inliers_per_pair": float(sum(len(p.inliers) for p in pairs) / max(len(pairs), 1))}

@@ -13,6 +13,7 @@ import ctypes
 import logging
 import multiprocessing
 import os
+import resource
 import sys
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
@@ -20,6 +21,11 @@ from contextlib import contextmanager
 _PRELOAD = ["numpy", "cv2", "mvrecon.features.sift"]  # what extraction workers need; no pycolmap
 _SINGLE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 _context = None
+
+
+def peak_memory_mb() -> float:
+    """This process's peak resident memory so far (MB); Linux reports ru_maxrss in KiB."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def default_workers() -> int:

@@ -20,15 +20,16 @@ import numpy as np
 
 from . import database as dbmod
 from .cameras import CameraConfig, group_cameras
-from .config import to_dict
+from .config import config_hash, to_dict
 from .errors import InputError
-from .executor import blas_threads, default_workers, parallel_map, warm_up
+from .executor import blas_threads, default_workers, parallel_map, peak_memory_mb, warm_up
 from .features.sift import SiftConfig
 from .io.images import IMAGE_EXTENSIONS, image_metadata, list_images
 from .matching.matcher import MatcherConfig, match_descriptors, normalize_descriptors
 from .matching.pairs import check_spec, select_pairs
 from .matching.verify import VerifyConfig, verify_pair
 from .progress import progress
+from .sfm.config import MapperConfig
 from .workspace import Workspace
 
 log = logging.getLogger(__name__)
@@ -268,10 +269,8 @@ def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
                         configs=configs, seconds=time.perf_counter() - start)
 
 
-# ---------------------------------------------------------------- mapping (the SfM engine, issue 4)
+# ---------------------------------------------------------------- mapping (the SfM engine)
 
-from .config import config_hash  # noqa: E402  (the mapping section is appended after the front end's)
-from .sfm.config import MapperConfig  # noqa: E402
 
 @dataclass(frozen=True)
 class ReconstructConfig:
@@ -345,12 +344,6 @@ def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resu
                       seconds=time.perf_counter() - start)
 
 
-def _peak_mem_mb() -> float:
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
 def write_report(out_dir, *, config_hash: str, seed: int, summary: MapSummary, stages: dict, total: dict,
                  counts: dict, skipped: dict | None = None) -> dict:
     """OUT/report.json in the schema the compare and study tools read (see docs/sfm.md)."""
@@ -370,14 +363,6 @@ def write_report(out_dir, *, config_hash: str, seed: int, summary: MapSummary, s
     tmp.write_text(json.dumps(report, indent=1) + "\n")
     tmp.replace(path)
     return report
-
-
-def _database_counts(db_path) -> dict:
-    corr = dbmod.read_correspondences(db_path)
-    kp = [len(k) for k in corr.keypoints.values()]
-    inl = [len(p.inliers) for p in corr.pairs]
-    return {"images": len(corr.images), "keypoints_per_image": float(np.mean(kp)) if kp else 0.0,
-            "verified_pairs": len(inl), "mean_inliers_per_pair": float(np.mean(inl)) if inl else 0.0}
 
 
 def reconstruct(config: ReconstructConfig, image_dir, out_dir, *, text: bool = False, resume: bool = False,
@@ -408,17 +393,17 @@ def reconstruct(config: ReconstructConfig, image_dir, out_dir, *, text: bool = F
     t0 = time.perf_counter()
     features = extract_features(config.frontend, image_dir, ws, overwrite=overwrite)
     log.info("%s", features.text())
-    stages["features"] = {"wall_s": time.perf_counter() - t0, "peak_mem_mb": _peak_mem_mb()}
+    stages["features"] = {"wall_s": time.perf_counter() - t0, "peak_mem_mb": peak_memory_mb()}
     t1 = time.perf_counter()
     matches = match(config.frontend, ws, overwrite=overwrite)
     log.info("%s", matches.text())
-    stages["matching"] = {"wall_s": time.perf_counter() - t1, "peak_mem_mb": _peak_mem_mb()}
+    stages["matching"] = {"wall_s": time.perf_counter() - t1, "peak_mem_mb": peak_memory_mb()}
     t2 = time.perf_counter()
     summary = map_workspace(mapper, ws, image_dir=image_dir, text=text, resume=resume, overwrite=overwrite)
-    stages["mapping"] = {"wall_s": time.perf_counter() - t2, "peak_mem_mb": _peak_mem_mb()}
+    stages["mapping"] = {"wall_s": time.perf_counter() - t2, "peak_mem_mb": peak_memory_mb()}
     log.info("%s", summary.text())
     skipped = dict(features.failed)
     return write_report(out, config_hash=full_hash, seed=mapper.seed, summary=summary, stages=stages,
-                        total={"wall_s": time.perf_counter() - t0, "peak_mem_mb": _peak_mem_mb()},
-                        counts=_database_counts(ws.database_path), skipped=skipped)
+                        total={"wall_s": time.perf_counter() - t0, "peak_mem_mb": peak_memory_mb()},
+                        counts=dbmod.database_counts(ws.database_path), skipped=skipped)
 

@@ -8,7 +8,8 @@ from mvrecon.features.sift import extract_sift
 from mvrecon.geometry import camera as camera_model
 from mvrecon.geometry.rotation import angle_axis_to_rotmat
 from mvrecon.matching.matcher import MatcherConfig, match_descriptors
-from mvrecon.matching.verify import sampson_error, verify_pair
+from mvrecon.geometry.fundamental import sampson_distance
+from mvrecon.matching.verify import verify_pair
 
 K = [800.0, 320.0, 240.0, 0.0]
 CAM = CameraInfo(model="SIMPLE_RADIAL", width=640, height=480, params=np.array(K), prior_trusted=True)
@@ -92,7 +93,7 @@ def test_motorcycle_fundamental_matrix_is_accurate_and_epipolar_lines_are_horizo
     result = verify_pair(k1, k2, matches, cam, cam)
     assert result.config in ("UNCALIBRATED", "PLANAR_OR_PANORAMIC") and len(result.inliers) > 300
     p1, p2 = k1[result.inliers[:, 0], :2], k2[result.inliers[:, 1], :2]
-    assert np.median(sampson_error(result.F, p1, p2)) < 1.0
+    assert np.median(sampson_distance(result.F, p1[:, :2], p2[:, :2])) < 1.0
     # Rectified pair: the epipolar line of every inlier in the right image is (nearly) horizontal.
     lines = np.column_stack([p1, np.ones(len(p1))]) @ result.F.T
     slopes_deg = np.degrees(np.arctan2(np.abs(lines[:, 0]), np.abs(lines[:, 1])))

@@ -23,16 +23,18 @@ def run(args) -> int:
     import logging
     import time
 
-    from ..pipeline import _database_counts, _peak_mem_mb, map_workspace, write_report
+    from ..executor import peak_memory_mb
+    from ..database import database_counts
+    from ..pipeline import map_workspace, write_report
     from .reconstruct import mapper_config
 
     config = mapper_config(args)
     start = time.perf_counter()
     summary = map_workspace(config, args.workspace, image_dir=args.image_dir, text=args.text,
                             resume=args.resume, overwrite=args.overwrite)
-    stage = {"wall_s": time.perf_counter() - start, "peak_mem_mb": _peak_mem_mb()}
+    stage = {"wall_s": time.perf_counter() - start, "peak_mem_mb": peak_memory_mb()}
     write_report(args.workspace, config_hash=config.hash(), seed=config.seed, summary=summary,
                  stages={"mapping": stage}, total=stage,
-                 counts=_database_counts(f"{args.workspace}/database.db"))
+                 counts=database_counts(f"{args.workspace}/database.db"))
     logging.getLogger("mvrecon").info("%s", summary.text())
     return 0

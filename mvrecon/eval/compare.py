@@ -287,7 +287,7 @@ def _evaluate_run(run: RunResult, role: str, image_names, ref_poses: dict, confi
 
 def _counts(run: RunResult) -> dict:
     """Front-end counts from the run's database when it has one (the same counting for every engine)."""
-    from .runners import database_counts
+    from ..database import database_counts
 
     db = run.out_dir / "database.db"
     if db.is_file():

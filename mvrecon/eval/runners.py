@@ -17,7 +17,6 @@ import argparse
 import json
 import logging
 import os
-import resource
 import shutil
 import signal
 import subprocess
@@ -27,7 +26,9 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from ..database import database_counts
 from ..errors import InputError
+from ..executor import peak_memory_mb
 
 log = logging.getLogger("mvrecon.eval.runners")
 
@@ -231,15 +232,11 @@ class _Stages:
 
     def done(self, name: str) -> None:
         now = time.perf_counter()
-        self.stages[name] = {"wall_s": now - self._t, "peak_mem_mb": _peak_mem_mb()}
+        self.stages[name] = {"wall_s": now - self._t, "peak_mem_mb": peak_memory_mb()}
         self._t = now
 
     def total(self) -> dict:
-        return {"wall_s": time.perf_counter() - self.start, "peak_mem_mb": _peak_mem_mb()}
-
-
-def _peak_mem_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux reports KiB
+        return {"wall_s": time.perf_counter() - self.start, "peak_mem_mb": peak_memory_mb()}
 
 
 def _colmap_main(image_dir: Path, out_dir: Path, options: dict, global_mapper: bool) -> None:
@@ -362,22 +359,6 @@ def _write_outputs(out_dir: Path, engine: str, options: dict, models: list, db: 
         "stages": stages.stages, "total": stages.total(), "counts": database_counts(db),
     }
     (out_dir / "report.json").write_text(json.dumps(report, indent=1))
-
-
-def database_counts(db) -> dict:
-    """Images, keypoints per image, verified pairs and mean inliers per pair of a COLMAP database.
-
-    Counted the same way for every engine: a pair is verified when its two-view geometry is neither undefined,
-    degenerate nor a watermark and keeps inlier matches.
-    """
-    from ..database import read_correspondences
-
-    corr = read_correspondences(db)
-    pairs = [p for p in corr.pairs if p.config not in ("UNDEFINED", "DEGENERATE", "WATERMARK")]
-    n_kp = [len(corr.keypoints.get(i, ())) for i in corr.images]
-    return {"images": len(corr.images), "keypoints_per_image": float(sum(n_kp) / max(len(n_kp), 1)),
-            "verified_pairs": len(pairs),
-            "mean_inliers_per_pair": float(sum(len(p.inliers) for p in pairs) / max(len(pairs), 1))}
 
 
 def _pycolmap_version() -> str:

@@ -123,12 +123,3 @@ def homography_translation(H: np.ndarray, camera1: CameraInfo, camera2: CameraIn
     s = np.linalg.svd(np.linalg.inv(K2) @ H @ K1, compute_uv=False)
     return float((s[0] - s[2]) / s[1])
 
-
-def sampson_error(F: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
-    """First-order geometric distance (pixels) of each correspondence to the epipolar geometry of F."""
-    x1 = np.column_stack([p1[:, :2], np.ones(len(p1))])
-    x2 = np.column_stack([p2[:, :2], np.ones(len(p2))])
-    Fx1, Ftx2 = x1 @ F.T, x2 @ F
-    num = np.einsum("ij,ij->i", x2, Fx1) ** 2
-    den = Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2
-    return np.sqrt(num / np.maximum(den, 1e-300))
