@@ -82,3 +82,24 @@ def test_map_without_verified_pairs_exits_2_with_a_message(tmp_path, capsys):
     assert main(["-q", "map", "-w", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "no verified image pairs among 2 images" in err and err.count("\n") == 1
+
+
+def test_mapper_settings_from_toml_and_flags(demo, tmp_path, capsys):
+    import shutil
+
+    work = tmp_path / "ws"
+    work.mkdir()
+    shutil.copy(demo / "run" / "database.db", work / "database.db")
+    (tmp_path / "m.toml").write_text("[mapper]\nrefine_intrinsics = false\nseed = 5\n")
+    assert main(["-q", "map", "-w", str(work), "--config", str(tmp_path / "m.toml"), "--seed", "3"]) == 0
+    assert json.loads((work / "report.json").read_text())["seed"] == 3  # the flag wins over the file
+    with database.open_database(work / "database.db") as db:
+        prior = {c.camera_id: c.params for c in db.read_all_cameras()}
+    rec = pycolmap.Reconstruction(str(work / "sparse" / "0"))
+    assert rec.num_reg_images() == 10
+    for cam in rec.cameras.values():  # intrinsics fixed by the file: written exactly as in the database
+        np.testing.assert_array_equal(cam.params, prior[cam.camera_id])
+    (tmp_path / "bad.toml").write_text("[mapper]\nabs_pose_min_inlier = 20\n")
+    assert main(["-q", "map", "-w", str(work), "--config", str(tmp_path / "bad.toml")]) == 2
+    err = capsys.readouterr().err
+    assert "bad.toml" in err and "abs_pose_min_inlier" in err and err.count("\n") == 1

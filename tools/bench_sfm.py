@@ -21,7 +21,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from mvrecon.eval.ground_truth import find_ground_truth, load_ground_truth  # noqa: E402
+from mvrecon.eval.ground_truth import find_ground_truth, load_ground_truth_for  # noqa: E402
+from mvrecon.io.images import list_images  # noqa: E402
 from mvrecon.eval.metrics import AUC_THRESHOLDS, accuracy_summary  # noqa: E402
 from mvrecon.eval.models import model_stats  # noqa: E402
 from mvrecon.eval.runners import RunOptions, run_colmap, run_mvrecon  # noqa: E402
@@ -63,7 +64,9 @@ def main(argv=None) -> int:
 
     images = Path(args.images)
     gt_path = args.gt or find_ground_truth(images) or find_ground_truth(images.parent)
-    gt = load_ground_truth(gt_path) if gt_path else None
+    # only the images in the folder count (templeRing's par file lists 47 views, the folder holds 19)
+    names = [Path(n).name for n in list_images(images)[0]]
+    gt = load_ground_truth_for(gt_path, names) if gt_path else None
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="bench_sfm_"))
     options = RunOptions(camera_mode=args.camera_mode, camera_model=args.camera_model, seed=args.seed)
     ours = run_mvrecon(images, work / "mvrecon", options)

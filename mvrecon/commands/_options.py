@@ -53,7 +53,8 @@ def add_matching_options(parser: argparse.ArgumentParser) -> None:
 def add_run_options(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("run")
     g.add_argument("--config", default=None, metavar="TOML",
-                   help="config overrides, e.g. [sift] max_num_features = 4096 (flags win over the file)")
+                   help="config overrides, e.g. [sift] max_num_features = 4096 or [mapper] init_min_inliers = 50 "
+                        "(flags win over the file)")
     g.add_argument("--workers", type=int, default=None, help="parallel processes (default: all cores)")
     g.add_argument("--overwrite", action="store_true",
                    help="recompute instead of refusing when the workspace was made with other settings")
@@ -88,7 +89,8 @@ def frontend_config_from_args(args: argparse.Namespace):
 
     config = FrontendConfig()
     if getattr(args, "config", None):
-        config = with_overrides(config, load_toml(args.config), source=args.config)
+        table = {k: v for k, v in load_toml(args.config).items() if k != "mapper"}  # the mapper's own table
+        config = with_overrides(config, table, source=args.config)
     overrides: dict = {}
     for dest, (section, name) in _FLAG_FIELDS.items():
         value = getattr(args, dest, None)

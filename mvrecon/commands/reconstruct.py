@@ -12,27 +12,46 @@ Examples:
 """
 
 ORDER = 30
+OPTIMIZERS = ("lm", "sfm")
 
 
-def add_mapper_options(parser, *, overwrite: bool = True) -> None:
-    """Mapper flags shared by `reconstruct` and `map` (`reconstruct` takes --overwrite from the front
-    end's)."""
+def add_mapper_options(parser, *, standalone: bool = True) -> None:
+    """Mapper flags shared by `reconstruct` and `map`; only the standalone `map` adds its own --config and
+    --overwrite (`reconstruct` has them from the front end's options, and one --config file holds both)."""
     g = parser.add_argument_group("mapping")
-    g.add_argument("--seed", type=int, default=0, help="random seed: equal inputs and seed give equal models")
-    g.add_argument("--optimizer", choices=("sfm", "lm"), default="sfm",
-                   help="GTSAM optimizer for bundle adjustment: SfmLevenbergMarquardt with Schur elimination "
-                        "(default) or plain LM")
+    g.add_argument("--seed", type=int, default=None,
+                   help="random seed: equal inputs and seed give equal models (default 0)")
+    g.add_argument("--optimizer", choices=OPTIMIZERS, default=None,
+                   help="GTSAM optimizer for bundle adjustment: plain Levenberg-Marquardt with the points "
+                        "eliminated first (lm, default) or SfmLevenbergMarquardt with Schur elimination (sfm)")
     g.add_argument("--fix-intrinsics", action="store_true", help="do not refine focal length and distortion")
     g.add_argument("--text", action="store_true", help="also write the models as COLMAP text files")
     g.add_argument("--resume", action="store_true", help="continue an interrupted mapping from its snapshot")
-    if overwrite:
+    if standalone:
+        g.add_argument("--config", default=None, metavar="TOML",
+                       help="mapper settings in a [mapper] table, e.g. abs_pose_min_inliers = 20 "
+                            "(flags win over the file)")
         g.add_argument("--overwrite", action="store_true", help="start mapping over even with a snapshot")
 
 
 def mapper_config(args):
+    """MapperConfig = defaults < the [mapper] table of --config < flags given on the command line."""
+    from ..config import load_toml, with_overrides
+    from ..errors import InputError
     from ..sfm.config import MapperConfig
 
-    return MapperConfig(seed=args.seed, optimizer=args.optimizer, refine_intrinsics=not args.fix_intrinsics)
+    config = MapperConfig()
+    if getattr(args, "config", None):
+        table = load_toml(args.config).get("mapper", {})
+        config = with_overrides(config, table, source=f"{args.config}: mapper")
+    flags = {"seed": args.seed, "optimizer": args.optimizer}
+    if args.fix_intrinsics:
+        flags["refine_intrinsics"] = False
+    config = with_overrides(config, {k: v for k, v in flags.items() if v is not None}, source="command line")
+    if config.optimizer not in OPTIMIZERS:
+        raise InputError(f"{args.config}: mapper optimizer must be one of {', '.join(OPTIMIZERS)}, "
+                         f"not {config.optimizer!r}")
+    return config
 
 
 def add_arguments(parser) -> None:
@@ -41,7 +60,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("images", help="folder of images (searched recursively)")
     parser.add_argument("-o", "--output", required=True, help="output folder (the workspace)")
     add_frontend_options(parser)
-    add_mapper_options(parser, overwrite=False)
+    add_mapper_options(parser, standalone=False)
 
 
 def run(args) -> int:

@@ -90,11 +90,11 @@ def compare_images(image_dir, report_dir, gt=None, config: CompareConfig = Compa
     """Run mvrecon, pycolmap (and the same-matches run) on IMAGE_DIR into REPORT_DIR/runs/ and measure them."""
     from ..io.images import list_images
     from ..progress import progress
-    from .ground_truth import load_ground_truth
+    from .ground_truth import load_ground_truth_for
 
     image_dir, report_dir = Path(image_dir), Path(report_dir)
     names, _ = list_images(image_dir)
-    gt_poses = _gt_for(load_ground_truth(gt), names, gt) if gt else None
+    gt_poses = load_ground_truth_for(gt, names) if gt else None
     runs_dir = report_dir / "runs"
     steps = ["mvrecon", "colmap"] + (["colmap-global"] if config.colmap_global else []) \
         + (["colmap-same-matches"] if config.same_matches else [])
@@ -131,7 +131,7 @@ def compare_models(paths, gt=None, labels=None, config: CompareConfig = CompareC
     Without ground truth the LAST model is the reference. The images counted are those any model or report
     lists (an image no model holds and no report names cannot be known).
     """
-    from .ground_truth import load_ground_truth
+    from .ground_truth import load_ground_truth_for
     from .models import load_reconstruction, sparse_models
 
     paths = [Path(p) for p in paths]
@@ -166,7 +166,7 @@ def compare_models(paths, gt=None, labels=None, config: CompareConfig = CompareC
         for rec in run.models:
             names |= {im.name for im in rec.images.values()}
     names = sorted(names)
-    gt_poses = _gt_for(load_ground_truth(gt), names, gt) if gt else None
+    gt_poses = load_ground_truth_for(gt, names) if gt else None
     return evaluate(runs, names, gt_poses, config, title=" vs ".join(r.engine for r in runs),
                     source=", ".join(str(p) for p in paths), gt_source=str(gt) if gt else None,
                     reference_engine=None if gt_poses is not None else runs[-1].engine)
@@ -175,14 +175,6 @@ def compare_models(paths, gt=None, labels=None, config: CompareConfig = CompareC
 def _folder_label(path: Path) -> str:
     parts = [p for p in path.resolve().parts if p not in ("sparse",) and not p.isdigit()]
     return parts[-1] if parts else str(path)
-
-
-def _gt_for(gt, names, source):
-    sub = gt.subset(names)
-    if len(sub) < 2:
-        shown = ", ".join(list(gt)[:3])
-        raise InputError(f"{source}: ground truth names ({shown}, ...) match {len(sub)} of the {len(names)} images")
-    return sub
 
 
 def evaluate(runs: list[RunResult], image_names, gt_poses=None, config: CompareConfig = CompareConfig(), *,

@@ -39,6 +39,17 @@ class GroundTruth(dict):
                            points=self.points, source=self.source, kind=self.kind)
 
 
+def load_ground_truth_for(path, names) -> GroundTruth:
+    """Ground truth restricted to `names` (the images of the run): pairs of images that are not in the set
+    must not count as failures. InputError when fewer than two of the names are in the ground truth."""
+    gt = load_ground_truth(path)
+    sub = gt.subset(names)
+    if len(sub) < 2:
+        shown = ", ".join(list(gt)[:3])
+        raise InputError(f"{path}: ground truth names ({shown}, ...) match {len(sub)} of the {len(names)} images")
+    return sub
+
+
 def load_ground_truth(path) -> GroundTruth:
     """Read ground truth from any supported file or folder; InputError names the path when nothing fits."""
     path = Path(path)
