@@ -78,3 +78,14 @@ def test_bad_camera_parameters_are_named():
         camera.check_model("SIMPLE_RADIAL", [1, 2, 3])
     with pytest.raises(ValueError, match="unknown camera model"):
         camera.default_params("FISHEYE9", 100, 10, 10)
+
+
+@pytest.mark.parametrize("model,params", [
+    ("OPENCV", [430.0, 430.0, 512.0, 384.0, -0.22, 0.05, 0.001, -0.0008]),  # the wide_orbit lens
+    ("SIMPLE_RADIAL", [400.0, 320.0, 240.0, 0.1]),
+    ("RADIAL", [400.0, 320.0, 240.0, -0.1, 0.02]),
+])
+def test_undistort_inverts_distort(model, params):
+    x = np.random.default_rng(0).uniform(-0.9, 0.9, (5000, 2))  # inside the fold of the strongest lens
+    back = camera.undistort_normalized(model, params, camera.distort(model, params, x))
+    np.testing.assert_allclose(back, x, atol=1e-10)

@@ -79,26 +79,33 @@ def distort(model: str, params, xy) -> np.ndarray:
 
 
 def undistort_normalized(model: str, params, xy_distorted, iterations: int = 30) -> np.ndarray:
-    """Invert `distort` by Newton's method with a numerical Jacobian, vectorised over points."""
+    """Invert `distort` by Newton's method with the analytic Jacobian, vectorised over points; only points
+    not yet converged are iterated (past the fold of a strong barrel distortion some never converge)."""
     xd = np.asarray(xy_distorted, dtype=float)
-    if not np.any(distortion_coefficients(model, params)):
+    k1, k2, p1, p2 = distortion_coefficients(model, params)
+    if not any((k1, k2, p1, p2)):
         return xd.copy()
-    x = xd.copy()
-    eps = 1e-9
+    flat = xd.reshape(-1, 2)
+    x = flat.copy()
+    active = np.arange(len(x))
     for _ in range(iterations):
-        f = distort(model, params, x) - xd
-        fx = (distort(model, params, x + [eps, 0]) - distort(model, params, x - [eps, 0])) / (2 * eps)
-        fy = (distort(model, params, x + [0, eps]) - distort(model, params, x - [0, eps])) / (2 * eps)
-        a, c = fx[..., 0], fx[..., 1]
-        b, d = fy[..., 0], fy[..., 1]
+        u, v = x[active, 0], x[active, 1]
+        f = distort(model, params, x[active]) - flat[active]
+        r2 = u * u + v * v
+        radial = k1 * r2 + k2 * r2 * r2
+        g = 2 * (k1 + 2 * k2 * r2)  # d(radial)/d(r2) * 2
+        a = 1 + radial + g * u * u + 2 * p1 * v + 6 * p2 * u  # d(u')/du
+        b = g * u * v + 2 * p1 * u + 2 * p2 * v  # d(u')/dv
+        c = g * u * v + 2 * p2 * v + 2 * p1 * u  # d(v')/du
+        d = 1 + radial + g * v * v + 2 * p2 * u + 6 * p1 * v  # d(v')/dv
         det = a * d - b * c
         det = np.where(np.abs(det) < 1e-12, 1e-12, det)
-        step_u = (d * f[..., 0] - b * f[..., 1]) / det
-        step_v = (-c * f[..., 0] + a * f[..., 1]) / det
-        x = x - np.stack([step_u, step_v], axis=-1)
-        if np.max(np.abs(f)) < 1e-12:
+        x[active, 0] = u - (d * f[:, 0] - b * f[:, 1]) / det
+        x[active, 1] = v - (-c * f[:, 0] + a * f[:, 1]) / det
+        active = active[np.abs(f).max(axis=1) >= 1e-12]
+        if len(active) == 0:
             break
-    return x
+    return x.reshape(xd.shape)
 
 
 def project(model: str, params, points_cam) -> np.ndarray:

@@ -163,14 +163,16 @@ def bundle_adjust(model, variable_images, config: MapperConfig, *, point_ids=Non
     _fix_gauge(gtsam, graph, model, variable, len(fixed_cams), X)
 
     iterations = max_iterations or config.global_ba_iterations
-    initial = graph.error(values)
+    with _native_stdout_silenced():
+        initial = graph.error(values)
     ordering = gtsam.Ordering()  # points first: the Schur complement, and no COLAMD run per call
     keys = [L(int(p)) for p in points] + [K(c) for c in var_cams]
     for key in keys + [X(int(i)) for i in np.flatnonzero(variable)]:
         ordering.push_back(key)
     result, used = _optimize(gtsam, graph, values, optimizer or config.optimizer, iterations,
                              config.ba_relative_tolerance, ordering)
-    final = graph.error(result)
+    with _native_stdout_silenced():
+        final = graph.error(result)
 
     for i in np.flatnonzero(variable):
         pose = result.atPose3(X(int(i)))
@@ -248,8 +250,9 @@ def _fix_gauge(gtsam, graph, model, variable, num_fixed_images, X):
 
 @contextmanager
 def _native_stdout_silenced():
-    """GTSAM's C++ factors print every CheiralityException of a trial step to stdout; those steps are simply
-    rejected by the optimizer, so the lines are noise for the user (and would fill logs of long runs)."""
+    """GTSAM's C++ factors print every CheiralityException (a trial step, or a point behind a camera when the
+    cost is evaluated) to stdout; the optimizer rejects such steps and the filters remove such points, so the
+    lines are noise for the user (and would fill logs of long runs)."""
     sys.stdout.flush()
     saved = os.dup(1)
     devnull = os.open(os.devnull, os.O_WRONLY)

@@ -33,6 +33,8 @@ class MapperConfig:
     ba_relative_tolerance: LM stops when the cost falls by less than this fraction in an iteration (1e-3:
         the same models as 1e-4 on templeRing and lund_door, in 30% less BA time; the final global BAs
         still run to it, and the next BA continues from where this one stopped).
+    ba_points_per_image: while the model grows, BAs optimise up to this many well-spread points per image
+        and re-fit the others (sfm/ba_points.py); 0 optimises every point. The final BAs use every point.
     huber_px: Huber loss width (pixels); refine_intrinsics: focal and distortion refined in global BA.
     focal_min_images: intrinsics stay fixed in the two-view BA of the initial pair, where the focal length is
         not observable (it collapses towards zero with the depths).
@@ -64,6 +66,7 @@ class MapperConfig:
     global_ba_iterations: int = 50
     global_ba_growth: float = 1.1
     ba_relative_tolerance: float = 1e-3
+    ba_points_per_image: int = 300
     huber_px: float = 1.0
     refine_intrinsics: bool = True
     focal_min_images: int = 3

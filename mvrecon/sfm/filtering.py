@@ -26,18 +26,8 @@ def filter_small_angle_points(model, config: MapperConfig, point_ids=None) -> in
     pids = pids[model.point_alive.data[pids]]
     if len(pids) == 0:
         return 0
-    obs = model.observations_of_points(pids)
-    op = model.obs_point.data[obs]
-    order = np.argsort(op, kind="stable")
-    obs, op = obs[order], op[order]
-    uniq, start, count = np.unique(op, return_index=True, return_counts=True)
-    kmax = int(count.max())
-    col = np.arange(len(op)) - np.repeat(start, count)
-    row = np.repeat(np.arange(len(uniq)), count)
-    centers = np.zeros((len(uniq), kmax, 3))
-    mask = np.zeros((len(uniq), kmax), bool)
-    centers[row, col] = model.centers()[model.obs_image.data[obs]]
-    mask[row, col] = True
+    uniq, obs, mask = model.padded_observations(pids)
+    centers = model.centers()[model.obs_image.data[obs]]
     angle = max_triangulation_angle_deg(model.xyz.data[uniq], centers, mask)
     bad = uniq[angle < config.filter_min_tri_angle_deg]
     model.delete_points(bad)

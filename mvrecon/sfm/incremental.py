@@ -19,13 +19,15 @@ import numpy as np
 
 from ..progress import progress
 from . import filtering
+from .ba_points import select_points
 from .bundle import bundle_adjust as _bundle_adjust
 from .config import MapperConfig
 from .initialize import find_initial_pair
 from .model import Camera, Reconstruction
 from .register import rank_candidates, register_image
 from .tracks import build_tracks
-from .triangulate import continue_points, retriangulate, tracks_of_image, triangulate_tracks
+from .triangulate import (continue_points, refine_existing_points, retriangulate, tracks_of_image,
+                          triangulate_tracks)
 
 log = logging.getLogger("mvrecon.sfm")
 SNAPSHOT_VERSION = 1
@@ -92,6 +94,7 @@ class IncrementalMapper:
         self.snapshot = _Snapshot(snapshot_path, _signature(corr, config))
         self.finished: list[Reconstruction] = []
         self.tried_init: set = set()
+        self.evaluated_init: dict = {}  # pair -> evaluate_pair result, for this run only
         self.reasons: dict[int, str] = {}
         self.current: Reconstruction | None = None
         self.last_global = 0
@@ -102,6 +105,18 @@ class IncrementalMapper:
         out = _bundle_adjust(m, images, self.config, **kwargs)
         self.ba_calls += 1
         self.ba_seconds += out.seconds
+        return out
+
+    def _bundle_points(self, m, images, points, subset: bool, **kwargs):
+        """BA of `images` over `points`. With `subset` (while the model grows) only the grid-selected points
+        are optimised (see ba_points) and the others re-fitted to the moved poses; ba_points_per_image 0
+        turns that off."""
+        quota = self.config.ba_points_per_image if subset else 0
+        if quota <= 0:
+            return self._bundle(m, images, point_ids=points, **kwargs)
+        chosen = np.intersect1d(select_points(m, images, quota), points)
+        out = self._bundle(m, images, point_ids=chosen, **kwargs)
+        refine_existing_points(m, np.setdiff1d(points, chosen))
         return out
 
     # ----- state -----
@@ -153,17 +168,16 @@ class IncrementalMapper:
 
     def _start_model(self) -> bool:
         scratch = self._new_model()
-        init = find_initial_pair(scratch, self.pairs, self._excluded(), self.config, self.tried_init)
+        init = find_initial_pair(scratch, self.pairs, self._excluded(), self.config, self.tried_init,
+                                 self.evaluated_init)
         if init is None:
             return False
         m = scratch
         m.register(init.image1, np.eye(3), np.zeros(3))
         m.register(init.image2, init.R, init.t)
-        t1 = self.tracks.track_of[init.image1][init.keypoints1]
-        t2 = self.tracks.track_of[init.image2][init.keypoints2]
-        ok = (t1 >= 0) & (t1 == t2)
-        t1 = np.unique(t1[ok])
-        n_init = triangulate_tracks(m, self.tracks, t1, self.config, self.config.seed)
+        shared = np.intersect1d(tracks_of_image(m, self.tracks, init.image1),
+                                tracks_of_image(m, self.tracks, init.image2))
+        n_init = triangulate_tracks(m, self.tracks, shared, self.config, self.config.seed)
         log.info("initial pair %s / %s: %d points, median triangulation angle %.1f deg",
                  self.names[init.image1], self.names[init.image2], n_init, init.median_angle_deg)
         self._global_refine(m)
@@ -209,13 +223,13 @@ class IncrementalMapper:
         log.debug("registered %s (%d images, %d points)", self.names[i], int(m.registered.sum()),
                   len(m.alive_points()))
         if m.registered.sum() >= cfg.global_ba_growth * self.last_global:
-            self._global_refine(m)
+            self._global_refine(m, growing=True)
             self.last_global = int(m.registered.sum())
             self._save()
             return
         window = self._local_window(m, i)
         pts = np.unique(m.obs_point.data[m.observations_of_images(window)])
-        self._bundle(m, window, point_ids=pts, max_iterations=cfg.local_ba_iterations)
+        self._bundle_points(m, window, pts, True, max_iterations=cfg.local_ba_iterations)
         continue_points(m, self.tracks, cfg, images=window)
         filtering.filter_observations(m, cfg, point_ids=pts)
         filtering.filter_small_angle_points(m, cfg, point_ids=pts)
@@ -230,17 +244,26 @@ class IncrementalMapper:
                 if counts[j] > 0]
         return np.array([i, *best], dtype=np.int64)
 
-    def _global_refine(self, m: Reconstruction, rounds: int = 1) -> None:
+    def _global_refine(self, m: Reconstruction, rounds: int = 1, growing: bool = False,
+                       min_change: float = 0.0) -> None:
+        """Up to `rounds` of global BA (on a point subset while `growing`), retriangulation and filtering;
+        stops early once a round adds and removes fewer than `min_change` of the observations (COLMAP's
+        iterative global refinement)."""
         cfg = self.config
         for _ in range(rounds):
-            self._bundle(m, m.registered_images(), point_ids=m.alive_points(),
-                         refine_intrinsics=(cfg.refine_intrinsics
-                                            and m.registered.sum() >= cfg.focal_min_images),
-                         refine_distortion=m.registered.sum() >= cfg.distortion_min_images,
-                         max_iterations=cfg.global_ba_iterations)
+            alive_before, n_before = m.obs_alive.data.copy(), m.obs_alive.n
+            self._bundle_points(m, m.registered_images(), m.alive_points(), growing,
+                                refine_intrinsics=(cfg.refine_intrinsics
+                                                   and m.registered.sum() >= cfg.focal_min_images),
+                                refine_distortion=m.registered.sum() >= cfg.distortion_min_images,
+                                max_iterations=cfg.global_ba_iterations)
             retriangulate(m, self.tracks, cfg, cfg.seed)
             filtering.filter_observations(m, cfg)
             filtering.filter_small_angle_points(m, cfg)
+            changed = (m.obs_alive.n - n_before) + int((alive_before & ~m.obs_alive.data[:n_before]).sum())
+            log.debug("global refinement changed %d of %d observations", changed, int(alive_before.sum()))
+            if changed < min_change * max(int(alive_before.sum()), 1):
+                break
         for cid in filtering.degenerate_cameras(m):
             for i in np.flatnonzero(m.registered & (m.camera_of == cid)):
                 if len(m.registration_order) > 2:
@@ -248,8 +271,9 @@ class IncrementalMapper:
                     self.reasons[int(i)] = "degenerate camera parameters after bundle adjustment"
 
     def _finish_model(self, m: Reconstruction) -> None:
-        # two rounds of global BA + retriangulation, one when the last registration already ran a global BA
-        self._global_refine(m, rounds=1 if self.last_global == int(m.registered.sum()) else 2)
+        # global BA with every point (those during growth used a subset), retriangulation and filtering; a
+        # second round only when the first still changed 0.1% of the observations
+        self._global_refine(m, rounds=2, min_change=1e-3)
         if int(m.registered.sum()) >= self.config.min_model_size:
             self.finished.append(m)
             log.info("model %d: %d images, %d points", len(self.finished) - 1, int(m.registered.sum()),

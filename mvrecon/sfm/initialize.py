@@ -2,7 +2,8 @@
 
 Candidates are tried in order of inlier count (COLMAP also favours images with many correspondences); for each
 the relative pose comes from the essential matrix (with the camera's focal prior when it is not known) and is
-accepted when enough points triangulate with a median angle above the threshold. Thresholds are relaxed in
+accepted when enough points triangulate with a median angle above the threshold. Each pair is estimated once
+(from at most 1000 of its matches); the mapper then triangulates all the tracks the two images share. Thresholds are relaxed in
 turn
 (16 deg, then 8, 4, 2) so scenes without a wide baseline still start, as COLMAP relaxes its own.
 Pure rotation and planar-with-no-baseline pairs fail the angle check; that is how they are rejected.
@@ -23,10 +24,11 @@ class InitialPair:
     image2: int
     R: np.ndarray  # cam2_from_cam1 (image1 is the world frame)
     t: np.ndarray
-    keypoints1: np.ndarray  # the matched keypoints that triangulated well
-    keypoints2: np.ndarray
-    points: np.ndarray  # (n,3) in image1's frame
     median_angle_deg: float
+    focals: dict  # camera id -> the focal length the pose was estimated with
+
+
+_DECISION_MATCHES = 1000  # a pose and a median angle from this many matches decide as well as from all
 
 
 def two_view_points(R, t, x1, x2):
@@ -42,30 +44,35 @@ def two_view_points(R, t, x1, x2):
     return X, z, np.linalg.norm(r, axis=-1)
 
 
-def try_pair(model, pair, i1: int, i2: int, min_angle: float, config: MapperConfig) -> InitialPair | None:
-    """Relative pose and points of one candidate pair, or None when it fails the initial-pair criteria."""
+def evaluate_pair(model, pair, i1: int, i2: int, config: MapperConfig) -> InitialPair | None:
+    """Relative pose and median triangulation angle of one candidate pair (on a seeded subset of at most
+    1000 of its matches), or None when it fails the criteria that do not depend on the angle threshold."""
     k1, k2 = pair.inliers[:, 0], pair.inliers[:, 1]
+    if len(k1) > _DECISION_MATCHES:
+        pick = np.sort(np.random.default_rng(config.seed).choice(len(k1), _DECISION_MATCHES, replace=False))
+        k1, k2 = k1[pick], k2[pick]
     _focal_from_pair(model, i1, i2, k1, k2)
     x1 = model.normalized_keypoints(i1)[k1]
     x2 = model.normalized_keypoints(i2)[k2]
+    has_ray = np.isfinite(x1).all(axis=1) & np.isfinite(x2).all(axis=1)
+    x1, x2 = x1[has_ray], x2[has_ray]
     f = 0.5 * (model.camera(i1).focal() + model.camera(i2).focal())
     est = relative_pose(x1, x2, config.two_view_max_error_px / f, seed=config.seed)
     if est is None:
         return None
     R, t, inl = est
-    if inl.sum() < config.init_min_inliers:
+    min_inliers = min(config.init_min_inliers, len(k1))  # a subset of a pair that had enough
+    if inl.sum() < min_inliers:
         return None
     X, z, err = two_view_points(R, t, x1[inl], x2[inl])
     angle = triangulation_angle_deg(np.zeros(3), -R.T @ t, X)
     good = (z > 0).all(axis=1) & (err.max(axis=1) * f < config.max_reproj_error_px)
     good &= np.isfinite(X).all(axis=1)
     good &= angle >= config.min_tri_angle_deg
-    if good.sum() < config.init_min_inliers:
+    if good.sum() < min_inliers:
         return None
-    median_angle = float(np.median(angle[good]))
-    if median_angle < min_angle:
-        return None
-    return InitialPair(i1, i2, R, t, k1[inl][good], k2[inl][good], X[good], median_angle)
+    focals = {int(model.camera_of[i]): model.camera(i).focal() for i in (i1, i2)}
+    return InitialPair(i1, i2, R, t, float(np.median(angle[good])), focals)
 
 
 _FOCAL_RANGE = (0.5, 2.0)
@@ -103,11 +110,12 @@ def _focal_from_pair(model, i1: int, i2: int, k1, k2) -> None:
             cam.set_focal(f)
 
 
-def find_initial_pair(model, pairs_by_index, excluded, config: MapperConfig,
-                      tried: set) -> InitialPair | None:
+def find_initial_pair(model, pairs_by_index, excluded, config: MapperConfig, tried: set,
+                      evaluated: dict) -> InitialPair | None:
     """First pair meeting the criteria; `pairs_by_index` maps (i1, i2) internal indices -> PairGeometry.
 
-    excluded: images already in another model; tried: pairs that failed before (updated in place).
+    excluded: images already in another model; tried: (pair, angle threshold) that failed before (updated in
+    place); evaluated: pair -> `evaluate_pair` result, so relaxing the angle does not estimate a pair again.
     """
     candidates = sorted(((len(p.inliers), key) for key, p in pairs_by_index.items()
                          if key[0] not in excluded and key[1] not in excluded
@@ -118,7 +126,11 @@ def find_initial_pair(model, pairs_by_index, excluded, config: MapperConfig,
             if (key, min_angle) in tried:
                 continue
             tried.add((key, min_angle))
-            found = try_pair(model, pairs_by_index[key], key[0], key[1], min_angle, config)
-            if found is not None:
+            if key not in evaluated:
+                evaluated[key] = evaluate_pair(model, pairs_by_index[key], key[0], key[1], config)
+            found = evaluated[key]
+            if found is not None and found.median_angle_deg >= min_angle:
+                for cid, focal in found.focals.items():  # later candidates may have moved a guessed focal
+                    model.cameras[cid].set_focal(focal)
                 return found
     return None

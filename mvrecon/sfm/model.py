@@ -13,6 +13,8 @@ import numpy as np
 
 from ..geometry import camera as cammodel
 
+_UNDISTORT_TOLERANCE_PX = 1e-3  # a keypoint whose ray reprojects farther than this has no ray (see below)
+
 
 @dataclass
 class Camera:
@@ -122,12 +124,19 @@ class Reconstruction:
         return self.cameras[int(self.camera_of[i])]
 
     def normalized_keypoints(self, i: int) -> np.ndarray:
-        """Undistorted normalised coordinates of image i's keypoints, cached per camera parameter set."""
+        """Undistorted normalised coordinates of image i's keypoints, cached per camera parameter set.
+
+        NaN where the current distortion has no inverse: past the fold of a strong barrel distortion fitted
+        with too few coefficients, no ray projects to the keypoint, and Newton's last iterate is no ray.
+        """
         cam = self.camera(i)
         key = (i, cam.model, tuple(np.round(cam.params, 12)))
         hit = self._normalized_cache.get(i)
         if hit is None or hit[0] != key:
-            hit = (key, cammodel.pixels_to_normalized(cam.model, cam.params, self.keypoints[i]))
+            xy = cammodel.pixels_to_normalized(cam.model, cam.params, self.keypoints[i])
+            back = cammodel.normalized_to_pixels(cam.model, cam.params, cammodel.distort(cam.model, cam.params, xy))
+            xy[~(np.linalg.norm(back - self.keypoints[i], axis=1) < _UNDISTORT_TOLERANCE_PX)] = np.nan
+            hit = (key, xy)
             self._normalized_cache[i] = hit
         return hit[1]
 
@@ -204,6 +213,23 @@ class Reconstruction:
         mask[np.asarray(pids, dtype=np.int64)] = True
         obs = self.alive_observations()
         return obs[mask[self.obs_point.data[obs]]]
+
+    def padded_observations(self, pids):
+        """(points, obs, mask): the given points that have alive observations, and their observation ids as
+        rows of an (n, k) array padded where `mask` is False (the layout of geometry.triangulation)."""
+        obs = self.observations_of_points(pids)
+        op = self.obs_point.data[obs]
+        order = np.argsort(op, kind="stable")
+        obs, op = obs[order], op[order]
+        points, start, count = np.unique(op, return_index=True, return_counts=True)
+        kmax = int(count.max()) if len(count) else 0
+        rows = np.repeat(np.arange(len(points)), count)
+        cols = np.arange(len(op)) - np.repeat(start, count)
+        padded = np.zeros((len(points), kmax), np.int64)
+        mask = np.zeros((len(points), kmax), bool)
+        padded[rows, cols] = obs
+        mask[rows, cols] = True
+        return points, padded, mask
 
     # ----- errors and statistics -----
     def project(self, images, xyz) -> tuple[np.ndarray, np.ndarray]:

@@ -61,6 +61,8 @@ class Registration:
 def register_image(model, tracks, image: int, config: MapperConfig, seed: int = 0) -> Registration:
     """Estimate image's pose from its 2D-3D matches and register it (observations are added by the caller)."""
     kps, pids = correspondences_2d3d(model, tracks, image)
+    has_ray = np.isfinite(model.normalized_keypoints(image)[kps]).all(axis=1)
+    kps, pids = kps[has_ray], pids[has_ray]
     if len(kps) < config.abs_pose_min_inliers:
         return Registration(False, f"too few 2D-3D matches ({len(kps)} < {config.abs_pose_min_inliers})",
                             0, len(kps))

@@ -42,11 +42,13 @@ def _registered_elements(model, tracks, track_ids):
 
 
 def _normalized(model, images, kps, mask):
+    """Normalised coordinates of the views, and the mask less the views whose keypoint has no ray."""
     x = np.zeros((*images.shape, 2))
     for i in np.unique(images[mask]):
         m = mask & (images == i)
         x[m] = model.normalized_keypoints(i)[kps[m]]
-    return x
+    valid = np.isfinite(x).all(axis=-1)
+    return np.where(valid[..., None], x, 0.0), mask & valid
 
 
 def _check(model, X, images, R, t, x, mask, config):
@@ -69,12 +71,12 @@ def triangulate_tracks(model, tracks, track_ids, config: MapperConfig, seed: int
     if len(track_ids) == 0:
         return 0
     images, kps, mask = _registered_elements(model, tracks, track_ids)
+    x, mask = _normalized(model, images, kps, mask)
     keep = mask.sum(axis=1) >= 2
-    track_ids, images, kps, mask = track_ids[keep], images[keep], kps[keep], mask[keep]
+    track_ids, images, kps, mask, x = track_ids[keep], images[keep], kps[keep], mask[keep], x[keep]
     if len(track_ids) == 0:
         return 0
     R, t = model.R[images], model.t[images]
-    x = _normalized(model, images, kps, mask)
     X = refine_points(triangulate_dlt(R, t, x, mask), R, t, x, mask)
     inl, ok = _check(model, X, images, R, t, x, mask, config)
 
@@ -157,3 +159,16 @@ def retriangulate(model, tracks, config: MapperConfig, seed: int = 0) -> tuple[i
                                    weights=model.registered[tracks.image], minlength=len(tracks))
     cand = np.flatnonzero((registered_count >= 2) & (model.point_of_track < 0))
     return triangulate_tracks(model, tracks, cand, config, seed), added_obs
+
+
+def refine_existing_points(model, point_ids, iterations: int = 3) -> None:
+    """Re-fit points to their observations with the poses held fixed: the points a subset bundle adjustment
+    left out follow the poses it moved (their outliers go to the filters that run next)."""
+    pids, obs, mask = model.padded_observations(point_ids)
+    if len(pids) == 0:
+        return
+    images, kps = model.obs_image.data[obs], model.obs_kp.data[obs]
+    x, mask = _normalized(model, images, kps, mask)
+    X = refine_points(model.xyz.data[pids], model.R[images], model.t[images], x, mask, iterations)
+    ok = np.isfinite(X).all(axis=1)
+    model.xyz.data[pids[ok]] = X[ok]

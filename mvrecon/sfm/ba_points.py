@@ -1,0 +1,39 @@
+"""The points a bundle adjustment during growth optimises: a well-spread subset, as TheiaSfM selects tracks.
+
+Poses and intrinsics are pinned as well by a few hundred good points per image as by thousands, while a GTSAM
+iteration costs in proportion to the observations. Each image's frame is cut into a 16 x 16 grid; its points
+are taken round by round (the best point of every cell, then the second best of every cell, ...), best meaning
+the longest track, then the lowest reprojection error, until the image has `per_image` of them. An image with
+fewer points keeps them all, so sparse scenes are optimised in full. The points left out are re-fitted to the
+new poses afterwards (`triangulate.refine_existing_points`); the final BAs of a model use every point.
+"""
+
+import numpy as np
+
+GRID = 16
+
+
+def select_points(model, images, per_image: int) -> np.ndarray:
+    """Point ids: up to `per_image` well-spread, long, accurate points of each of `images` (their union)."""
+    obs = model.observations_of_images(images)
+    if len(obs) == 0:
+        return np.zeros(0, np.int64)
+    img, pid = model.obs_image.data[obs], model.obs_point.data[obs]
+    cell = np.empty(len(obs), np.int64)
+    for i in np.unique(img):
+        m = img == i
+        cam = model.camera(i)
+        xy = model.keypoints[i][model.obs_kp.data[obs[m]]]
+        gx = np.clip((xy[:, 0] * GRID / cam.width).astype(np.int64), 0, GRID - 1)
+        gy = np.clip((xy[:, 1] * GRID / cam.height).astype(np.int64), 0, GRID - 1)
+        cell[m] = (i * GRID + gy) * GRID + gx
+    err = model.reprojection_errors(obs)[0]
+    length = model.point_num_observations()[pid]
+    order = np.lexsort((err, -length, cell))  # by cell, best first
+    _, start, count = np.unique(cell[order], return_index=True, return_counts=True)
+    rank = np.empty(len(obs), np.int64)
+    rank[order] = np.arange(len(obs)) - np.repeat(start, count)  # 0 = best of its cell
+    order = np.lexsort((err, -length, rank, img))  # by image, round by round
+    _, start, count = np.unique(img[order], return_index=True, return_counts=True)
+    position = np.arange(len(obs)) - np.repeat(start, count)
+    return np.unique(pid[order][position < per_image])
