@@ -2,7 +2,7 @@
 
 Examples:
   mvrecon sem tilt_0.png tilt_5.png tilt_10.png -o out --tilts 0,5,10 --axis y --pixel-size 0.1um
-  mvrecon sem series_folder/ -o out --estimate-tilts --max-size 1000 --densify
+  mvrecon sem series_folder/ -o out --estimate-tilts --max-size 1000 --height-source joint
 
 Images are taken in the order given (a folder: natural name order). Estimated tilts are relative to the
 reference image and increase along that order (parallel projection cannot tell a tilt's sign from the relief's).
@@ -31,8 +31,14 @@ def add_arguments(parser) -> None:
                                                              "in the paper)")
     parser.add_argument("--icp", choices=("kdtree", "brute", "open3d-point", "open3d-plane"), default="kdtree",
                         help="ICP variant for merging the pair point sets (default kdtree)")
+    parser.add_argument("--height-source", choices=("dense", "joint", "merged"), default="dense",
+                        help="what the height map is made from: dense = the joint points refined at every pixel by "
+                             "least-squares matching of all images (default, most accurate); joint = the joint "
+                             "adjustment's points interpolated; merged = the joint points and the ICP-merged pair "
+                             "point sets interpolated (the paper's integration)")
     parser.add_argument("--densify", action="store_true",
-                        help="dense matching (SGBM) of the rectified reference pair, holes filled by interpolation")
+                        help="replace the height map by SGBM dense matching of one rectified pair where it matched "
+                             "(reference and the image tilted farthest from it; less accurate than the default)")
     parser.add_argument("--profile", help="profile line x0,y0,x1,y1 in input pixels (default: across the axis "
                                           "through the centre)")
 
@@ -66,7 +72,7 @@ def run(args) -> int:
         raise InputError(f"--max-size {args.max_size}: must be at least 16 pixels")
     config = SemConfig(tilts_deg=_floats(args.tilts, "--tilts") if args.tilts else None, axis_deg=axis,
                        pixel_size_um=pixel_size, max_size=args.max_size, reference=args.reference,
-                       pairs=args.pairs, icp_method=args.icp, densify=args.densify,
+                       pairs=args.pairs, icp_method=args.icp, height_source=args.height_source, densify=args.densify,
                        profile=_floats(args.profile, "--profile", 4) if args.profile else None, icp=IcpConfig())
     report = run_sem(resolve_images(args.images), args.output, config)
     log = logging.getLogger("mvrecon.sem")

@@ -22,11 +22,13 @@ from ..matching.matcher import MatcherConfig
 from ..progress import progress
 from .affine import AffineRansacConfig, ransac_affine_fundamental, tilt_axis_from_affine_fundamental
 from .factorization import build_tracks, solve_tilt_series
+from .dense import DenseMatchConfig, fill_nearest, refine_heights
 from .heightmap import DenseConfig, dense_heights, grid_heights, height_outliers, profile
 from .icp import IcpConfig, icp
 from .parallax import axis_vectors, heights_from_parallax
 
 log = logging.getLogger("mvrecon.sem")
+HEIGHT_SOURCES = ("dense", "joint", "merged")
 
 
 @dataclass(frozen=True)
@@ -36,10 +38,12 @@ class SemConfig:
     reports heights in input pixels. max_size: shrink images so the long side is at most this (None: full size).
     reference: image whose grid the height map uses (None: the tilt closest to 0, or the middle image when tilts
     are estimated). pairs: how many best-matched pairs give per-pair point sets (the paper uses 2).
-    icp_method: kdtree | brute | open3d-point | open3d-plane. height_source: "joint" grids the points of the
-    joint adjustment (every observation of a track, the most precise), "merged" grids the ICP-merged union of
-    the joint points and the pair point sets (the paper's integration). densify: SGBM on the rectified pair of the
-    reference and the image tilted farthest from it. profile: (x0, y0, x1, y1) in input pixels, None = the line
+    icp_method: kdtree | brute | open3d-point | open3d-plane. height_source: "dense" (default) refines the
+    gridded joint points at every pixel by least-squares matching of all images (`dense.py`; the sparse points
+    alone are too few and too noisy for 1% accuracy), "joint" grids the points of the joint adjustment (every
+    observation of a track), "merged" grids the ICP-merged union of the joint points and the pair point sets
+    (the paper's integration). densify: SGBM on the rectified pair of the reference and the image tilted
+    farthest from it, replacing the map where it matched. profile: (x0, y0, x1, y1) in input pixels, None = the line
     across the tilt axis through the image centre."""
 
     tilts_deg: tuple | None = None
@@ -49,7 +53,7 @@ class SemConfig:
     reference: int | None = None
     pairs: int = 2
     icp_method: str = "kdtree"
-    height_source: str = "joint"
+    height_source: str = "dense"
     densify: bool = False
     profile: tuple | None = None
     sift: SiftConfig = field(default_factory=lambda: SiftConfig(max_num_features=8192))
@@ -57,6 +61,7 @@ class SemConfig:
     ransac: AffineRansacConfig = field(default_factory=AffineRansacConfig)
     icp: IcpConfig = field(default_factory=IcpConfig)
     dense: DenseConfig = field(default_factory=DenseConfig)
+    dense_match: DenseMatchConfig = field(default_factory=DenseMatchConfig)
 
 
 def parse_length_um(text) -> float:
@@ -165,6 +170,8 @@ def run_sem(image_paths, out_dir, config: SemConfig = SemConfig()) -> dict:
         raise InputError(f"{paths[0] if paths else 'IMAGES'}: a tilt series needs at least 2 images, got {n}")
     if config.tilts_deg is not None and len(config.tilts_deg) != n:
         raise InputError(f"--tilts: {len(config.tilts_deg)} angles given for {n} images; give one per image")
+    if config.height_source not in HEIGHT_SOURCES:
+        raise InputError(f"--height-source {config.height_source}: expected one of {', '.join(HEIGHT_SOURCES)}")
     if config.tilts_deg is None and n < 3:
         raise InputError(f"{paths[0]}: estimating tilts needs at least 3 images (got {n}); give --tilts")
     out = Path(out_dir)
@@ -227,10 +234,15 @@ def run_sem(image_paths, out_dir, config: SemConfig = SemConfig()) -> dict:
 
     # height map on the reference grid (working resolution)
     t = time.perf_counter()
-    source = anchor if config.height_source == "joint" else merged
+    source = merged if config.height_source == "merged" else anchor
     cells = _cell_average(np.column_stack([source[:, :2] + center, source[:, 2]]), (h, w))
     height = grid_heights(cells[:, :2], cells[:, 2], (h, w))
     dense_report = None
+    if not np.isfinite(height).any():
+        raise InputError(f"{paths[0].parent}: only {len(source)} 3D points survived the outlier tests; "
+                         "too few for a height map")
+    if config.height_source == "dense":
+        height = refine_heights(images, tilts, axis, solution.shifts, ref, fill_nearest(height), config.dense_match)
     if config.densify:
         height, dense_report = _densify(images, ref, tilts, axis, solution, pairs, height, config.dense)
     timings["heightmap_s"] = time.perf_counter() - t
