@@ -252,11 +252,7 @@ class IncrementalMapper:
         cfg = self.config
         for _ in range(rounds):
             alive_before, n_before = m.obs_alive.data.copy(), m.obs_alive.n
-            self._bundle_points(m, m.registered_images(), m.alive_points(), growing,
-                                refine_intrinsics=(cfg.refine_intrinsics
-                                                   and m.registered.sum() >= cfg.focal_min_images),
-                                refine_distortion=m.registered.sum() >= cfg.distortion_min_images,
-                                max_iterations=cfg.global_ba_iterations)
+            self._global_bundle(m, growing)
             retriangulate(m, self.tracks, cfg, cfg.seed)
             filtering.filter_observations(m, cfg)
             filtering.filter_small_angle_points(m, cfg)
@@ -264,11 +260,30 @@ class IncrementalMapper:
             log.debug("global refinement changed %d of %d observations", changed, int(alive_before.sum()))
             if changed < min_change * max(int(alive_before.sum()), 1):
                 break
-        for cid in filtering.degenerate_cameras(m):
-            for i in np.flatnonzero(m.registered & (m.camera_of == cid)):
-                if len(m.registration_order) > 2:
-                    m.deregister(i)
-                    self.reasons[int(i)] = "degenerate camera parameters after bundle adjustment"
+
+    def _global_bundle(self, m: Reconstruction, growing: bool) -> None:
+        """Global BA of every registered image. One that leaves a camera implausible (focal 10x off its prior
+        or |k| > 1, COLMAP's bogus-camera test) is undone and repeated with the distortion fixed, then with all
+        intrinsics fixed: in a small model a guessed focal and the distortion trade off against each other
+        (templeRing blurred: k1 -1.7 as the focal doubled), and dropping the images would not repair the
+        camera they share."""
+        cfg = self.config
+        n = int(m.registered.sum())
+        intrinsics = cfg.refine_intrinsics and n >= cfg.focal_min_images
+        distortion = n >= cfg.distortion_min_images
+        saved = (m.R.copy(), m.t.copy(), m.xyz.data.copy(), {c: cam.params.copy() for c, cam in m.cameras.items()})
+        for intr, dist in dict.fromkeys([(intrinsics, distortion), (intrinsics, False), (False, False)]):
+            self._bundle_points(m, m.registered_images(), m.alive_points(), growing, refine_intrinsics=intr,
+                                refine_distortion=dist, max_iterations=cfg.global_ba_iterations)
+            bad = filtering.degenerate_cameras(m)
+            if not bad:
+                return
+            log.info("bundle adjustment with %s refined left camera(s) %s implausible (%s); undone",
+                     "focal and distortion" if dist else "the focal", bad,
+                     ", ".join(f"params {np.round(m.cameras[c].params, 3)}" for c in bad))
+            m.R[:], m.t[:], m.xyz.data[:] = saved[0], saved[1], saved[2]
+            for c, params in saved[3].items():
+                m.cameras[c].params = params.copy()
 
     def _finish_model(self, m: Reconstruction) -> None:
         # global BA with every point (those during growth used a subset), retriangulation and filtering; a
