@@ -75,7 +75,10 @@ def _init_worker():
 
 
 def parallel_map(func: Callable, items: Iterable, workers: int | None = None) -> Iterator:
-    """Yield `func(item)` for every item, in completion order, using up to `workers` processes.
+    """Yield `func(item)` for every item, in the items' order, using up to `workers` processes.
+
+    In order, not as completed: the caller's database rows (image ids) then follow the input order whatever the
+    timing, so equal inputs give equal databases and models.
 
     `func` must be a module-level function and its result picklable; `func` should catch its own expected
     errors and return them as values, so one bad item does not end the whole map. Closing the iterator early
@@ -93,7 +96,7 @@ def parallel_map(func: Callable, items: Iterable, workers: int | None = None) ->
     pool = ctx.Pool(workers, initializer=_init_worker)
     finished = False
     try:
-        yield from pool.imap_unordered(func, items, chunksize=1)
+        yield from pool.imap(func, items, chunksize=1)
         finished = True
     finally:
         if finished:

@@ -69,6 +69,19 @@ def test_interrupted_features_and_matching_resume_without_recomputing(tmp_path):
     assert match(config, ws).num_matched == 0
 
 
+def test_parallel_extraction_numbers_images_in_name_order(tmp_path):
+    """Image ids (and so the mapper's order and its models) must not depend on which worker finishes first:
+    the first image is made much larger, so it finishes last."""
+    images = textured_views(tmp_path / "images", count=4)
+    big = np.asarray(Image.open(images / "view00.png"))
+    Image.fromarray(np.tile(big, (4, 4, 1))).save(images / "view00.png")
+    config = FrontendConfig(workers=2, sift=SiftConfig(max_num_features=800))
+    extract_features(config, images, tmp_path / "ws")
+    with dbmod.open_database(tmp_path / "ws" / "database.db") as db:
+        by_id = sorted((i.image_id, i.name) for i in dbmod.read_images(db).values())
+    assert [name for _, name in by_id] == [f"view{i:02d}.png" for i in range(4)]
+
+
 def test_a_changed_config_is_refused_unless_overwrite(tmp_path):
     images = textured_views(tmp_path / "images", count=3)
     config = FrontendConfig(workers=1, sift=SiftConfig(max_num_features=500))
