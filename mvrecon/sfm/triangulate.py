@@ -10,7 +10,7 @@ images (and into views rejected earlier) when they reproject within the threshol
 
 import numpy as np
 
-from ..geometry.triangulation import max_triangulation_angle_deg, refine_points, residuals, triangulate_dlt
+from ..geometry.triangulation import max_triangulation_angle_deg, refine_points, triangulate_dlt
 from .config import MapperConfig
 
 _PAIR_HYPOTHESES = 8
@@ -51,12 +51,23 @@ def _normalized(model, images, kps, mask):
     return np.where(valid[..., None], x, 0.0), mask & valid
 
 
-def _check(model, X, images, R, t, x, mask, config):
-    """Inlier views (reprojection in pixels and depth) and the triangulation angle over them."""
-    r, z = residuals(X, R, t, x, mask)
-    focal = np.array([model.cameras[int(c)].focal() for c in model.camera_of])[images]
-    err_px = np.linalg.norm(r, axis=-1) * focal
-    inl = mask & (z > 0) & (err_px <= config.max_reproj_error_px) & np.isfinite(X).all(axis=1)[:, None]
+def _check(model, X, images, kps, mask, config):
+    """Inlier views (reprojection error in pixels through the camera model, positive depth) and the
+    triangulation angle over them. Pixels, not normalised residuals times the focal: under a strong
+    distortion those overstate the periphery's errors (2.5x at the edge of the wide_orbit lens), and the
+    filters that run later measure in pixels too."""
+    rows, cols = np.nonzero(mask)
+    err = np.full(mask.shape, np.inf)
+    if len(rows):
+        img = images[rows, cols]
+        uv, depth = model.project(img, X[rows])
+        observed = np.empty((len(rows), 2))
+        for i in np.unique(img):
+            m = img == i
+            observed[m] = model.keypoints[i][kps[rows[m], cols[m]]]
+        e = np.linalg.norm(uv - observed, axis=1)
+        err[rows, cols] = np.where(np.isfinite(e) & (depth > 0), e, np.inf)
+    inl = mask & (err <= config.max_reproj_error_px)
     centers = model.centers()[images]
     angle = max_triangulation_angle_deg(X, centers, inl)
     ok = (inl.sum(axis=1) >= 2) & (angle >= config.min_tri_angle_deg)
@@ -78,7 +89,7 @@ def triangulate_tracks(model, tracks, track_ids, config: MapperConfig, seed: int
         return 0
     R, t = model.R[images], model.t[images]
     X = refine_points(triangulate_dlt(R, t, x, mask), R, t, x, mask)
-    inl, ok = _check(model, X, images, R, t, x, mask, config)
+    inl, ok = _check(model, X, images, kps, mask, config)
 
     # Joint solution spoiled by an outlier view: best of a few two-view hypotheses, refined on its inliers.
     retry = np.flatnonzero(~ok & (mask.sum(axis=1) >= 3))
@@ -88,7 +99,7 @@ def triangulate_tracks(model, tracks, track_ids, config: MapperConfig, seed: int
         best_count = np.full(len(retry), -1)
         best_X = X[retry].copy()
         rr = np.arange(len(retry))
-        Rr, tr, xr, mr = R[retry], t[retry], x[retry], mask[retry]
+        Rr, tr, xr, mr, kr = R[retry], t[retry], x[retry], mask[retry], kps[retry]
         for _ in range(_PAIR_HYPOTHESES):
             a = (rng.random(len(retry)) * nview).astype(int)
             b = (a + 1 + (rng.random(len(retry)) * (nview - 1)).astype(int)) % nview
@@ -96,20 +107,20 @@ def triangulate_tracks(model, tracks, track_ids, config: MapperConfig, seed: int
             sub[rr, a] = True
             sub[rr, b] = True
             Xh = triangulate_dlt(Rr, tr, xr, sub)
-            inl_h, _ = _check(model, Xh, images[retry], Rr, tr, xr, mr, config)
+            inl_h, _ = _check(model, Xh, images[retry], kr, mr, config)
             count = inl_h.sum(axis=1)
             better = count > best_count
             best_count[better], best_X[better] = count[better], Xh[better]
         X[retry] = best_X
-        inl_r, _ = _check(model, best_X, images[retry], Rr, tr, xr, mr, config)
+        inl_r, _ = _check(model, best_X, images[retry], kr, mr, config)
         X[retry] = refine_points(best_X, Rr, tr, xr, inl_r)
-        inl[retry], ok[retry] = _check(model, X[retry], images[retry], Rr, tr, xr, inl_r, config)
+        inl[retry], ok[retry] = _check(model, X[retry], images[retry], kr, inl_r, config)
 
     partial = ok & (inl.sum(axis=1) < mask.sum(axis=1))
     if partial.any():  # refit on the inlier views only
         p = np.flatnonzero(partial)
         X[p] = refine_points(X[p], R[p], t[p], x[p], inl[p], iterations=3)
-        inl[p], ok[p] = _check(model, X[p], images[p], R[p], t[p], x[p], inl[p], config)
+        inl[p], ok[p] = _check(model, X[p], images[p], kps[p], inl[p], config)
 
     sel = np.flatnonzero(ok)
     if len(sel) == 0:
