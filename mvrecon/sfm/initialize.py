@@ -3,10 +3,10 @@
 Candidates are tried in order of inlier count (COLMAP also favours images with many correspondences); for each
 the relative pose comes from the essential matrix (with the camera's focal prior when it is not known) and is
 accepted when enough points triangulate with a median angle above the threshold. Each pair is estimated once
-(from at most 1000 of its matches); the mapper then triangulates all the tracks the two images share. Thresholds are relaxed in
-turn
-(16 deg, then 8, 4, 2) so scenes without a wide baseline still start, as COLMAP relaxes its own.
-Pure rotation and planar-with-no-baseline pairs fail the angle check; that is how they are rejected.
+(from at most 1000 of its matches); the mapper then triangulates all the tracks the two images share.
+Thresholds are relaxed in turn (16 deg, then 8, 4, 2) so scenes without a wide baseline still start, as COLMAP
+relaxes its own. Pure rotation and planar-with-no-baseline pairs fail the angle check; that is how they are
+rejected.
 """
 
 from dataclasses import dataclass
@@ -61,15 +61,14 @@ def evaluate_pair(model, pair, i1: int, i2: int, config: MapperConfig) -> Initia
     if est is None:
         return None
     R, t, inl = est
-    min_inliers = min(config.init_min_inliers, len(k1))  # a subset of a pair that had enough
-    if inl.sum() < min_inliers:
+    if inl.sum() < config.init_min_inliers:
         return None
     X, z, err = two_view_points(R, t, x1[inl], x2[inl])
     angle = triangulation_angle_deg(np.zeros(3), -R.T @ t, X)
     good = (z > 0).all(axis=1) & (err.max(axis=1) * f < config.max_reproj_error_px)
     good &= np.isfinite(X).all(axis=1)
     good &= angle >= config.min_tri_angle_deg
-    if good.sum() < min_inliers:
+    if good.sum() < config.init_min_inliers:
         return None
     focals = {int(model.camera_of[i]): model.camera(i).focal() for i in (i1, i2)}
     return InitialPair(i1, i2, R, t, float(np.median(angle[good])), focals)

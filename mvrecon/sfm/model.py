@@ -107,13 +107,6 @@ class Reconstruction:
             self.registered[i] = True
             self.registration_order.append(int(i))
 
-    def deregister(self, i: int) -> None:
-        """Remove an image and all its observations (points left with < 2 observations are deleted)."""
-        obs = self.obs_of_kp[i][self.obs_of_kp[i] >= 0]
-        self.remove_observations(obs)
-        self.registered[i] = False
-        self.registration_order.remove(int(i))
-
     def registered_images(self) -> np.ndarray:
         return np.flatnonzero(self.registered)
 
@@ -134,7 +127,8 @@ class Reconstruction:
         hit = self._normalized_cache.get(i)
         if hit is None or hit[0] != key:
             xy = cammodel.pixels_to_normalized(cam.model, cam.params, self.keypoints[i])
-            back = cammodel.normalized_to_pixels(cam.model, cam.params, cammodel.distort(cam.model, cam.params, xy))
+            back = cammodel.normalized_to_pixels(cam.model, cam.params,
+                                                 cammodel.distort(cam.model, cam.params, xy))
             xy[~(np.linalg.norm(back - self.keypoints[i], axis=1) < _UNDISTORT_TOLERANCE_PX)] = np.nan
             hit = (key, xy)
             self._normalized_cache[i] = hit
