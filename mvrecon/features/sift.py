@@ -28,10 +28,12 @@ class SiftConfig:
     num_octave_layers: int = 3  # DoG layers per octave
     upright: bool = False  # all orientations 0 (faster, better when the camera never rolls)
     root_sift: bool = True  # RootSIFT (L1 normalise, square root): better matching, COLMAP's default
-    # OpenCV's default upsampling for the first octave maps pixel x to 2x + 0.5, a localisation bias that
-    # differs between octaves; the exact 2x mapping measured AUC@1 0.938 -> 0.969 on the room scene, 0.952 ->
-    # 0.973 on planar, 0.293 -> 0.305 on templeRing, 0.956 -> 0.959 on lund_door (docs/frontend.md)
-    precise_upscale: bool = True
+    # OpenCV's upsampling of the first octave (resize) puts every keypoint a constant 0.25 px right of and
+    # below the blob, at all scales; `extract_sift` corrects that. precise_upscale (exact 2x, OpenCV's
+    # enable_precise_upscale) needs no correction but finds other features: measured better on the rendered
+    # scenes (room AUC@1 0.938 -> 0.969), worse on imc_reichstag (AUC@5 0.67-0.69 -> 0.54-0.62 over 4 seeds)
+    # and wide_orbit, so it is off (docs/frontend.md)
+    precise_upscale: bool = False
 
 
 def extract_sift(image: np.ndarray, config: SiftConfig = SiftConfig()) -> tuple[np.ndarray, np.ndarray]:
@@ -62,8 +64,10 @@ def extract_sift(image: np.ndarray, config: SiftConfig = SiftConfig()) -> tuple[
     if not kps or desc is None:
         return np.zeros((0, 4), np.float32), np.zeros((0, 128), np.uint8)
     keypoints = np.array([(k.pt[0], k.pt[1], k.size, k.angle) for k in kps], dtype=np.float64)
-    keypoints[:, 0] = (keypoints[:, 0] + 0.5) * sx  # OpenCV pixel centre (0,0) -> COLMAP (0.5,0.5), full size
-    keypoints[:, 1] = (keypoints[:, 1] + 0.5) * sy
+    # OpenCV pixel centre (0,0) -> COLMAP (0.5,0.5), less the 0.25 px shift of OpenCV's upsampling; full size
+    shift = 0.5 if config.precise_upscale else 0.25
+    keypoints[:, 0] = (keypoints[:, 0] + shift) * sx
+    keypoints[:, 1] = (keypoints[:, 1] + shift) * sy
     keypoints[:, 2] *= 0.5 * (sx + sy) / 2
     keypoints[:, 3] = np.radians(keypoints[:, 3])
     return keypoints.astype(np.float32), descriptors_to_uint8(desc, root=config.root_sift)
