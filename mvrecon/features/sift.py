@@ -29,10 +29,11 @@ class SiftConfig:
     upright: bool = False  # all orientations 0 (faster, better when the camera never rolls)
     root_sift: bool = True  # RootSIFT (L1 normalise, square root): better matching, COLMAP's default
     # OpenCV's upsampling of the first octave (resize) puts every keypoint a constant 0.25 px right of and
-    # below the blob, at all scales; `extract_sift` corrects that. precise_upscale (exact 2x, OpenCV's
-    # enable_precise_upscale) needs no correction but finds other features: measured better on the rendered
-    # scenes (room AUC@1 0.938 -> 0.969), worse on imc_reichstag (AUC@5 0.67-0.69 -> 0.54-0.62 over 4 seeds)
-    # and wide_orbit, so it is off (docs/frontend.md)
+    # below the blob, at all scales; `extract_sift` corrects that, which raised AUC@1 from 0.938 to 0.966 on
+    # the room scene and from 0.951 to 0.972 on planar (the principal point stays at the image centre, so the
+    # shift was a model error). precise_upscale (exact 2x, OpenCV's enable_precise_upscale) needs no
+    # correction but finds other features: worse on imc_reichstag (AUC@5 0.54-0.62 over 4 seeds) and
+    # wide_orbit, so it is off (docs/frontend.md)
     precise_upscale: bool = False
 
 
