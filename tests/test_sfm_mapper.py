@@ -13,6 +13,7 @@ from mvrecon.io.colmap_model import write_models
 from mvrecon.sfm import incremental
 from mvrecon.sfm.config import MapperConfig
 from mvrecon.sfm.incremental import map_correspondences
+from mvrecon.sfm.triangulate import continue_points
 
 
 def synthetic_database(path, num_images=8, num_points=600, noise_px=0.5, seed=0, num_rigs=1):
@@ -80,6 +81,38 @@ def test_same_seed_gives_the_same_model(scene):
     np.testing.assert_allclose(a.R, b.R, atol=1e-9)
     np.testing.assert_allclose(a.t, b.t, atol=1e-9)
     assert a.stats()["points"] == b.stats()["points"]
+
+
+def _turned(R, degrees):
+    a = np.radians(degrees)
+    return np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]) @ R
+
+
+@pytest.mark.parametrize("drift_deg, rejoined", [(1.0, True), (4.0, False)])
+def test_loop_closure_takes_back_views_that_drift_pushed_past_4_px(scene, drift_deg, rejoined):
+    """An image turned 1 deg (about 10 px here: what the image closing a loop sees of the loop's first points)
+    and stripped of its views gets none back through the 4 px gate, gets them back through the loose angular
+    gate, and the bundle adjustment after it turns the image back. At 4 deg (past the 2 deg gate) nothing
+    rejoins."""
+    _, corr, _ = scene
+    mapper = incremental.IncrementalMapper(corr, MapperConfig(seed=3))
+    m = mapper.run().models[0]
+    i = m.registration_order[-1]
+    R_true, center = m.R[i].copy(), m.centers()[i]
+    seen = len(m.observations_of_images([i]))
+    m.R[i] = _turned(R_true, drift_deg)
+    m.t[i] = -m.R[i] @ center
+    m.remove_observations(m.observations_of_images([i]))
+    assert continue_points(m, mapper.tracks, mapper.config, images=[i]) == 0
+
+    mapper._close_loops(m)
+    back = len(m.observations_of_images([i]))
+    if rejoined:
+        assert back > 0.7 * seen
+        cos = (np.trace(m.R[i] @ R_true.T) - 1) / 2
+        assert np.degrees(np.arccos(min(cos, 1.0))) < 0.05
+    else:
+        assert back == 0
 
 
 def test_resume_continues_from_the_snapshot(tmp_path, monkeypatch):

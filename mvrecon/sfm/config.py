@@ -22,9 +22,11 @@ class MapperConfig:
         the model has grown since its last trial).
     candidates_per_round: how many best-scored images are tried before the mapper gives up growing.
 
-    Triangulation and filtering (COLMAP: tri_min_angle=1.5, tri_complete/merge_max_reproj_error=4,
+    Triangulation and filtering (COLMAP: tri_min_angle=1.5, tri_continue_max_angle_error=2,
     filter_max_reproj_error=4, filter_min_tri_angle=1.5):
-    min_tri_angle_deg, max_reproj_error_px, filter_max_reproj_error_px, filter_min_tri_angle_deg.
+    min_tri_angle_deg, max_reproj_error_px (creating and continuing points), filter_max_reproj_error_px,
+    filter_min_tri_angle_deg; tri_max_angle_error_deg: the loose angular gate of the one continuation before
+    the final refinement that closes loops (sfm/triangulate.py).
 
     Bundle adjustment (COLMAP: ba_local_num_images=6, ba_global_images_ratio=1.1,
     ba_local_max_num_iterations=25):
@@ -58,6 +60,7 @@ class MapperConfig:
     max_register_trials: int = 3
     candidates_per_round: int = 5
     min_tri_angle_deg: float = 1.5
+    tri_max_angle_error_deg: float = 2.0
     max_reproj_error_px: float = 4.0
     filter_max_reproj_error_px: float = 4.0
     filter_min_tri_angle_deg: float = 1.5

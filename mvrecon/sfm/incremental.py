@@ -107,14 +107,14 @@ class IncrementalMapper:
         self.ba_seconds += out.seconds
         return out
 
-    def _bundle_points(self, m, images, points, subset: bool, **kwargs):
+    def _bundle_points(self, m, images, points, subset: bool, keep=(), **kwargs):
         """BA of `images` over `points`. With `subset` (while the model grows) only the grid-selected points
-        are optimised (see ba_points) and the others re-fitted to the moved poses; ba_points_per_image 0
-        turns that off."""
+        and those in `keep` are optimised (see ba_points) and the others re-fitted to the moved poses;
+        ba_points_per_image 0 turns that off."""
         quota = self.config.ba_points_per_image if subset else 0
         if quota <= 0:
             return self._bundle(m, images, point_ids=points, **kwargs)
-        chosen = np.intersect1d(select_points(m, images, quota), points)
+        chosen = np.intersect1d(np.union1d(select_points(m, images, quota), keep), points)
         out = self._bundle(m, images, point_ids=chosen, **kwargs)
         refine_existing_points(m, np.setdiff1d(points, chosen))
         return out
@@ -261,7 +261,7 @@ class IncrementalMapper:
             if changed < min_change * max(int(alive_before.sum()), 1):
                 break
 
-    def _global_bundle(self, m: Reconstruction, growing: bool) -> None:
+    def _global_bundle(self, m: Reconstruction, growing: bool, keep=()) -> None:
         """Global BA of every registered image. One that leaves a camera implausible (focal 10x off its prior
         or |k| > 1, COLMAP's bogus-camera test) is undone and repeated with the distortion fixed, then with all
         intrinsics fixed: in a small model a guessed focal and the distortion trade off against each other
@@ -273,7 +273,7 @@ class IncrementalMapper:
         distortion = n >= cfg.distortion_min_images
         saved = (m.R.copy(), m.t.copy(), m.xyz.data.copy(), {c: cam.params.copy() for c, cam in m.cameras.items()})
         for intr, dist in dict.fromkeys([(intrinsics, distortion), (intrinsics, False), (False, False)]):
-            self._bundle_points(m, m.registered_images(), m.alive_points(), growing, refine_intrinsics=intr,
+            self._bundle_points(m, m.registered_images(), m.alive_points(), growing, keep, refine_intrinsics=intr,
                                 refine_distortion=dist, max_iterations=cfg.global_ba_iterations)
             bad = filtering.degenerate_cameras(m)
             if not bad:
@@ -285,9 +285,25 @@ class IncrementalMapper:
             for c, params in saved[3].items():
                 m.cameras[c].params = params.copy()
 
+    def _close_loops(self, m: Reconstruction) -> None:
+        """Views of existing points that the drift of growth left past the 4 px gate rejoin through the loose
+        angular gate (see triangulate.py), and a global BA pulls the loop together; the filters then drop the
+        views it could not bring within 4 px. That BA optimises the points that gained views plus the usual
+        well-spread subset: where there is no loop the new views are a few outliers, and a BA of every point
+        spent 4x the iterations of the final one to reject them (lund_door: 5.5 s)."""
+        cfg = self.config
+        first = m.obs_point.n
+        if continue_points(m, self.tracks, cfg, loose=True) == 0:
+            return
+        self._global_bundle(m, True, keep=np.unique(m.obs_point.data[first:m.obs_point.n]))
+        filtering.filter_observations(m, cfg)
+        filtering.filter_small_angle_points(m, cfg)
+
     def _finish_model(self, m: Reconstruction) -> None:
-        # global BA with every point (those during growth used a subset), retriangulation and filtering; a
-        # second round only when the first still changed 0.1% of the observations
+        # loops closed, then global BA with every point (those during growth used a subset),
+        # retriangulation and filtering, a second round only when the first still changed 0.1% of the
+        # observations
+        self._close_loops(m)
         self._global_refine(m, rounds=2, min_change=1e-3)
         if int(m.registered.sum()) >= self.config.min_model_size:
             self.finished.append(m)

@@ -3,9 +3,15 @@
 A track gets a 3D point once two or more of its images are registered: multi-view DLT over all its registered
 views, Gauss-Newton refinement, then the checks (positive depth, reprojection <= 4 px, largest triangulation
 angle >= 1.5 deg). When an outlier view spoils the joint solution, two-view hypotheses are tried (a small
-RANSAC
-over view pairs) and the best is refined on its inliers. Existing points are continued into newly registered
-images (and into views rejected earlier) when they reproject within the threshold.
+RANSAC over view pairs) and the best is refined on its inliers. Existing points are continued into registered
+views of their tracks that reproject within the threshold.
+
+Loop closure: a model drifts as it grows around a loop, and the image that closes it sees the first points
+several pixels off, so the 4 px gate keeps those views out and the drift stays in the model (wide_orbit: 1.5-2
+deg at the closure). Before the final refinement, views are therefore continued once through a loose angular
+gate (2 deg, COLMAP's continue_max_angle_error); the bundle adjustment that follows pulls the loop together,
+and the filters after it remove the views it cannot bring within 4 px. The loose gate during growth instead
+measured slower (outliers cost bundle adjustment iterations) and no more accurate.
 """
 
 import numpy as np
@@ -51,23 +57,40 @@ def _normalized(model, images, kps, mask):
     return np.where(valid[..., None], x, 0.0), mask & valid
 
 
+def _angular_errors_deg(model, X, images, x):
+    """Angle (deg) between each view's ray (normalised coordinates x) and the direction to its point X."""
+    Xc = np.einsum("nij,nj->ni", model.R[images], X) + model.t[images]
+    ray = np.concatenate([x, np.ones((len(x), 1))], axis=1)
+    cos = np.einsum("ni,ni->n", Xc, ray) / (np.linalg.norm(Xc, axis=1) * np.linalg.norm(ray, axis=1))
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))), Xc[:, 2]
+
+
+def _passes_gate(model, X, images, kps, config, x=None):
+    """Views whose point is in front and within the gate: the reprojection error in pixels through the camera
+    model, or, given the views' normalised coordinates `x`, the loose angular gate. Pixels rather than
+    normalised residuals times the focal: under a strong distortion those overstate the periphery's errors
+    (2.5x at the edge of the wide_orbit lens), and the filters measure in pixels too."""
+    if x is not None:
+        err, depth = _angular_errors_deg(model, X, images, x)
+        limit = config.tri_max_angle_error_deg
+    else:
+        uv, depth = model.project(images, X)
+        observed = np.empty((len(images), 2))
+        for i in np.unique(images):
+            m = images == i
+            observed[m] = model.keypoints[i][kps[m]]
+        err = np.linalg.norm(uv - observed, axis=1)
+        limit = config.max_reproj_error_px
+    return np.isfinite(err) & (depth > 0) & (err <= limit)
+
+
 def _check(model, X, images, kps, mask, config):
-    """Inlier views (reprojection error in pixels through the camera model, positive depth) and the
-    triangulation angle over them. Pixels, not normalised residuals times the focal: under a strong
-    distortion those overstate the periphery's errors (2.5x at the edge of the wide_orbit lens), and the
-    filters that run later measure in pixels too."""
+    """Inlier views (through the pixel gate) and whether each point is kept (two inlier views or more,
+    largest triangulation angle over them above the minimum)."""
     rows, cols = np.nonzero(mask)
-    err = np.full(mask.shape, np.inf)
+    inl = np.zeros(mask.shape, bool)
     if len(rows):
-        img = images[rows, cols]
-        uv, depth = model.project(img, X[rows])
-        observed = np.empty((len(rows), 2))
-        for i in np.unique(img):
-            m = img == i
-            observed[m] = model.keypoints[i][kps[rows[m], cols[m]]]
-        e = np.linalg.norm(uv - observed, axis=1)
-        err[rows, cols] = np.where(np.isfinite(e) & (depth > 0), e, np.inf)
-    inl = mask & (err <= config.max_reproj_error_px)
+        inl[rows, cols] = _passes_gate(model, X[rows], images[rows, cols], kps[rows, cols], config)
     centers = model.centers()[images]
     angle = max_triangulation_angle_deg(X, centers, inl)
     ok = (inl.sum(axis=1) >= 2) & (angle >= config.min_tri_angle_deg)
@@ -130,9 +153,9 @@ def triangulate_tracks(model, tracks, track_ids, config: MapperConfig, seed: int
     return len(sel)
 
 
-def continue_points(model, tracks, config: MapperConfig, images=None) -> int:
+def continue_points(model, tracks, config: MapperConfig, images=None, loose: bool = False) -> int:
     """Add observations of existing points in registered views of their tracks (restricted to `images` when
-    given) that reproject within the threshold. Returns observations added."""
+    given) that pass the pixel gate, or the angular one with `loose`. Returns observations added."""
     elem_track = np.repeat(np.arange(len(tracks)), tracks.lengths())
     pid = model.point_of_track[elem_track]
     cand = (pid >= 0) & model.registered[tracks.image]
@@ -146,13 +169,13 @@ def continue_points(model, tracks, config: MapperConfig, images=None) -> int:
     if len(e) == 0:
         return 0
     img, kp, p = tracks.image[e], tracks.keypoint[e], pid[e]
-    uv, depth = model.project(img, model.xyz.data[p])
-    obs_uv = np.empty((len(e), 2))
-    for i in np.unique(img):
-        m = img == i
-        obs_uv[m] = model.keypoints[i][kp[m]]
-    err = np.linalg.norm(uv - obs_uv, axis=1)
-    good = (depth > 0) & np.isfinite(err) & (err <= config.max_reproj_error_px)
+    x = None
+    if loose:
+        x = np.empty((len(e), 2))
+        for i in np.unique(img):
+            m = img == i
+            x[m] = model.normalized_keypoints(i)[kp[m]]
+    good = _passes_gate(model, model.xyz.data[p], img, kp, config, x)
     model.add_observations(p[good], img[good], kp[good])
     return int(good.sum())
 
