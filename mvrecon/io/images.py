@@ -78,11 +78,23 @@ def list_images(folder) -> tuple[list[str], dict[str, str]]:
     return names, skipped
 
 
+def _exif(im):
+    """The EXIF of an open image without decoding its pixels. Pillow's PNG getexif() decodes the whole image
+    when the EXIF chunk is not ahead of the pixel data (three decodes per image, 0.27 s serial on templeRing);
+    camera EXIF after a PNG's pixel data is rare, and such a PNG is read as having none."""
+    if im.format == "PNG" and "exif" not in im.info:
+        return Image.Exif()
+    return im.getexif()
+
+
 def _header_problem(path: Path) -> str | None:
     try:
         with Image.open(path) as im:
             w, h = im.size
-            im.getexif()  # walks the file's metadata blocks: catches most truncated files without decoding
+            if im.format == "PNG":
+                im.verify()  # reads every chunk to the end and checks its CRC, without inflating the pixels
+            else:
+                im.getexif()  # walks the file's metadata blocks: catches most truncated files without decoding
     except Exception as exc:  # Pillow raises many types for broken files; the message is what the user needs
         return f"cannot read image header ({type(exc).__name__}: {exc})"
     if w <= 0 or h <= 0:
@@ -96,7 +108,7 @@ def image_metadata(path) -> ImageMeta:
     try:
         with Image.open(path) as im:
             w, h = im.size
-            exif = im.getexif()
+            exif = _exif(im)
     except Exception as exc:
         raise InputError(f"{path}: cannot read image header ({exc})") from None
     orientation = int(exif.get(_ORIENTATION, 1) or 1)
@@ -179,7 +191,7 @@ def read_image(path) -> np.ndarray:
 def _orientation(path: Path) -> int:
     try:
         with Image.open(path) as im:
-            return int(im.getexif().get(_ORIENTATION, 1) or 1)
+            return int(_exif(im).get(_ORIENTATION, 1) or 1)
     except Exception:
         return 1
 
