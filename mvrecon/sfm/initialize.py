@@ -44,14 +44,18 @@ def two_view_points(R, t, x1, x2):
     return X, z, np.linalg.norm(r, axis=-1)
 
 
-def evaluate_pair(model, pair, i1: int, i2: int, config: MapperConfig) -> InitialPair | None:
+def evaluate_pair(model, pair, i1: int, i2: int, config: MapperConfig,
+                  focal_from_pair: bool = True) -> InitialPair | None:
     """Relative pose and median triangulation angle of one candidate pair (on a seeded subset of at most
-    1000 of its matches), or None when it fails the criteria that do not depend on the angle threshold."""
+    1000 of its matches), or None when it fails the criteria that do not depend on the angle threshold.
+    With `focal_from_pair` a guessed focal is first replaced by the pair's estimate (below); without, the
+    cameras' current focal lengths are used."""
     k1, k2 = pair.inliers[:, 0], pair.inliers[:, 1]
     if len(k1) > _DECISION_MATCHES:
         pick = np.sort(np.random.default_rng(config.seed).choice(len(k1), _DECISION_MATCHES, replace=False))
         k1, k2 = k1[pick], k2[pick]
-    _focal_from_pair(model, i1, i2, k1, k2)
+    if focal_from_pair:
+        _focal_from_pair(model, i1, i2, k1, k2)
     x1 = model.normalized_keypoints(i1)[k1]
     x2 = model.normalized_keypoints(i2)[k2]
     has_ray = np.isfinite(x1).all(axis=1) & np.isfinite(x2).all(axis=1)
