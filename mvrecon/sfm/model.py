@@ -252,13 +252,21 @@ class Reconstruction:
         return err, depth
 
     def stats(self) -> dict:
+        """Counts and errors. The mean reprojection error is COLMAP's (the mean over points of each point's mean
+        error), so it is the number pycolmap reports for the written model; a mean over observations weighs
+        long tracks more and came out 15% higher on the demo scene."""
         obs = self.alive_observations()
         pts = self.alive_points()
         err = self.reprojection_errors(obs)[0] if len(obs) else np.zeros(0)
+        mean_error = float("nan")
+        if len(err):
+            pid = self.obs_point.data[obs]
+            per_point = np.bincount(pid, weights=err)[pts] / np.bincount(pid)[pts]
+            mean_error = float(np.mean(per_point))
         return {"registered": int(self.registered.sum()), "points": int(len(pts)),
                 "observations": int(len(obs)),
                 "mean_track_length": float(len(obs) / len(pts)) if len(pts) else 0.0,
-                "mean_reprojection_error_px": float(np.mean(err)) if len(err) else float("nan")}
+                "mean_reprojection_error_px": mean_error}
 
     # ----- snapshots -----
     _ARRAYS = ("image_ids", "camera_of", "R", "t", "registered", "point_of_track")
