@@ -173,7 +173,7 @@ class IncrementalMapper:
                                  self.evaluated_init)
         if init is None:
             return False
-        init = self._focal_from_third_view(init)
+        init = self._focal_from_third_view(init, scratch)
         m = scratch
         m.register(init.image1, np.eye(3), np.zeros(3))
         m.register(init.image2, init.R, init.t)
@@ -189,7 +189,7 @@ class IncrementalMapper:
         self._save()
         return True
 
-    def _focal_from_third_view(self, init):
+    def _focal_from_third_view(self, init, model: Reconstruction):
         """When the pair's shared focal is only a guess (1.2 x the image size, say) that the pair could not
         correct (Bougnoux's estimate degenerates when the optical axes meet, as in an orbit), try the initial
         pair at several focal lengths and keep the one under which the next image fits the pair's points best:
@@ -198,10 +198,11 @@ class IncrementalMapper:
         guess was 768 px for 269, and 9 of 320 matches fitted). The guess is tried first and kept when half
         the matches fit it, or when no other focal fits >= 10% more."""
         cam_id = int(self.camera_of[init.image1])
-        cam = self.cameras[cam_id]
+        cam = self.cameras[cam_id]  # the template new models copy: set per hypothesis, then restored
         if cam.prior_trusted or int(self.camera_of[init.image2]) != cam_id:
             return init
-        cfg, guess, excluded = self.config, cam.focal(), self._excluded()
+        cfg, excluded = self.config, self._excluded()
+        template, guess = cam.focal(), model.cameras[cam_id].focal()  # guess: what the pair was estimated with
         scored = []
         for scale in _FOCAL_SCALES:
             if scored and scored[0][1] == 1.0 and scored[0][0] >= 0.5 * scored[0][3]:
@@ -226,7 +227,7 @@ class IncrementalMapper:
             uv, depth = m.project(np.full(len(pids), third), m.xyz.data[pids])
             err = np.linalg.norm(uv - m.keypoints[third][kps], axis=1)
             scored.append((int(((err <= cfg.max_reproj_error_px) & (depth > 0)).sum()), scale, found, len(err)))
-        cam.set_focal(guess)
+        cam.set_focal(template)
         if not scored:
             return init
         count, scale, found, _ = max(scored, key=lambda c: c[0])
@@ -235,7 +236,7 @@ class IncrementalMapper:
             return init
         log.info("focal length %.0f px (guessed %.0f): the third image fits %d of its matches within %.0f px, "
                  "%d at the guess", guess * scale, guess, count, cfg.max_reproj_error_px, at_guess)
-        cam.set_focal(guess * scale)
+        model.cameras[cam_id].set_focal(guess * scale)
         return found
 
     def _grow(self, m: Reconstruction, bar) -> None:
