@@ -13,8 +13,8 @@ def pnp_ransac(X, uv, K, threshold_px: float, seed: int = 0, confidence: float =
 
     OpenCV's RANSAC fits its final pose to the inliers with EPnP, which can fail outright on a wide field of
     view (wide_orbit_small with an OPENCV lens: 635 RANSAC inliers, 58 under EPnP's pose); SQPnP is globally
-    optimal and took 0.2 ms there. Of the candidate poses (RANSAC's, SQPnP's, and SQPnP's refined by LM) the one
-    with the most inliers, in front of the camera, wins.
+    optimal and took 0.2 ms there. Of the candidate poses (RANSAC's, SQPnP's, and SQPnP's refined by LM) the
+    one with the most inliers, in front of the camera, wins.
     """
     import cv2
 

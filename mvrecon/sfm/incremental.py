@@ -202,7 +202,8 @@ class IncrementalMapper:
         if cam.prior_trusted or int(self.camera_of[init.image2]) != cam_id:
             return init
         cfg, excluded = self.config, self._excluded()
-        template, guess = cam.focal(), model.cameras[cam_id].focal()  # guess: what the pair was estimated with
+        template = cam.focal()
+        guess = model.cameras[cam_id].focal()  # what the pair was estimated with
         scored = []
         for scale in _FOCAL_SCALES:
             if scored and scored[0][1] == 1.0 and scored[0][0] >= 0.5 * scored[0][3]:
@@ -226,7 +227,8 @@ class IncrementalMapper:
             kps, pids = correspondences_2d3d(m, self.tracks, third)
             uv, depth = m.project(np.full(len(pids), third), m.xyz.data[pids])
             err = np.linalg.norm(uv - m.keypoints[third][kps], axis=1)
-            scored.append((int(((err <= cfg.max_reproj_error_px) & (depth > 0)).sum()), scale, found, len(err)))
+            fits = int(((err <= cfg.max_reproj_error_px) & (depth > 0)).sum())
+            scored.append((fits, scale, found, len(err)))
         cam.set_focal(template)
         if not scored:
             return init
@@ -234,8 +236,8 @@ class IncrementalMapper:
         at_guess = next((c[0] for c in scored if c[1] == 1.0), 0)
         if scale == 1.0 or count < 1.1 * at_guess:
             return init
-        log.info("focal length %.0f px (guessed %.0f): the third image fits %d of its matches within %.0f px, "
-                 "%d at the guess", guess * scale, guess, count, cfg.max_reproj_error_px, at_guess)
+        log.info("focal length %.0f px (guessed %.0f): the third image fits %d of its matches within "
+                 "%.0f px, %d at the guess", guess * scale, guess, count, cfg.max_reproj_error_px, at_guess)
         model.cameras[cam_id].set_focal(guess * scale)
         return found
 
@@ -325,8 +327,9 @@ class IncrementalMapper:
         distortion = n >= cfg.distortion_min_images
         saved = (m.R.copy(), m.t.copy(), m.xyz.data.copy(), {c: cam.params.copy() for c, cam in m.cameras.items()})
         for intr, dist in dict.fromkeys([(intrinsics, distortion), (intrinsics, False), (False, False)]):
-            self._bundle_points(m, m.registered_images(), m.alive_points(), growing, keep, refine_intrinsics=intr,
-                                refine_distortion=dist, max_iterations=cfg.global_ba_iterations)
+            self._bundle_points(m, m.registered_images(), m.alive_points(), growing, keep,
+                                refine_intrinsics=intr, refine_distortion=dist,
+                                max_iterations=cfg.global_ba_iterations)
             bad = filtering.degenerate_cameras(m)
             if not bad:
                 return

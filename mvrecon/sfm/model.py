@@ -252,9 +252,9 @@ class Reconstruction:
         return err, depth
 
     def stats(self) -> dict:
-        """Counts and errors. The mean reprojection error is COLMAP's (the mean over points of each point's mean
-        error), so it is the number pycolmap reports for the written model; a mean over observations weighs
-        long tracks more and came out 15% higher on the demo scene."""
+        """Counts and errors. The mean reprojection error is COLMAP's (the mean over points of each point's
+        mean error), so it is the number pycolmap reports for the written model; a mean over observations
+        weighs long tracks more and came out 15% higher on the demo scene."""
         obs = self.alive_observations()
         pts = self.alive_points()
         err = self.reprojection_errors(obs)[0] if len(obs) else np.zeros(0)
