@@ -93,7 +93,7 @@ def test_loop_closure_takes_back_views_that_drift_pushed_past_4_px(scene, drift_
     """An image turned 1 deg (about 10 px here: what the image closing a loop sees of the loop's first points)
     and stripped of its views gets none back through the 4 px gate, gets them back through the loose angular
     gate, and the bundle adjustment after it turns the image back. At 4 deg (past the 2 deg gate) nothing
-    rejoins."""
+    rejoins, and the next global refinement deregisters the image."""
     _, corr, _ = scene
     mapper = incremental.IncrementalMapper(corr, MapperConfig(seed=3))
     m = mapper.run().models[0]
@@ -113,6 +113,11 @@ def test_loop_closure_takes_back_views_that_drift_pushed_past_4_px(scene, drift_
         assert np.degrees(np.arccos(min(cos, 1.0))) < 0.05
     else:
         assert back == 0
+        # left without observations, the image is deregistered with a reason (a BA holding its pose as a
+        # variable with no factor used to stop the whole run with GTSAM's "ordering contains variables ...")
+        mapper._global_refine(m)
+        assert not m.registered[i] and "lost all its 2D-3D matches" in mapper.reasons[i]
+        assert m.registered.sum() == 7
 
 
 def test_resume_continues_from_the_snapshot(tmp_path, monkeypatch):

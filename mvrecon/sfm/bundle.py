@@ -99,7 +99,8 @@ def bundle_adjust(model, variable_images, config: MapperConfig, *, point_ids=Non
         point_ids = np.unique(model.obs_point.data[model.observations_of_images(np.flatnonzero(variable))])
     obs = model.observations_of_points(point_ids)
     obs_img, obs_pt, obs_kp = model.obs_image.data[obs], model.obs_point.data[obs], model.obs_kp.data[obs]
-    if len(obs) == 0:
+    variable &= np.isin(np.arange(len(variable)), obs_img)  # a pose with no factor would be a singular variable
+    if len(obs) == 0 or not variable.any():
         return BundleResult(0.0, 0.0, 0, 0.0, 0)
 
     noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(config.huber_px),

@@ -285,8 +285,16 @@ class IncrementalMapper:
         pts = np.unique(m.obs_point.data[m.observations_of_images(window)])
         self._bundle_points(m, window, pts, True, max_iterations=cfg.local_ba_iterations)
         continue_points(m, self.tracks, cfg, images=window)
-        filtering.filter_observations(m, cfg, point_ids=pts)
-        filtering.filter_small_angle_points(m, cfg, point_ids=pts)
+        self._filter(m, pts)
+
+    def _filter(self, m: Reconstruction, point_ids=None) -> None:
+        """The filters after a BA (of `point_ids`, or all points); an image they leave without observations
+        is deregistered with a reason, and may be registered again as the model grows."""
+        filtering.filter_observations(m, self.config, point_ids=point_ids)
+        filtering.filter_small_angle_points(m, self.config, point_ids=point_ids)
+        for i in m.deregister_empty_images():
+            self.reasons[i] = "lost all its 2D-3D matches to the filters after bundle adjustment"
+            log.info("%s: %s; deregistered", self.names[i], self.reasons[i])
 
     def _local_window(self, m: Reconstruction, i: int) -> np.ndarray:
         """The new image and the registered images sharing the most points with it."""
@@ -308,8 +316,7 @@ class IncrementalMapper:
             alive_before, n_before = m.obs_alive.data.copy(), m.obs_alive.n
             self._global_bundle(m, growing)
             retriangulate(m, self.tracks, cfg, cfg.seed)
-            filtering.filter_observations(m, cfg)
-            filtering.filter_small_angle_points(m, cfg)
+            self._filter(m)
             changed = (m.obs_alive.n - n_before) + int((alive_before & ~m.obs_alive.data[:n_before]).sum())
             log.debug("global refinement changed %d of %d observations", changed, int(alive_before.sum()))
             if changed < min_change * max(int(alive_before.sum()), 1):
@@ -351,8 +358,7 @@ class IncrementalMapper:
         if continue_points(m, self.tracks, cfg, loose=True) == 0:
             return
         self._global_bundle(m, True, keep=np.unique(m.obs_point.data[first:m.obs_point.n]))
-        filtering.filter_observations(m, cfg)
-        filtering.filter_small_angle_points(m, cfg)
+        self._filter(m)
 
     def _finish_model(self, m: Reconstruction) -> None:
         # loops closed, then global BA with every point (those during growth used a subset),

@@ -110,6 +110,17 @@ class Reconstruction:
     def registered_images(self) -> np.ndarray:
         return np.flatnonzero(self.registered)
 
+    def deregister_empty_images(self) -> list[int]:
+        """Deregister the images the filters left without any observation (their pose is no longer tied to
+        the model, and a bundle adjustment cannot hold a variable without factors), as COLMAP's image filter
+        does. Returns them."""
+        counts = np.bincount(self.obs_image.data[self.alive_observations()], minlength=len(self.image_ids))
+        empty = [int(i) for i in np.flatnonzero(self.registered & (counts == 0))]
+        for i in empty:
+            self.registered[i] = False
+            self.registration_order.remove(i)
+        return empty
+
     def centers(self) -> np.ndarray:
         return -np.einsum("nji,nj->ni", self.R, self.t)
 
