@@ -175,11 +175,7 @@ class IncrementalMapper:
             return False
         init = self._focal_from_third_view(init, scratch)
         m = scratch
-        m.register(init.image1, np.eye(3), np.zeros(3))
-        m.register(init.image2, init.R, init.t)
-        shared = np.intersect1d(tracks_of_image(m, self.tracks, init.image1),
-                                tracks_of_image(m, self.tracks, init.image2))
-        n_init = triangulate_tracks(m, self.tracks, shared, self.config, self.config.seed)
+        n_init = self._seed_model(m, init)
         log.info("initial pair %s / %s: %d points, median triangulation angle %.1f deg",
                  self.names[init.image1], self.names[init.image2], n_init, init.median_angle_deg)
         self._global_refine(m)
@@ -189,57 +185,70 @@ class IncrementalMapper:
         self._save()
         return True
 
+    def _seed_model(self, m: Reconstruction, init) -> int:
+        """Register the initial pair in `m` and triangulate every track the two images share; returns the
+        points made."""
+        m.register(init.image1, np.eye(3), np.zeros(3))
+        m.register(init.image2, init.R, init.t)
+        shared = np.intersect1d(tracks_of_image(m, self.tracks, init.image1),
+                                tracks_of_image(m, self.tracks, init.image2))
+        return triangulate_tracks(m, self.tracks, shared, self.config, self.config.seed)
+
     def _focal_from_third_view(self, init, model: Reconstruction):
         """When the pair's shared focal is only a guess (1.2 x the image size, say) that the pair could not
         correct (Bougnoux's estimate degenerates when the optical axes meet, as in an orbit), try the initial
         pair at several focal lengths and keep the one under which the next image fits the pair's points best:
         most of its 2D-3D matches within 4 px after absolute pose. A two-view model built with a focal 3x off
         is skewed so that later images register wrongly and the BA cannot recover (a 100 deg lens: the
-        guess was 768 px for 269, and 9 of 320 matches fitted). The guess is tried first and kept when half
+        guess was 768 px for 269, and 139 of 321 matches fitted). The guess is tried first and kept when half
         the matches fit it, or when no other focal fits >= 10% more."""
         cam_id = int(self.camera_of[init.image1])
-        cam = self.cameras[cam_id]  # the template new models copy: set per hypothesis, then restored
-        if cam.prior_trusted or int(self.camera_of[init.image2]) != cam_id:
+        if self.cameras[cam_id].prior_trusted or int(self.camera_of[init.image2]) != cam_id:
             return init
-        cfg, excluded = self.config, self._excluded()
-        template = cam.focal()
         guess = model.cameras[cam_id].focal()  # what the pair was estimated with
-        scored = []
-        for scale in _FOCAL_SCALES:
-            if scored and scored[0][1] == 1.0 and scored[0][0] >= 0.5 * scored[0][3]:
-                break  # the guess fits most of the third image's matches: no need to look further
-            cam.set_focal(guess * scale)
-            m = self._new_model()
-            found = evaluate_pair(m, self.pairs[(init.image1, init.image2)], init.image1, init.image2, cfg,
-                                  focal_from_pair=False)
-            if found is None:
-                continue
-            m.register(init.image1, np.eye(3), np.zeros(3))
-            m.register(init.image2, found.R, found.t)
-            shared = np.intersect1d(tracks_of_image(m, self.tracks, init.image1),
-                                    tracks_of_image(m, self.tracks, init.image2))
-            triangulate_tracks(m, self.tracks, shared, cfg, cfg.seed)
-            pool = [i for i in range(len(self.image_ids)) if not m.registered[i] and i not in excluded]
-            ranked = rank_candidates(m, self.tracks, pool)
-            if not ranked or not register_image(m, self.tracks, ranked[0][2], cfg, seed=cfg.seed).ok:
-                continue
-            third = ranked[0][2]
-            kps, pids = correspondences_2d3d(m, self.tracks, third)
-            uv, depth = m.project(np.full(len(pids), third), m.xyz.data[pids])
-            err = np.linalg.norm(uv - m.keypoints[third][kps], axis=1)
-            fits = int(((err <= cfg.max_reproj_error_px) & (depth > 0)).sum())
-            scored.append((fits, scale, found, len(err)))
-        cam.set_focal(template)
-        if not scored:
+        at_guess = self._third_view_fit(init, cam_id, guess)
+        fits = at_guess[0] if at_guess else 0
+        if at_guess and fits >= 0.5 * at_guess[1]:
             return init
-        count, scale, found, _ = max(scored, key=lambda c: c[0])
-        at_guess = next((c[0] for c in scored if c[1] == 1.0), 0)
-        if scale == 1.0 or count < 1.1 * at_guess:
+        best = (fits, 1.0, init)
+        for scale in _FOCAL_SCALES:
+            if scale == 1.0:
+                continue
+            found = self._third_view_fit(init, cam_id, guess * scale, estimate=True)
+            if found and found[0] > best[0]:
+                best = (found[0], scale, found[2])
+        count, scale, found = best
+        if scale == 1.0 or count < 1.1 * fits:
             return init
         log.info("focal length %.0f px (guessed %.0f): the third image fits %d of its matches within "
-                 "%.0f px, %d at the guess", guess * scale, guess, count, cfg.max_reproj_error_px, at_guess)
+                 "%.0f px, %d at the guess", guess * scale, guess, count, self.config.max_reproj_error_px,
+                 fits)
         model.cameras[cam_id].set_focal(guess * scale)
         return found
+
+    def _third_view_fit(self, init, cam_id: int, focal: float, estimate: bool = False):
+        """In a scratch model whose camera `cam_id` has `focal`: seed the initial pair (its pose `init`, or
+        re-estimated at this focal with `estimate`), register the best next image and count its 2D-3D
+        matches within the 4 px gate. Returns (fits, matches, the pair's pose), or None when a step fails."""
+        cfg, m = self.config, self._new_model()
+        m.cameras[cam_id].set_focal(focal)
+        if estimate:
+            init = evaluate_pair(m, self.pairs[(init.image1, init.image2)], init.image1, init.image2, cfg,
+                                 focal_from_pair=False)
+            if init is None:
+                return None
+        self._seed_model(m, init)
+        excluded = self._excluded()
+        ranked = rank_candidates(m, self.tracks, [i for i in range(len(self.image_ids))
+                                                  if not m.registered[i] and i not in excluded])
+        if not ranked or not register_image(m, self.tracks, ranked[0][2], cfg, seed=cfg.seed).ok:
+            return None
+        third = ranked[0][2]
+        kps, pids = correspondences_2d3d(m, self.tracks, third)
+        uv, depth = m.project(np.full(len(pids), third), m.xyz.data[pids])
+        err = np.linalg.norm(uv - m.keypoints[third][kps], axis=1)
+        fits = int(((err <= cfg.max_reproj_error_px) & (depth > 0)).sum())
+        return fits, len(err), init
 
     def _grow(self, m: Reconstruction, bar) -> None:
         cfg = self.config
