@@ -101,3 +101,24 @@ def test_tracks_union_find_splits_inconsistent_components():
         for img, kp in zip(tracks.image[track[0]:track[1]], tracks.keypoint[track[0]:track[1]]):
             assert tracks.track_of[img][kp] == k
     assert tracks.track_of[2][0] == -1
+
+
+def test_track_components_equal_scipy_connected_components():
+    """The numpy hooking-and-jumping components label every node as scipy's connected_components does (same
+    numbering), on random graphs and on a long shuffled chain (the slowest case for label propagation)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from mvrecon.sfm.tracks import _components
+
+    rng = np.random.default_rng(0)
+    chain = rng.permutation(20000)
+    sizes = [(1, 0), (500, 200), (20000, 15000)]
+    graphs = [(n, rng.integers(0, n, e), rng.integers(0, n, e)) for n, e in sizes]
+    graphs.append((20000, chain[:-1], chain[1:]))
+    for n, rows, cols in graphs:
+        count, expected = connected_components(coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)),
+                                               directed=False)
+        labels = _components(n, rows, cols)
+        assert labels.max() + 1 == count
+        np.testing.assert_array_equal(labels, expected)

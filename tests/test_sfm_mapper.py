@@ -13,7 +13,8 @@ from mvrecon.io.colmap_model import write_models
 from mvrecon.sfm import incremental
 from mvrecon.sfm.config import MapperConfig
 from mvrecon.sfm.incremental import map_correspondences
-from mvrecon.sfm.triangulate import continue_points
+from mvrecon.sfm import triangulate
+from mvrecon.sfm.triangulate import continue_points, retriangulate
 
 
 def synthetic_database(path, num_images=8, num_points=600, noise_px=0.5, seed=0, num_rigs=1):
@@ -118,6 +119,39 @@ def test_loop_closure_takes_back_views_that_drift_pushed_past_4_px(scene, drift_
         mapper._global_refine(m)
         assert not m.registered[i] and "lost all its 2D-3D matches" in mapper.reasons[i]
         assert m.registered.sum() == 7
+
+
+def test_retriangulation_retries_failed_tracks_only_after_a_change(scene, monkeypatch):
+    """Tracks whose points are deleted and that fail under a principal point 80 px off are not re-solved
+    by the next retriangulation (nothing changed for them), and triangulate again once the camera is back."""
+    _, corr, _ = scene
+    mapper = incremental.IncrementalMapper(corr, MapperConfig(seed=3))
+    m = mapper.run().models[0]
+    cam = m.cameras[int(m.camera_of[0])]
+    params = cam.params.copy()
+    retriangulate(m, mapper.tracks, mapper.config)  # settles the memory of the finished model's cameras
+    pids = m.alive_points()[:150]
+    tracks = m.point_track.data[pids].copy()
+    m.delete_points(pids)
+    cam.params[1] += 80.0
+    tried = []
+    real = triangulate.triangulate_tracks
+
+    def counting(model, tr, ids, *args, **kwargs):
+        tried.append(len(ids))
+        return real(model, tr, ids, *args, **kwargs)
+
+    monkeypatch.setattr(triangulate, "triangulate_tracks", counting)
+
+    retriangulate(m, mapper.tracks, mapper.config)
+    failed = int((m.point_of_track[tracks] < 0).sum())
+    assert tried[-1] >= len(pids) and failed > 0.5 * len(pids)  # the wrong camera spoils most of them
+    assert retriangulate(m, mapper.tracks, mapper.config)[0] == 0 and tried[-1] == 0  # none re-solved
+
+    cam.params = params
+    retriangulate(m, mapper.tracks, mapper.config)
+    assert tried[-1] >= failed
+    assert (m.point_of_track[tracks] >= 0).sum() > 0.95 * len(pids)
 
 
 def test_resume_continues_from_the_snapshot(tmp_path, monkeypatch):

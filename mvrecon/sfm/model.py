@@ -91,6 +91,9 @@ class Reconstruction:
         self.registration_order: list[int] = []
         self.obs_of_kp = [np.full(len(k), -1, np.int64) for k in self.keypoints]
         self.point_of_track = np.full(num_tracks, -1, np.int64)
+        # registered views of each track when its retriangulation last failed (sfm/triangulate.py)
+        self.tri_failed_views = np.zeros(num_tracks, np.int64)
+        self.tri_failed_params = np.zeros(0)  # the cameras' parameters when tri_failed_views was last reset
         self.xyz = _Buffer(float, (3,))
         self.point_track = _Buffer(np.int64)
         self.point_alive = _Buffer(bool)
@@ -99,6 +102,7 @@ class Reconstruction:
         self.obs_kp = _Buffer(np.int64)
         self.obs_alive = _Buffer(bool)
         self._normalized_cache: dict = {}
+        self._ba_factors: tuple = (None, {})  # (loss width, observation -> GTSAM factor), sfm/bundle.py
 
     # ----- images -----
     def register(self, i: int, R, t) -> None:
@@ -144,6 +148,13 @@ class Reconstruction:
             hit = (key, xy)
             self._normalized_cache[i] = hit
         return hit[1]
+
+    def ba_factor_cache(self, loss_width: float) -> dict:
+        """Observation -> its bundle-adjustment factor, kept across calls: an observation's image, point,
+        keypoint and camera never change, so only the loss width could make a stored factor stale."""
+        if self._ba_factors[0] != loss_width:
+            self._ba_factors = (loss_width, {})
+        return self._ba_factors[1]
 
     # ----- points and observations -----
     def add_points(self, xyz, tracks, obs_point_local, obs_image, obs_kp) -> np.ndarray:
@@ -280,7 +291,8 @@ class Reconstruction:
                 "mean_reprojection_error_px": mean_error}
 
     # ----- snapshots -----
-    _ARRAYS = ("image_ids", "camera_of", "R", "t", "registered", "point_of_track")
+    _ARRAYS = ("image_ids", "camera_of", "R", "t", "registered", "point_of_track", "tri_failed_views",
+               "tri_failed_params")
     _BUFFERS = ("xyz", "point_track", "point_alive", "obs_point", "obs_image", "obs_kp", "obs_alive")
 
     def state(self) -> dict:
@@ -298,7 +310,8 @@ class Reconstruction:
         cams = {k: Camera(*v) for k, v in s["cameras"].items()}
         m = cls(s["image_ids"], s["names"], s["camera_of"], cams, keypoints, len(s["point_of_track"]))
         for k in cls._ARRAYS:
-            setattr(m, k, s[k].copy())
+            if k in s:  # a snapshot from before tri_failed_views keeps the zeros (every track retried once)
+                setattr(m, k, s[k].copy())
         for k in cls._BUFFERS:
             setattr(m, k, _Buffer.of(s[k]))
         m.registration_order = list(s["registration_order"])
