@@ -10,10 +10,9 @@ from mvrecon import database
 from mvrecon.eval.metrics import accuracy_summary
 from mvrecon.eval.models import model_stats, poses
 from mvrecon.io.colmap_model import write_models
-from mvrecon.sfm import incremental
+from mvrecon.sfm import incremental, triangulate
 from mvrecon.sfm.config import MapperConfig
 from mvrecon.sfm.incremental import map_correspondences
-from mvrecon.sfm import triangulate
 from mvrecon.sfm.triangulate import continue_points, retriangulate
 
 
