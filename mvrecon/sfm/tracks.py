@@ -57,7 +57,7 @@ def build_tracks(image_ids, num_keypoints, pairs) -> Tracks:
     label = _components(n, rows, cols)
     node_image = np.repeat(np.arange(len(counts)), counts)
     node_kp = np.arange(n) - offset[node_image]
-    label, num_split = _split_inconsistent(label.astype(np.int64), node_image, rows, cols, len(counts))
+    label, num_split = _split_inconsistent(label, node_image, rows, cols, len(counts))
     size = np.bincount(label)
     good = size >= 2
     keep = good[label]
