@@ -80,6 +80,21 @@ def test_sift_keypoints_follow_the_image_content_in_colmap_pixels():
         assert d1.dtype == np.uint8 and d1.shape[1] == 128 and k1.shape[1] == 4
 
 
+@pytest.mark.parametrize("peak", [0.02 / 3, 0.04 / 3])
+def test_peak_threshold_is_colmaps_test_on_the_interpolated_dog_peak(peak):
+    """COLMAP (VLFeat) keeps an extremum whose interpolated |DoG| (OpenCV's `response`) reaches peak_threshold:
+    extract_sift keeps exactly the keypoints of a low-threshold OpenCV run whose response reaches it (the
+    scaling of OpenCV's contrastThreshold once kept only those reaching twice the value asked)."""
+    import cv2
+    import skimage.data
+
+    image = skimage.data.camera()
+    keypoints, _ = extract_sift(image, SiftConfig(peak_threshold=peak))
+    loose = cv2.SIFT_create(nfeatures=0, contrastThreshold=0.1 * peak * 3).detect(image, None)
+    responses = np.array([k.response for k in loose])
+    assert len(keypoints) == int((responses >= peak).sum()) > 500
+
+
 def test_listing_is_recursive_and_reports_non_images_and_corrupt_files(tmp_path, caplog):
     (tmp_path / "sub" / "deeper").mkdir(parents=True)
     Image.fromarray(pattern()).save(tmp_path / "b.jpg")

@@ -10,10 +10,12 @@ mvrecon / pycolmap. Without ground truth, the AUCs of mvrecon are computed again
 Usage:
   python tools/bench_sfm.py ../shared/data/middlebury_templeSparseRing/images
   python tools/bench_sfm.py IMAGES --gt MODEL_OR_PAR_FILE [--work DIR] [--camera-mode single]
+  python tools/bench_sfm.py IMAGES --mvrecon-args "--peak-threshold 0.00667"   (flags for mvrecon only)
 """
 
 import argparse
 import json
+import shlex
 import sys
 import tempfile
 from pathlib import Path
@@ -60,6 +62,7 @@ def main(argv=None) -> int:
     ap.add_argument("--camera-model", default="SIMPLE_RADIAL")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    ap.add_argument("--mvrecon-args", default="", help="extra flags for `mvrecon reconstruct`, in one string")
     args = ap.parse_args(argv)
 
     images = Path(args.images)
@@ -68,7 +71,8 @@ def main(argv=None) -> int:
     names = [Path(n).name for n in list_images(images)[0]]
     gt = load_ground_truth_for(gt_path, names) if gt_path else None
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="bench_sfm_"))
-    options = RunOptions(camera_mode=args.camera_mode, camera_model=args.camera_model, seed=args.seed)
+    options = RunOptions(camera_mode=args.camera_mode, camera_model=args.camera_model, seed=args.seed,
+                         mvrecon_args=tuple(shlex.split(args.mvrecon_args)))
     ours = run_mvrecon(images, work / "mvrecon", options)
     theirs = run_colmap(images, work / "colmap", options)
     reference = gt
