@@ -82,9 +82,9 @@ def test_sift_keypoints_follow_the_image_content_in_colmap_pixels():
 
 @pytest.mark.parametrize("peak", [0.02 / 3, 0.04 / 3])
 def test_peak_threshold_is_colmaps_test_on_the_interpolated_dog_peak(peak):
-    """COLMAP (VLFeat) keeps an extremum whose interpolated |DoG| (OpenCV's `response`) reaches peak_threshold:
-    extract_sift keeps exactly the keypoints of a low-threshold OpenCV run whose response reaches it (the
-    scaling of OpenCV's contrastThreshold once kept only those reaching twice the value asked)."""
+    """COLMAP (VLFeat) keeps an extremum whose interpolated |DoG| (OpenCV's `response`) reaches
+    peak_threshold: extract_sift keeps exactly the keypoints of a low-threshold OpenCV run whose response
+    reaches it (the scaling of OpenCV's contrastThreshold once kept only those reaching twice the value)."""
     import cv2
     import skimage.data
 

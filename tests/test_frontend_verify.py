@@ -31,6 +31,24 @@ def test_matcher_recovers_a_permutation_and_applies_ratio_and_mutual_checks():
     assert len(one) == 1
 
 
+def test_blocked_matcher_equals_a_whole_matrix_reference():
+    """3000 x 2500 descriptors span four row blocks; the matches equal those of one whole score matrix."""
+    rng = np.random.default_rng(3)
+    d2 = rng.integers(0, 120, size=(2500, 128)).astype(np.uint8)
+    src = rng.integers(0, 2500, size=3000)
+    d1 = np.clip(d2[src].astype(int) + rng.integers(-40, 41, size=(3000, 128)), 0, 255).astype(np.uint8)
+    u1, u2 = (d / np.linalg.norm(d, axis=1, keepdims=True) for d in (d1.astype(float), d2.astype(float)))
+    S = u1 @ u2.T
+    order = np.argsort(-S, axis=1)
+    best, second = order[:, 0], order[:, 1]
+    rows = np.arange(len(S))
+    a1, a2 = np.arccos(np.clip(S[rows, best], -1, 1)), np.arccos(np.clip(S[rows, second], -1, 1))
+    keep = (a1 <= 0.7) & (a1 < 0.8 * a2) & (S.argmax(axis=0)[best] == rows)
+    expected = np.stack([rows[keep], best[keep]], axis=1)
+    got = match_descriptors(d1, d2)
+    assert 500 < len(got) < 3000 and np.array_equal(got, expected)
+
+
 def two_view(points, R, t, cam=CAM, noise=0.3, seed=1):
     rng = np.random.default_rng(seed)
     uv1 = camera_model.project(cam.model, cam.params, points)
