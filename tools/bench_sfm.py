@@ -10,7 +10,7 @@ mvrecon / pycolmap. Without ground truth, the AUCs of mvrecon are computed again
 Usage:
   python tools/bench_sfm.py ../shared/data/middlebury_templeSparseRing/images
   python tools/bench_sfm.py IMAGES --gt MODEL_OR_PAR_FILE [--work DIR] [--camera-mode single]
-  python tools/bench_sfm.py IMAGES --mvrecon-args "--peak-threshold 0.00667"   (flags for mvrecon only)
+  python tools/bench_sfm.py IMAGES --mvrecon-args="--peak-threshold 0.00667"   (flags for mvrecon only)
 """
 
 import argparse
