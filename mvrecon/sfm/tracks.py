@@ -9,6 +9,7 @@ track from the start: track merging is implicit.
 """
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -33,6 +34,11 @@ class Tracks:
 
     def lengths(self) -> np.ndarray:
         return np.diff(self.ptr)
+
+    @cached_property
+    def element_track(self) -> np.ndarray:
+        """The track of each element of `image`/`keypoint` (tracks never change, so computed once)."""
+        return np.repeat(np.arange(len(self)), self.lengths())
 
 
 def build_tracks(image_ids, num_keypoints, pairs) -> Tracks:

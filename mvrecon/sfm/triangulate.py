@@ -156,8 +156,7 @@ def triangulate_tracks(model, tracks, track_ids, config: MapperConfig, seed: int
 def continue_points(model, tracks, config: MapperConfig, images=None, loose: bool = False) -> int:
     """Add observations of existing points in registered views of their tracks (restricted to `images` when
     given) that pass the pixel gate, or the angular one with `loose`. Returns observations added."""
-    elem_track = np.repeat(np.arange(len(tracks)), tracks.lengths())
-    pid = model.point_of_track[elem_track]
+    pid = model.point_of_track[tracks.element_track]
     cand = (pid >= 0) & model.registered[tracks.image]
     if images is not None:
         wanted = np.zeros(len(model.image_ids), bool)
@@ -202,9 +201,8 @@ def retriangulate(model, tracks, config: MapperConfig, seed: int = 0) -> tuple[i
     if len(before) != len(params) or np.max(np.abs(params - before) / np.maximum(np.abs(before), 1)) > 5e-3:
         model.tri_failed_views[:] = 0
         model.tri_failed_params = params.copy()
-    registered_count = np.bincount(np.repeat(np.arange(len(tracks)), tracks.lengths()),
-                                   weights=model.registered[tracks.image], minlength=len(tracks))
-    registered_count = registered_count.astype(np.int64)
+    registered_count = np.bincount(tracks.element_track, weights=model.registered[tracks.image],
+                                   minlength=len(tracks)).astype(np.int64)
     cand = np.flatnonzero((registered_count >= 2) & (model.point_of_track < 0)
                           & (registered_count > model.tri_failed_views))
     made = triangulate_tracks(model, tracks, cand, config, seed)
