@@ -103,6 +103,11 @@ def test_mapper_settings_from_toml_and_flags(demo, tmp_path, capsys):
     assert main(["-q", "map", "-w", str(work), "--config", str(tmp_path / "bad.toml")]) == 2
     err = capsys.readouterr().err
     assert "bad.toml" in err and "abs_pose_min_inlier" in err and err.count("\n") == 1
+    for text, name in (("huber_px = 2\n", "huber_px"), ("[mappr]\nseed = 1\n", "mappr")):  # outside [mapper]
+        (tmp_path / "misplaced.toml").write_text(text)
+        assert main(["-q", "map", "-w", str(work), "--config", str(tmp_path / "misplaced.toml")]) == 2
+        err = capsys.readouterr().err
+        assert "misplaced.toml" in err and repr(name) in err and err.count("\n") == 1
 
 
 @pytest.fixture(scope="module")

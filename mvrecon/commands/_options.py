@@ -7,9 +7,11 @@ instead of redefining flags, so the same words mean the same thing everywhere.
 """
 
 import argparse
+import dataclasses
 
 from ..cameras import CAMERA_MODES, CameraConfig, parse_camera_params
 from ..config import load_toml, with_overrides
+from ..errors import InputError
 from ..geometry.camera import MODELS
 
 
@@ -90,7 +92,12 @@ def frontend_config_from_args(args: argparse.Namespace):
 
     config = FrontendConfig()
     if getattr(args, "config", None):
-        table = {k: v for k, v in load_toml(args.config).items() if k != "mapper"}  # the mapper's own table
+        table = load_toml(args.config)
+        known = sorted({f.name for f in dataclasses.fields(FrontendConfig)} | {"mapper"})
+        for key in table:
+            if key not in known:  # a misspelt table, or an option outside its table
+                raise InputError(f"{args.config}: unknown table or option {key!r} (known: {', '.join(known)})")
+        table.pop("mapper", None)  # the mapper's own table (commands/reconstruct.py)
         config = with_overrides(config, table, source=args.config)
     overrides: dict = {}
     for dest, (section, name) in _FLAG_FIELDS.items():

@@ -42,8 +42,10 @@ def mapper_config(args):
 
     config = MapperConfig()
     if getattr(args, "config", None):
-        table = load_toml(args.config).get("mapper", {})
-        config = with_overrides(config, table, source=f"{args.config}: mapper")
+        from ._options import frontend_config_from_args
+
+        frontend_config_from_args(args)  # `map` uses only [mapper]; a misspelt table must not pass unnoticed
+        config = with_overrides(config, load_toml(args.config).get("mapper", {}), source=f"{args.config}: mapper")
     flags = {"seed": args.seed, "optimizer": args.optimizer}
     if args.fix_intrinsics:
         flags["refine_intrinsics"] = False
