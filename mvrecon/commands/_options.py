@@ -86,19 +86,26 @@ _FLAG_FIELDS = {  # argparse dest -> (config section, field)
 }
 
 
-def frontend_config_from_args(args: argparse.Namespace):
-    """FrontendConfig = defaults < --config TOML < flags given on the command line."""
+def config_file(args: argparse.Namespace):
+    """(FrontendConfig with the --config TOML file's front-end tables applied, the file's [mapper] table); the
+    defaults and {} without a file. The front-end tables are checked whichever command reads the file (`map`
+    uses only [mapper]): a misspelt table or an option outside its table is an InputError, not ignored."""
     from ..pipeline import FrontendConfig
 
-    config = FrontendConfig()
-    if getattr(args, "config", None):
-        table = load_toml(args.config)
-        known = sorted({f.name for f in dataclasses.fields(FrontendConfig)} | {"mapper"})
-        for key in table:
-            if key not in known:  # a misspelt table, or an option outside its table
-                raise InputError(f"{args.config}: unknown table or option {key!r} (known: {', '.join(known)})")
-        table.pop("mapper", None)  # the mapper's own table (commands/reconstruct.py)
-        config = with_overrides(config, table, source=args.config)
+    if not getattr(args, "config", None):
+        return FrontendConfig(), {}
+    tables = load_toml(args.config)
+    mapper = tables.pop("mapper", {})
+    known = sorted({f.name for f in dataclasses.fields(FrontendConfig)} | {"mapper"})
+    for key in tables:
+        if key not in known:
+            raise InputError(f"{args.config}: unknown table or option {key!r} (known: {', '.join(known)})")
+    return with_overrides(FrontendConfig(), tables, source=args.config), mapper
+
+
+def frontend_config_from_args(args: argparse.Namespace):
+    """FrontendConfig = defaults < --config TOML < flags given on the command line."""
+    config = config_file(args)[0]
     overrides: dict = {}
     for dest, (section, name) in _FLAG_FIELDS.items():
         value = getattr(args, dest, None)

@@ -36,16 +36,12 @@ def add_mapper_options(parser, *, standalone: bool = True) -> None:
 
 def mapper_config(args):
     """MapperConfig = defaults < the [mapper] table of --config < flags given on the command line."""
-    from ..config import load_toml, with_overrides
+    from ..config import with_overrides
     from ..errors import InputError
     from ..sfm.config import MapperConfig
+    from ._options import config_file
 
-    config = MapperConfig()
-    if getattr(args, "config", None):
-        from ._options import frontend_config_from_args
-
-        frontend_config_from_args(args)  # `map` uses only [mapper]; a misspelt table must not pass unnoticed
-        config = with_overrides(config, load_toml(args.config).get("mapper", {}), source=f"{args.config}: mapper")
+    config = with_overrides(MapperConfig(), config_file(args)[1], source=f"{args.config}: mapper")
     flags = {"seed": args.seed, "optimizer": args.optimizer}
     if args.fix_intrinsics:
         flags["refine_intrinsics"] = False
