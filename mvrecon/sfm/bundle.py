@@ -185,13 +185,16 @@ def bundle_adjust(model, variable_images, config: MapperConfig, *, point_ids=Non
         model.t[i] = -R @ np.asarray(pose.translation())
     for p in points:
         xyz[p] = result.atPoint3(L(int(p)))
-    for c in refined_cams:
+    focals = []  # logged: a guessed focal walking far in the first BAs is what makes them take 50 iterations
+    for c in sorted(refined_cams):
+        before = model.cameras[c].focal()
         cal = getattr(result, f"at{cal_kind[c]}")(K(c))
         model.cameras[c].params = _params_from_calibration(model.cameras[c].model, cal)
+        focals.append(f"camera {c} focal {before:.1f} -> {model.cameras[c].focal():.1f}")
     out = BundleResult(float(initial), float(final), used, time.perf_counter() - start, len(obs))
     log.debug("BA %d images (%d constant), %d points, %d observations: cost %.4g -> %.4g in %d iterations, "
-              "%.3f s", int(variable.sum()), len(fixed_cams), len(points), len(obs), out.initial_error,
-              out.final_error, used, out.seconds)
+              "%.3f s%s", int(variable.sum()), len(fixed_cams), len(points), len(obs), out.initial_error,
+              out.final_error, used, out.seconds, "".join(f"; {f}" for f in focals))
     return out
 
 
