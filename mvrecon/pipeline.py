@@ -10,7 +10,7 @@ loses at most the unit in progress and a rerun of the same command resumes.
 
 import logging
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -239,25 +239,45 @@ def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
             return cache[image_id]
 
         bar = progress(total=len(todo), desc="matching", unit="pair")
-        with ThreadPoolExecutor(max_workers=_workers(config)) as pool, blas_threads(1):
-            for b in range(0, len(todo), batch_size):
-                batch = todo[b:b + batch_size]
-                tasks = [(features(i), features(j), config) for i, j in batch]
-                results = list(pool.map(_match_one, tasks))
-                with dbmod.transaction(db):
-                    for (i, j), (matches, geometry) in zip(batch, results):
-                        dbmod.write_matches(db, i, j, matches)
-                        dbmod.write_two_view_geometry(db, dbmod.PairGeometry(
-                            image_id1=i, image_id2=j, config=geometry.config, inliers=geometry.inliers,
-                            F=geometry.F, E=geometry.E, H=geometry.H))
-                for i, j in batch:
-                    for k in (i, j):
-                        remaining[k] -= 1
-                        if remaining[k] == 0:
-                            cache.pop(k, None)
-                bar.update(len(batch))
-                if on_batch is not None:
-                    on_batch(b + len(batch))
+        workers = _workers(config)
+        queue, upcoming, done = deque(), iter(todo), 0
+
+        def submit(pool) -> None:
+            pair = next(upcoming, None)
+            if pair is not None:
+                queue.append((pair, pool.submit(_match_one, (features(pair[0]), features(pair[1]), config))))
+
+        with ThreadPoolExecutor(max_workers=workers) as pool, blas_threads(1):
+            # A sliding window of pairs in flight, not one batch at a time: the workers keep going while this
+            # thread writes a batch (waiting for each batch's slowest pair left ~8% of opensfm_lund's cores idle).
+            try:
+                for _ in range(batch_size + 2 * workers):
+                    submit(pool)
+                while queue:
+                    batch = []
+                    while queue and len(batch) < batch_size:
+                        pair, future = queue.popleft()
+                        batch.append((pair, future.result()))
+                        submit(pool)
+                    with dbmod.transaction(db):
+                        for (i, j), (matches, geometry) in batch:
+                            dbmod.write_matches(db, i, j, matches)
+                            dbmod.write_two_view_geometry(db, dbmod.PairGeometry(
+                                image_id1=i, image_id2=j, config=geometry.config, inliers=geometry.inliers,
+                                F=geometry.F, E=geometry.E, H=geometry.H))
+                    for (i, j), _ in batch:
+                        for k in (i, j):
+                            remaining[k] -= 1
+                            if remaining[k] == 0:
+                                cache.pop(k, None)
+                    done += len(batch)
+                    bar.update(len(batch))
+                    if on_batch is not None:
+                        on_batch(done)
+            except BaseException:
+                for _, future in queue:  # an interrupt waits only for the pairs already running
+                    future.cancel()
+                raise
         bar.close()
         selected = set(pairs)
         verified, configs = {}, {}
