@@ -240,12 +240,12 @@ def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
 
         bar = progress(total=len(todo), desc="matching", unit="pair")
         workers = _workers(config)
-        queue, upcoming, done = deque(), iter(todo), 0
+        in_flight, upcoming, done = deque(), iter(todo), 0
 
         def submit(pool) -> None:
             pair = next(upcoming, None)
             if pair is not None:
-                queue.append((pair, pool.submit(_match_one, (features(pair[0]), features(pair[1]), config))))
+                in_flight.append((pair, pool.submit(_match_one, (features(pair[0]), features(pair[1]), config))))
 
         with ThreadPoolExecutor(max_workers=workers) as pool, blas_threads(1):
             # A sliding window of pairs in flight, not one batch at a time: the workers keep going while this
@@ -253,10 +253,10 @@ def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
             try:
                 for _ in range(batch_size + 2 * workers):
                     submit(pool)
-                while queue:
+                while in_flight:
                     batch = []
-                    while queue and len(batch) < batch_size:
-                        pair, future = queue.popleft()
+                    while in_flight and len(batch) < batch_size:
+                        pair, future = in_flight.popleft()
                         batch.append((pair, future.result()))
                         submit(pool)
                     with dbmod.transaction(db):
@@ -275,7 +275,7 @@ def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
                     if on_batch is not None:
                         on_batch(done)
             except BaseException:
-                for _, future in queue:  # an interrupt waits only for the pairs already running
+                for _, future in in_flight:  # an interrupt waits only for the pairs already running
                     future.cancel()
                 raise
         bar.close()
