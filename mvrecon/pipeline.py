@@ -25,7 +25,7 @@ from .errors import InputError
 from .executor import blas_threads, default_workers, parallel_map, peak_memory_mb, warm_up
 from .features.sift import SiftConfig
 from .io.images import IMAGE_EXTENSIONS, image_metadata, list_images
-from .matching.matcher import MatcherConfig, match_descriptors, normalize_descriptors
+from .matching.matcher import MatcherConfig, match_descriptors, prepare_descriptors
 from .matching.pairs import check_spec, select_pairs
 from .matching.verify import VerifyConfig, verify_pair
 from .progress import progress
@@ -226,15 +226,15 @@ def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
         for p in todo:
             for i in p:
                 remaining[i] = remaining.get(i, 0) + 1
-        cache = OrderedDict()  # image -> (keypoints, unit descriptors, camera), least recently used first
+        cache = OrderedDict()  # image -> (keypoints, prepared descriptors, camera), least recently used first
 
         def features(image_id):
             if image_id in cache:
                 cache.move_to_end(image_id)
             else:
                 kp, desc = dbmod.read_features(db, image_id)
-                cache[image_id] = (kp, normalize_descriptors(desc), cameras[images[image_id].camera_id])
-                while len(cache) > max_cached_images:  # bounded memory: ~4 MB per 8192-feature image
+                cache[image_id] = (kp, prepare_descriptors(desc), cameras[images[image_id].camera_id])
+                while len(cache) > max_cached_images:  # bounded memory: ~2 MB per 8192-feature image
                     cache.popitem(last=False)
             return cache[image_id]
 

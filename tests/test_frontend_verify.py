@@ -32,12 +32,13 @@ def test_matcher_recovers_a_permutation_and_applies_ratio_and_mutual_checks():
 
 
 def test_blocked_matcher_equals_a_whole_matrix_reference():
-    """3000 x 2500 descriptors span four row blocks; the matches equal those of one whole score matrix."""
+    """3000 x 2500 float descriptors span four row blocks; the matches equal those of one whole score matrix."""
     rng = np.random.default_rng(3)
     d2 = rng.integers(0, 120, size=(2500, 128)).astype(np.uint8)
     src = rng.integers(0, 2500, size=3000)
     d1 = np.clip(d2[src].astype(int) + rng.integers(-40, 41, size=(3000, 128)), 0, 255).astype(np.uint8)
     u1, u2 = (d / np.linalg.norm(d, axis=1, keepdims=True) for d in (d1.astype(float), d2.astype(float)))
+    d1, d2 = u1.astype(np.float32), u2.astype(np.float32)  # the float product; integers are tested below
     S = u1 @ u2.T
     order = np.argsort(-S, axis=1)
     best, second = order[:, 0], order[:, 1]
@@ -47,6 +48,27 @@ def test_blocked_matcher_equals_a_whole_matrix_reference():
     expected = np.stack([rows[keep], best[keep]], axis=1)
     got = match_descriptors(d1, d2)
     assert 500 < len(got) < 3000 and np.array_equal(got, expected)
+
+
+def test_integer_product_matches_as_the_float_product_on_sift():
+    """uint8 SIFT descriptors are matched by 7-bit integer products: on a real pair nearly every match is the one
+    the float32 product of the unit descriptors gives, and the exact integer product is exact."""
+    from mvrecon.matching.int_product import int_product
+    from mvrecon.matching.matcher import normalize_descriptors
+
+    rng = np.random.default_rng(0)
+    a, b = rng.integers(0, 128, (70, 128), dtype=np.uint8), rng.integers(0, 128, (128, 90)).astype(np.int8)
+    assert np.array_equal(int_product(a, b), a.astype(np.int64) @ b.astype(np.int64))
+    skimage_data = pytest.importorskip("skimage.data")
+    try:
+        left, right, _ = skimage_data.stereo_motorcycle()
+    except Exception as exc:  # the data may need a download on machines without the cache
+        pytest.skip(f"skimage stereo_motorcycle not available: {exc}")
+    (_, d1), (_, d2) = extract_sift(left), extract_sift(right)
+    integer = {tuple(m) for m in match_descriptors(d1, d2)}
+    floating = {tuple(m) for m in match_descriptors(normalize_descriptors(d1), normalize_descriptors(d2))}
+    assert len(floating) > 500
+    assert len(integer & floating) >= 0.97 * len(floating) and abs(len(integer) / len(floating) - 1) < 0.01
 
 
 def two_view(points, R, t, cam=CAM, noise=0.3, seed=1):

@@ -122,13 +122,13 @@ def _load(paths, max_size):
 def _match_all(images, config: SemConfig):
     """Keypoints (OpenCV pixel convention) per image and the affine-verified matches of every pair."""
     from ..features.sift import extract_sift
-    from ..matching.matcher import match_descriptors, normalize_descriptors
+    from ..matching.matcher import match_descriptors, prepare_descriptors
 
     keypoints, descriptors = [], []
     for im in progress(images, desc="SIFT", unit="image"):
         kp, desc = extract_sift(im, config.sift)
         keypoints.append(kp[:, :2].astype(float) - 0.5)  # COLMAP pixel centres -> OpenCV
-        descriptors.append(normalize_descriptors(desc))
+        descriptors.append(prepare_descriptors(desc))
     pairs = {}
     pair_list = [(i, j) for i in range(len(images)) for j in range(i + 1, len(images))]
     for i, j in progress(pair_list, desc="match + affine F", unit="pair"):
