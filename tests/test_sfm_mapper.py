@@ -232,3 +232,22 @@ def test_blurred_temple_keeps_its_images_and_a_plausible_camera(tmp_path):
     (cam,) = models[0].cameras.values()
     assert abs(cam.params[0] / 1520.4 - 1) < 0.15  # the focal found, from a guess half the truth
     assert abs(cam.params[3]) < 1.0  # and COLMAP's plausibility bound on k1 held
+
+
+def test_a_later_model_starts_from_the_calibration_of_a_finished_one(tmp_path):
+    """templeSparseRing: 13 images make model 0 and 3 others, which share no points with it, a second model of the
+    same camera. Orbit views leave Bougnoux's focal degenerate, so that model restarted from the 768 px guess and
+    its three images took it only to 1216 px (truth 1520); it now starts from model 0's refined calibration."""
+    sparse_ring = TEMPLE.parent / "middlebury_templeSparseRing"
+    if not sparse_ring.is_dir():
+        pytest.skip(f"templeSparseRing data not found at {sparse_ring}")
+    from mvrecon.cli import main
+    from mvrecon.eval.models import sparse_models
+
+    assert main(["-q", "reconstruct", str(sparse_ring / "images"), "-o", str(tmp_path / "run")]) == 0
+    models = sparse_models(tmp_path / "run" / "sparse")
+    assert [m.num_reg_images() for m in models] == [13, 3]
+    for m in models:
+        (cam,) = m.cameras.values()
+        assert abs(cam.params[0] / 1520.4 - 1) < 0.1, cam.params
+
