@@ -103,9 +103,10 @@ def config_file(args: argparse.Namespace):
     return with_overrides(FrontendConfig(), tables, source=args.config), mapper
 
 
-def frontend_config_from_args(args: argparse.Namespace):
-    """FrontendConfig = defaults < --config TOML < flags given on the command line."""
-    config = config_file(args)[0]
+def frontend_config_from_args(args: argparse.Namespace, from_file=None):
+    """FrontendConfig = defaults < --config TOML < flags given on the command line. `from_file`: what
+    `config_file(args)` returned, when the caller has read the file already."""
+    config = (from_file or config_file(args))[0]
     overrides: dict = {}
     for dest, (section, name) in _FLAG_FIELDS.items():
         value = getattr(args, dest, None)

@@ -34,14 +34,16 @@ def add_mapper_options(parser, *, standalone: bool = True) -> None:
         g.add_argument("--overwrite", action="store_true", help="start mapping over even with a snapshot")
 
 
-def mapper_config(args):
-    """MapperConfig = defaults < the [mapper] table of --config < flags given on the command line."""
+def mapper_config(args, from_file=None):
+    """MapperConfig = defaults < the [mapper] table of --config < flags given on the command line.
+    `from_file`: what `config_file(args)` returned, when the caller has read the file already."""
     from ..config import with_overrides
     from ..errors import InputError
     from ..sfm.config import MapperConfig
     from ._options import config_file
 
-    config = with_overrides(MapperConfig(), config_file(args)[1], source=f"{args.config}: mapper")
+    table = (from_file or config_file(args))[1]
+    config = with_overrides(MapperConfig(), table, source=f"{args.config}: mapper")
     flags = {"seed": args.seed, "optimizer": args.optimizer}
     if args.fix_intrinsics:
         flags["refine_intrinsics"] = False
@@ -67,11 +69,13 @@ def run(args) -> int:
 
     from ..errors import InputError
     from ..pipeline import ReconstructConfig, reconstruct
-    from ._options import frontend_config_from_args
+    from ._options import config_file, frontend_config_from_args
 
     if not Path(args.images).is_dir():
         raise InputError(f"{args.images}: not a folder of images")
-    config = ReconstructConfig(frontend=frontend_config_from_args(args), mapper=mapper_config(args))
+    from_file = config_file(args)  # read once for both configs
+    config = ReconstructConfig(frontend=frontend_config_from_args(args, from_file),
+                               mapper=mapper_config(args, from_file))
     report = reconstruct(config, args.images, args.output, text=args.text, resume=args.resume,
                          overwrite=args.overwrite)
     log = logging.getLogger("mvrecon")
