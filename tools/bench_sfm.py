@@ -11,11 +11,16 @@ Usage:
   python tools/bench_sfm.py ../shared/data/middlebury_templeSparseRing/images
   python tools/bench_sfm.py IMAGES --gt MODEL_OR_PAR_FILE [--work DIR] [--camera-mode single]
   python tools/bench_sfm.py IMAGES --mvrecon-args="--peak-threshold 0.00667"   (flags for mvrecon only)
+  python tools/bench_sfm.py IMAGES --repeat 3   (alternating runs; wall times are their medians)
+
+A 2-core VM's speed can drift by a third between runs a minute apart, so one pair of runs gives a noisy
+ratio; --repeat alternates the engines and reports the median wall time of each and every run's ratio.
 """
 
 import argparse
 import json
 import shlex
+import statistics
 import sys
 import tempfile
 from pathlib import Path
@@ -63,6 +68,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", default=None, help="also write the figures to this JSON file")
     ap.add_argument("--mvrecon-args", default="", help="extra flags for `mvrecon reconstruct`, in one string")
+    ap.add_argument("--repeat", type=int, default=1,
+                    help="run both engines this many times, alternating; accuracy from the first run")
     args = ap.parse_args(argv)
 
     images = Path(args.images)
@@ -73,12 +80,21 @@ def main(argv=None) -> int:
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="bench_sfm_"))
     options = RunOptions(camera_mode=args.camera_mode, camera_model=args.camera_model, seed=args.seed,
                          mvrecon_args=tuple(shlex.split(args.mvrecon_args)))
-    ours = run_mvrecon(images, work / "mvrecon", options)
-    theirs = run_colmap(images, work / "colmap", options)
+    runs = []
+    for k in range(max(args.repeat, 1)):
+        where = work if args.repeat <= 1 else work / f"run{k + 1}"
+        runs.append((run_mvrecon(images, where / "mvrecon", options),
+                     run_colmap(images, where / "colmap", options)))
+    ours, theirs = runs[0]
     reference = gt
     if reference is None and theirs.models:
         reference = _basename_poses(theirs)[0]
     rows = {"mvrecon": summarize(ours, reference), "pycolmap": summarize(theirs, gt)}
+    if len(runs) > 1:
+        for column, name in enumerate(rows):
+            walls = [r[column].wall_s for r in runs]
+            if "wall" in rows[name]:
+                rows[name].update(wall=statistics.median(walls), walls=walls)
 
     source = f"ground truth: {gt_path}" if gt else "no ground truth: AUC vs pycolmap"
     print(f"images: {images}  ({source})")
@@ -86,7 +102,8 @@ def main(argv=None) -> int:
             ("points", "points (largest model)", "{:d}"), ("reproj", "mean reprojection error px", "{:.3f}")]
     keys += [(f"auc@{t:g}", f"AUC@{t:g}", "{:.3f}") for t in AUC_THRESHOLDS]
     keys += [("median_rotation_error_deg", "median rotation error deg", "{:.3f}"),
-             ("wall", "wall time s", "{:.1f}"), ("mem", "peak memory MB", "{:.0f}")]
+             ("wall", "wall time s" + (f", median of {len(runs)}" if len(runs) > 1 else ""), "{:.1f}"),
+             ("mem", "peak memory MB", "{:.0f}")]
     print(f"{'':30s} {'mvrecon':>10s} {'pycolmap':>10s} {'ratio':>8s}")
     for key, label, fmt in keys:
         a, b = rows["mvrecon"].get(key), rows["pycolmap"].get(key)
@@ -96,6 +113,10 @@ def main(argv=None) -> int:
     for name, row in rows.items():
         if row.get("error"):
             print(f"{name} failed: {row['error']}")
+    if len(runs) > 1:
+        print("wall times of the runs: mvrecon " + " ".join(f"{r[0].wall_s:.1f}" for r in runs)
+              + ", pycolmap " + " ".join(f"{r[1].wall_s:.1f}" for r in runs)
+              + ", ratios " + " ".join(f"{r[0].wall_s / r[1].wall_s:.2f}" for r in runs))
     if ours.report:
         missing = {n: s["reason"] for n, s in ours.report.get("images", {}).items()
                    if s["status"] != "registered"}
