@@ -250,4 +250,3 @@ def test_a_later_model_starts_from_the_calibration_of_a_finished_one(tmp_path):
     for m in models:
         (cam,) = m.cameras.values()
         assert abs(cam.params[0] / 1520.4 - 1) < 0.1, cam.params
-
