@@ -120,6 +120,29 @@ def test_loop_closure_takes_back_views_that_drift_pushed_past_4_px(scene, drift_
         assert m.registered.sum() == 7
 
 
+def test_third_views_check_a_guessed_focal_but_not_one_the_pair_estimated(scene, monkeypatch):
+    """The third-view focal search is for a focal that is still the guess, where Bougnoux's estimate from the
+    pair's F degenerated (as here, and on every orbit). A focal that estimate replaced is kept without fitting
+    third views at other focal lengths: on templeSparseRing (estimate 1536 px, truth 1520) that search cost
+    0.2 s and kept the pair's focal anyway."""
+    _, corr, _ = scene
+    mapper = incremental.IncrementalMapper(corr, MapperConfig(seed=3))
+    scratch = mapper._new_model()
+    init = incremental.find_initial_pair(scratch, mapper.pairs, set(), mapper.config, set(), {})
+    cam = scratch.cameras[int(scratch.camera_of[init.image1])]
+    assert cam.focal() == cam.prior_focal == 660.0  # still the guess
+    fits = []
+    real = mapper._third_view_fit
+    monkeypatch.setattr(mapper, "_third_view_fit", lambda *a, **k: fits.append(a) or real(*a, **k))
+    mapper._focal_from_third_view(init, scratch)
+    assert len(fits) >= 1
+
+    fits.clear()
+    cam.set_focal(610.0)  # as if the pair's F had given it
+    assert mapper._focal_from_third_view(init, scratch) is init
+    assert fits == [] and cam.focal() == 610.0
+
+
 def test_retriangulation_retries_failed_tracks_only_after_a_change(scene, monkeypatch):
     """Tracks whose points are deleted and that fail under a principal point 80 px off are not re-solved
     by the next retriangulation (nothing changed for them), and triangulate again once the camera is back."""

@@ -169,9 +169,12 @@ def bundle_adjust(model, variable_images, config: MapperConfig, *, point_ids=Non
     iterations = max_iterations or config.global_ba_iterations
     with _native_stdout_silenced():
         initial = graph.error(values)
-    ordering = gtsam.Ordering()  # points first: the Schur complement, and no COLAMD run per call
-    keys = [L(int(p)) for p in points] + [K(c) for c in var_cams]
-    for key in keys + [X(int(i)) for i in np.flatnonzero(variable)]:
+    # points first (the Schur complement, and no COLAMD run per call), then poses, calibrations last: every
+    # reduced factor touches the calibration, so eliminating it before the poses joins them all at once
+    # (an LM iteration of templeRing's final BA: 98 ms median against 114)
+    ordering = gtsam.Ordering()
+    keys = [L(int(p)) for p in points] + [X(int(i)) for i in np.flatnonzero(variable)]
+    for key in keys + [K(c) for c in var_cams]:
         ordering.push_back(key)
     result, used = _optimize(gtsam, graph, values, optimizer or config.optimizer, iterations,
                              config.ba_relative_tolerance, ordering)

@@ -227,7 +227,10 @@ class IncrementalMapper:
         guess was 768 px for 269, and 139 of 321 matches fitted). The guess is tried first and kept when half
         the matches fit it, or when no other focal fits >= 10% more."""
         cam_id = int(self.camera_of[init.image1])
-        if model.cameras[cam_id].prior_trusted or int(self.camera_of[init.image2]) != cam_id:
+        cam = model.cameras[cam_id]
+        if cam.prior_trusted or int(self.camera_of[init.image2]) != cam_id:
+            return init
+        if not np.isclose(cam.focal(), cam.prior_focal):  # the pair's F gave a plausible focal: not a guess
             return init
         guess = model.cameras[cam_id].focal()  # what the pair was estimated with
         at_guess = self._third_view_fit(init, cam_id, guess)
