@@ -83,6 +83,19 @@ def test_same_seed_gives_the_same_model(scene):
     assert a.stats()["points"] == b.stats()["points"]
 
 
+def test_gtsams_sfm_optimizer_reaches_the_same_model(scene):
+    """`--optimizer sfm` (SfmLevenbergMarquardtOptimizer, Schur elimination) against the default plain LM:
+    the same images, poses, focal and residuals (focal 600.07 px with both, truth 600)."""
+    gt, corr, lm = scene
+    sfm = map_correspondences(corr, MapperConfig(seed=3, optimizer="sfm"))
+    summary = accuracy_summary(estimated_poses(sfm), gt)
+    assert summary["registered"] == 8 and summary["components"] == 1
+    assert summary["median_rotation_error_deg"] < 0.1 and summary["auc@1"] >= 0.9
+    a, b = lm.models[0], sfm.models[0]
+    assert abs(a.cameras[1].params[0] - b.cameras[1].params[0]) < 0.1 and abs(b.cameras[1].params[0] - 600) < 3
+    assert abs(a.stats()["mean_reprojection_error_px"] - b.stats()["mean_reprojection_error_px"]) < 1e-3
+
+
 def _turned(R, degrees):
     a = np.radians(degrees)
     return np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]) @ R
