@@ -232,7 +232,7 @@ class IncrementalMapper:
             return init
         if not np.isclose(cam.focal(), cam.prior_focal):  # the pair's F gave a plausible focal: not a guess
             return init
-        guess = model.cameras[cam_id].focal()  # what the pair was estimated with
+        guess = cam.focal()  # what the pair was estimated with
         at_guess = self._third_view_fit(init, cam_id, guess)
         fits = at_guess[0] if at_guess else 0
         if at_guess and fits >= 0.5 * at_guess[1]:
