@@ -84,13 +84,19 @@ def _passes_gate(model, X, images, kps, config, x=None):
     return np.isfinite(err) & (depth > 0) & (err <= limit)
 
 
-def _check(model, X, images, kps, mask, config):
-    """Inlier views (through the pixel gate) and whether each point is kept (two inlier views or more,
-    largest triangulation angle over them above the minimum)."""
+def _inlier_views(model, X, images, kps, mask, config):
+    """The views of `mask` that pass the pixel gate (n,k)."""
     rows, cols = np.nonzero(mask)
     inl = np.zeros(mask.shape, bool)
     if len(rows):
         inl[rows, cols] = _passes_gate(model, X[rows], images[rows, cols], kps[rows, cols], config)
+    return inl
+
+
+def _check(model, X, images, kps, mask, config):
+    """Inlier views (through the pixel gate) and whether each point is kept (two inlier views or more,
+    largest triangulation angle over them above the minimum)."""
+    inl = _inlier_views(model, X, images, kps, mask, config)
     centers = model.centers()[images]
     angle = max_triangulation_angle_deg(X, centers, inl)
     ok = (inl.sum(axis=1) >= 2) & (angle >= config.min_tri_angle_deg)
@@ -122,7 +128,7 @@ def triangulate_tracks(model, tracks, track_ids, config: MapperConfig, seed: int
         best_count = np.full(len(retry), -1)
         best_X = X[retry].copy()
         rr = np.arange(len(retry))
-        Rr, tr, xr, mr, kr = R[retry], t[retry], x[retry], mask[retry], kps[retry]
+        Rr, tr, xr, mr, kr, ir = R[retry], t[retry], x[retry], mask[retry], kps[retry], images[retry]
         for _ in range(_PAIR_HYPOTHESES):
             a = (rng.random(len(retry)) * nview).astype(int)
             b = (a + 1 + (rng.random(len(retry)) * (nview - 1)).astype(int)) % nview
@@ -130,14 +136,13 @@ def triangulate_tracks(model, tracks, track_ids, config: MapperConfig, seed: int
             sub[rr, a] = True
             sub[rr, b] = True
             Xh = triangulate_dlt(Rr, tr, xr, sub)
-            inl_h, _ = _check(model, Xh, images[retry], kr, mr, config)
-            count = inl_h.sum(axis=1)
+            count = _inlier_views(model, Xh, ir, kr, mr, config).sum(axis=1)  # counts need no angles
             better = count > best_count
             best_count[better], best_X[better] = count[better], Xh[better]
         X[retry] = best_X
-        inl_r, _ = _check(model, best_X, images[retry], kr, mr, config)
+        inl_r = _inlier_views(model, best_X, ir, kr, mr, config)
         X[retry] = refine_points(best_X, Rr, tr, xr, inl_r)
-        inl[retry], ok[retry] = _check(model, X[retry], images[retry], kr, inl_r, config)
+        inl[retry], ok[retry] = _check(model, X[retry], ir, kr, inl_r, config)
 
     partial = ok & (inl.sum(axis=1) < mask.sum(axis=1))
     if partial.any():  # refit on the inlier views only
