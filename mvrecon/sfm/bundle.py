@@ -102,6 +102,7 @@ def bundle_adjust(model, variable_images, config: MapperConfig, *, point_ids=Non
     variable &= np.isin(np.arange(len(variable)), obs_img)  # a pose with no factor would be a singular variable
     if len(obs) == 0 or not variable.any():
         return BundleResult(0.0, 0.0, 0, 0.0, 0)
+    optimised = np.flatnonzero(variable).tolist()
 
     noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(config.huber_px),
                                            gtsam.noiseModel.Isotropic.Sigma(2, 1.0))
@@ -128,8 +129,8 @@ def bundle_adjust(model, variable_images, config: MapperConfig, *, point_ids=Non
         sig = np.where(free, _LOOSE, _TIGHT)
         graph.add(getattr(gtsam, f"PriorFactor{kind}")(K(c), _make_calibration(gtsam, kind, vec),
                                                        gtsam.noiseModel.Diagonal.Sigmas(sig)))
-    for i in np.flatnonzero(variable):
-        values.insert(X(int(i)), _pose3(gtsam, model.R[i], model.t[i]))
+    for i in optimised:
+        values.insert(X(i), _pose3(gtsam, model.R[i], model.t[i]))
 
     # constant images: a fixed camera object each, factors on the point only
     fixed_cams = {}
@@ -172,14 +173,14 @@ def bundle_adjust(model, variable_images, config: MapperConfig, *, point_ids=Non
     # reduced factor touches the calibration, so eliminating it before the poses joins them all at once
     # (an LM iteration of templeRing's final BA: 98 ms median against 114)
     ordering = gtsam.Ordering()
-    keys = [L(int(p)) for p in points] + [X(int(i)) for i in np.flatnonzero(variable)]
-    for key in keys + [K(c) for c in var_cams]:
+    for key in ([L(int(p)) for p in points] + [X(i) for i in optimised]
+                + [K(c) for c in var_cams]):
         ordering.push_back(key)
     result, used, initial, final = _optimize(gtsam, graph, values, optimizer or config.optimizer, iterations,
                                              config.ba_relative_tolerance, ordering)
 
-    for i in np.flatnonzero(variable):
-        pose = result.atPose3(X(int(i)))
+    for i in optimised:
+        pose = result.atPose3(X(i))
         R = np.asarray(pose.rotation().matrix()).T
         model.R[i] = R
         model.t[i] = -R @ np.asarray(pose.translation())
