@@ -290,8 +290,8 @@ def test_a_later_model_starts_from_the_calibration_of_a_finished_one(tmp_path):
 
 def test_two_view_bundle_adjustment_of_the_temple_converges_without_crawling(tmp_path):
     """templeRing's initial pair (templeR0024/0025, focal still the 768 px guess): the BA doubles the ratio of
-    the points' depth to the baseline (6.4 -> 13.2). A tight prior holding the baseline made all 533 points
-    walk out to twice their depth, 0.5-10% of the way per LM step, for 34 iterations; with the soft prior
+    the points' depth to the baseline (6.4 -> 13.2). A tight prior holding the baseline made every point walk
+    out to twice its depth, a little further with each LM step, for 34 iterations; with the soft prior
     (sigma = the baseline) the baseline shrinks instead, and LM stops after 11 within 0.5% of the optimum
     (reached at a relative tolerance of 1e-6), in the same shape, the first camera kept."""
     if not TEMPLE.is_dir():
