@@ -8,10 +8,12 @@ variables. Calibration entries COLMAP keeps fixed (principal point, skew, the k2
 are not refined are pinned by a tight prior on the calibration.
 
 Gauge: 7 degrees of freedom (similarity) are free in SfM. With two or more constant images the window is
-anchored. Otherwise the first registered image is pinned by a tight pose prior and the scale by a soft prior
-on one translation component (along the baseline) of the second image, COLMAP's choice of component. Soft
-(sigma = the baseline's length) because the prior only has to remove the scale's null direction: a tight one
-made LM crawl (templeRing's two-image BA took 34 iterations instead of 11).
+anchored. Otherwise the first registered image is pinned by a tight pose prior and the scale by a prior on one
+translation component (along the baseline) of the second image, COLMAP's choice. In the BA of the initial pair
+alone that prior is soft (sigma = the baseline's length): with the focal held there, a pair estimated at a
+guessed focal changes its depth-to-baseline ratio (templeRing: it doubles), and a tight prior made every point
+walk to its new depth, a little each LM step (34 iterations instead of 11). With more images it stays tight: a
+soft one there sent imc_reichstag's focal BAs (a camera per image) to higher costs and AUC@5 0.75 -> 0.53.
 
 The graph is built once per call in a single pass over the observation arrays; `optimizer="sfm"` runs
 gtsam.SfmLevenbergMarquardtOptimizer with Schur elimination of the points, "lm" plain Levenberg-Marquardt.
@@ -257,7 +259,8 @@ def _fix_gauge(gtsam, graph, model, variable, num_fixed_images, X):
     baseline_in_cam = model.R[second] @ (centers[second] - centers[anchor])
     axis = int(np.argmax(np.abs(baseline_in_cam)))
     sig = np.full(6, _LOOSE)
-    sig[3 + axis] = max(float(np.linalg.norm(baseline_in_cam)), _TIGHT)  # soft: see the module docstring
+    pair_alone = num_fixed_images == 0 and len(order) == 2  # soft only there: see the module docstring
+    sig[3 + axis] = max(float(np.linalg.norm(baseline_in_cam)), _TIGHT) if pair_alone else _TIGHT
     graph.add(gtsam.PriorFactorPose3(X(second), _pose3(gtsam, model.R[second], model.t[second]),
                                      gtsam.noiseModel.Diagonal.Sigmas(sig)))
 
