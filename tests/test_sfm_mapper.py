@@ -247,22 +247,34 @@ def test_disconnected_scene_gives_two_models_and_reasons(tmp_path):
 TEMPLE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "middlebury_templeRing"
 
 
+def _reconstruct(images, out):
+    """`mvrecon reconstruct images -o out`, which must succeed; the written models, largest first."""
+    from mvrecon.cli import main
+    from mvrecon.eval.models import sparse_models
+
+    assert main(["-q", "reconstruct", str(images), "-o", str(out)]) == 0
+    return sparse_models(Path(out) / "sparse")
+
+
+def _accuracy(models, gt_source, images):
+    """accuracy_summary of `models` against the ground truth at `gt_source` for the images in `images`."""
+    from mvrecon.eval.ground_truth import load_ground_truth_for
+
+    gt = load_ground_truth_for(gt_source, [p.name for p in Path(images).iterdir()])
+    return accuracy_summary([poses(m) for m in models], gt)
+
+
 def test_blurred_temple_keeps_its_images_and_a_plausible_camera(tmp_path):
     """templeRing blurred at sigma 2 (few, weak features, no EXIF focal): a global BA once traded the focal,
     doubling from its 768 px guess, against k1 = -1.7; dropping the images of that camera then collapsed every
     model. Such a BA is now undone and repeated with the distortion fixed."""
     if not TEMPLE.is_dir():
         pytest.skip(f"templeRing data not found at {TEMPLE}")
-    from mvrecon.cli import main
-    from mvrecon.eval.ground_truth import load_ground_truth_for
-    from mvrecon.eval.models import sparse_models
     from mvrecon.study.degrade import Degradation, degrade_folder
 
     degrade_folder(TEMPLE / "images", tmp_path / "images", Degradation(blur_sigma=2.0), seed=0)
-    assert main(["-q", "reconstruct", str(tmp_path / "images"), "-o", str(tmp_path / "run")]) == 0
-    models = sparse_models(tmp_path / "run" / "sparse")
-    gt = load_ground_truth_for(TEMPLE / "templeR_par.txt", [p.name for p in (tmp_path / "images").iterdir()])
-    acc = accuracy_summary([poses(m) for m in models], gt)
+    models = _reconstruct(tmp_path / "images", tmp_path / "run")
+    acc = _accuracy(models, TEMPLE / "templeR_par.txt", tmp_path / "images")
     assert acc["registered"] == 19 and len(models) == 1
     assert acc["auc@5"] >= 0.6  # COLMAP: 15 of 19 registered, AUC@5 0.217 on this input (docs/study.md)
     (cam,) = models[0].cameras.values()
@@ -277,11 +289,7 @@ def test_a_later_model_starts_from_the_calibration_of_a_finished_one(tmp_path):
     sparse_ring = TEMPLE.parent / "middlebury_templeSparseRing"
     if not sparse_ring.is_dir():
         pytest.skip(f"templeSparseRing data not found at {sparse_ring}")
-    from mvrecon.cli import main
-    from mvrecon.eval.models import sparse_models
-
-    assert main(["-q", "reconstruct", str(sparse_ring / "images"), "-o", str(tmp_path / "run")]) == 0
-    models = sparse_models(tmp_path / "run" / "sparse")
+    models = _reconstruct(sparse_ring / "images", tmp_path / "run")
     assert [m.num_reg_images() for m in models] == [13, 3]
     for m in models:
         (cam,) = m.cameras.values()
@@ -299,13 +307,12 @@ def test_two_view_bundle_adjustment_of_the_temple_converges_without_crawling(tmp
     import shutil
     from dataclasses import replace
 
-    from mvrecon.cli import main
     from mvrecon.sfm.bundle import bundle_adjust
 
     (tmp_path / "images").mkdir()
     for name in ("templeR0024.png", "templeR0025.png"):
         shutil.copy(TEMPLE / "images" / name, tmp_path / "images")
-    assert main(["-q", "reconstruct", str(tmp_path / "images"), "-o", str(tmp_path / "run")]) == 0
+    _reconstruct(tmp_path / "images", tmp_path / "run")  # the pair alone makes no model, only the database
     mapper = incremental.IncrementalMapper(database.read_correspondences(tmp_path / "run" / "database.db"))
 
     def seeded():
@@ -340,13 +347,7 @@ def test_reichstag_cameras_keep_their_accuracy(tmp_path):
     reichstag = TEMPLE.parent / "imc_reichstag"
     if not reichstag.is_dir():
         pytest.skip(f"imc_reichstag data not found at {reichstag}")
-    from mvrecon.cli import main
-    from mvrecon.eval.ground_truth import load_ground_truth_for
-    from mvrecon.eval.models import sparse_models
-
-    assert main(["-q", "reconstruct", str(reichstag / "images"), "-o", str(tmp_path / "run")]) == 0
-    models = sparse_models(tmp_path / "run" / "sparse")
-    gt = load_ground_truth_for(reichstag / "calibration", [p.name for p in (reichstag / "images").iterdir()])
-    acc = accuracy_summary([poses(m) for m in models], gt)
+    models = _reconstruct(reichstag / "images", tmp_path / "run")
+    acc = _accuracy(models, reichstag / "calibration", reichstag / "images")
     assert acc["registered"] == 10 and len(models) == 1
     assert acc["auc@5"] >= 0.62, acc["auc@5"]  # 0.666-0.750 over recent front ends

@@ -91,10 +91,10 @@ def main(argv=None) -> int:
         reference = _basename_poses(theirs)[0]
     rows = {"mvrecon": summarize(ours, reference), "pycolmap": summarize(theirs, gt)}
     if len(runs) > 1:
-        for column, name in enumerate(rows):
-            walls = [r[column].wall_s for r in runs]
-            if "wall" in rows[name]:
-                rows[name].update(wall=statistics.median(walls), walls=walls)
+        for column, row in enumerate(rows.values()):
+            if "wall" in row:  # a failed run has no wall time to replace
+                walls = [r[column].wall_s for r in runs]
+                row.update(wall=statistics.median(walls), walls=walls)
 
     source = f"ground truth: {gt_path}" if gt else "no ground truth: AUC vs pycolmap"
     print(f"images: {images}  ({source})")
