@@ -37,6 +37,12 @@ class MapperConfig:
         still run to it, and the next BA continues from where this one stopped).
     ba_points_per_image: while the model grows, BAs optimise up to this many well-spread points per image
         and re-fit the others (sfm/ba_points.py); 0 optimises every point. The final BAs use every point.
+    ba_points_per_image_early: the same quota while the model has fewer than distortion_min_images images,
+        for images whose camera at least 3 registered images share. Those BAs mostly move a guessed focal,
+        which the observations of all its images pin, and they can take 50 iterations (templeRing's four-
+        and five-image BAs: 0.8 s with 300, 0.26 s with 100). A camera of one or two images keeps
+        ba_points_per_image: with 100, imc_reichstag (a camera per image) fell to AUC@5 0.62-0.67 from
+        0.66-0.75 (seeds 0-2).
     huber_px: Huber loss width (pixels); refine_intrinsics: focal and distortion refined in global BA.
     focal_min_images: intrinsics stay fixed in the two-view BA of the initial pair, where the focal length is
         not observable (it collapses towards zero with the depths).
@@ -70,6 +76,7 @@ class MapperConfig:
     global_ba_growth: float = 1.1
     ba_relative_tolerance: float = 1e-3
     ba_points_per_image: int = 300
+    ba_points_per_image_early: int = 100
     huber_px: float = 1.0
     refine_intrinsics: bool = True
     focal_min_images: int = 3

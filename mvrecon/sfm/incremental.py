@@ -113,13 +113,25 @@ class IncrementalMapper:
         """BA of `images` over `points`. With `subset` (while the model grows) only the grid-selected points
         and those in `keep` are optimised (see ba_points) and the others re-fitted to the moved poses;
         ba_points_per_image 0 turns that off."""
-        quota = self.config.ba_points_per_image if subset else 0
+        quota = self._points_quota(m, images) if subset else 0
         if quota <= 0:
             return self._bundle(m, images, point_ids=points, **kwargs)
         chosen = np.intersect1d(np.union1d(select_points(m, images, quota), keep), points)
         out = self._bundle(m, images, point_ids=chosen, **kwargs)
         refine_existing_points(m, np.setdiff1d(points, chosen))
         return out
+
+    def _points_quota(self, m, images) -> int:
+        """Points per image of a BA during growth: ba_points_per_image_early while the model is small and
+        every camera of `images` is shared by at least 3 registered images (see config.py)."""
+        cfg = self.config
+        n = int(m.registered.sum())
+        if n >= cfg.distortion_min_images or cfg.ba_points_per_image <= 0:
+            return cfg.ba_points_per_image
+        users = np.bincount(self.camera_of[m.registered], minlength=int(self.camera_of.max()) + 1)
+        if np.all(users[self.camera_of[np.asarray(images)]] >= 3):
+            return cfg.ba_points_per_image_early
+        return cfg.ba_points_per_image
 
     # ----- state -----
     def _new_model(self) -> Reconstruction:
