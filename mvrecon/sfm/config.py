@@ -40,7 +40,7 @@ class MapperConfig:
     ba_points_per_image_early: the same quota while the model has fewer than distortion_min_images images,
         for images whose camera at least 3 registered images share. Those BAs mostly move a guessed focal,
         which the observations of all its images pin, and they can take 50 iterations (templeRing's four-
-        and five-image BAs: 0.8 s with 300, 0.26 s with 100). A camera of one or two images keeps
+        and five-image BAs: 0.8 s with 300, 0.26-0.35 s with 100). A camera of one or two images keeps
         ba_points_per_image: with 100, imc_reichstag (a camera per image) fell to AUC@5 0.62-0.67 from
         0.66-0.75 (seeds 0-2).
     huber_px: Huber loss width (pixels); refine_intrinsics: focal and distortion refined in global BA.
