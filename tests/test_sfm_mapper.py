@@ -367,7 +367,9 @@ def test_two_view_bundle_adjustment_of_the_temple_converges_without_crawling(tmp
 def test_reichstag_cameras_keep_their_accuracy(tmp_path):
     """imc_reichstag: ten photos from ten cameras, each focal refined from its own guess. The soft scale prior
     of the initial pair's BA, applied to every BA without constant images, sent these focal BAs to higher
-    costs: AUC@5 0.533 against 0.750 (COLMAP: 0.659)."""
+    costs: AUC@5 0.533 against 0.750 (COLMAP: 0.659). The 100-point quota of small models, applied to
+    these one-image cameras too, gave 0.671 here (0.616-0.671 over seeds 0-2): above this threshold, so that
+    rule is guarded by test_small_models_adjust_fewer_points_per_image_when_their_camera_is_shared."""
     reichstag = TEMPLE.parent / "imc_reichstag"
     if not reichstag.is_dir():
         pytest.skip(f"imc_reichstag data not found at {reichstag}")
