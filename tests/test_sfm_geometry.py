@@ -5,7 +5,8 @@ import numpy as np
 from mvrecon.database import PairGeometry
 from mvrecon.geometry.absolute_pose import pnp_ransac, refine_pose_and_focal
 from mvrecon.geometry.rotation import angle_axis_to_rotmat, rotation_error_deg, vector_angle_deg
-from mvrecon.geometry.triangulation import max_triangulation_angle_deg, refine_points, triangulate_dlt
+from mvrecon.geometry.triangulation import (max_triangulation_angle_deg, reaches_triangulation_angle, refine_points,
+                                           triangulate_dlt, two_view_midpoints)
 from mvrecon.geometry.two_view import focal_from_fundamental, relative_pose
 from mvrecon.sfm.tracks import build_tracks
 
@@ -53,6 +54,49 @@ def test_relative_pose_from_essential_matches_truth():
     assert rotation_error_deg(R_est, R) < 1e-3
     assert vector_angle_deg(t_est, t) < 1e-2
     assert inl[30:].mean() > 0.99 and inl[:30].mean() < 0.2
+
+
+def test_relative_pose_drops_matches_behind_the_cameras():
+    """Points behind both cameras satisfy the same epipolar constraint, so RANSAC keeps them; the cheirality
+    test on the rays' midpoints must drop exactly those and still pick the true decomposition of E."""
+    rng = np.random.default_rng(3)
+    R = angle_axis_to_rotmat([0.02, -0.25, 0.03])
+    t = np.array([1.0, -0.05, 0.1])
+    X = rng.uniform([-2, -2, 5], [2, 2, 9], size=(200, 3))
+    X[:25] *= -1  # behind both cameras
+    x1, x2 = _project(np.eye(3), np.zeros(3), X), _project(R, t, X)
+    R_est, t_est, inl = relative_pose(x1, x2, threshold=1e-4, seed=0)
+    assert rotation_error_deg(R_est, R) < 1e-4 and vector_angle_deg(t_est, t) < 1e-3
+    assert not inl[:25].any() and inl[25:].all()
+
+
+def test_two_view_midpoints_are_exact_without_noise_and_nan_for_parallel_rays():
+    rng = np.random.default_rng(4)
+    R = angle_axis_to_rotmat([0.0, 0.2, 0.0])
+    t = np.array([-1.0, 0.0, 0.1])
+    X = rng.uniform([-2, -2, 4], [2, 2, 8], size=(100, 3))
+    x1, x2 = _project(np.eye(3), np.zeros(3), X), _project(R, t, X)
+    np.testing.assert_allclose(two_view_midpoints(R, t, x1, x2), X, atol=1e-9)
+    # pure translation along x: a point's rays are parallel only at infinity; equal image points mean parallel
+    same = two_view_midpoints(np.eye(3), np.array([1.0, 0, 0]), x1[:3], x1[:3])
+    assert np.isnan(same).all()
+
+
+def test_triangulation_angle_test_agrees_with_the_largest_angle():
+    """`reaches_triangulation_angle` decides from a lower bound where it can; its answers must be those of the
+    full pairwise maximum, with absent views, NaN points and near-threshold angles."""
+    rng = np.random.default_rng(5)
+    n, k = 3000, 7
+    X = rng.normal(size=(n, 3)) + [0, 0, 8]
+    centers = rng.normal(size=(n, k, 3)) * rng.choice([0.02, 0.1, 0.3, 1.0], size=(n, 1, 1))
+    mask = rng.random((n, k)) < 0.6
+    mask[:10] = False
+    X[10:20] = np.nan
+    for min_deg in (0.5, 1.5, 2.0, 8.0):
+        full = max_triangulation_angle_deg(X, centers, mask) >= min_deg
+        fast = reaches_triangulation_angle(X, centers, mask, min_deg)
+        assert 0.05 < full.mean() < 0.95  # both outcomes occur
+        np.testing.assert_array_equal(fast, full)
 
 
 def test_pnp_ransac_and_focal_refinement():

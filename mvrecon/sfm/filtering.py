@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from ..geometry.triangulation import max_triangulation_angle_deg
+from ..geometry.triangulation import reaches_triangulation_angle
 from .config import MapperConfig
 
 
@@ -28,8 +28,7 @@ def filter_small_angle_points(model, config: MapperConfig, point_ids=None) -> in
         return 0
     uniq, obs, mask = model.padded_observations(pids)
     centers = model.centers()[model.obs_image.data[obs]]
-    angle = max_triangulation_angle_deg(model.xyz.data[uniq], centers, mask)
-    bad = uniq[angle < config.filter_min_tri_angle_deg]
+    bad = uniq[~reaches_triangulation_angle(model.xyz.data[uniq], centers, mask, config.filter_min_tri_angle_deg)]
     model.delete_points(bad)
     return len(bad)
 

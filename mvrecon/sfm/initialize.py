@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry.triangulation import refine_points, residuals, triangulate_dlt, triangulation_angle_deg
+from ..geometry.triangulation import refine_points, residuals, triangulation_angle_deg, two_view_midpoints
 from ..geometry.two_view import focal_from_fundamental, relative_pose
 from .config import MapperConfig
 
@@ -35,11 +35,13 @@ def two_view_points(R, t, x1, x2):
     """Triangulate normalised matches for cam1 = [I|0], cam2 = [R|t]; returns points, depths (n,2), errors
     (n,2)."""
     n = len(x1)
-    Rs = np.stack([np.tile(np.eye(3), (n, 1, 1)), np.tile(R, (n, 1, 1))], axis=1)
-    ts = np.stack([np.zeros((n, 3)), np.tile(t, (n, 1))], axis=1)
+    Rs = np.stack([np.broadcast_to(np.eye(3), (n, 3, 3)), np.broadcast_to(R, (n, 3, 3))], axis=1)
+    ts = np.stack([np.zeros((n, 3)), np.broadcast_to(t, (n, 3))], axis=1)
     xs = np.stack([x1, x2], axis=1)
     mask = np.ones((n, 2), bool)
-    X = refine_points(triangulate_dlt(Rs, ts, xs, mask), Rs, ts, xs, mask, iterations=3)
+    X0 = two_view_midpoints(R, t, x1, x2)
+    X0[~np.isfinite(X0).all(axis=1)] = 0.0  # parallel rays: no point (the checks reject it)
+    X = refine_points(X0, Rs, ts, xs, mask, iterations=3)
     r, z = residuals(X, Rs, ts, xs, mask)
     return X, z, np.linalg.norm(r, axis=-1)
 

@@ -16,7 +16,7 @@ measured slower (outliers cost bundle adjustment iterations) and no more accurat
 
 import numpy as np
 
-from ..geometry.triangulation import max_triangulation_angle_deg, refine_points, triangulate_dlt
+from ..geometry.triangulation import reaches_triangulation_angle, refine_points, triangulate_dlt
 from .config import MapperConfig
 
 _PAIR_HYPOTHESES = 8
@@ -98,8 +98,7 @@ def _check(model, X, images, kps, mask, config):
     largest triangulation angle over them above the minimum)."""
     inl = _inlier_views(model, X, images, kps, mask, config)
     centers = model.centers()[images]
-    angle = max_triangulation_angle_deg(X, centers, inl)
-    ok = (inl.sum(axis=1) >= 2) & (angle >= config.min_tri_angle_deg)
+    ok = (inl.sum(axis=1) >= 2) & reaches_triangulation_angle(X, centers, inl, config.min_tri_angle_deg)
     return inl, ok
 
 
