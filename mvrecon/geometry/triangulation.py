@@ -93,6 +93,12 @@ def _solve_sym3(H, g):
         return x / det[:, None], det
 
 
+def _unit_rays(X, centers) -> np.ndarray:
+    """Unit viewing rays (n,k,3) from the camera centres (n,k,3) to the points X (n,3)."""
+    rays = X[:, None, :] - centers
+    return rays / np.maximum(np.linalg.norm(rays, axis=-1, keepdims=True), 1e-300)
+
+
 def max_triangulation_angle_deg(X, centers, mask, chunk_elements: int = 2_000_000) -> np.ndarray:
     """Largest angle (deg) between any two viewing rays of each point; centers (n,k,3) camera centres.
 
@@ -104,9 +110,7 @@ def max_triangulation_angle_deg(X, centers, mask, chunk_elements: int = 2_000_00
     if n > step:
         return np.concatenate([max_triangulation_angle_deg(X[s:s + step], centers[s:s + step],
                                                            mask[s:s + step]) for s in range(0, n, step)])
-    rays = X[:, None, :] - centers
-    rays = rays / np.maximum(np.linalg.norm(rays, axis=-1, keepdims=True), 1e-300)
-    rays = np.where(mask[..., None], rays, np.nan)
+    rays = np.where(mask[..., None], _unit_rays(X, centers), np.nan)
     cos = rays @ rays.transpose(0, 2, 1)
     cos = np.where(np.isnan(cos), 1.0, cos)
     return np.degrees(np.arccos(np.clip(cos.min(axis=(1, 2)), -1.0, 1.0)))
@@ -119,8 +123,7 @@ def reaches_triangulation_angle(X, centers, mask, min_deg: float) -> np.ndarray:
     n = len(mask)
     if n == 0:
         return np.zeros(0, bool)
-    rays = X[:, None, :] - centers
-    rays = rays / np.maximum(np.linalg.norm(rays, axis=-1, keepdims=True), 1e-300)
+    rays = _unit_rays(X, centers)
     first = rays[np.arange(n), np.argmax(mask, axis=1)]
     cos = np.where(mask, np.einsum("nkj,nj->nk", rays, first), 1.0)
     with np.errstate(invalid="ignore"):
