@@ -82,6 +82,11 @@ def _params_from_calibration(model: str, cal) -> np.ndarray:
     return np.array([cal.fx(), cal.fy(), cal.px(), cal.py(), k[0], k[1], k[2], k[3]])
 
 
+def _keys(char: str, indices) -> list[int]:
+    """GTSAM symbol keys (as `gtsam.symbol(char, j)`) of many indices at once: the character in the top byte."""
+    return ((ord(char) << 56) | np.asarray(indices, dtype=np.int64).astype(np.uint64)).tolist()
+
+
 def _pose3(gtsam, R, t):
     Rt = np.asarray(R).T
     return gtsam.Pose3(gtsam.Rot3(Rt), -Rt @ np.asarray(t))
@@ -146,29 +151,32 @@ def bundle_adjust(model, variable_images, config: MapperConfig, *, point_ids=Non
 
     points = np.unique(obs_pt)
     xyz = model.xyz.data
-    for p in points:
-        values.insert(L(int(p)), xyz[p])
+    point_keys = _keys("l", points)
+    for k, p in zip(point_keys, points.tolist()):
+        values.insert(k, xyz[p])
 
     uv = np.empty((len(obs), 2))
     for i in np.unique(obs_img):
         m = obs_img == i
         uv[m] = model.keypoints[i][obs_kp[m]]
-    cam_of = model.camera_of
-    factor = {kind: getattr(gtsam, f"GeneralSFMFactor2{kind}") for kind in set(cal_kind.values())}
-    tri = {kind: getattr(gtsam, f"TriangulationFactor{kind}")
-           for kind in ("Cal3Bundler", "Cal3_S2", "Cal3DS2")}
-    cache = model.ba_factor_cache(config.huber_px)  # building factors was ~10% of a BA's time
-    for o, (i, p, ob, var) in enumerate(zip(obs_img.tolist(), obs_pt.tolist(), obs.tolist(),
-                                            variable[obs_img].tolist())):
-        if var:
-            f = cache.get(ob)
-            if f is None:
-                c = int(cam_of[i])
-                f = cache[ob] = factor[cal_kind[c]](uv[o], noise, X(i), L(p), K(c))
-            graph.add(f)
+    # one factor per observation, in observation order: a view of a variable image from the model's cache
+    # (building them was ~10% of a BA's time), one of a constant image on the point alone; list operations
+    # rather than one Python loop doing it all, as a mapping adds ~100,000 factors
+    cache = model.ba_factor_cache(config.huber_px)
+    factors = [cache.get(o) for o in obs.tolist()]
+    var_obs = variable[obs_img].tolist()
+    make = {c: getattr(gtsam, f"GeneralSFMFactor2{kind}") for c, kind in cal_kind.items()}
+    tri = {kind: getattr(gtsam, f"TriangulationFactor{kind}") for kind in ("Cal3Bundler", "Cal3_S2", "Cal3DS2")}
+    for row in [k for k, (f, var) in enumerate(zip(factors, var_obs)) if f is None or not var]:
+        i, p = int(obs_img[row]), int(obs_pt[row])
+        if var_obs[row]:
+            c = int(model.camera_of[i])
+            factors[row] = cache[int(obs[row])] = make[c](uv[row], noise, X(i), L(p), K(c))
         else:
             kind, camera = fixed_cams[i]
-            graph.add(tri[kind](camera, uv[o], noise, L(p)))
+            factors[row] = tri[kind](camera, uv[row], noise, L(p))
+    for f in factors:
+        graph.add(f)
 
     _fix_gauge(gtsam, graph, model, variable, len(fixed_cams), X)
 
@@ -176,10 +184,7 @@ def bundle_adjust(model, variable_images, config: MapperConfig, *, point_ids=Non
     # points first (the Schur complement, and no COLAMD run per call), then poses, calibrations last: every
     # reduced factor touches the calibration, so eliminating it before the poses joins them all at once
     # (an LM iteration of templeRing's final BA: 98 ms median against 114)
-    ordering = gtsam.Ordering()
-    for key in ([L(int(p)) for p in points] + [X(i) for i in optimised]
-                + [K(c) for c in var_cams]):
-        ordering.push_back(key)
+    ordering = gtsam.Ordering([*point_keys, *_keys("x", optimised), *_keys("k", list(var_cams))])
     result, used, initial, final = _optimize(gtsam, graph, values, optimizer or config.optimizer, iterations,
                                              config.ba_relative_tolerance, ordering)
 
@@ -188,8 +193,7 @@ def bundle_adjust(model, variable_images, config: MapperConfig, *, point_ids=Non
         R = np.asarray(pose.rotation().matrix()).T
         model.R[i] = R
         model.t[i] = -R @ np.asarray(pose.translation())
-    for p in points:
-        xyz[p] = result.atPoint3(L(int(p)))
+    xyz[points] = gtsam.utilities.extractPoint3(result)  # every Point3 in the values, in key order = `points`
     focals = []  # logged: a guessed focal walking far in the first BAs is what makes them take 50 iterations
     for c in sorted(refined_cams):
         before = model.cameras[c].focal()
