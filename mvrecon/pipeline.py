@@ -73,6 +73,9 @@ class FeatureSummary:
     skipped: dict[str, str] = field(default_factory=dict)  # every file left out (not an image, unreadable)
     num_cameras: int = 0
     seconds: float = 0.0
+    # name -> colours at its keypoints (io.images.colors_at), for the images extracted in this run: the
+    # models' point colours come from them instead of decoding the images again (see map_workspace)
+    keypoint_colors: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
 
     def text(self) -> str:
         parts = [f"Features: {self.num_images} images ({self.num_extracted} extracted now, "
@@ -87,12 +90,16 @@ class FeatureSummary:
 
 
 def _extract_job(job):
-    """Worker: (path, name, sift config) -> (name, (keypoints, descriptors)) or (name, error message)."""
-    from .features.sift import extract_sift_from_file
+    """Worker: (path, name, sift config) -> (name, (keypoints, descriptors, keypoint colours)) or (name, error
+    message)."""
+    from .features.sift import extract_sift
+    from .io.images import colors_at, read_image
 
     path, name, sift_config = job
     try:
-        return name, extract_sift_from_file(path, sift_config)
+        image = read_image(path)
+        keypoints, descriptors = extract_sift(image, sift_config)
+        return name, (keypoints, descriptors, colors_at(image, keypoints[:, :2]))
     except InputError as exc:
         return name, str(exc)
     except Exception as exc:  # OpenCV or memory errors on one image must not stop the run
@@ -130,7 +137,7 @@ def extract_features(config: FrontendConfig, image_dir, workspace, *, overwrite:
         for suffix in ("", "-wal", "-shm", "-journal"):
             Path(f"{ws.database_path}{suffix}").unlink(missing_ok=True)
     group_of = {name: gi for gi, (_, members) in enumerate(groups) for name in members}
-    extracted = 0
+    extracted, colors = 0, {}
     with dbmod.open_database(ws.database_path) as db:
         existing = {info.name: info for info in dbmod.read_images(db).values()}
         camera_ids: dict[int, int] = {}
@@ -146,7 +153,7 @@ def extract_features(config: FrontendConfig, image_dir, workspace, *, overwrite:
                     log.warning("skipping %s", result)
                     failed[name] = result
                     continue
-                keypoints, descriptors = result
+                keypoints, descriptors, colors[name] = result
                 gi = group_of[name]
                 with dbmod.transaction(db):
                     if gi not in camera_ids:
@@ -166,7 +173,8 @@ def extract_features(config: FrontendConfig, image_dir, workspace, *, overwrite:
     if len(counts) < 2:
         _too_few(folder, len(counts), failed)
     return FeatureSummary(num_images=len(counts), num_extracted=extracted, keypoints=counts, failed=failed,
-                          skipped=skipped, num_cameras=num_cameras, seconds=time.perf_counter() - start)
+                          skipped=skipped, num_cameras=num_cameras, seconds=time.perf_counter() - start,
+                          keypoint_colors=colors)
 
 
 # ---------------------------------------------------------------- matching
@@ -324,11 +332,12 @@ class MapSummary:
 
 
 def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resume: bool = False,
-                  overwrite: bool = False) -> MapSummary:
+                  overwrite: bool = False, keypoint_colors=None) -> MapSummary:
     """Run the incremental mapper on the workspace's database and write `sparse/N/` and `points.ply`.
 
     `config` is a MapperConfig. With `resume`, mapping continues from the last snapshot in the workspace
-    (`snapshots/mapper.pkl`); without it mapping starts over. `image_dir` colours the points.
+    (`snapshots/mapper.pkl`); without it mapping starts over. The points are coloured from `keypoint_colors`
+    (FeatureSummary's) when it covers a model's images, otherwise from the images in `image_dir`.
     """
     import shutil
 
@@ -350,7 +359,7 @@ def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resu
     sparse = ws.path / "sparse"
     if sparse.exists():
         shutil.rmtree(sparse)
-    recs = write_models(result.models, sparse, image_dir=image_dir, text=text)
+    recs = write_models(result.models, sparse, image_dir=image_dir, text=text, keypoint_colors=keypoint_colors)
     if recs:
         write_points_ply(recs[0], ws.path / "points.ply")
     else:
@@ -419,7 +428,8 @@ def reconstruct(config: ReconstructConfig, image_dir, out_dir, *, text: bool = F
     log.info("%s", matches.text())
     stages["matching"] = {"wall_s": time.perf_counter() - t1, "peak_mem_mb": peak_memory_mb()}
     t2 = time.perf_counter()
-    summary = map_workspace(mapper, ws, image_dir=image_dir, text=text, resume=resume, overwrite=overwrite)
+    summary = map_workspace(mapper, ws, image_dir=image_dir, text=text, resume=resume, overwrite=overwrite,
+                            keypoint_colors=features.keypoint_colors)
     stages["mapping"] = {"wall_s": time.perf_counter() - t2, "peak_mem_mb": peak_memory_mb()}
     log.info("%s", summary.text())
     skipped = dict(features.failed)

@@ -50,6 +50,16 @@ def test_reconstruct_outputs_follow_the_contract(demo):
     assert (run / "database.db").is_file()
 
 
+def test_point_colours_from_the_keypoints_equal_colmaps_from_the_images(demo):
+    # reconstruct colours the points from colours sampled at the keypoints during feature extraction; COLMAP
+    # decodes every registered image again and samples at the observations: the same bilinear mean
+    rec = pycolmap.Reconstruction(str(demo / "run" / "sparse" / "0"))
+    ours = {i: p.color.astype(int) for i, p in rec.points3D.items()}
+    rec.extract_colors_for_all_images(str(demo / "scene" / "images"))
+    diff = np.array([np.abs(ours[i] - p.color.astype(int)).max() for i, p in rec.points3D.items()])
+    assert len(diff) > 500 and diff.max() <= 1 and (diff == 0).mean() > 0.99
+
+
 def test_rerun_does_not_redo_a_finished_run(demo):
     run = demo / "run"
     before = (run / "report.json").stat().st_mtime_ns

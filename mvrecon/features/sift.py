@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..io.images import read_image, to_gray_uint8
+from ..io.images import to_gray_uint8
 
 
 @dataclass(frozen=True)
@@ -88,7 +88,3 @@ def descriptors_to_uint8(desc: np.ndarray, root: bool) -> np.ndarray:
         d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
     return np.clip(np.round(d * 512.0), 0, 255).astype(np.uint8)
 
-
-def extract_sift_from_file(path, config: SiftConfig = SiftConfig()) -> tuple[np.ndarray, np.ndarray]:
-    """`read_image` + `extract_sift`; an undecodable file raises InputError naming it."""
-    return extract_sift(read_image(path), config)

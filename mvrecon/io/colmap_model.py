@@ -1,10 +1,9 @@
 """Our `sfm.model.Reconstruction` -> `pycolmap.Reconstruction`, written as COLMAP `sparse/N` folders.
 
 Only registered images go into a model (each with a trivial rig and frame, as COLMAP 3.12+ stores them), with
-all
-their keypoints as 2D points so point2D indices stay the database's keypoint indices. Point colours are
-sampled
-from the images when the image folder is given.
+all their keypoints as 2D points so point2D indices stay the database's keypoint indices. Point colours come
+from the colours at the keypoints that feature extraction sampled, or else from the images when the image
+folder is given.
 """
 
 import logging
@@ -18,8 +17,9 @@ from .ply import write_ply
 log = logging.getLogger("mvrecon.io")
 
 
-def to_pycolmap(model) -> pycolmap.Reconstruction:
-    """A pycolmap reconstruction holding the registered images, their cameras and the alive points."""
+def to_pycolmap(model, colors=None) -> pycolmap.Reconstruction:
+    """A pycolmap reconstruction holding the registered images, their cameras and the alive points (coloured
+    by `colors`, indexed by point id, when given)."""
     rec = pycolmap.Reconstruction()
     used = np.unique(model.camera_of[model.registered])
     for cid in used:
@@ -43,22 +43,46 @@ def to_pycolmap(model) -> pycolmap.Reconstruction:
     img_ids = model.image_ids[model.obs_image.data[obs]]
     kps = model.obs_kp.data[obs]
     xyz = model.xyz.data
+    black = np.zeros(3, np.uint8)
     for p, s, e in zip(uniq, start, ends):
         track = pycolmap.Track()
         for a, b in zip(img_ids[s:e], kps[s:e]):
             track.add_element(int(a), int(b))
-        rec.add_point3D(xyz[p], track)
+        rec.add_point3D(xyz[p], track, black if colors is None else colors[p])
     rec.update_point_3d_errors()
     return rec
 
 
-def write_models(models, sparse_dir, image_dir=None, text: bool = False) -> list[pycolmap.Reconstruction]:
-    """Write models (largest first) to sparse_dir/0, 1, ...; colours from image_dir when given."""
+def point_colors(model, keypoint_colors: dict) -> np.ndarray | None:
+    """RGB (uint8) of every point id: the mean of the colours at its alive observations' keypoints (from
+    `keypoint_colors`: image name -> io.images.colors_at of its keypoints), rounded, as COLMAP's
+    `extract_colors_for_all_images` averages its samples; black without any. None when an image of the model
+    has no keypoint colours."""
+    obs = model.alive_observations()
+    img, kp, pt = model.obs_image.data[obs], model.obs_kp.data[obs], model.obs_point.data[obs]
+    if any(model.names[i] not in keypoint_colors for i in np.unique(img)):
+        return None
+    rgb = np.empty((len(obs), 3))
+    for i in np.unique(img):
+        m = img == i
+        rgb[m] = keypoint_colors[model.names[i]][kp[m]]
+    valid = np.isfinite(rgb).all(axis=1)  # keypoints at the border have no colour (NaN), as in COLMAP
+    n = len(model.xyz.data)
+    counts = np.bincount(pt[valid], minlength=n)
+    sums = np.stack([np.bincount(pt[valid], weights=rgb[valid, c], minlength=n) for c in range(3)], axis=1)
+    return np.round(sums / np.maximum(counts, 1)[:, None]).clip(0, 255).astype(np.uint8)
+
+
+def write_models(models, sparse_dir, image_dir=None, text: bool = False,
+                 keypoint_colors=None) -> list[pycolmap.Reconstruction]:
+    """Write models (largest first) to sparse_dir/0, 1, ...; point colours from `keypoint_colors` (see
+    point_colors) when it covers a model's images, otherwise from the images in image_dir when given."""
     sparse_dir = Path(sparse_dir)
     out = []
     for k, model in enumerate(models):
-        rec = to_pycolmap(model)
-        if image_dir is not None:
+        colors = point_colors(model, keypoint_colors) if keypoint_colors else None
+        rec = to_pycolmap(model, colors)
+        if colors is None and image_dir is not None:
             rec.extract_colors_for_all_images(str(image_dir))
         d = sparse_dir / str(k)
         d.mkdir(parents=True, exist_ok=True)
