@@ -9,7 +9,7 @@ from mvrecon.geometry import camera as camera_model
 from mvrecon.geometry.rotation import angle_axis_to_rotmat
 from mvrecon.matching.matcher import MatcherConfig, match_descriptors
 from mvrecon.geometry.fundamental import sampson_distance
-from mvrecon.matching.verify import verify_pair
+from mvrecon.matching.verify import VerifyConfig, f_iterations, verify_pair
 
 K = [800.0, 320.0, 240.0, 0.0]
 CAM = CameraInfo(model="SIMPLE_RADIAL", width=640, height=480, params=np.array(K), prior_trusted=True)
@@ -140,3 +140,23 @@ def test_motorcycle_fundamental_matrix_is_accurate_and_epipolar_lines_are_horizo
     assert np.median(slopes_deg) < 0.5 and np.percentile(slopes_deg, 95) < 2.0
     # and matched points keep their row
     assert np.median(np.abs(p1[:, 1] - p2[:, 1])) < 1.0
+
+
+def test_pairs_with_just_enough_inliers_verify_under_the_shortened_f_search():
+    """F's RANSAC runs only as long as a pair holding the fewest inliers that could pass needs (24 matches of
+    which 15 must fit: 364 iterations, not 5000): pairs with 17 true inliers among 24 still verify, with every
+    inlier found, on each of 20 random scenes, and chance matches still fail."""
+    assert f_iterations(24, VerifyConfig()) < 400 and f_iterations(200, VerifyConfig()) == 5000
+    R = angle_axis_to_rotmat([0.02, 0.15, 0.01])
+    t = np.array([-0.6, 0.05, 0.1])
+    cam = CameraInfo(model="SIMPLE_RADIAL", width=640, height=480, params=np.array(K), prior_trusted=False)
+    matches = np.column_stack([np.arange(24), np.arange(24)])
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        X = np.column_stack([rng.uniform(-2, 2, 24), rng.uniform(-1.5, 1.5, 24), rng.uniform(4, 8, 24)])
+        uv1, uv2 = two_view(X, R, t, cam, seed=seed)
+        uv2[17:] = rng.uniform([0, 0], [640, 480], size=(7, 2))
+        result = verify_pair(uv1, uv2, matches, cam, cam)
+        assert result.config == "UNCALIBRATED" and set(range(17)) <= set(result.inliers[:, 0]), (seed, result)
+        chance = verify_pair(uv1, rng.uniform([0, 0], [640, 480], size=(24, 2)), matches, cam, cam)
+        assert chance.config == "DEGENERATE"
