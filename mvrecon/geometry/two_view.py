@@ -2,11 +2,12 @@
 RANSAC).
 
 OpenCV's estimator is used with the identity camera matrix on normalised coordinates, so its pixel threshold
-is
-given in normalised units (pixels divided by the focal length).
+is given in normalised units (pixels divided by the focal length).
 """
 
 import numpy as np
+
+from .triangulation import two_view_midpoints
 
 
 def relative_pose(x1, x2, threshold: float, seed: int = 0, confidence: float = 0.9999):
@@ -39,8 +40,6 @@ def pose_from_essential(E, x1, x2, candidates):
     closed-form midpoints: with OpenCV's recoverPose (a DLT per point and hypothesis) `relative_pose` took
     2.4 ms per templeRing pair, 1.3 ms with this, for the same poses."""
     import cv2
-
-    from .triangulation import two_view_midpoints
 
     R1, R2, t = cv2.decomposeEssentialMat(E)
     t = t.ravel()

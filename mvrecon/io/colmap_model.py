@@ -60,12 +60,13 @@ def point_colors(model, keypoint_colors: dict) -> np.ndarray | None:
     has no keypoint colours."""
     obs = model.alive_observations()
     img, kp, pt = model.obs_image.data[obs], model.obs_kp.data[obs], model.obs_point.data[obs]
-    if any(model.names[i] not in keypoint_colors for i in np.unique(img)):
-        return None
     rgb = np.empty((len(obs), 3))
     for i in np.unique(img):
+        samples = keypoint_colors.get(model.names[i])
+        if samples is None:
+            return None
         m = img == i
-        rgb[m] = keypoint_colors[model.names[i]][kp[m]]
+        rgb[m] = samples[kp[m]]
     valid = np.isfinite(rgb).all(axis=1)  # keypoints at the border have no colour (NaN), as in COLMAP
     n = len(model.xyz.data)
     counts = np.bincount(pt[valid], minlength=n)

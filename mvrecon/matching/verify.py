@@ -53,7 +53,8 @@ def f_iterations(num_matches: int, config: VerifyConfig) -> int:
     cap spent 2 ms each (templeSparseRing: 68 of its 120 pairs); 20 matches now get 100 iterations. The margin:
     with the textbook count itself (noisy all-inlier samples do not always give an F that keeps all of them
     within the threshold) the room scene lost 2 of its 262 verified pairs, both at exactly 15 inliers of 34-36
-    matches; with twice that count all 13 test databases keep every pair, inliers included."""
+    matches; with twice that count all 13 test databases keep every pair, inliers included. At least 100
+    iterations (0.05 ms) whatever the count."""
     w = max(config.min_num_inliers, config.min_inlier_ratio * num_matches) / max(num_matches, 1)
     need = np.log(1.0 - config.confidence) / np.log1p(-(w ** 7)) if w < 1.0 else 1.0
     return int(min(config.max_iterations, max(100, 2 * np.ceil(need))))
