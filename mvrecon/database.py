@@ -3,18 +3,33 @@
 Because the schema is COLMAP's own, `pycolmap.incremental_mapping` can map our matches and our mapper can map
 COLMAP's. Coordinates stored here use COLMAP's pixel convention (top-left pixel centre at (0.5, 0.5)).
 The rest of mvrecon sees plain dataclasses and numpy arrays, never pycolmap objects.
+
+pycolmap is imported on first use, not with this module: its import (0.1 s) then overlaps the feature workers'
+start instead of delaying it, and `mvrecon --help` does not pay it.
 """
 
+import functools
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import pycolmap
 
-# COLMAP's two-view configurations, by name (pycolmap.TwoViewGeometryConfiguration).
-CONFIGS = {m.name: int(m.value) for m in pycolmap.TwoViewGeometryConfiguration.__members__.values()}
-CONFIG_NAMES = {v: k for k, v in CONFIGS.items()}
+
+def _pycolmap():
+    import pycolmap
+
+    return pycolmap
+
+
+@functools.cache
+def _configs() -> dict[str, int]:
+    """COLMAP's two-view configurations, by name (pycolmap.TwoViewGeometryConfiguration)."""
+    return {m.name: int(m.value) for m in _pycolmap().TwoViewGeometryConfiguration.__members__.values()}
+
+
+def _config_name(value: int) -> str:
+    return next((k for k, v in _configs().items() if v == value), "UNDEFINED")
 
 
 @dataclass(kw_only=True)
@@ -40,7 +55,7 @@ class PairGeometry:
 
     image_id1: int
     image_id2: int
-    config: str  # a key of CONFIGS: CALIBRATED, UNCALIBRATED, PLANAR, PANORAMIC, PLANAR_OR_PANORAMIC, DEGENERATE...
+    config: str  # a COLMAP configuration name: CALIBRATED, UNCALIBRATED, PLANAR, PANORAMIC, PLANAR_OR_PANORAMIC, DEGENERATE...
     inliers: np.ndarray
     F: np.ndarray | None = None
     E: np.ndarray | None = None
@@ -60,7 +75,7 @@ class Correspondences:
 @contextmanager
 def open_database(path):
     """Open (creating if needed) a COLMAP database and close it however the block ends."""
-    db = pycolmap.Database.open(str(path))
+    db = _pycolmap().Database.open(str(path))
     try:
         yield db
     finally:
@@ -68,7 +83,7 @@ def open_database(path):
 
 
 def write_camera(db, cam: CameraInfo) -> int:
-    c = pycolmap.Camera(model=cam.model, width=int(cam.width), height=int(cam.height),
+    c = _pycolmap().Camera(model=cam.model, width=int(cam.width), height=int(cam.height),
                         params=np.asarray(cam.params, dtype=float), has_prior_focal_length=bool(cam.prior_trusted))
     if cam.camera_id > 0:
         c.camera_id = cam.camera_id
@@ -77,7 +92,7 @@ def write_camera(db, cam: CameraInfo) -> int:
 
 
 def write_image(db, name: str, camera_id: int) -> int:
-    return db.write_image(pycolmap.Image(name=name, camera_id=int(camera_id)))
+    return db.write_image(_pycolmap().Image(name=name, camera_id=int(camera_id)))
 
 
 def write_features(db, image_id: int, keypoints: np.ndarray, descriptors: np.ndarray) -> None:
@@ -85,6 +100,7 @@ def write_features(db, image_id: int, keypoints: np.ndarray, descriptors: np.nda
     kp = np.ascontiguousarray(keypoints, dtype=np.float32).reshape(-1, 4)
     desc = np.ascontiguousarray(descriptors, dtype=np.uint8).reshape(len(kp), -1)
     db.write_keypoints(int(image_id), kp)
+    pycolmap = _pycolmap()
     db.write_descriptors(int(image_id), pycolmap.FeatureDescriptors(type=pycolmap.FeatureExtractorType.SIFT,
                                                                     data=desc))
 
@@ -95,13 +111,13 @@ def write_matches(db, image_id1: int, image_id2: int, matches: np.ndarray) -> No
 
 
 def write_two_view_geometry(db, pair: PairGeometry) -> None:
-    kwargs = {"config": CONFIGS[pair.config],
+    kwargs = {"config": _configs()[pair.config],
               "inlier_matches": np.ascontiguousarray(pair.inliers, dtype=np.uint32).reshape(-1, 2)}
     for name in ("F", "E", "H"):
         value = getattr(pair, name)
         if value is not None:
             kwargs[name] = np.asarray(value, dtype=float)
-    db.write_two_view_geometry(int(pair.image_id1), int(pair.image_id2), pycolmap.TwoViewGeometry(**kwargs))
+    db.write_two_view_geometry(int(pair.image_id1), int(pair.image_id2), _pycolmap().TwoViewGeometry(**kwargs))
 
 
 def _camera_info(c) -> CameraInfo:
@@ -135,9 +151,9 @@ def read_correspondences(path, min_inliers: int = 0) -> Correspondences:
             inliers = np.asarray(g.inlier_matches, dtype=np.int64).reshape(-1, 2)
             if len(inliers) == 0 or len(inliers) < min_inliers:
                 continue
-            id1, id2 = pycolmap.pair_id_to_image_pair(int(pair_id))
+            id1, id2 = _pycolmap().pair_id_to_image_pair(int(pair_id))
             out.pairs.append(PairGeometry(
-                image_id1=int(id1), image_id2=int(id2), config=CONFIG_NAMES.get(int(g.config), "UNDEFINED"),
+                image_id1=int(id1), image_id2=int(id2), config=_config_name(int(g.config)),
                 inliers=inliers, F=_matrix_or_none(g.F), E=_matrix_or_none(g.E), H=_matrix_or_none(g.H)))
     return out
 
@@ -152,7 +168,7 @@ def _matrix_or_none(m):
 @contextmanager
 def transaction(db):
     """All writes in the block land together or not at all (a Ctrl-C loses only the unit in progress)."""
-    with pycolmap.DatabaseTransaction(db):
+    with _pycolmap().DatabaseTransaction(db):
         yield db
 
 
@@ -188,8 +204,8 @@ def read_verified_pairs(db) -> list[tuple[int, int, str, int]]:
     for pair_id, g in zip(pair_ids, geometries):
         n = len(np.asarray(g.inlier_matches).reshape(-1, 2))
         if n:
-            id1, id2 = pycolmap.pair_id_to_image_pair(int(pair_id))
-            out.append((int(id1), int(id2), CONFIG_NAMES.get(int(g.config), "UNDEFINED"), n))
+            id1, id2 = _pycolmap().pair_id_to_image_pair(int(pair_id))
+            out.append((int(id1), int(id2), _config_name(int(g.config)), n))
     return out
 
 

@@ -1,12 +1,10 @@
-"""A local process pool for per-item work (feature extraction, pair batches), results yielded as they finish.
+"""A local process pool for per-item work (feature extraction), results yielded in the items' order.
 
 Processes rather than threads because SIFT and RANSAC hold the GIL in their Python glue and because a crash in
 native code then takes down one worker, not the run. While the parent has not loaded OpenCV, workers are plain
 forks (instant, modules inherited). Once it has, they come from a `forkserver` that preloaded the heavy modules,
 because forking a process whose OpenCV thread pool is running can deadlock. Each worker runs its native
 libraries single-threaded: the pool already uses every core, and oversubscription only adds contention.
-
-With `workers <= 1` everything runs in the calling process, which keeps tracebacks simple and tests fast.
 """
 
 import ctypes
@@ -61,49 +59,53 @@ def _get_context():
     return _context
 
 
-def warm_up(workers: int) -> None:
-    """Start the worker server now (it imports OpenCV/numpy in the background) so that its start-up overlaps
-    whatever the caller does before `parallel_map`, e.g. listing and probing the images."""
-    if workers > 1:
-        _get_context()
-
-
 def _init_worker():
     import cv2
 
     cv2.setNumThreads(1)
 
 
-def parallel_map(func: Callable, items: Iterable, workers: int | None = None) -> Iterator:
-    """Yield `func(item)` for every item, in the items' order, using up to `workers` processes.
-
-    In order, not as completed: the caller's database rows (image ids) then follow the input order whatever the
-    timing, so equal inputs give equal databases and models.
+class WorkerPool:
+    """Up to `workers` processes, started when the pool is made: a caller that makes it before its own set-up
+    (opening the database, listing and probing images) overlaps that with the workers' start and their import of
+    OpenCV (on templeSparseRing 0.06 s from the fork to the first job, then 0.03-0.07 s of import). `map` yields `func(item)` for every item, in the
+    items' order, so equal inputs give equal database rows (image ids) whatever the timing.
 
     `func` must be a module-level function and its result picklable; `func` should catch its own expected
-    errors and return them as values, so one bad item does not end the whole map. Closing the iterator early
-    (an exception or Ctrl-C in the consumer) terminates the workers.
+    errors and return them as values, so one bad item does not end the whole map. Leaving the `with` block
+    early (an exception or Ctrl-C in the consumer) terminates the workers. With `workers <= 1` everything runs
+    in the calling process, which keeps tracebacks simple and tests fast.
     """
-    items = list(items)
-    workers = default_workers() if workers is None else workers
-    workers = min(workers, len(items))
-    if workers <= 1:
-        for item in items:
-            yield func(item)
-        return
-    ctx = _get_context()
-    logging.getLogger(__name__).debug("process pool: %d %s workers", workers, ctx.get_start_method())
-    pool = ctx.Pool(workers, initializer=_init_worker)
-    finished = False
-    try:
-        yield from pool.imap(func, items, chunksize=1)
-        finished = True
-    finally:
-        if finished:
-            pool.close()
-        else:
-            pool.terminate()
-        pool.join()
+
+    def __init__(self, workers: int | None = None):
+        self.workers = default_workers() if workers is None else workers
+        self._pool = None
+        if self.workers > 1:
+            ctx = _get_context()
+            logging.getLogger(__name__).debug("process pool: %d %s workers", self.workers, ctx.get_start_method())
+            self._pool = ctx.Pool(self.workers, initializer=_init_worker)
+        self._finished = False
+
+    def map(self, func: Callable, items: Iterable) -> Iterator:
+        if self._pool is None:
+            for item in items:
+                yield func(item)
+            return
+        yield from self._pool.imap(func, items, chunksize=1)
+        self._finished = True
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        if self._pool is not None:
+            if self._finished and exc[0] is None:
+                self._pool.close()
+            else:
+                self._pool.terminate()
+            self._pool.join()
+            self._pool = None
+        return False
 
 
 def _openblas_controls():

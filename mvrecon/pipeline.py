@@ -22,7 +22,7 @@ from . import database as dbmod
 from .cameras import CameraConfig, group_cameras
 from .config import config_hash, to_dict
 from .errors import InputError
-from .executor import blas_threads, default_workers, parallel_map, peak_memory_mb, warm_up
+from .executor import WorkerPool, blas_threads, default_workers, peak_memory_mb
 from .features.sift import SiftConfig
 from .io.images import IMAGE_EXTENSIONS, image_metadata, list_images
 from .matching.matcher import MatcherConfig, match_descriptors, prepare_descriptors
@@ -117,7 +117,12 @@ def extract_features(config: FrontendConfig, image_dir, workspace, *, overwrite:
     start = time.perf_counter()
     ws = _workspace(workspace)
     folder = Path(image_dir)
-    warm_up(_workers(config))
+    with WorkerPool(_workers(config)) as pool:  # started first: its start overlaps the set-up below
+        return _extract_all(config, folder, ws, overwrite, on_image, pool, start)
+
+
+def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite: bool, on_image, pool: WorkerPool,
+                 start: float) -> FeatureSummary:
     names, skipped = list_images(folder)
     config.camera.validate()
     failed = {n: f"{folder / n}: {r}" for n, r in skipped.items() if Path(n).suffix.lower() in IMAGE_EXTENSIONS}
@@ -146,7 +151,7 @@ def extract_features(config: FrontendConfig, image_dir, workspace, *, overwrite:
                 camera_ids.setdefault(group_of[name], info.camera_id)
         todo = [n for n in names if n not in existing or not dbmod.has_features(db, existing[n].image_id)]
         jobs = [(folder / n, n, config.sift) for n in todo]
-        results = parallel_map(_extract_job, jobs, workers=_workers(config))
+        results = pool.map(_extract_job, jobs)
         try:
             for name, result in progress(results, total=len(jobs), desc="features", unit="image"):
                 if isinstance(result, str):

@@ -43,9 +43,10 @@ def stop_after(k):
     return callback
 
 
-def test_interrupted_features_and_matching_resume_without_recomputing(tmp_path):
+@pytest.mark.parametrize("workers", [1, 2])
+def test_interrupted_features_and_matching_resume_without_recomputing(tmp_path, workers):
     images = textured_views(tmp_path / "images")
-    config = FrontendConfig(workers=1, sift=SiftConfig(max_num_features=800))
+    config = FrontendConfig(workers=workers, sift=SiftConfig(max_num_features=800))
     ws = tmp_path / "ws"
     with pytest.raises(Stop):
         extract_features(config, images, ws, on_image=stop_after(2))
@@ -161,3 +162,16 @@ def test_the_command_runs_as_a_fresh_process(tmp_path):
     assert "2 pairs" in done.stdout and "2 verified pairs" in done.stdout
     with dbmod.open_database(ws / "database.db") as db:
         assert sorted(i.name for i in dbmod.read_images(db).values()) == [f"view{i:02d}.png" for i in range(3)]
+
+
+def test_the_command_line_and_pipeline_load_without_pycolmap():
+    """pycolmap (0.1 s to import) loads at the first database call, so that `mvrecon --help` does not pay it
+    and the feature workers are forked, and import OpenCV, while the parent imports it."""
+    import subprocess
+    import sys
+
+    code = ("import sys, mvrecon.cli, mvrecon.pipeline; mvrecon.cli.build_parser(); "
+            "print(sorted(m for m in ('pycolmap', 'cv2', 'gtsam') if m in sys.modules))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"

@@ -37,7 +37,7 @@ class VerifyConfig:
 
 @dataclass(kw_only=True)
 class TwoViewResult:
-    config: str  # a key of mvrecon.database.CONFIGS
+    config: str  # a COLMAP two-view configuration name (mvrecon.database)
     inliers: np.ndarray  # (K,2) keypoint indices, a subset of the putative matches
     F: np.ndarray | None = None
     E: np.ndarray | None = None
