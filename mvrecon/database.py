@@ -29,7 +29,7 @@ def _configs() -> dict[str, int]:
 
 
 def _config_name(value: int) -> str:
-    return next((k for k, v in _configs().items() if v == value), "UNDEFINED")
+    return {v: k for k, v in _configs().items()}.get(value, "UNDEFINED")
 
 
 @dataclass(kw_only=True)
@@ -55,7 +55,7 @@ class PairGeometry:
 
     image_id1: int
     image_id2: int
-    config: str  # a COLMAP configuration name: CALIBRATED, UNCALIBRATED, PLANAR, PANORAMIC, PLANAR_OR_PANORAMIC, DEGENERATE...
+    config: str  # COLMAP's name: CALIBRATED, UNCALIBRATED, PLANAR, PANORAMIC, PLANAR_OR_PANORAMIC, DEGENERATE...
     inliers: np.ndarray
     F: np.ndarray | None = None
     E: np.ndarray | None = None
@@ -84,7 +84,7 @@ def open_database(path):
 
 def write_camera(db, cam: CameraInfo) -> int:
     c = _pycolmap().Camera(model=cam.model, width=int(cam.width), height=int(cam.height),
-                        params=np.asarray(cam.params, dtype=float), has_prior_focal_length=bool(cam.prior_trusted))
+                           params=np.asarray(cam.params, dtype=float), has_prior_focal_length=bool(cam.prior_trusted))
     if cam.camera_id > 0:
         c.camera_id = cam.camera_id
         return db.write_camera(c, use_camera_id=True)

@@ -68,8 +68,9 @@ def _init_worker():
 class WorkerPool:
     """Up to `workers` processes, started when the pool is made: a caller that makes it before its own set-up
     (opening the database, listing and probing images) overlaps that with the workers' start and their import of
-    OpenCV (on templeSparseRing 0.06 s from the fork to the first job, then 0.03-0.07 s of import). `map` yields `func(item)` for every item, in the
-    items' order, so equal inputs give equal database rows (image ids) whatever the timing.
+    OpenCV (on templeSparseRing 0.06 s from the fork to the first job, then 0.03-0.07 s of import). `map` yields
+    `func(item)` for every item, in the items' order, so equal inputs give equal database rows (image ids)
+    whatever the timing.
 
     `func` must be a module-level function and its result picklable; `func` should catch its own expected
     errors and return them as values, so one bad item does not end the whole map. Leaving the `with` block
