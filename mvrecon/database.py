@@ -28,8 +28,13 @@ def _configs() -> dict[str, int]:
     return {m.name: int(m.value) for m in _pycolmap().TwoViewGeometryConfiguration.__members__.values()}
 
 
+@functools.cache
+def _config_names() -> dict[int, str]:
+    return {v: k for k, v in _configs().items()}
+
+
 def _config_name(value: int) -> str:
-    return {v: k for k, v in _configs().items()}.get(value, "UNDEFINED")
+    return _config_names().get(value, "UNDEFINED")
 
 
 @dataclass(kw_only=True)
