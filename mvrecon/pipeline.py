@@ -116,13 +116,14 @@ def extract_features(config: FrontendConfig, image_dir, workspace, *, overwrite:
     """Detect SIFT in every image of `image_dir` not yet in the workspace; `on_image(name)` after each commit."""
     start = time.perf_counter()
     ws = _workspace(workspace)
-    folder = Path(image_dir)
-    with WorkerPool(_workers(config)) as pool:  # started first: its start overlaps the set-up below
-        return _extract_all(config, folder, ws, overwrite, on_image, pool, start)
+    with WorkerPool(_workers(config)) as pool:  # started first: its start overlaps the set-up in _extract_all
+        summary = _extract_all(config, Path(image_dir), ws, overwrite, on_image, pool)
+    summary.seconds = time.perf_counter() - start
+    return summary
 
 
-def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite: bool, on_image, pool: WorkerPool,
-                 start: float) -> FeatureSummary:
+def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite: bool,
+                 on_image: Callable[[str], None] | None, pool: WorkerPool) -> FeatureSummary:
     names, skipped = list_images(folder)
     config.camera.validate()
     failed = {n: f"{folder / n}: {r}" for n, r in skipped.items() if Path(n).suffix.lower() in IMAGE_EXTENSIONS}
@@ -178,8 +179,7 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
     if len(counts) < 2:
         _too_few(folder, len(counts), failed)
     return FeatureSummary(num_images=len(counts), num_extracted=extracted, keypoints=counts, failed=failed,
-                          skipped=skipped, num_cameras=num_cameras, seconds=time.perf_counter() - start,
-                          keypoint_colors=colors)
+                          skipped=skipped, num_cameras=num_cameras, keypoint_colors=colors)
 
 
 # ---------------------------------------------------------------- matching
