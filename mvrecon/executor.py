@@ -66,11 +66,10 @@ def _init_worker():
 
 
 class WorkerPool:
-    """Up to `workers` processes, started when the pool is made: a caller that makes it before its own set-up
-    (opening the database, listing and probing images) overlaps that with the workers' start and their import of
-    OpenCV (on templeSparseRing 0.06 s from the fork to the first job, then 0.03-0.07 s of import). `map` yields
-    `func(item)` for every item, in the items' order, so equal inputs give equal database rows (image ids)
-    whatever the timing.
+    """Up to `workers` processes, started when the pool is made: a caller that makes it, and calls `map`, before
+    its own set-up (opening the database, probing images) overlaps that with the workers' start, their import
+    of OpenCV and their first items. `map` yields `func(item)` for every item, in the items' order, so equal
+    inputs give equal database rows (image ids) whatever the timing.
 
     `func` must be a module-level function and its result picklable; `func` should catch its own expected
     errors and return them as values, so one bad item does not end the whole map. Leaving the `with` block
@@ -88,11 +87,14 @@ class WorkerPool:
         self._finished = False
 
     def map(self, func: Callable, items: Iterable) -> Iterator:
+        """The items are handed to the workers now, not at the first `next`: the caller may do its own set-up
+        while they run. In-process (`workers <= 1`), each item runs when its result is asked for."""
         if self._pool is None:
-            for item in items:
-                yield func(item)
-            return
-        yield from self._pool.imap(func, items, chunksize=1)
+            return (func(item) for item in items)
+        return self._results(self._pool.imap(func, items, chunksize=1))
+
+    def _results(self, results: Iterator) -> Iterator:
+        yield from results
         self._finished = True
 
     def __enter__(self):

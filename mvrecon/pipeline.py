@@ -129,6 +129,14 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
     failed = {n: f"{folder / n}: {r}" for n, r in skipped.items() if Path(n).suffix.lower() in IMAGE_EXTENSIONS}
     if len(names) < 2:
         _too_few(folder, len(names), failed)
+    record = {"images": str(folder.resolve()), "camera": to_dict(config.camera), "sift": to_dict(config.sift)}
+    if ws.begin_stage("features", record, overwrite):
+        for suffix in ("", "-wal", "-shm", "-journal"):
+            Path(f"{ws.database_path}{suffix}").unlink(missing_ok=True)
+    # Without a database nothing is extracted yet: every image goes to the workers now, so that probing the
+    # images and creating the database (which imports pycolmap) overlap SIFT instead of delaying it.
+    early = None if ws.database_path.exists() else [(folder / n, n, config.sift) for n in names]
+    results = pool.map(_extract_job, early) if early else None
     metas = {}
     for name in names:
         try:
@@ -138,10 +146,6 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
             failed[name] = str(exc)
     names = [n for n in names if n in metas]
     groups = group_cameras(names, metas, config.camera)
-    record = {"images": str(folder.resolve()), "camera": to_dict(config.camera), "sift": to_dict(config.sift)}
-    if ws.begin_stage("features", record, overwrite):
-        for suffix in ("", "-wal", "-shm", "-journal"):
-            Path(f"{ws.database_path}{suffix}").unlink(missing_ok=True)
     group_of = {name: gi for gi, (_, members) in enumerate(groups) for name in members}
     extracted, colors = 0, {}
     with dbmod.open_database(ws.database_path) as db:
@@ -151,10 +155,14 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
             if name in group_of:
                 camera_ids.setdefault(group_of[name], info.camera_id)
         todo = [n for n in names if n not in existing or not dbmod.has_features(db, existing[n].image_id)]
-        jobs = [(folder / n, n, config.sift) for n in todo]
-        results = pool.map(_extract_job, jobs)
+        jobs = early or [(folder / n, n, config.sift) for n in todo]
+        if results is None:
+            results = pool.map(_extract_job, jobs)
+        wanted = set(todo)  # an early job's image may have failed its probe since
         try:
             for name, result in progress(results, total=len(jobs), desc="features", unit="image"):
+                if name not in wanted:
+                    continue
                 if isinstance(result, str):
                     log.warning("skipping %s", result)
                     failed[name] = result

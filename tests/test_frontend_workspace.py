@@ -83,6 +83,28 @@ def test_parallel_extraction_numbers_images_in_name_order(tmp_path):
     assert [name for _, name in by_id] == [f"view{i:02d}.png" for i in range(4)]
 
 
+def test_an_image_whose_probe_fails_is_skipped_though_its_early_job_succeeded(tmp_path, monkeypatch):
+    """On a fresh workspace the images go to the workers before they are probed: an image whose header probe
+    then fails must be reported and left out of the database, whatever its worker returned."""
+    import mvrecon.pipeline as pipeline
+
+    images = textured_views(tmp_path / "images", count=3)
+    probe = pipeline.image_metadata
+
+    def failing_probe(path):
+        if path.name == "view01.png":
+            raise InputError(f"{path}: cannot read image header (test)")
+        return probe(path)
+
+    monkeypatch.setattr(pipeline, "image_metadata", failing_probe)
+    summary = extract_features(FrontendConfig(workers=2, sift=SiftConfig(max_num_features=500)), images,
+                               tmp_path / "ws")
+    assert summary.num_images == 2 and summary.num_extracted == 2
+    assert "cannot read image header (test)" in summary.failed["view01.png"]
+    with dbmod.open_database(tmp_path / "ws" / "database.db") as db:
+        assert sorted(i.name for i in dbmod.read_images(db).values()) == ["view00.png", "view02.png"]
+
+
 def test_a_changed_config_is_refused_unless_overwrite(tmp_path):
     images = textured_views(tmp_path / "images", count=3)
     config = FrontendConfig(workers=1, sift=SiftConfig(max_num_features=500))
