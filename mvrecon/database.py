@@ -29,12 +29,8 @@ def _configs() -> dict[str, int]:
 
 
 @functools.cache
-def _config_names() -> dict[int, str]:
-    return {v: k for k, v in _configs().items()}
-
-
 def _config_name(value: int) -> str:
-    return _config_names().get(value, "UNDEFINED")
+    return next((name for name, v in _configs().items() if v == value), "UNDEFINED")
 
 
 @dataclass(kw_only=True)

@@ -133,10 +133,10 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
     if ws.begin_stage("features", record, overwrite):
         for suffix in ("", "-wal", "-shm", "-journal"):
             Path(f"{ws.database_path}{suffix}").unlink(missing_ok=True)
+    jobs = [(folder / n, n, config.sift) for n in names]
     # Without a database nothing is extracted yet: every image goes to the workers now, so that probing the
     # images and creating the database (which imports pycolmap) overlap SIFT instead of delaying it.
-    early = None if ws.database_path.exists() else [(folder / n, n, config.sift) for n in names]
-    results = pool.map(_extract_job, early) if early else None
+    results = None if ws.database_path.exists() else pool.map(_extract_job, jobs)
     metas = {}
     for name in names:
         try:
@@ -155,10 +155,10 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
             if name in group_of:
                 camera_ids.setdefault(group_of[name], info.camera_id)
         todo = [n for n in names if n not in existing or not dbmod.has_features(db, existing[n].image_id)]
-        jobs = early or [(folder / n, n, config.sift) for n in todo]
+        wanted = set(todo)  # an image handed over early may have failed its probe since
         if results is None:
+            jobs = [job for job in jobs if job[1] in wanted]
             results = pool.map(_extract_job, jobs)
-        wanted = set(todo)  # an early job's image may have failed its probe since
         try:
             for name, result in progress(results, total=len(jobs), desc="features", unit="image"):
                 if name not in wanted:

@@ -205,10 +205,10 @@ def _noise_images(folder, count, seed=0):
     return paths
 
 
-def _one_line_error(capsys, argv, expected):
-    assert main(argv) == 2
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and expected in err, err
+def _error_lines(capsys, argv) -> tuple[int, list[str]]:
+    """Exit code and stderr lines of one command."""
+    code = main(argv)
+    return code, capsys.readouterr().err.strip().splitlines()
 
 
 def test_cli_help_documents_height_source(capsys):
@@ -221,12 +221,15 @@ def test_cli_help_documents_height_source(capsys):
 
 def test_cli_bad_input(tmp_path, capsys):
     images = _noise_images(tmp_path / "noise", 3)
-    _one_line_error(capsys, ["-q", "sem", *images, str(tmp_path / "missing.png"), "-o", str(tmp_path / "o0"),
-                             "--estimate-tilts"], "missing.png: no such file or folder")
-    _one_line_error(capsys, ["-q", "sem", *images, "-o", str(tmp_path / "o1"), "--tilts", "0,5"],
-                    "2 angles given for 3 images")
-    _one_line_error(capsys, ["-q", "sem", images[0], "-o", str(tmp_path / "o2"), "--tilts", "0"],
-                    "at least 2 images")
-    # independent noise images: nothing survives matching + affine verification
-    _one_line_error(capsys, ["-q", "sem", images[0], images[1], "-o", str(tmp_path / "o3"), "--tilts", "0,5"],
-                    "no image pair has verified matches")
+    cases = [
+        (["-q", "sem", *images, str(tmp_path / "missing.png"), "-o", str(tmp_path / "o0"), "--estimate-tilts"],
+         "missing.png: no such file or folder"),
+        (["-q", "sem", *images, "-o", str(tmp_path / "o1"), "--tilts", "0,5"], "2 angles given for 3 images"),
+        (["-q", "sem", images[0], "-o", str(tmp_path / "o2"), "--tilts", "0"], "at least 2 images"),
+        # independent noise images: nothing survives matching + affine verification
+        (["-q", "sem", images[0], images[1], "-o", str(tmp_path / "o3"), "--tilts", "0,5"],
+         "no image pair has verified matches"),
+    ]
+    for argv, expected in cases:
+        code, lines = _error_lines(capsys, argv)
+        assert code == 2 and len(lines) == 1 and expected in lines[0], (argv, code, lines)
