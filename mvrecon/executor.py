@@ -73,8 +73,9 @@ class WorkerPool:
 
     `func` must be a module-level function and its result picklable; `func` should catch its own expected
     errors and return them as values, so one bad item does not end the whole map. Leaving the `with` block
-    early (an exception or Ctrl-C in the consumer) terminates the workers. With `workers <= 1` everything runs
-    in the calling process, which keeps tracebacks simple and tests fast.
+    terminates the workers, as `multiprocessing.Pool`'s own does: after an exception or Ctrl-C in the consumer
+    the items in flight are dropped, and after a drained map idle workers are not waited for. With
+    `workers <= 1` everything runs in the calling process, which keeps tracebacks simple and tests fast.
     """
 
     def __init__(self, workers: int | None = None):
@@ -84,28 +85,20 @@ class WorkerPool:
             ctx = _get_context()
             logging.getLogger(__name__).debug("process pool: %d %s workers", self.workers, ctx.get_start_method())
             self._pool = ctx.Pool(self.workers, initializer=_init_worker)
-        self._finished = False
 
     def map(self, func: Callable, items: Iterable) -> Iterator:
         """The items are handed to the workers now, not at the first `next`: the caller may do its own set-up
         while they run. In-process (`workers <= 1`), each item runs when its result is asked for."""
         if self._pool is None:
             return (func(item) for item in items)
-        return self._results(self._pool.imap(func, items, chunksize=1))
-
-    def _results(self, results: Iterator) -> Iterator:
-        yield from results
-        self._finished = True
+        return self._pool.imap(func, items, chunksize=1)
 
     def __enter__(self):
         return self
 
     def __exit__(self, *exc):
         if self._pool is not None:
-            if self._finished and exc[0] is None:
-                self._pool.close()
-            else:
-                self._pool.terminate()
+            self._pool.terminate()
             self._pool.join()
             self._pool = None
         return False

@@ -159,28 +159,25 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
         if results is None:
             jobs = [job for job in jobs if job[1] in wanted]
             results = pool.map(_extract_job, jobs)
-        try:
-            for name, result in progress(results, total=len(jobs), desc="features", unit="image"):
-                if name not in wanted:
-                    continue
-                if isinstance(result, str):
-                    log.warning("skipping %s", result)
-                    failed[name] = result
-                    continue
-                keypoints, descriptors, colors[name] = result
-                gi = group_of[name]
-                with dbmod.transaction(db):
-                    if gi not in camera_ids:
-                        camera_ids[gi] = dbmod.write_camera(db, groups[gi][0])
-                    image_id = existing[name].image_id if name in existing else \
-                        dbmod.write_image(db, name, camera_ids[gi])
-                    dbmod.write_features(db, image_id, keypoints, descriptors)
-                existing[name] = dbmod.ImageInfo(image_id=image_id, name=name, camera_id=camera_ids[gi])
-                extracted += 1
-                if on_image is not None:
-                    on_image(name)
-        finally:
-            results.close()
+        for name, result in progress(results, total=len(jobs), desc="features", unit="image"):
+            if name not in wanted:
+                continue
+            if isinstance(result, str):
+                log.warning("skipping %s", result)
+                failed[name] = result
+                continue
+            keypoints, descriptors, colors[name] = result
+            gi = group_of[name]
+            with dbmod.transaction(db):
+                if gi not in camera_ids:
+                    camera_ids[gi] = dbmod.write_camera(db, groups[gi][0])
+                image_id = existing[name].image_id if name in existing else \
+                    dbmod.write_image(db, name, camera_ids[gi])
+                dbmod.write_features(db, image_id, keypoints, descriptors)
+            existing[name] = dbmod.ImageInfo(image_id=image_id, name=name, camera_id=camera_ids[gi])
+            extracted += 1
+            if on_image is not None:
+                on_image(name)
         counts = {n: dbmod.num_keypoints(db, existing[n].image_id) for n in names if n in existing}
         counts = {n: c for n, c in counts.items() if n not in failed}
         num_cameras = len({existing[n].camera_id for n in counts})
