@@ -13,17 +13,59 @@ import multiprocessing
 import os
 import resource
 import sys
+import time
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 
 _PRELOAD = ["numpy", "cv2", "mvrecon.features.sift"]  # what extraction workers need; no pycolmap
 _SINGLE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 _context = None
+_closed_workers_cpu = 0.0  # seconds used by the workers of closed pools (cpu_seconds)
 
 
 def peak_memory_mb() -> float:
     """This process's peak resident memory so far (MB); Linux reports ru_maxrss in KiB."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def cpu_seconds() -> float:
+    """User + system CPU time of this process (all its threads) and of the WorkerPool workers it has closed.
+    The workers are counted from /proc when their pool closes: forkserver workers are not this process's
+    children, so RUSAGE_CHILDREN would miss them."""
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    return own.ru_utime + own.ru_stime + _closed_workers_cpu
+
+
+def _process_cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a live process (Linux /proc; 0 where there is none)."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            fields = fh.read().rsplit(")", 1)[1].split()  # after the command name, which may hold spaces
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+class StageClock:
+    """Wall time, CPU time and peak memory per stage (report.json's `stages` and `total`). CPU over wall is the
+    number of cores a stage kept busy: what bounds a run's speed on a small machine is its single-core part."""
+
+    def __init__(self):
+        self.stages = {}
+        self._start = self._last = (time.perf_counter(), cpu_seconds())
+
+    def _since(self, mark) -> dict:
+        return {"wall_s": time.perf_counter() - mark[0], "cpu_s": cpu_seconds() - mark[1],
+                "peak_mem_mb": peak_memory_mb()}
+
+    def done(self, name: str) -> dict:
+        """Record the stage that ends now (it began where the previous one ended)."""
+        self.stages[name] = self._since(self._last)
+        self._last = (time.perf_counter(), cpu_seconds())
+        return self.stages[name]
+
+    def total(self) -> dict:
+        return self._since(self._start)
 
 
 def default_workers() -> int:
@@ -97,7 +139,9 @@ class WorkerPool:
         return self
 
     def __exit__(self, *exc):
+        global _closed_workers_cpu
         if self._pool is not None:
+            _closed_workers_cpu += sum(_process_cpu_seconds(p.pid) for p in self._pool._pool)
             self._pool.terminate()
             self._pool.join()
             self._pool = None

@@ -22,7 +22,7 @@ from . import database as dbmod
 from .cameras import CameraConfig, group_cameras
 from .config import config_hash, to_dict
 from .errors import InputError
-from .executor import WorkerPool, blas_threads, default_workers, peak_memory_mb
+from .executor import StageClock, WorkerPool, blas_threads, default_workers
 from .features.sift import SiftConfig
 from .io.images import IMAGE_EXTENSIONS, image_metadata, list_images
 from .matching.matcher import MatcherConfig, match_descriptors, prepare_descriptors
@@ -428,22 +428,18 @@ def reconstruct(config: ReconstructConfig, image_dir, out_dir, *, text: bool = F
             return old
     report_path.unlink(missing_ok=True)
     ws = Workspace(out).create()
-    stages = {}
-    t0 = time.perf_counter()
+    clock = StageClock()
     features = extract_features(config.frontend, image_dir, ws, overwrite=overwrite)
     log.info("%s", features.text())
-    stages["features"] = {"wall_s": time.perf_counter() - t0, "peak_mem_mb": peak_memory_mb()}
-    t1 = time.perf_counter()
+    clock.done("features")
     matches = match(config.frontend, ws, overwrite=overwrite)
     log.info("%s", matches.text())
-    stages["matching"] = {"wall_s": time.perf_counter() - t1, "peak_mem_mb": peak_memory_mb()}
-    t2 = time.perf_counter()
+    clock.done("matching")
     summary = map_workspace(mapper, ws, image_dir=image_dir, text=text, resume=resume, overwrite=overwrite,
                             keypoint_colors=features.keypoint_colors)
-    stages["mapping"] = {"wall_s": time.perf_counter() - t2, "peak_mem_mb": peak_memory_mb()}
+    clock.done("mapping")
     log.info("%s", summary.text())
     skipped = dict(features.failed)
-    return write_report(out, config_hash=full_hash, seed=mapper.seed, summary=summary, stages=stages,
-                        total={"wall_s": time.perf_counter() - t0, "peak_mem_mb": peak_memory_mb()},
-                        counts=dbmod.database_counts(ws.database_path), skipped=skipped)
+    return write_report(out, config_hash=full_hash, seed=mapper.seed, summary=summary, stages=clock.stages,
+                        total=clock.total(), counts=dbmod.database_counts(ws.database_path), skipped=skipped)
 

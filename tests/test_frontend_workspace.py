@@ -105,6 +105,25 @@ def test_an_image_whose_probe_fails_is_skipped_though_its_early_job_succeeded(tm
         assert sorted(i.name for i in dbmod.read_images(db).values()) == ["view00.png", "view02.png"]
 
 
+def test_the_stage_clock_counts_the_cpu_of_the_feature_workers(tmp_path):
+    """report.json's cpu_s of a stage holds its workers' CPU: the parent mostly waits while they run SIFT."""
+    import resource
+
+    from mvrecon.executor import StageClock
+
+    images = textured_views(tmp_path / "images", count=6, size=(480, 640))
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    clock = StageClock()
+    extract_features(FrontendConfig(workers=2), images, tmp_path / "ws")
+    stage = clock.done("features")
+    after = resource.getrusage(resource.RUSAGE_SELF)
+    parent = after.ru_utime + after.ru_stime - own.ru_utime - own.ru_stime
+    workers = stage["cpu_s"] - parent
+    assert workers > 0.1 and workers > parent  # six SIFT runs of 640 x 480, none of them in this process
+    assert stage["cpu_s"] <= 2 * stage["wall_s"] + 0.05 and stage["peak_mem_mb"] > 50
+    assert clock.total()["cpu_s"] >= stage["cpu_s"]
+
+
 def test_a_changed_config_is_refused_unless_overwrite(tmp_path):
     images = textured_views(tmp_path / "images", count=3)
     config = FrontendConfig(workers=1, sift=SiftConfig(max_num_features=500))

@@ -39,7 +39,8 @@ def test_reconstruct_outputs_follow_the_contract(demo):
     report = json.loads((run / "report.json").read_text())
     assert report["engine"] == "mvrecon" and report["seed"] == 0 and report["config_hash"]
     assert set(report["stages"]) == {"features", "matching", "mapping"}
-    assert all(s["wall_s"] > 0 and s["peak_mem_mb"] > 0 for s in report["stages"].values())
+    assert all(s["wall_s"] > 0 and s["cpu_s"] > 0 and s["peak_mem_mb"] > 0 for s in report["stages"].values())
+    assert report["total"]["cpu_s"] == pytest.approx(sum(s["cpu_s"] for s in report["stages"].values()), rel=0.05)
     assert report["counts"]["images"] == 10 and report["counts"]["verified_pairs"] >= 9
     assert [s["status"] for s in report["images"].values()] == ["registered"] * 10
     rec = pycolmap.Reconstruction(str(run / "sparse" / "0"))

@@ -3,9 +3,8 @@
 Runs `mvrecon reconstruct` and pycolmap (extract_features + match_exhaustive + incremental_mapping, CPU, the
 same camera mode and model) each in its own subprocess (mvrecon.eval.runners), then prints registered images,
 models, points, mean reprojection error, relative-pose AUC@0.5/1/5/10 deg and median rotation error against
-the
-ground truth (found next to the images, or --gt), wall time and peak memory of both, and the ratios
-mvrecon / pycolmap. Without ground truth, the AUCs of mvrecon are computed against pycolmap's model.
+the ground truth (found next to the images, or --gt), wall time and peak memory of both, and the ratios
+mvrecon / pycolmap; then each engine's stages, with the cores each kept busy (CPU time over wall time). Without ground truth, the AUCs of mvrecon are computed against pycolmap's model.
 
 Usage:
   python tools/bench_sfm.py ../shared/data/middlebury_templeSparseRing/images
@@ -55,6 +54,12 @@ def summarize(result, gt):
             acc.pop(key)
         row.update(acc)
     return row
+
+
+def _stage(name: str, s: dict) -> str:
+    """'features 1.0 s (1.9 cores)': CPU over wall time is how many cores the stage kept busy."""
+    cores = f" ({s['cpu_s'] / s['wall_s']:.1f} cores)" if s.get("cpu_s") and s["wall_s"] > 0 else ""
+    return f"{name} {s['wall_s']:.1f} s{cores}"
 
 
 def main(argv=None) -> int:
@@ -122,11 +127,9 @@ def main(argv=None) -> int:
                    if s["status"] != "registered"}
         for n, r in sorted(missing.items()):
             print(f"  mvrecon did not register {n}: {r}")
-        stages = ours.report.get("stages", {})
-        print("mvrecon stages: " + ", ".join(f"{k} {v['wall_s']:.1f} s" for k, v in stages.items()))
-    if theirs.report:
-        stages = theirs.report.get("stages", {})
-        print("pycolmap stages: " + ", ".join(f"{k} {v['wall_s']:.1f} s" for k, v in stages.items()))
+    for name, result in (("mvrecon", ours), ("pycolmap", theirs)):
+        if result.report:
+            print(f"{name} stages: " + ", ".join(_stage(k, v) for k, v in result.report.get("stages", {}).items()))
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1, default=str) + "\n")
     print(f"runs kept in {work}")

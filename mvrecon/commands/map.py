@@ -21,20 +21,19 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     import logging
-    import time
 
-    from ..executor import peak_memory_mb
+    from ..executor import StageClock
     from ..database import database_counts
     from ..pipeline import map_workspace, write_report
     from .reconstruct import mapper_config
 
     config = mapper_config(args)
-    start = time.perf_counter()
+    clock = StageClock()
     summary = map_workspace(config, args.workspace, image_dir=args.image_dir, text=args.text,
                             resume=args.resume, overwrite=args.overwrite)
-    stage = {"wall_s": time.perf_counter() - start, "peak_mem_mb": peak_memory_mb()}
+    stage = clock.done("mapping")
     write_report(args.workspace, config_hash=config.hash(), seed=config.seed, summary=summary,
-                 stages={"mapping": stage}, total=stage,
+                 stages=clock.stages, total=stage,
                  counts=database_counts(f"{args.workspace}/database.db"))
     logging.getLogger("mvrecon").info("%s", summary.text())
     return 0

@@ -28,7 +28,7 @@ from pathlib import Path
 
 from ..database import database_counts
 from ..errors import InputError
-from ..executor import peak_memory_mb
+from ..executor import StageClock
 
 log = logging.getLogger("mvrecon.eval.runners")
 
@@ -222,23 +222,6 @@ def _result(engine, out_dir: Path, meta: dict) -> RunResult:
 
 # --- the COLMAP side, run inside the subprocess ---------------------------------------------------------------
 
-class _Stages:
-    """Wall time and the process's max RSS at the end of each stage (report.json's `stages`)."""
-
-    def __init__(self):
-        self.start = time.perf_counter()
-        self.stages = {}
-        self._t = self.start
-
-    def done(self, name: str) -> None:
-        now = time.perf_counter()
-        self.stages[name] = {"wall_s": now - self._t, "peak_mem_mb": peak_memory_mb()}
-        self._t = now
-
-    def total(self) -> dict:
-        return {"wall_s": time.perf_counter() - self.start, "peak_mem_mb": peak_memory_mb()}
-
-
 def _colmap_main(image_dir: Path, out_dir: Path, options: dict, global_mapper: bool) -> None:
     import pycolmap
 
@@ -246,7 +229,7 @@ def _colmap_main(image_dir: Path, out_dir: Path, options: dict, global_mapper: b
     db = out_dir / "database.db"
     if db.exists():
         db.unlink()  # an unfinished earlier attempt: start clean
-    stages = _Stages()
+    stages = StageClock()
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = options["camera_model"]
     if options["camera_params"]:
@@ -282,7 +265,7 @@ def _colmap_db_main(database: Path, out_dir: Path, options: dict, image_dir: Pat
     pycolmap.set_random_seed(int(options["seed"]))
     db = out_dir / "database.db"
     shutil.copyfile(database, db)
-    stages = _Stages()
+    stages = StageClock()
     models = _map(db, image_dir, out_dir, options, False)
     stages.done("mapping")
     _write_outputs(out_dir, "colmap-same-matches", options, models, db, stages)
@@ -320,7 +303,7 @@ def _map(db: Path, image_dir, out_dir: Path, options: dict, global_mapper: bool)
         return sorted(found.values(), key=lambda r: r.num_reg_images(), reverse=True)
 
 
-def _write_outputs(out_dir: Path, engine: str, options: dict, models: list, db: Path, stages: _Stages) -> None:
+def _write_outputs(out_dir: Path, engine: str, options: dict, models: list, db: Path, stages: StageClock) -> None:
     from .. import __version__
     from ..database import read_correspondences
     from .models import model_stats
