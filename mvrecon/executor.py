@@ -141,6 +141,7 @@ class WorkerPool:
     def __exit__(self, *exc):
         global _closed_workers_cpu
         if self._pool is not None:
+            # multiprocessing.Pool keeps its worker processes in `_pool`; read them before they are ended
             _closed_workers_cpu += sum(_process_cpu_seconds(p.pid) for p in self._pool._pool)
             self._pool.terminate()
             self._pool.join()

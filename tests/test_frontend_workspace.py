@@ -120,7 +120,8 @@ def test_the_stage_clock_counts_the_cpu_of_the_feature_workers(tmp_path):
     parent = after.ru_utime + after.ru_stime - own.ru_utime - own.ru_stime
     workers = stage["cpu_s"] - parent
     assert workers > 0.1 and workers > parent  # six SIFT runs of 640 x 480, none of them in this process
-    assert stage["cpu_s"] <= 2 * stage["wall_s"] + 0.05 and stage["peak_mem_mb"] > 50
+    assert stage["cpu_s"] <= 3 * stage["wall_s"] + 0.05  # three processes: counted once each
+    assert stage["peak_mem_mb"] > 50
     assert clock.total()["cpu_s"] >= stage["cpu_s"]
 
 

@@ -4,7 +4,8 @@ Runs `mvrecon reconstruct` and pycolmap (extract_features + match_exhaustive + i
 same camera mode and model) each in its own subprocess (mvrecon.eval.runners), then prints registered images,
 models, points, mean reprojection error, relative-pose AUC@0.5/1/5/10 deg and median rotation error against
 the ground truth (found next to the images, or --gt), wall time and peak memory of both, and the ratios
-mvrecon / pycolmap; then each engine's stages, with the cores each kept busy (CPU time over wall time). Without ground truth, the AUCs of mvrecon are computed against pycolmap's model.
+mvrecon / pycolmap; then each engine's stages, with the cores each kept busy (CPU time over wall time).
+Without ground truth, the AUCs of mvrecon are computed against pycolmap's model.
 
 Usage:
   python tools/bench_sfm.py ../shared/data/middlebury_templeSparseRing/images
