@@ -52,20 +52,26 @@ class StageClock:
 
     def __init__(self):
         self.stages = {}
-        self._start = self._last = (time.perf_counter(), cpu_seconds())
+        self._start = self._last = self._now()
 
-    def _since(self, mark) -> dict:
-        return {"wall_s": time.perf_counter() - mark[0], "cpu_s": cpu_seconds() - mark[1],
-                "peak_mem_mb": peak_memory_mb()}
+    @staticmethod
+    def _now() -> tuple[float, float]:
+        return time.perf_counter(), cpu_seconds()
+
+    @staticmethod
+    def _between(start, end) -> dict:
+        return {"wall_s": end[0] - start[0], "cpu_s": end[1] - start[1], "peak_mem_mb": peak_memory_mb()}
 
     def done(self, name: str) -> dict:
-        """Record the stage that ends now (it began where the previous one ended)."""
-        self.stages[name] = self._since(self._last)
-        self._last = (time.perf_counter(), cpu_seconds())
+        """Record the stage that ends now (it began where the previous one ended; the clocks are read once, so
+        consecutive stages add up to the whole)."""
+        now = self._now()
+        self.stages[name] = self._between(self._last, now)
+        self._last = now
         return self.stages[name]
 
     def total(self) -> dict:
-        return self._since(self._start)
+        return self._between(self._start, self._now())
 
 
 def default_workers() -> int:
