@@ -1,5 +1,7 @@
 """PFM, PLY and the COLMAP database round-trip exactly; pycolmap maps a database we wrote."""
 
+from dataclasses import replace
+
 import numpy as np
 import pycolmap
 import pytest
@@ -36,6 +38,8 @@ def test_database_round_trip_and_pycolmap_maps_it(tmp_path):
         pycolmap.synthesize_dataset(opts, db)
     src = database.read_correspondences(tmp_path / "syn.db")
     assert len(src.images) == 6 and len(src.pairs) == 15
+    # the synthetic pairs carry F and E; give one an H too, so that all three matrices make the round trip
+    src.pairs[0] = replace(src.pairs[0], H=np.arange(1.0, 10.0).reshape(3, 3))
     with database.open_database(tmp_path / "ours.db") as db:
         for cam in src.cameras.values():
             database.write_camera(db, cam)
@@ -49,9 +53,24 @@ def test_database_round_trip_and_pycolmap_maps_it(tmp_path):
             database.write_matches(db, pair.image_id1, pair.image_id2, pair.inliers)
             database.write_two_view_geometry(db, pair)
     back = database.read_correspondences(tmp_path / "ours.db")
+    assert back.cameras.keys() == src.cameras.keys() and back.images == src.images
+    for c, cam in src.cameras.items():
+        got = back.cameras[c]
+        assert (got.model, got.width, got.height, got.prior_trusted) == (cam.model, cam.width, cam.height,
+                                                                         cam.prior_trusted)
+        np.testing.assert_array_equal(got.params, cam.params)
+    for i in src.keypoints:
+        np.testing.assert_array_equal(back.keypoints[i], src.keypoints[i])
     assert [p.config for p in back.pairs] == [p.config for p in src.pairs]
+    assert all(p.F is not None and p.E is not None for p in src.pairs)
     for a, b in zip(back.pairs, src.pairs):
+        assert (a.image_id1, a.image_id2) == (b.image_id1, b.image_id2)
         np.testing.assert_array_equal(a.inliers, b.inliers)
+        for name in ("F", "E", "H"):
+            ma, mb = getattr(a, name), getattr(b, name)
+            assert (ma is None) == (mb is None), name
+            if mb is not None:
+                np.testing.assert_array_equal(ma, mb)
     (tmp_path / "sparse").mkdir()
     models = pycolmap.incremental_mapping(str(tmp_path / "ours.db"), str(tmp_path), str(tmp_path / "sparse"))
     assert max(m.num_reg_images() for m in models.values()) == 6
