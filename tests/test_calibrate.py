@@ -1,5 +1,5 @@
-"""Chessboard calibration: a board rendered through known intrinsics and distortion must be recovered within
-0.5 %; the stereo rig of the ximea set is compared with its author's OpenCV result; camera.toml round-trips."""
+"""Chessboard calibration: a board rendered through known intrinsics and distortion must be recovered (focal
+lengths within 0.5 %, the principal point within 0.4 px, each distortion coefficient within a stated bound); the stereo rig of the ximea set is compared with its author's OpenCV result; camera.toml round-trips."""
 
 import functools
 from pathlib import Path
@@ -85,14 +85,18 @@ def test_recovers_rendered_intrinsics_within_half_percent(tmp_path):
     result = calibrate_mono(views, CalibrationConfig(square=SQUARE))  # board size found automatically
     assert result.board == BOARD
     K, dist = result.camera.opencv()
-    for got, want in ((K[0, 0], 620.0), (K[1, 1], 615.0), (K[0, 2], 318.0), (K[1, 2], 244.0)):
-        assert abs(got - want) / want < 0.005
-    assert abs(dist[0] - DIST_TRUE[0]) < 0.02
+    assert abs(K[0, 0] - 620.0) / 620.0 < 0.005 and abs(K[1, 1] - 615.0) / 615.0 < 0.005
+    assert abs(K[0, 2] - 318.0) < 0.4 and abs(K[1, 2] - 244.0) < 0.4  # measured 0.17 and 0.23 px
+    # k2 is the least determined by a board filling part of the view (measured errors: k1 0.0012, k2 0.007,
+    # p1 7e-5, p2 5e-5)
+    np.testing.assert_array_less(np.abs(dist[:4] - DIST_TRUE), [0.005, 0.015, 3e-4, 3e-4])
     assert result.rms_px < 0.3
     assert len(result.per_view_rms_px) + len(result.dropped) == len(views)
     write_camera_toml(tmp_path / "camera.toml", result, CalibrationConfig(square=SQUARE))
     cam = read_camera_toml(tmp_path / "camera.toml")
-    assert cam["left"].params[2] == pytest.approx(K[0, 2] + 0.5)  # COLMAP pixel convention in the file
+    # the file holds the camera in COLMAP's pixel convention (OpenCV's principal point + 0.5), not OpenCV's K
+    np.testing.assert_allclose(cam["left"].params[2:4], [K[0, 2] + 0.5, K[1, 2] + 0.5])
+    np.testing.assert_allclose(cam["left"].params, result.camera.params)
     assert cam["stereo"] is None
 
 
@@ -108,7 +112,10 @@ def test_outlier_view_is_dropped():
     mapx += (3 * np.sin(mapy / 15)).astype(np.float32)  # wavy lens distortion no model explains
     views[name] = cv2.remap(warp, mapx, mapy, cv2.INTER_LINEAR).astype(np.uint8)
     result = calibrate_mono(views, CalibrationConfig(board=BOARD, square=SQUARE))
-    assert name in result.dropped
+    assert result.dropped == [name]  # that view only, and the others still give the true camera
+    K, _ = result.camera.opencv()
+    assert abs(K[0, 0] - 620.0) / 620.0 < 0.01 and abs(K[1, 1] - 615.0) / 615.0 < 0.01
+    assert result.rms_px < 0.3
 
 
 def test_stereo_pairs_by_name():
@@ -145,7 +152,7 @@ def test_ximea_stereo_against_authors_result(tmp_path):
     assert result.rms_px < 1.0
 
 
-def test_cli_calibrate_and_stereo_use_the_camera_file(tmp_path, capsys):
+def test_cli_calibrate_writes_the_camera_file_and_stereo_refuses_one_without_a_rig(tmp_path, capsys):
     import cv2
 
     views = dict(list(synthetic_views().items())[:8])
@@ -162,3 +169,36 @@ def test_cli_calibrate_and_stereo_use_the_camera_file(tmp_path, capsys):
     assert main(["stereo", str(folder / "view00.png"), str(folder / "view01.png"), "-o", str(tmp_path / "s"),
                  "--camera", str(tmp_path / "camera.toml")]) == 2
     assert "no [stereo] section" in capsys.readouterr().err
+
+
+def test_cli_stereo_calibration_rectifies_a_held_out_pair(tmp_path):
+    """`calibrate --stereo` on 8 of the ximea pairs, then `stereo --camera` on a pair it did not see: the board's
+    corners, found independently in the two rectified images, must lie on the same rows (26 px apart before)."""
+    import json
+    import shutil
+
+    import cv2
+
+    if not XIMEA.is_dir():
+        pytest.skip(f"ximea chessboard set not found at {XIMEA}")
+    boards = tmp_path / "boards"
+    boards.mkdir()
+    for k in range(1, 16, 2):
+        for side in ("left", "right"):
+            shutil.copy(XIMEA / "images" / f"{side}{k:02d}.jpg", boards)
+    camera = tmp_path / "camera.toml"
+    assert main(["calibrate", str(boards), "--stereo", "-o", str(camera), "-q"]) == 0
+    assert read_camera_toml(camera)["stereo"] is not None
+    out = tmp_path / "s"
+    assert main(["stereo", str(XIMEA / "images" / "left06.jpg"), str(XIMEA / "images" / "right06.jpg"), "-o",
+                 str(out), "--camera", str(camera), "--method", "sgbm", "-q"]) == 0
+    assert json.loads((out / "report.json").read_text())["rectification"] == "calibrated (camera file)"
+    rows = []
+    for name in ("rectified_left.png", "rectified_right.png"):
+        img = cv2.imread(str(out / name), cv2.IMREAD_GRAYSCALE)
+        found, corners = cv2.findChessboardCorners(img, (9, 6))
+        assert found, name
+        criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.01)
+        rows.append(cv2.cornerSubPix(img, corners, (5, 5), (-1, -1), criteria).reshape(-1, 2)[:, 1])
+    dy = np.abs(rows[0] - rows[1])
+    assert np.median(dy) < 0.3 and dy.max() < 1.0  # measured 0.13 and 0.29 px
