@@ -7,8 +7,9 @@ import pytest
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
-    scenes = pytest.importorskip("mvrecon.scenes.catalog")
-    return scenes.make_scene("stereo_pair_small", tmp_path_factory.mktemp("stereo_pair_small"))
+    from mvrecon.scenes import catalog
+
+    return catalog.make_scene("stereo_pair_small", tmp_path_factory.mktemp("stereo_pair_small"))
 
 
 def test_best_on_rendered_stereo_pair(scene):

@@ -126,17 +126,21 @@ def test_wider_grid_reuses_finished_cells_and_other_settings_are_refused(study_w
 
 def test_without_ground_truth_each_engine_is_measured_against_its_clean_model(tiny_scene, tmp_path):
     args = ["study", "-q", str(tiny_scene), "-o", str(tmp_path / "s"), "--engines", "colmap", "--noise", "0,8"]
-    assert main(args + ["--timeout", "0.2"]) == 0  # every run times out: kept as failed cells
-    assert [r["error"] for r in read_csv(tmp_path / "s" / "study.csv")] == ["timed out after 0.2 s"] * 2
+    # a run is a process that imports pycolmap (0.3 s or more), so none finishes in 0.01 s
+    assert main(args + ["--timeout", "0.01"]) == 0  # every run times out: kept as failed cells
+    assert [r["error"] for r in read_csv(tmp_path / "s" / "study.csv")] == ["timed out after 0.01 s"] * 2
     assert "clean run failed" in (tmp_path / "s" / "study.html").read_text()
     assert main(args) == 0  # failures are cached results ...
-    assert read_csv(tmp_path / "s" / "study.csv")[0]["error"] == "timed out after 0.2 s"
+    assert read_csv(tmp_path / "s" / "study.csv")[0]["error"] == "timed out after 0.01 s"
     assert main(args + ["--retry-failed"]) == 0  # ... until asked to retry
     clean, noisy = read_csv(tmp_path / "s" / "study.csv")
     assert clean["error"] == "" and noisy["error"] == ""
     assert clean["reference"] == "colmap on the clean images"
     assert clean["auc@1"] == pytest.approx(1.0)  # the clean model against itself
-    assert 0.0 < noisy["auc@5"] <= 1.0 and noisy["registered_pct"] > 50.0
+    assert noisy["registered_pct"] > 50.0
+    # the noisy model is measured, not compared with itself: worse than the clean one, yet close to it
+    # (measured AUC@1 0.41, AUC@5 0.86)
+    assert noisy["auc@1"] < clean["auc@1"] - 0.05 and 0.5 < noisy["auc@5"] < 1.0
 
 
 def test_study_input_errors_are_one_line(tiny_scene, tmp_path, capsys):
