@@ -1,5 +1,7 @@
 """Chessboard calibration: a board rendered through known intrinsics and distortion must be recovered (focal
-lengths within 0.5 %, the principal point within 0.4 px, each distortion coefficient within a stated bound); the stereo rig of the ximea set is compared with its author's OpenCV result; camera.toml round-trips."""
+lengths within 0.5 %, the principal point within 0.4 px, each distortion coefficient within a stated bound); the
+stereo rig of the ximea set is compared with its author's OpenCV result and rectifies a pair it did not see;
+camera.toml round-trips."""
 
 import functools
 from pathlib import Path
