@@ -9,11 +9,13 @@ start instead of delaying it, and `mvrecon --help` does not pay it.
 """
 
 import functools
-from contextlib import contextmanager
+from contextlib import closing, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from .errors import InputError
 
 
 def _pycolmap():
@@ -75,7 +77,10 @@ class Correspondences:
 
 @contextmanager
 def open_database(path):
-    """Open (creating if needed) a COLMAP database and close it however the block ends."""
+    """Open (creating if needed) a COLMAP database and close it however the block ends. A file that is not a
+    readable SQLite database is an InputError naming it (pycolmap would log a warning and raise a bare
+    RuntimeError)."""
+    _check_sqlite(Path(path))
     db = _pycolmap().Database.open(str(path))
     try:
         yield db
@@ -157,6 +162,21 @@ def read_correspondences(path, min_inliers: int = 0) -> Correspondences:
                 image_id1=int(id1), image_id2=int(id2), config=_config_name(int(g.config)),
                 inliers=inliers, F=_matrix_or_none(g.F), E=_matrix_or_none(g.E), H=_matrix_or_none(g.H)))
     return out
+
+
+def _check_sqlite(path: Path) -> None:
+    if not path.is_file() or path.stat().st_size == 0:
+        return  # a new database, created by pycolmap
+    import sqlite3
+
+    try:
+        with closing(sqlite3.connect(f"file:{path}?mode=ro", uri=True)) as con:
+            # the schema and one row of every table: cheap, and what a cut-off or foreign file fails on
+            for (table,) in con.execute("SELECT name FROM sqlite_master WHERE type = 'table'").fetchall():
+                con.execute(f'SELECT * FROM "{table}" LIMIT 1').fetchall()
+    except sqlite3.DatabaseError as exc:
+        raise InputError(f"{path}: not a readable COLMAP database ({exc}); delete it, or the workspace, and "
+                         "run again") from None
 
 
 def _matrix_or_none(m):

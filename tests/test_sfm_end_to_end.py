@@ -83,6 +83,23 @@ def test_export_undistorted_pinhole_model(demo, tmp_path):
                                    original.images[image_id].cam_from_world().translation, atol=1e-9)
 
 
+def test_export_never_deletes_what_it_exports(demo, tmp_path, capsys):
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(demo / "run", run)
+    before = sorted(p.relative_to(run) for p in run.rglob("*"))
+    # -o at the run itself, which holds sparse/0 like an earlier export, was emptied before the check
+    assert main(["-q", "export", str(run), "--undistort", "-o", str(run)]) == 2
+    err = capsys.readouterr().err
+    assert "which is being exported" in err and err.count("\n") == 1
+    assert sorted(p.relative_to(run) for p in run.rglob("*")) == before
+    (tmp_path / "empty").mkdir()
+    assert main(["-q", "export", str(run), "--undistort", "-o", str(tmp_path / "e"), "--image-dir",
+                 str(tmp_path / "empty")]) == 2
+    assert "10 of the model's 10 images are not here" in capsys.readouterr().err
+
+
 def test_map_without_verified_pairs_exits_2_with_a_message(tmp_path, capsys):
     with database.open_database(tmp_path / "database.db") as db:
         cam = database.write_camera(db, database.CameraInfo(model="SIMPLE_RADIAL", width=64, height=48,
@@ -93,6 +110,13 @@ def test_map_without_verified_pairs_exits_2_with_a_message(tmp_path, capsys):
     assert main(["-q", "map", "-w", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "no verified image pairs among 2 images" in err and err.count("\n") == 1
+    # a database cut short, and a file that is not one: one line naming it, not pycolmap's RuntimeError
+    data = (tmp_path / "database.db").read_bytes()
+    for broken in (data[: len(data) // 3], b"not a database" * 100):
+        (tmp_path / "database.db").write_bytes(broken)
+        assert main(["-q", "map", "-w", str(tmp_path)]) == 2
+        err = capsys.readouterr().err
+        assert f"{tmp_path / 'database.db'}: not a readable COLMAP database" in err and err.count("\n") == 1
 
 
 def test_mapper_settings_from_toml_and_flags(demo, tmp_path, capsys):

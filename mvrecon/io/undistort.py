@@ -26,8 +26,18 @@ def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -
         raise InputError(f"{model_dir}: no COLMAP model here (images.bin or images.txt)")
     if not image_dir.is_dir():
         raise InputError(f"{image_dir}: image folder not found (pass --image-dir)")
+    names = [im.name for im in pycolmap.Reconstruction(str(model_dir)).images.values()]
+    missing = [n for n in names if not (image_dir / n).is_file()]
+    if missing:  # COLMAP's undistorter would log each one and write an export without them
+        raise InputError(f"{image_dir}: {len(missing)} of the model's {len(names)} images are not here (first: "
+                         f"{missing[0]}); pass --image-dir")
+    out = out_dir.resolve()
+    for source in (model_dir, image_dir):  # replacing the output must never delete what is being exported
+        if out == source.resolve() or out in source.resolve().parents:
+            raise InputError(f"{out_dir}: holds {source}, which is being exported; choose another output folder")
     if out_dir.exists() and any(out_dir.iterdir()):
-        if not (out_dir / "sparse" / "0").is_dir():
+        # only an earlier export (images/ and sparse/0/, nothing else) is replaced
+        if {p.name for p in out_dir.iterdir()} - {"images", "sparse"} or not (out_dir / "sparse" / "0").is_dir():
             raise InputError(f"{out_dir}: exists and is not an export folder; choose an empty or new folder")
         shutil.rmtree(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
