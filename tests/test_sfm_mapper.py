@@ -213,7 +213,7 @@ def test_retriangulation_retries_failed_tracks_only_after_a_change(scene, monkey
     assert (m.point_of_track[tracks] >= 0).sum() > 0.95 * len(pids)
 
 
-def test_resume_continues_from_the_snapshot(tmp_path, monkeypatch):
+def test_resume_continues_from_the_snapshot(tmp_path, monkeypatch, caplog):
     path = tmp_path / "database.db"
     gt = synthetic_database(path, num_images=10, num_points=400, seed=1)
     corr = database.read_correspondences(path)
@@ -248,6 +248,17 @@ def test_resume_continues_from_the_snapshot(tmp_path, monkeypatch):
     summary = accuracy_summary(estimated_poses(result), gt)
     assert summary["registered"] == 10 and summary["auc@1"] >= 0.9
     assert len(registered) <= 10 - 2 - 3 + 1  # the 2 initial + 3 snapshotted images are not registered again
+
+    # a snapshot cut off mid-write (or overwritten) cannot be resumed from: mapping starts over, with a warning
+    data = snapshot.read_bytes()
+    registered.clear()
+    for broken in (data[: len(data) // 2], b"garbage"):
+        snapshot.write_bytes(broken)
+        with caplog.at_level("WARNING", logger="mvrecon.sfm"):
+            result = map_correspondences(corr, config, snapshot_path=snapshot, resume=True)
+        assert "unreadable snapshot" in caplog.text and "starting over" in caplog.text
+        assert accuracy_summary(estimated_poses(result), gt)["registered"] == 10
+    assert len(registered) >= 2 * (10 - 2)  # every image registered again, both times
 
 
 def test_disconnected_scene_gives_two_models_and_reasons(tmp_path):

@@ -60,8 +60,13 @@ class _Snapshot:
     def load(self) -> dict | None:
         if self.path is None or not self.path.is_file():
             return None
-        with open(self.path, "rb") as f:
-            data = pickle.load(f)
+        try:
+            with open(self.path, "rb") as f:
+                data = pickle.load(f)
+            data.get("version")
+        except Exception as exc:  # cut off or overwritten: what it held is lost either way, so map afresh
+            log.warning("%s: unreadable snapshot (%s: %s); starting over", self.path, type(exc).__name__, exc)
+            return None
         if data.get("version") != SNAPSHOT_VERSION or data.get("signature") != self.signature:
             log.warning("%s: snapshot from a different config or database; starting over", self.path)
             return None
