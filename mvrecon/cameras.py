@@ -11,6 +11,9 @@ given by the user are trusted as they are.
 from dataclasses import dataclass
 from pathlib import PurePosixPath
 
+import numpy as np
+
+from .config import bounded
 from .database import CameraInfo
 from .errors import InputError
 from .geometry import camera as camera_model
@@ -24,7 +27,8 @@ class CameraConfig:
     model: str = "SIMPLE_RADIAL"  # SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL or OPENCV
     mode: str = "auto"  # auto: same size + EXIF make/model/focal share a camera; single; per-folder; per-image
     params: tuple[float, ...] = ()  # known intrinsics in the model's COLMAP order; trusted; empty = from EXIF
-    default_focal_factor: float = 1.2  # focal guess without EXIF = factor * max(width, height), as COLMAP
+    # focal guess without EXIF = factor * max(width, height), as COLMAP
+    default_focal_factor: float = bounded(1.2, 0.0, low_open=True)
 
     def validate(self) -> "CameraConfig":
         if self.mode not in CAMERA_MODES:
@@ -34,6 +38,10 @@ class CameraConfig:
                                      camera_model.default_params(self.model, 1.0, 2, 2))
         except ValueError as exc:
             raise InputError(f"--camera-params/--camera-model: {exc}") from None
+        focal = [v for name, v in zip(camera_model.PARAM_NAMES[self.model], self.params) if name.startswith("f")]
+        if not all(np.isfinite(self.params)) or (focal and min(focal) <= 0):
+            raise InputError(f"--camera-params {','.join(f'{v:g}' for v in self.params)}: expected finite "
+                             "numbers and a positive focal length")
         return self
 
 

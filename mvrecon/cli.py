@@ -69,6 +69,13 @@ def main(argv=None) -> int:
         clear_line()
         print(f"mvrecon: error: {exc}", file=sys.stderr)
         return exc.exit_code
+    except OSError as exc:
+        if not exc.filename:  # not about a path the user gave (a full disk, say): a bug report needs the trace
+            raise
+        # an output path that is a file, an input that is a folder, a folder that cannot be written
+        clear_line()
+        print(f"mvrecon: error: {exc.filename}: {exc.strerror or exc}", file=sys.stderr)
+        return InputError.exit_code
     except KeyboardInterrupt:
         clear_line()
         print("mvrecon: interrupted; finished work is kept in the workspace, rerun the same command to resume",

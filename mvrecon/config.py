@@ -40,8 +40,49 @@ def config_hash(cfg_or_dict) -> str:
     return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
+def bounded(default, low=None, high=None, *, low_open: bool = False, **metadata):
+    """A config field whose overrides (a TOML file or a flag) must lie in [low, high], or (low, high] with
+    `low_open`: a negative image size or a ratio of 5 is refused when given, not met as a crash later."""
+    return dataclasses.field(default=default,
+                             metadata={"low": low, "high": high, "low_open": low_open, **metadata})
+
+
+def _checked(f, current, value, where: str):
+    """`value` for field `f` (whose default-derived value is `current`), of the field's type and within its
+    bounds; an InputError naming `where` otherwise."""
+    import math
+
+    if isinstance(value, dict):
+        raise InputError(f"{where}: expected a single value, not a table")
+    if current is None or (isinstance(current, str) and isinstance(value, str)):
+        return value
+    if isinstance(current, (tuple, list)):
+        if not isinstance(value, (tuple, list)):
+            raise InputError(f"{where}: expected a list, got {value!r}")
+        return tuple(value)
+    if isinstance(current, bool) or isinstance(value, bool):
+        if type(value) is not type(current):
+            raise InputError(f"{where}: expected {type(current).__name__}, got {value!r}")
+        return value
+    if isinstance(current, float) and isinstance(value, (int, float)):
+        value = float(value)
+    elif type(value) is not type(current):
+        expected = "a whole number" if isinstance(current, int) else type(current).__name__
+        raise InputError(f"{where}: expected {expected}, got {value!r}")
+    if isinstance(value, float) and not math.isfinite(value):
+        raise InputError(f"{where}: expected a finite number, got {value!r}")
+    low, high = f.metadata.get("low"), f.metadata.get("high")
+    if low is not None and (value < low or f.metadata.get("low_open") and value == low):
+        raise InputError(f"{where}: must be {'above' if f.metadata.get('low_open') else 'at least'} {low}, "
+                         f"got {value!r}")
+    if high is not None and value > high:
+        raise InputError(f"{where}: must be at most {high}, got {value!r}")
+    return value
+
+
 def with_overrides(cfg, overrides: dict, *, source: str = "overrides"):
-    """A copy of `cfg` with fields replaced from a (nested) dict; unknown keys raise InputError naming `source`."""
+    """A copy of `cfg` with fields replaced from a (nested) dict; unknown keys, values of the wrong type and
+    values outside a `bounded` field's range raise InputError naming `source` and the key."""
     fields = {f.name: f for f in dataclasses.fields(cfg)}
     changes = {}
     for key, value in overrides.items():
@@ -54,7 +95,7 @@ def with_overrides(cfg, overrides: dict, *, source: str = "overrides"):
                 raise InputError(f"{source}: {key!r} must be a table of options")
             changes[key] = with_overrides(current, value, source=f"{source}: {key}")
         else:
-            changes[key] = tuple(value) if isinstance(value, list) else value
+            changes[key] = _checked(fields[key], current, value, f"{source}: {key}")
     return dataclasses.replace(cfg, **changes)
 
 

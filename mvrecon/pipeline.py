@@ -20,7 +20,7 @@ import numpy as np
 
 from . import database as dbmod
 from .cameras import CameraConfig, group_cameras
-from .config import config_hash, to_dict
+from .config import bounded, config_hash, to_dict
 from .errors import InputError
 from .executor import StageClock, WorkerPool, blas_threads, default_workers
 from .features.sift import SiftConfig
@@ -44,7 +44,7 @@ class FrontendConfig:
     pairs: str = "exhaustive"  # exhaustive | sequential:K | path of a pairs file
     matcher: MatcherConfig = MatcherConfig()
     verify: VerifyConfig = VerifyConfig()
-    workers: int = field(default=0, metadata={"hash": False})  # processes/threads; 0 = all cores
+    workers: int = bounded(0, 0, hash=False)  # processes/threads; 0 = all cores
 
 
 def _workers(config: FrontendConfig) -> int:

@@ -156,6 +156,39 @@ def test_cli_bad_input_exits_2_with_one_line(tmp_path, capsys):
     assert code == 2 and "no readable JPEG, PNG or TIFF images" in out.err and len(out.err.splitlines()) == 1
     code, out = run_cli(["match", "-w", str(tmp_path / "ws"), "--pairs", "sequential:0"], capsys)
     assert code == 2 and "positive integer" in out.err
+    textured_views(tmp_path / "images", count=2)
+    # values a config cannot hold are refused before any work, naming where they came from
+    (tmp_path / "t.toml").write_text('[sift]\nmax_num_features = "lots"\n[mapper]\ninit_min_inliers = -5\n')
+    (tmp_path / "w.toml").write_text("[workers]\nx = 1\n")
+    for args, message in (
+            (["--max-image-size", "-1"], "command line: sift: max_image_size: must be at least 16, got -1"),
+            (["--ratio", "5"], "command line: matcher: max_ratio: must be at most 1.0, got 5.0"),
+            (["--camera-params=nan,32,24,0"], "--camera-params nan,32,24,0: expected finite numbers"),
+            (["--camera-params=0,32,24,0"], "and a positive focal length"),
+            (["--config", str(tmp_path / "t.toml")], "t.toml: sift: max_num_features: expected a whole number"),
+            (["--config", str(tmp_path / "w.toml")], "w.toml: workers: expected a single value, not a table"),
+            (["--config", str(tmp_path)], f"{tmp_path}: Is a directory")):
+        code, out = run_cli(["reconstruct", str(tmp_path / "images"), "-o", str(tmp_path / "run")] + args, capsys)
+        assert code == 2 and message in out.err and len(out.err.splitlines()) == 1, (args, out.err)
+        assert not (tmp_path / "run" / "database.db").exists()
+    (tmp_path / "t.toml").write_text("[mapper]\ninit_min_inliers = -5\n")
+    code, out = run_cli(["reconstruct", str(tmp_path / "images"), "-o", str(tmp_path / "run"), "--config",
+                         str(tmp_path / "t.toml")], capsys)
+    assert code == 2 and "mapper: init_min_inliers: must be at least 0, got -5" in out.err
+    # numbers outside an option's range stop at the parser (argparse: usage line and the error, exit 2)
+    for argv, message in ((["degrade", str(tmp_path / "images"), "-o", str(tmp_path / "d"), "--seed", "-1"],
+                           "argument --seed: must be at least 0, got -1"),
+                          (["stereo", "a.png", "b.png", "-o", str(tmp_path / "s"), "--num-disparities", "-16"],
+                           "argument --num-disparities: must be at least 1, got -16"),
+                          (["calibrate", str(tmp_path), "-o", str(tmp_path / "c.toml"), "--square", "nan"],
+                           "argument --square: must be above 0.0, got nan")):
+        with pytest.raises(SystemExit) as stop:
+            main(argv)
+        assert stop.value.code == 2 and message in capsys.readouterr().err
+    # an output path that is a file: the path and the reason, not a NotADirectoryError trace
+    (tmp_path / "file.txt").write_text("x")
+    code, out = run_cli(["reconstruct", str(tmp_path / "images"), "-o", str(tmp_path / "file.txt")], capsys)
+    assert code == 2 and out.err.strip().endswith("Not a directory") and len(out.err.splitlines()) == 1
 
 
 def test_cli_skips_corrupt_and_non_image_files(tmp_path, capsys, caplog):

@@ -8,11 +8,31 @@ instead of redefining flags, so the same words mean the same thing everywhere.
 
 import argparse
 import dataclasses
+import math
 
 from ..cameras import CAMERA_MODES, CameraConfig, parse_camera_params
 from ..config import load_toml, with_overrides
 from ..errors import InputError
 from ..geometry.camera import MODELS
+
+
+def _number(kind, low, low_open: bool = False):
+    """An argparse `type` for numbers of `kind` at least `low` (above it with `low_open`)."""
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {'a whole number' if kind is int else 'a number'}, "
+                                             f"got {text!r}") from None
+        if not math.isfinite(value) or value < low or (low_open and value == low):
+            raise argparse.ArgumentTypeError(f"must be {'above' if low_open else 'at least'} {low}, got {text}")
+        return value
+    return parse
+
+
+non_negative_int = _number(int, 0)  # seeds, counts where 0 means "none" or "all"
+positive_int = _number(int, 1)
+positive_float = _number(float, 0.0, low_open=True)
 
 
 def add_camera_options(parser: argparse.ArgumentParser) -> None:

@@ -15,11 +15,14 @@ ORDER = 62
 
 
 def add_arguments(parser) -> None:
+    from ._options import positive_float
+
     parser.add_argument("images", help="folder with the chessboard images")
     parser.add_argument("-o", "--output", required=True, help="camera file to write (TOML)")
     parser.add_argument("--pattern", choices=("chessboard",), default="chessboard", help="calibration target")
     parser.add_argument("--size", default="auto", help="inner corners CxR, e.g. 9x6, or 'auto' (default)")
-    parser.add_argument("--square", type=float, default=1.0, help="square size (sets the unit of the baseline)")
+    parser.add_argument("--square", type=positive_float, default=1.0,
+                        help="square size (sets the unit of the baseline)")
     parser.add_argument("--stereo", action="store_true", help="stereo rig: pair images named left*/right*")
 
 

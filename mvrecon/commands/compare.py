@@ -16,6 +16,8 @@ ORDER = 60
 
 
 def add_arguments(parser) -> None:
+    from ._options import non_negative_int, positive_float
+
     parser.add_argument("images", nargs="?", help="folder of images (omit with --models)")
     parser.add_argument("-o", "--output", required=True, help="report folder (index.html, metrics.json/.csv, runs/)")
     parser.add_argument("--gt", help="ground truth: COLMAP model folder, *_par.txt, gt_dense_cameras/, calibration/")
@@ -29,10 +31,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--camera-model", default="SIMPLE_RADIAL",
                         help="COLMAP camera model for both engines (default: SIMPLE_RADIAL)")
     parser.add_argument("--camera-params", help="known intrinsics in the model's order, e.g. 1520,320,240,0")
-    parser.add_argument("--seed", type=int, default=0, help="random seed of both engines (default: 0)")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="random seed of both engines (default: 0)")
     parser.add_argument("--mvrecon-args", default="",
                         help="extra flags for `mvrecon reconstruct` only, as one quoted string")
-    parser.add_argument("--timeout", type=float, help="seconds per run; a run over time is reported as failed")
+    parser.add_argument("--timeout", type=positive_float, help="seconds per run; a run over time is reported as failed")
 
 
 def run(args) -> int:

@@ -13,6 +13,8 @@ ORDER = 60
 
 
 def add_arguments(parser) -> None:
+    from ._options import non_negative_int
+
     parser.add_argument("images", help="an image folder (JPEG, PNG, TIFF) or a single image")
     parser.add_argument("-o", "--output", required=True, help="output folder (created; files keep their names)")
     g = parser.add_argument_group("degradations (defaults leave the image unchanged)")
@@ -31,7 +33,7 @@ def add_arguments(parser) -> None:
     g.add_argument("--sharpen-radius", type=float, default=1.0, metavar="SIGMA",
                    help="unsharp mask Gaussian sigma in pixels (default 1)")
     g.add_argument("--jpeg", type=int, default=0, metavar="QUALITY", help="JPEG re-compression quality 1..100")
-    parser.add_argument("--seed", type=int, default=0, help="random seed of the noise (default 0)")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="random seed of the noise (default 0)")
 
 
 def degradation_from_args(args):

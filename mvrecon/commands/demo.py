@@ -18,9 +18,11 @@ SCENE = "object_orbit_small"
 
 
 def add_arguments(parser) -> None:
+    from ._options import non_negative_int
+
     parser.add_argument("-o", "--output", default="out/demo", help="output folder (default: out/demo)")
     parser.add_argument("--scene", default=SCENE, help=f"catalog scene to use (default: {SCENE})")
-    parser.add_argument("--seed", type=int, default=0, help="mapper seed")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="mapper seed")
 
 
 def run(args) -> int:

@@ -14,12 +14,14 @@ ORDER = 64
 
 
 def add_arguments(parser) -> None:
+    from ._options import positive_float
+
     parser.add_argument("inputs", nargs="+", help="image files and/or folders of images")
     parser.add_argument("-o", "--output", required=True, help="markdown table to write (a .csv is written too)")
     parser.add_argument("--pairs", action="store_true", help="consecutive images form pairs (A, B)")
     parser.add_argument("--detectors", default="SIFT,SURF,FAST,ORB,AKAZE,BRISK", help="comma-separated list")
     parser.add_argument("--angle", type=float, default=20.0, help="rotation of the repeatability warp (degrees)")
-    parser.add_argument("--scale", type=float, default=0.8, help="zoom of the repeatability warp")
+    parser.add_argument("--scale", type=positive_float, default=0.8, help="zoom of the repeatability warp")
 
 
 def _collect(inputs):

@@ -12,6 +12,8 @@ ORDER = 32
 
 
 def add_arguments(parser) -> None:
+    from ._options import positive_int
+
     parser.add_argument("run", help="output folder of `mvrecon reconstruct` (holds sparse/0)")
     parser.add_argument("--undistort", action="store_true", required=True,
                         help="write undistorted images and a PINHOLE model (the only export so far)")
@@ -19,7 +21,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--model", default=None, help="model folder (default: RUN/sparse/0, the largest)")
     parser.add_argument("--image-dir", default=None,
                         help="images (default: the folder the run was made from)")
-    parser.add_argument("--max-image-size", type=int, default=-1, help="downscale so the long side fits")
+    parser.add_argument("--max-image-size", type=positive_int, default=-1,
+                        help="downscale so the long side fits (default: full size)")
     parser.add_argument("--text", action="store_true", help="also write the model as text")
 
 

@@ -18,8 +18,10 @@ OPTIMIZERS = ("lm", "sfm")
 def add_mapper_options(parser, *, standalone: bool = True) -> None:
     """Mapper flags shared by `reconstruct` and `map`; only the standalone `map` adds its own --config and
     --overwrite (`reconstruct` has them from the front end's options, and one --config file holds both)."""
+    from ._options import non_negative_int
+
     g = parser.add_argument_group("mapping")
-    g.add_argument("--seed", type=int, default=None,
+    g.add_argument("--seed", type=non_negative_int, default=None,
                    help="random seed: equal inputs and seed give equal models (default 0)")
     g.add_argument("--optimizer", choices=OPTIMIZERS, default=None,
                    help="GTSAM optimizer for bundle adjustment: plain Levenberg-Marquardt with the points "

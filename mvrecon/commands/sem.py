@@ -14,6 +14,8 @@ ORDER = 70
 
 
 def add_arguments(parser) -> None:
+    from ._options import positive_int
+
     parser.add_argument("images", nargs="+", help="tilt-series images (files in tilt order, or a folder)")
     parser.add_argument("-o", "--output", required=True, help="output folder")
     tilts = parser.add_mutually_exclusive_group(required=True)
@@ -24,10 +26,11 @@ def add_arguments(parser) -> None:
                                        "(default: estimated)")
     parser.add_argument("--pixel-size", help="size of an input pixel, e.g. 0.05um or 50nm (default: heights "
                                              "in pixels)")
-    parser.add_argument("--max-size", type=int, help="shrink images so their long side is at most this many px")
+    parser.add_argument("--max-size", type=positive_int,
+                        help="shrink images so their long side is at most this many px")
     parser.add_argument("--reference", type=int, help="index of the image whose grid the height map uses "
                                                       "(default: tilt closest to 0, or the middle image)")
-    parser.add_argument("--pairs", type=int, default=2, help="best-matched pairs merged by ICP (default 2, as "
+    parser.add_argument("--pairs", type=positive_int, default=2, help="best-matched pairs merged by ICP (default 2, as "
                                                              "in the paper)")
     parser.add_argument("--icp", choices=("kdtree", "brute", "open3d-point", "open3d-plane"), default="kdtree",
                         help="ICP variant for merging the pair point sets (default kdtree)")

@@ -14,6 +14,8 @@ ORDER = 60
 
 
 def add_arguments(parser) -> None:
+    from ._options import positive_float, positive_int
+
     parser.add_argument("left", help="left image (the reference view)")
     parser.add_argument("right", help="right image")
     parser.add_argument("-o", "--output", required=True, help="output folder")
@@ -26,14 +28,14 @@ def add_arguments(parser) -> None:
                         help="gee: the paper's global error energy minimisation; sgbm: OpenCV; best: census SGM "
                              "with left-right check, sub-pixel, hole filling, weighted median (default)")
     parser.add_argument("--gt", help="ground-truth disparity (.pfm inf=unknown, .npz, .tif 0=unknown, .png)")
-    parser.add_argument("--gt-scale", type=float, default=1.0, help="divide the ground truth by this (4 for "
+    parser.add_argument("--gt-scale", type=positive_float, default=1.0, help="divide the ground truth by this (4 for "
                                                                         "Middlebury 2003 PNGs)")
     parser.add_argument("--mask", help="non-occlusion mask (brightest value = non-occluded)")
     parser.add_argument("--min-disparity", type=int, help="search range start (default: calib/matches)")
-    parser.add_argument("--num-disparities", type=int, help="search range length (default: calib/matches)")
-    parser.add_argument("--ransac-threshold", type=float, default=1.0, help="Sampson inlier threshold, px")
-    parser.add_argument("--gee-window", type=int, help="gee: error-energy window n=m in px (default 9)")
-    parser.add_argument("--gee-iterations", type=int, help="gee: averaging-filter iterations (default 16)")
+    parser.add_argument("--num-disparities", type=positive_int, help="search range length (default: calib/matches)")
+    parser.add_argument("--ransac-threshold", type=positive_float, default=1.0, help="Sampson inlier threshold, px")
+    parser.add_argument("--gee-window", type=positive_int, help="gee: error-energy window n=m in px (default 9)")
+    parser.add_argument("--gee-iterations", type=positive_int, help="gee: averaging-filter iterations (default 16)")
     parser.add_argument("--gee-alpha", type=float, help="gee: reliability tolerance; estimates above alpha * mean "
                                                         "energy are removed (default 3)")
 

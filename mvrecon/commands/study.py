@@ -17,6 +17,8 @@ ORDER = 61
 def add_arguments(parser) -> None:
     from mvrecon.study.grid import AXES
 
+    from ._options import non_negative_int, positive_float
+
     parser.add_argument("images", help="folder of the clean images")
     parser.add_argument("-o", "--output", required=True, metavar="STUDY", help="study folder (created; reused)")
     parser.add_argument("--gt", metavar="MODEL",
@@ -30,12 +32,14 @@ def add_arguments(parser) -> None:
                    help="direction of the motion blur (default 0 = horizontal)")
     parser.add_argument("--engines", default="mvrecon,colmap",
                         help="engines to compare: mvrecon, colmap, colmap-global (default mvrecon,colmap)")
-    parser.add_argument("--jobs", type=int, default=0, help="cells run at the same time (default: CPU cores)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the noise and of both engines (default 0)")
+    parser.add_argument("--jobs", type=non_negative_int, default=0,
+                        help="cells run at the same time (default: CPU cores)")
+    parser.add_argument("--seed", type=non_negative_int, default=0,
+                        help="seed of the noise and of both engines (default 0)")
     parser.add_argument("--camera-mode", default="auto", choices=("auto", "single", "per-folder", "per-image"),
                         help="camera sharing for both engines (default auto)")
     parser.add_argument("--camera-model", default="SIMPLE_RADIAL", help="COLMAP camera model (default SIMPLE_RADIAL)")
-    parser.add_argument("--timeout", type=float, default=None, metavar="S",
+    parser.add_argument("--timeout", type=positive_float, default=None, metavar="S",
                         help="seconds per engine run; a run past it counts as failed")
     parser.add_argument("--retry-failed", action="store_true",
                         help="rerun cells whose engine run failed or timed out before (else failures are kept)")

@@ -16,20 +16,22 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..config import bounded
 from ..io.images import to_gray_uint8
 
 
 @dataclass(frozen=True)
 class SiftConfig:
-    max_num_features: int = 8192  # keep the strongest responses, as COLMAP's max_num_features
-    max_image_size: int = 3200  # long side in pixels before detection; keypoints are mapped back
+    max_num_features: int = bounded(8192, 1)  # keep the strongest responses, as COLMAP's max_num_features
+    max_image_size: int = bounded(3200, 16)  # long side in pixels before detection; keypoints are mapped back
     # smallest |DoG| at the interpolated extremum, on [0,1] intensities: COLMAP's (VLFeat's) peak_threshold.
     # The default is twice COLMAP's 0.02 / 3: COLMAP's finds 1.5-1.75x the keypoints where the 8192 cap is not
     # reached, so matching takes 2-3x as long; it gained AUC on the temples but lost images on opensfm_lund
     # (docs/frontend.md, "Peak threshold")
-    peak_threshold: float = 0.04 / 3
-    edge_threshold: float = 10.0  # reject edge-like responses (ratio of principal curvatures)
-    num_octave_layers: int = 3  # DoG layers per octave
+    peak_threshold: float = bounded(0.04 / 3, 0.0, low_open=True)
+    # reject edge-like responses (ratio of principal curvatures)
+    edge_threshold: float = bounded(10.0, 0.0, low_open=True)
+    num_octave_layers: int = bounded(3, 1)  # DoG layers per octave
     upright: bool = False  # all orientations 0 (faster, better when the camera never rolls)
     root_sift: bool = True  # RootSIFT (L1 normalise, square root): better matching, COLMAP's default
     # OpenCV's upsampling of the first octave (resize) puts every keypoint a constant 0.25 px right of and

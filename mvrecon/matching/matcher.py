@@ -20,13 +20,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..config import bounded
 from .int_product import int_product
 
 
 @dataclass(frozen=True)
 class MatcherConfig:
-    max_ratio: float = 0.8  # Lowe's ratio test on descriptor angles
-    max_distance: float = 0.7  # radians between unit descriptors, COLMAP's default
+    max_ratio: float = bounded(0.8, 0.0, 1.0, low_open=True)  # Lowe's ratio test on descriptor angles
+    max_distance: float = bounded(0.7, 0.0, low_open=True)  # radians between unit descriptors, COLMAP's default
     cross_check: bool = True  # keep i<->j only if each is the other's nearest neighbour
 
 

@@ -19,20 +19,22 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..config import bounded
 from ..database import CameraInfo
 from ..geometry import camera as camera_model
 
 
 @dataclass(frozen=True)
 class VerifyConfig:
-    max_error: float = 4.0  # pixels; RANSAC inlier threshold for F and H, divided by the focal length for E
-    confidence: float = 0.999
-    max_iterations: int = 5000  # RANSAC cap per model; MAGSAC++ stops far earlier on clean pairs
-    min_num_inliers: int = 15  # COLMAP's two-view minimum
-    min_inlier_ratio: float = 0.25  # inliers / putative matches
-    min_E_F_inlier_ratio: float = 0.95  # E must explain this share of F's inliers for CALIBRATED
-    max_H_inlier_ratio: float = 0.8  # H inliers / E (or F) inliers above this: planar or panoramic
-    panoramic_max_translation: float = 0.01  # |t| / plane distance below this: rotation only (PANORAMIC)
+    # pixels; RANSAC inlier threshold for F and H, divided by the focal length for E
+    max_error: float = bounded(4.0, 0.0, low_open=True)
+    confidence: float = bounded(0.999, 0.0, 1.0, low_open=True)
+    max_iterations: int = bounded(5000, 1)  # RANSAC cap per model; MAGSAC++ stops far earlier on clean pairs
+    min_num_inliers: int = bounded(15, 0)  # COLMAP's two-view minimum
+    min_inlier_ratio: float = bounded(0.25, 0.0, 1.0)  # inliers / putative matches
+    min_E_F_inlier_ratio: float = bounded(0.95, 0.0, 1.0)  # E must explain this share of F's inliers for CALIBRATED
+    max_H_inlier_ratio: float = bounded(0.8, 0.0)  # H inliers / E (or F) inliers above this: planar or panoramic
+    panoramic_max_translation: float = bounded(0.01, 0.0)  # |t| / plane distance below this: rotation only (PANORAMIC)
 
 
 @dataclass(kw_only=True)

@@ -4,10 +4,13 @@ import hashlib
 import json
 from dataclasses import asdict, dataclass
 
+from ..config import bounded
+
 
 @dataclass(frozen=True)
 class MapperConfig:
-    """Incremental mapping options. Pixel thresholds are in pixels of the (distorted) image.
+    """Incremental mapping options. Pixel thresholds are in pixels of the (distorted) image. Values from a
+    --config file or a flag are checked against each field's `bounded` range (config.py).
 
     Initial pair (COLMAP: init_min_num_inliers=100, init_min_tri_angle=16, init_max_error=4):
     init_min_inliers: verified matches a pair needs to be tried as the initial pair.
@@ -56,35 +59,35 @@ class MapperConfig:
     seed: every random choice (RANSAC) is seeded from it, so equal inputs give equal models.
     """
 
-    init_min_inliers: int = 100
+    init_min_inliers: int = bounded(100, 0)
     init_min_tri_angles_deg: tuple = (16.0, 8.0, 4.0, 2.0)
-    init_max_pairs: int = 40
-    two_view_max_error_px: float = 4.0
-    abs_pose_max_error_px: float = 12.0
-    abs_pose_min_inliers: int = 30
-    abs_pose_min_inlier_ratio: float = 0.25
-    max_register_trials: int = 3
-    candidates_per_round: int = 5
-    min_tri_angle_deg: float = 1.5
-    tri_max_angle_error_deg: float = 2.0
-    max_reproj_error_px: float = 4.0
-    filter_max_reproj_error_px: float = 4.0
-    filter_min_tri_angle_deg: float = 1.5
-    local_ba_images: int = 6
-    local_ba_iterations: int = 25
-    global_ba_iterations: int = 50
-    global_ba_growth: float = 1.1
-    ba_relative_tolerance: float = 1e-3
-    ba_points_per_image: int = 300
-    ba_points_per_image_early: int = 100
-    huber_px: float = 1.0
+    init_max_pairs: int = bounded(40, 1)
+    two_view_max_error_px: float = bounded(4.0, 0.0, low_open=True)
+    abs_pose_max_error_px: float = bounded(12.0, 0.0, low_open=True)
+    abs_pose_min_inliers: int = bounded(30, 4)
+    abs_pose_min_inlier_ratio: float = bounded(0.25, 0.0, 1.0)
+    max_register_trials: int = bounded(3, 1)
+    candidates_per_round: int = bounded(5, 1)
+    min_tri_angle_deg: float = bounded(1.5, 0.0, 90.0)
+    tri_max_angle_error_deg: float = bounded(2.0, 0.0, low_open=True)
+    max_reproj_error_px: float = bounded(4.0, 0.0, low_open=True)
+    filter_max_reproj_error_px: float = bounded(4.0, 0.0, low_open=True)
+    filter_min_tri_angle_deg: float = bounded(1.5, 0.0, 90.0)
+    local_ba_images: int = bounded(6, 1)
+    local_ba_iterations: int = bounded(25, 1)
+    global_ba_iterations: int = bounded(50, 1)
+    global_ba_growth: float = bounded(1.1, 1.0, low_open=True)
+    ba_relative_tolerance: float = bounded(1e-3, 0.0, 1.0, low_open=True)
+    ba_points_per_image: int = bounded(300, 0)
+    ba_points_per_image_early: int = bounded(100, 0)
+    huber_px: float = bounded(1.0, 0.0, low_open=True)
     refine_intrinsics: bool = True
-    focal_min_images: int = 3
-    distortion_min_images: int = 6
+    focal_min_images: int = bounded(3, 2)
+    distortion_min_images: int = bounded(6, 2)
     optimizer: str = "lm"
-    min_model_size: int = 3
-    max_models: int = 10
-    seed: int = 0
+    min_model_size: int = bounded(3, 2)
+    max_models: int = bounded(10, 1)
+    seed: int = bounded(0, 0)
 
     def hash(self) -> str:
         """Short stable hash of the settings, stored in reports and snapshots to refuse mixing configs."""
