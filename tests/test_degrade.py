@@ -251,7 +251,7 @@ def test_no_degradation_copies_the_bytes(tmp_path):
     assert (src / "x.png").read_bytes() == (tmp_path / "out" / "x.png").read_bytes()
 
 
-def test_bad_input_is_one_line_and_exit_code_2(tmp_path, capsys):
+def test_bad_input_is_one_line_and_exit_code_2(tmp_path, capsys, caplog):
     src = tmp_path / "src"
     src.mkdir()
     assert main(["degrade", "-q", str(src), "-o", str(tmp_path / "o")]) == 2
@@ -261,6 +261,15 @@ def test_bad_input_is_one_line_and_exit_code_2(tmp_path, capsys):
     assert "JPEG quality must be 1..100" in capsys.readouterr().err
     assert main(["degrade", "-q", str(src), "-o", str(src), "--noise", "3"]) == 2
     assert "must differ from the input folder" in capsys.readouterr().err
+    # unreadable files are left out with a reason, as `reconstruct` leaves them out; the others are degraded
     (src / "bad.png").write_bytes(b"not a png")
-    assert main(["degrade", "-q", str(src), "-o", str(tmp_path / "o"), "--noise", "3"]) == 2
-    assert "bad.png: cannot read this image" in capsys.readouterr().err
+    assert cv2.imwrite(str(tmp_path / "whole.jpg"), np.dstack([texture()] * 3))
+    whole = (tmp_path / "whole.jpg").read_bytes()
+    (src / "cut.jpg").write_bytes(whole[: len(whole) // 2])  # cv2.imread would fill its lower half with grey
+    with caplog.at_level("WARNING", logger="mvrecon.study.degrade"):
+        assert main(["degrade", "-q", str(src), "-o", str(tmp_path / "o"), "--noise", "3"]) == 0
+    assert "bad.png: cannot read image header" in caplog.text and "cut.jpg: cannot read this image" in caplog.text
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["x.png"]
+    (src / "x.png").unlink()
+    assert main(["degrade", "-q", str(src), "-o", str(tmp_path / "o2"), "--noise", "3"]) == 2
+    assert "none of the 2 image(s) could be read" in capsys.readouterr().err

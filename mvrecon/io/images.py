@@ -62,7 +62,7 @@ def list_images(folder) -> tuple[list[str], dict[str, str]]:
             non_images.append(name)
             skipped[name] = "not a JPEG, PNG or TIFF file"
             continue
-        reason = _header_problem(path)
+        reason = image_problem(path)
         if reason:
             log.warning("skipping %s: %s", path, reason)
             skipped[name] = reason
@@ -87,7 +87,9 @@ def _exif(im):
     return im.getexif()
 
 
-def _header_problem(path: Path) -> str | None:
+def image_problem(path: Path) -> str | None:
+    """Why a file cannot be used as an image (a cut-off PNG or JPEG, a broken header), or None; read without
+    decoding the pixels."""
     try:
         with Image.open(path) as im:
             w, h = im.size

@@ -29,6 +29,7 @@ import numpy as np
 from PIL import Image
 
 from ..errors import InputError
+from ..io.images import image_problem
 
 log = logging.getLogger(__name__)
 
@@ -172,7 +173,10 @@ def apply_pixels(img: np.ndarray, deg: Degradation, rng: np.random.Generator, *,
 # ---------------------------------------------------------------- files: read, degrade, write with EXIF
 
 def _read(path: Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)  # keeps 16 bits, grey and alpha; no EXIF rotation
+    # keeps 16 bits, grey and alpha; no EXIF rotation. imdecode rather than imread: imread returns a cut-off
+    # JPEG with its missing rows grey, where imdecode fails on it as `reconstruct` does
+    data = np.fromfile(path, dtype=np.uint8)
+    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if img is None:
         raise InputError(f"{path}: cannot read this image")
     if img.dtype not in (np.uint8, np.uint16):
@@ -294,9 +298,20 @@ def degrade_folder(images, out_dir, deg: Degradation, seed: int = 0, progress_de
     if out_dir.resolve() == files[0].parent.resolve():
         raise InputError(f"{out_dir}: the output folder must differ from the input folder")
     out_dir.mkdir(parents=True, exist_ok=True)
-    written = []
+    written, skipped = [], []
     for src in progress(files, desc=progress_desc, unit="img"):
-        dst = out_dir / src.name
-        degrade_image(src, dst, deg, seed)
-        written.append(dst)
+        # a cut-off file is left out, as `reconstruct` leaves it out: decoded, its missing part would come back
+        # grey, and a degraded copy would pass for a whole image
+        problem = image_problem(src)
+        if problem is None:
+            try:
+                degrade_image(src, out_dir / src.name, deg, seed)
+                written.append(out_dir / src.name)
+                continue
+            except InputError as exc:
+                problem = str(exc).removeprefix(f"{src}: ")
+        log.warning("skipping %s: %s", src, problem)
+        skipped.append(src.name)
+    if not written:
+        raise InputError(f"{images}: none of the {len(files)} image(s) could be read (first: {skipped[0]})")
     return written
