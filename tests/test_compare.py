@@ -173,6 +173,18 @@ def test_failed_run_is_reported_not_raised(tmp_path):
     assert result.models == [] and (result.error or result.report["models"] == [])
 
 
+def test_a_timed_out_run_is_kept_only_under_the_same_or_a_shorter_limit(runs, tmp_path, capsys):
+    images = runs[0]
+    first = run_colmap(images, tmp_path / "out", OPTS, timeout=0.01)
+    assert first.error == "timed out after 0.01 s" and first.models == []
+    assert run_colmap(images, tmp_path / "out", OPTS, timeout=0.01).wall_s == first.wall_s  # read back
+    again = run_colmap(images, tmp_path / "out", OPTS)  # no limit now: run again, to the end
+    assert again.error is None and [m.num_reg_images() for m in again.models] == [8]
+    # a comparison in which no engine registered anything is not a success
+    assert main(["-q", "compare", str(images), "-o", str(tmp_path / "r"), "--timeout", "0.01"]) == 1
+    assert "no engine registered any image" in capsys.readouterr().err
+
+
 # --- comparisons --------------------------------------------------------------------------------------------
 
 def perturbed_copy(model_dir: Path, out: Path, shift) -> str:

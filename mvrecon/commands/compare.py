@@ -16,6 +16,7 @@ ORDER = 60
 
 
 def add_arguments(parser) -> None:
+    from ..geometry.camera import MODELS
     from ._options import non_negative_int, positive_float
 
     parser.add_argument("images", nargs="?", help="folder of images (omit with --models)")
@@ -28,7 +29,7 @@ def add_arguments(parser) -> None:
                         help="skip COLMAP's mapper on mvrecon's database")
     parser.add_argument("--camera-mode", default="auto", choices=("auto", "single", "per-folder", "per-image"),
                         help="which images share intrinsics, for both engines (default: auto)")
-    parser.add_argument("--camera-model", default="SIMPLE_RADIAL",
+    parser.add_argument("--camera-model", default="SIMPLE_RADIAL", choices=MODELS,
                         help="COLMAP camera model for both engines (default: SIMPLE_RADIAL)")
     parser.add_argument("--camera-params", help="known intrinsics in the model's order, e.g. 1520,320,240,0")
     parser.add_argument("--seed", type=non_negative_int, default=0, help="random seed of both engines (default: 0)")
@@ -39,8 +40,9 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     import shlex
+    import sys
 
-    from ..cameras import parse_camera_params
+    from ..cameras import CameraConfig, parse_camera_params
     from ..errors import InputError
     from ..eval.compare import CompareConfig, compare_images, compare_models
     from ..eval.report import format_value, write_report
@@ -50,8 +52,10 @@ def run(args) -> int:
         raise InputError("give either IMAGES or --models A B (not both, not neither)")
     if args.labels and not args.models:
         raise InputError("--labels goes with --models")
-    options = RunOptions(camera_mode=args.camera_mode, camera_model=args.camera_model,
-                         camera_params=parse_camera_params(args.camera_params), seed=args.seed,
+    params = parse_camera_params(args.camera_params)
+    CameraConfig(model=args.camera_model, params=params).validate()
+    options = RunOptions(camera_mode=args.camera_mode, camera_model=args.camera_model, camera_params=params,
+                         seed=args.seed,
                          mvrecon_args=tuple(shlex.split(args.mvrecon_args)))
     config = CompareConfig(options=options, colmap_global=args.colmap_global,
                            same_matches=not args.no_same_matches, timeout_s=args.timeout)
@@ -77,4 +81,8 @@ def run(args) -> int:
         if e["error"]:
             print(f"{name} failed: {e['error']}")
     print(f"reference: {m['reference']['name']}; report: {page}")
+    if not any((e["summary"] or {}).get("registered") for e in m["engines"].values()):  # nothing compared
+        print(f"mvrecon: error: {args.output}: no engine registered any image; see the runs' run.log",
+              file=sys.stderr)
+        return 1
     return 0

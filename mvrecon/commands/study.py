@@ -17,6 +17,7 @@ ORDER = 61
 def add_arguments(parser) -> None:
     from mvrecon.study.grid import AXES
 
+    from ..geometry.camera import MODELS
     from ._options import non_negative_int, positive_float
 
     parser.add_argument("images", help="folder of the clean images")
@@ -38,7 +39,8 @@ def add_arguments(parser) -> None:
                         help="seed of the noise and of both engines (default 0)")
     parser.add_argument("--camera-mode", default="auto", choices=("auto", "single", "per-folder", "per-image"),
                         help="camera sharing for both engines (default auto)")
-    parser.add_argument("--camera-model", default="SIMPLE_RADIAL", help="COLMAP camera model (default SIMPLE_RADIAL)")
+    parser.add_argument("--camera-model", default="SIMPLE_RADIAL", choices=MODELS,
+                        help="COLMAP camera model (default SIMPLE_RADIAL)")
     parser.add_argument("--timeout", type=positive_float, default=None, metavar="S",
                         help="seconds per engine run; a run past it counts as failed")
     parser.add_argument("--retry-failed", action="store_true",
