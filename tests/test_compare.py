@@ -173,16 +173,17 @@ def test_failed_run_is_reported_not_raised(tmp_path):
     assert result.models == [] and (result.error or result.report["models"] == [])
 
 
-def test_a_timed_out_run_is_kept_only_under_the_same_or_a_shorter_limit(runs, tmp_path, capsys):
-    images = runs[0]
-    first = run_colmap(images, tmp_path / "out", OPTS, timeout=0.01)
-    assert first.error == "timed out after 0.01 s" and first.models == []
-    assert run_colmap(images, tmp_path / "out", OPTS, timeout=0.01).wall_s == first.wall_s  # read back
-    again = run_colmap(images, tmp_path / "out", OPTS)  # no limit now: run again, to the end
-    assert again.error is None and [m.num_reg_images() for m in again.models] == [8]
-    # a comparison in which no engine registered anything is not a success
-    assert main(["-q", "compare", str(images), "-o", str(tmp_path / "r"), "--timeout", "0.01"]) == 1
+def test_failed_runs_are_kept_until_retried_and_a_comparison_of_nothing_fails(runs, tmp_path, capsys):
+    images, out = runs[0], tmp_path / "r"
+    args = ["-q", "compare", str(images), "-o", str(out), "--no-same-matches"]
+    # no engine registered anything: not a success
+    assert main(args + ["--timeout", "0.01"]) == 1
     assert "no engine registered any image" in capsys.readouterr().err
+    assert main(args) == 1  # the timed-out runs are results ...
+    assert main(args + ["--retry-failed"]) == 0  # ... until asked to run them again
+    assert "retrying colmap (it failed before)" in capsys.readouterr().out
+    m = json.loads((out / "metrics.json").read_text())
+    assert {e: v["summary"]["registered"] for e, v in m["engines"].items()} == {"mvrecon": 8, "colmap": 8}
 
 
 # --- comparisons --------------------------------------------------------------------------------------------

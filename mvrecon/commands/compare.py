@@ -36,17 +36,20 @@ def add_arguments(parser) -> None:
     parser.add_argument("--mvrecon-args", default="",
                         help="extra flags for `mvrecon reconstruct` only, as one quoted string")
     parser.add_argument("--timeout", type=positive_float, help="seconds per run; a run over time is reported as failed")
+    parser.add_argument("--retry-failed", action="store_true",
+                        help="run again the engines whose run in OUTPUT failed (otherwise a failure is kept)")
 
 
 def run(args) -> int:
     import shlex
     import sys
+    from pathlib import Path
 
     from ..cameras import CameraConfig, parse_camera_params
     from ..errors import InputError
     from ..eval.compare import CompareConfig, compare_images, compare_models
     from ..eval.report import format_value, write_report
-    from ..eval.runners import RunOptions
+    from ..eval.runners import RunOptions, forget_if_failed
 
     if bool(args.images) == bool(args.models):
         raise InputError("give either IMAGES or --models A B (not both, not neither)")
@@ -59,6 +62,10 @@ def run(args) -> int:
                          mvrecon_args=tuple(shlex.split(args.mvrecon_args)))
     config = CompareConfig(options=options, colmap_global=args.colmap_global,
                            same_matches=not args.no_same_matches, timeout_s=args.timeout)
+    if args.retry_failed and not args.models:
+        for run_dir in sorted((Path(args.output) / "runs").glob("*")):
+            if forget_if_failed(run_dir):
+                print(f"retrying {run_dir.name} (it failed before)")
     if args.models:
         comparison = compare_models(args.models, gt=args.gt, labels=args.labels, config=config)
     else:

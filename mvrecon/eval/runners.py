@@ -8,8 +8,7 @@
 
 Each run happens in a subprocess so its wall time and peak memory are its own and a crash cannot take the caller
 down. A finished OUT (its `runner.json` says so, with the same options) is read back instead of rerun, and so is a
-run that timed out under the same or a shorter limit (rerunning would only time out again); a run that failed
-otherwise is retried next time. OUT
+run that timed out (rerunning would only time out again); a run that failed otherwise is retried next time. OUT
 with a run made with other options is refused, so numbers from different settings never mix. Delete OUT to rerun
 after changing an engine.
 """
@@ -130,6 +129,16 @@ def load_run(out_dir, engine: str | None = None) -> RunResult:
                                      float(total.get("peak_mem_mb") or 0.0)) or float("nan"))
 
 
+def forget_if_failed(out_dir) -> bool:
+    """Delete a run folder whose run failed (a crash, a timeout), so that the next call runs it again; True if
+    it did. Failed runs are otherwise results like any other (`--retry-failed` of compare and study)."""
+    out_dir = Path(out_dir)
+    if not _read_json(out_dir / "runner.json").get("error"):
+        return False
+    shutil.rmtree(out_dir)
+    return True
+
+
 def _read_json(path) -> dict:
     try:
         return json.loads(Path(path).read_text())
@@ -148,9 +157,7 @@ def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout)
         if differing:
             raise InputError(f"{out_dir}: holds a run with a different {', '.join(differing)} "
                              f"({meta.get('engine')} on {meta.get('source')}); use another folder or delete it")
-        # a run that timed out stays a result under the same or a shorter limit; a longer one (or none) reruns it
-        longer = meta.get("timeout_s") is not None and (timeout is None or timeout > meta["timeout_s"])
-        if meta.get("finished") and not (meta.get("error") and longer):
+        if meta.get("finished"):
             return _result(engine, out_dir, meta)
     out_dir.mkdir(parents=True, exist_ok=True)
     meta_path.write_text(json.dumps({**identity, "finished": False}, indent=1))
@@ -173,8 +180,7 @@ def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout)
             raise
     timed_out = error is not None and error.startswith("timed out")
     meta = {**identity, "finished": error is None or timed_out, "wall_s": time.perf_counter() - start,
-            "peak_tree_mem_mb": peak_mb, "error": error, "command": cmd,
-            "timeout_s": timeout if timed_out else None}
+            "peak_tree_mem_mb": peak_mb, "error": error, "command": cmd}
     meta_path.write_text(json.dumps(meta, indent=1))
     return _result(engine, out_dir, meta)
 

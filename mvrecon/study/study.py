@@ -17,7 +17,6 @@ import json
 import logging
 import math
 import os
-import shutil
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -113,15 +112,10 @@ def prepare_images(study_dir: Path, config: StudyConfig, cells: list[Cell]) -> d
 
 def forget_failed_runs(study_dir: Path, engines, cells: list[Cell]) -> list[str]:
     """Delete the cached runs that failed (crash, timeout), so they run again; returns their 'engine/cell' names."""
-    forgotten = []
-    for engine in engines:
-        for cell in cells:
-            folder = study_dir / "runs" / engine / cell.key
-            meta = folder / "runner.json"
-            if meta.is_file() and json.loads(meta.read_text()).get("error"):
-                shutil.rmtree(folder)
-                forgotten.append(f"{engine}/{cell.key}")
-    return forgotten
+    from ..eval.runners import forget_if_failed
+
+    return [f"{engine}/{cell.key}" for engine in engines for cell in cells
+            if forget_if_failed(study_dir / "runs" / engine / cell.key)]
 
 
 def run_cells(study_dir: Path, config: StudyConfig, folders: dict[str, Path], cells: list[Cell]) -> dict:
