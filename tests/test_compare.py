@@ -285,6 +285,23 @@ def test_cli_errors(tmp_path, capsys):
     assert "none: no such folder" in capsys.readouterr().err
 
 
+def test_cli_models_with_damaged_files_are_one_line(runs, tmp_path, capsys):
+    import shutil
+
+    colmap = runs[2]
+    broken_report, broken_model = tmp_path / "a", tmp_path / "b"
+    shutil.copytree(colmap.out_dir, broken_report)
+    (broken_report / "report.json").write_text('{"engine": ')
+    shutil.copytree(colmap.out_dir / "sparse" / "0", broken_model)
+    data = (broken_model / "images.bin").read_bytes()
+    (broken_model / "images.bin").write_bytes(data[: len(data) // 2])
+    for model, message in ((broken_report, "report.json: not valid JSON"),
+                           (broken_model, f"{broken_model}: cannot read this COLMAP model")):
+        assert main(["compare", "-q", "--models", str(colmap.out_dir), str(model), "-o", str(tmp_path / "r")]) == 2
+        err = capsys.readouterr().err
+        assert message in err and len(err.splitlines()) == 1, err
+
+
 def test_cli_models_with_ground_truth(runs, tmp_path, capsys):
     images, gt, colmap, same = runs
     code = main(["compare", "-q", "--models", str(colmap.out_dir), str(same.out_dir), "--gt", str(gt),

@@ -233,3 +233,10 @@ def test_cli_bad_input(tmp_path, capsys):
     for argv, expected in cases:
         code, lines = _error_lines(capsys, argv)
         assert code == 2 and len(lines) == 1 and expected in lines[0], (argv, code, lines)
+
+
+def test_cli_equal_tilts_are_one_line(sem_scene, tmp_path, capsys):
+    root, images, tilts, meta = sem_scene
+    code, lines = _error_lines(capsys, ["-q", "sem", *images, "-o", str(tmp_path / "o"),
+                                        "--tilts=" + ",".join("0" for _ in images), "--axis", "y"])
+    assert code == 2 and len(lines) == 1 and "no parallax (equal tilts)" in lines[0], lines

@@ -167,3 +167,6 @@ def test_bad_input_gives_one_line_errors(tmp_path, capsys, motorcycle):
     (tmp_path / "bad.txt").write_text("hello=1\n")
     assert "not a Middlebury calib.txt" in error(
         [str(tmp_path / "l.png"), str(tmp_path / "l.png"), "--calib", str(tmp_path / "bad.txt")])
+    pair = [str(tmp_path / "l.png"), str(tmp_path / "l.png"), "--rectified", "--method", "sgbm"]
+    assert "bad.txt: cannot read the mask image" in error(pair + ["--mask", str(tmp_path / "bad.txt")])
+    assert "small.png: mask is 600x400, images are" in error(pair + ["--mask", str(tmp_path / "small.png")])

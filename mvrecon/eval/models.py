@@ -5,13 +5,19 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from ..errors import InputError
+
 
 def load_reconstruction(path) -> pycolmap.Reconstruction:
-    """A COLMAP model folder (binary or text); FileNotFoundError names the folder when it holds no model."""
+    """A COLMAP model folder (binary or text); an InputError names the folder when it holds no model or one
+    that pycolmap cannot read (a cut-off images.bin raises IndexError there, a garbled cameras.bin ValueError)."""
     path = Path(path)
     if not (path / "images.bin").exists() and not (path / "images.txt").exists():
-        raise FileNotFoundError(f"{path}: no COLMAP model (images.bin or images.txt) here")
-    return pycolmap.Reconstruction(str(path))
+        raise InputError(f"{path}: no COLMAP model (images.bin or images.txt) here")
+    try:
+        return pycolmap.Reconstruction(str(path))
+    except Exception as exc:
+        raise InputError(f"{path}: cannot read this COLMAP model ({type(exc).__name__}: {exc})") from None
 
 
 def poses(rec: pycolmap.Reconstruction) -> dict:

@@ -118,7 +118,10 @@ def load_run(out_dir, engine: str | None = None) -> RunResult:
     report_path = out_dir / "report.json"
     if not report_path.is_file():
         raise InputError(f"{out_dir}: no report.json (not a finished mvrecon/colmap run)")
-    report = json.loads(report_path.read_text())
+    try:
+        report = json.loads(report_path.read_text())
+    except ValueError as exc:
+        raise InputError(f"{report_path}: not valid JSON ({exc})") from None
     meta = _read_json(out_dir / "runner.json")
     total = report.get("total", {})
     return RunResult(engine=engine or report.get("engine", "unknown"), out_dir=out_dir, report=report,

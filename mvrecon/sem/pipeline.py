@@ -215,8 +215,11 @@ def run_sem(image_paths, out_dir, config: SemConfig = SemConfig()) -> dict:
     merged, pair_reports = [anchor], []
     for i, j in ranked[:max(1, config.pairs)]:
         idx = pairs[(i, j)]["index"]
-        cloud = heights_from_parallax(keypoints[i][idx[:, 0]], keypoints[j][idx[:, 1]], tilts[i], tilts[j], axis,
-                                      center)
+        try:
+            cloud = heights_from_parallax(keypoints[i][idx[:, 0]], keypoints[j][idx[:, 1]], tilts[i], tilts[j],
+                                          axis, center)
+        except ValueError as exc:  # equal tilts: the pair has no parallax to give heights
+            raise InputError(f"{paths[i].name} / {paths[j].name}: {exc}") from None
         outliers = height_outliers(cloud)
         cloud = cloud[~outliers]
         init = np.eye(4)

@@ -114,7 +114,10 @@ def load_mask(path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: non-occlusion mask not found")
-    m = np.asarray(Image.open(path))
+    try:
+        m = np.asarray(Image.open(path))
+    except Exception as exc:  # Pillow raises several types for a file it cannot read
+        raise InputError(f"{path}: cannot read the mask image ({type(exc).__name__})") from None
     if m.ndim == 3:
         m = m[..., 0]
     return m == m.max()
@@ -215,9 +218,10 @@ def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=
     gt = load_ground_truth(gt_path, gt_scale) if gt_path is not None else None
     mask = load_mask(mask_path) if mask_path is not None else None
     left, right = read_pair(left_path, right_path)
-    if gt is not None and gt.shape != left.shape[:2]:
-        raise InputError(f"{gt_path}: ground truth is {gt.shape[1]}x{gt.shape[0]}, images are "
-                         f"{left.shape[1]}x{left.shape[0]}")
+    for path, grid, what in ((gt_path, gt, "ground truth"), (mask_path, mask, "mask")):
+        if grid is not None and grid.shape != left.shape[:2]:
+            raise InputError(f"{path}: {what} is {grid.shape[1]}x{grid.shape[0]}, images are "
+                             f"{left.shape[1]}x{left.shape[0]}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     report: dict = {"left": str(left_path), "right": str(right_path), "method": config.method, "timings_s": {}}
