@@ -154,7 +154,7 @@ def test_ximea_stereo_against_authors_result(tmp_path):
     assert result.rms_px < 1.0
 
 
-def test_cli_calibrate_writes_the_camera_file_and_stereo_refuses_one_without_a_rig(tmp_path, capsys):
+def test_cli_calibrate_writes_the_camera_file_and_stereo_refuses_one_without_a_rig(tmp_path, capsys, caplog):
     import cv2
 
     views = dict(list(synthetic_views().items())[:8])
@@ -162,9 +162,15 @@ def test_cli_calibrate_writes_the_camera_file_and_stereo_refuses_one_without_a_r
     folder.mkdir()
     for name, img in views.items():
         cv2.imwrite(str(folder / name), img)
-    assert main(["calibrate", str(folder), "-o", str(tmp_path / "camera.toml"), "--square", "30", "-q"]) == 0
+    cv2.imwrite(str(tmp_path / "whole.jpg"), views["view00.png"])
+    whole = (tmp_path / "whole.jpg").read_bytes()
+    (folder / "view99.jpg").write_bytes(whole[: len(whole) // 2])  # cut off: left out with a warning
+    with caplog.at_level("WARNING"):
+        assert main(["calibrate", str(folder), "-o", str(tmp_path / "camera.toml"), "--square", "30", "-q"]) == 0
+    assert "skipping" in caplog.text and "view99.jpg" in caplog.text
     cam = read_camera_toml(tmp_path / "camera.toml")
     assert abs(cam["left"].params[0] - 620) / 620 < 0.005
+    (folder / "view99.jpg").unlink()
     capsys.readouterr()
     assert main(["calibrate", str(tmp_path / "nothing"), "-o", str(tmp_path / "c.toml")]) == 2
     assert "mvrecon: error:" in capsys.readouterr().err

@@ -79,6 +79,10 @@ def test_detectors_command_writes_tables(tmp_path, cones, capsys):
     assert "| a0.png |" in text and "verified inliers" in text
     rows = (tmp_path / "table.csv").read_text().splitlines()
     assert rows[0].startswith("image,SIFT keypoints") and len(rows) == 3
+    (tmp_path / "b.png").write_bytes((tmp_path / "a0.png").read_bytes()[:500])  # cut off: left out
+    assert main(["detectors", str(tmp_path), "-o", str(out), "--detectors", "SIFT", "-q"]) == 0
+    assert len((tmp_path / "table.csv").read_text().splitlines()) == 3
+    (tmp_path / "b.png").unlink()
     capsys.readouterr()
     assert main(["detectors", str(tmp_path / "a0.png"), "--pairs", "-o", str(out)]) == 2
     assert "even number" in capsys.readouterr().err

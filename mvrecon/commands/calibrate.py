@@ -53,15 +53,25 @@ def run(args) -> int:
     config = CalibrationConfig(board=_board(args.size), square=args.square)
     folder = Path(args.images)
     names, _ = list_images(folder)
+    images = {}
+    for name in names:  # a board image that cannot be decoded is left out, as a view without a board is
+        try:
+            images[name] = read_image(folder / name)
+        except InputError as exc:
+            log.warning("skipping %s", exc)
     if args.stereo:
         lefts, rights, pairs = stereo_pairs(names)
+        pairs = [(a, b) for a, b in pairs if a in images and b in images]
         if not pairs:
-            raise InputError(f"{folder}: no left/right image pairs (names must differ only by left <-> right)")
-        result = calibrate_stereo({n: read_image(folder / n) for n in lefts},
-                                  {n: read_image(folder / n) for n in rights}, pairs, config)
+            raise InputError(f"{folder}: no readable left/right image pairs (names must differ only by "
+                             "left <-> right)")
+        result = calibrate_stereo({a: images[a] for a, _ in pairs}, {b: images[b] for _, b in pairs}, pairs,
+                                  config)
         mono = [("left", result.left), ("right", result.right)]
     else:
-        result = calibrate_mono({n: read_image(folder / n) for n in names}, config)
+        if not images:
+            raise InputError(f"{folder}: none of the images could be decoded")
+        result = calibrate_mono(images, config)
         mono = [("camera", result)]
     write_camera_toml(args.output, result, config)
     for label, m in mono:

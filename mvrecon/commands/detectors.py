@@ -67,7 +67,13 @@ def run(args) -> int:
     rows, detections = [], {}
     impl = {}
     for path in progress(paths, desc="detectors", unit="img"):
-        image = read_image(path)
+        try:
+            image = read_image(path)
+        except InputError as exc:
+            if args.pairs:  # the pairs are given by position: one missing image would shift the others
+                raise
+            log.warning("skipping %s", exc)
+            continue
         H = synthetic_homography(image.shape, args.angle, args.scale)
         row = {"image": str(path)}
         for name in names:
@@ -78,6 +84,8 @@ def run(args) -> int:
             row[f"{name} ms"] = round(1000 * det.seconds, 1)
             row[f"{name} repeatability %"] = round(100 * warp_repeatability(name, image, H), 1)
         rows.append(row)
+    if not rows:
+        raise InputError(f"none of the {len(paths)} image(s) could be decoded")
     pair_rows = []
     if args.pairs:
         for a, b in zip(paths[::2], paths[1::2]):
