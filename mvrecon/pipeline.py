@@ -362,8 +362,11 @@ def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resu
     ws.begin_stage("mapping", to_dict(config), overwrite or not resume)
     corr = dbmod.read_correspondences(ws.database_path)
     if not corr.pairs:
-        raise InputError(f"{ws.database_path}: no verified image pairs among {len(corr.images)} images; the "
-                         "images do not overlap or have too little texture (nothing to reconstruct)")
+        with dbmod.open_database(ws.database_path) as db:
+            matched = db.num_matched_image_pairs()
+        raise InputError(f"{ws.database_path}: no verified image pairs among {len(corr.images)} images; " + (
+            f"run `mvrecon match -w {ws.path}` first" if not matched else
+            "the images do not overlap or have too little texture (nothing to reconstruct)"))
     snapshot = ws.path / "snapshots" / "mapper.pkl"
     result = map_correspondences(corr, config, snapshot_path=snapshot, resume=resume)
     sparse = ws.path / "sparse"

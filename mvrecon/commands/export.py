@@ -35,6 +35,8 @@ def run(args) -> int:
     from ..workspace import Workspace
 
     run_dir = Path(args.run)
+    if not run_dir.is_dir():
+        raise InputError(f"{run_dir}: no such run folder (the output folder of `mvrecon reconstruct`)")
     model = Path(args.model) if args.model else run_dir / "sparse" / "0"
     image_dir = args.image_dir
     if image_dir is None:

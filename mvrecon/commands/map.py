@@ -21,13 +21,17 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     import logging
+    from pathlib import Path
 
     from ..executor import StageClock
     from ..database import database_counts
+    from ..errors import InputError
     from ..pipeline import map_workspace, write_report
     from .reconstruct import mapper_config
 
     config = mapper_config(args)
+    if args.image_dir is not None and not Path(args.image_dir).is_dir():
+        raise InputError(f"{args.image_dir}: no such image folder (--image-dir)")
     clock = StageClock()
     summary = map_workspace(config, args.workspace, image_dir=args.image_dir, text=args.text,
                             resume=args.resume, overwrite=args.overwrite)
