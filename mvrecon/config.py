@@ -59,7 +59,12 @@ def _checked(f, current, value, where: str):
     if isinstance(current, (tuple, list)):
         if not isinstance(value, (tuple, list)):
             raise InputError(f"{where}: expected a list, got {value!r}")
-        return tuple(value)
+        if not current:
+            return tuple(value)
+        if not value:
+            raise InputError(f"{where}: expected a non-empty list")
+        # every entry like the default's first one: its type, and the field's bounds
+        return tuple(_checked(f, current[0], v, f"{where}[{k}]") for k, v in enumerate(value))
     if isinstance(current, bool) or isinstance(value, bool):
         if type(value) is not type(current):
             raise InputError(f"{where}: expected {type(current).__name__}, got {value!r}")

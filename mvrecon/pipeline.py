@@ -430,9 +430,17 @@ def reconstruct(config: ReconstructConfig, image_dir, out_dir, *, text: bool = F
             log.info("%s: finished run with the same config found; not redone", out)
             return old
     report_path.unlink(missing_ok=True)
+    fresh = not out.exists()
     ws = Workspace(out).create()
     clock = StageClock()
-    features = extract_features(config.frontend, image_dir, ws, overwrite=overwrite)
+    try:
+        features = extract_features(config.frontend, image_dir, ws, overwrite=overwrite)
+    except InputError:  # rejected input: a folder this call made holds nothing worth keeping
+        if fresh:
+            import shutil
+
+            shutil.rmtree(out, ignore_errors=True)
+        raise
     log.info("%s", features.text())
     clock.done("features")
     matches = match(config.frontend, ws, overwrite=overwrite)

@@ -160,6 +160,7 @@ def test_cli_bad_input_exits_2_with_one_line(tmp_path, capsys):
     # values a config cannot hold are refused before any work, naming where they came from
     (tmp_path / "t.toml").write_text('[sift]\nmax_num_features = "lots"\n[mapper]\ninit_min_inliers = -5\n')
     (tmp_path / "w.toml").write_text("[workers]\nx = 1\n")
+    (tmp_path / "a.toml").write_text('[mapper]\ninit_min_tri_angles_deg = [8.0, "x"]\n')
     for args, message in (
             (["--max-image-size", "-1"], "command line: sift: max_image_size: must be at least 16, got -1"),
             (["--ratio", "5"], "command line: matcher: max_ratio: must be at most 1.0, got 5.0"),
@@ -167,6 +168,7 @@ def test_cli_bad_input_exits_2_with_one_line(tmp_path, capsys):
             (["--camera-params=0,32,24,0"], "and a positive focal length"),
             (["--config", str(tmp_path / "t.toml")], "t.toml: sift: max_num_features: expected a whole number"),
             (["--config", str(tmp_path / "w.toml")], "w.toml: workers: expected a single value, not a table"),
+            (["--config", str(tmp_path / "a.toml")], "mapper: init_min_tri_angles_deg[1]: expected float, got 'x'"),
             (["--config", str(tmp_path)], f"{tmp_path}: Is a directory")):
         code, out = run_cli(["reconstruct", str(tmp_path / "images"), "-o", str(tmp_path / "run")] + args, capsys)
         assert code == 2 and message in out.err and len(out.err.splitlines()) == 1, (args, out.err)
@@ -216,6 +218,11 @@ def test_cli_skips_corrupt_and_non_image_files(tmp_path, capsys, caplog):
     last = out.err.strip().splitlines()[-1]  # above it: progress bar and warnings
     assert code == 2 and last.startswith("mvrecon: error: ") and "only 1 usable image(s), need at least 2" in last
     assert "truncated.png" in last and "half.tif" in last
+    # reconstruct refuses the same folder and leaves no empty output folder behind; an existing one stays
+    for out_dir, kept in ((tmp_path / "new_run", False), (tmp_path, True)):
+        code, out = run_cli(["reconstruct", str(images), "-o", str(out_dir), "--workers", "1"], capsys)
+        assert code == 2 and "only 1 usable image(s)" in out.err.strip().splitlines()[-1]
+        assert out_dir.is_dir() == kept
 
 
 def test_the_command_runs_as_a_fresh_process(tmp_path):

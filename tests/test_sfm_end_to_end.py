@@ -69,9 +69,10 @@ def test_rerun_does_not_redo_a_finished_run(demo):
     assert (run / "report.json").stat().st_mtime_ns == before
 
 
-def test_export_undistorted_pinhole_model(demo, tmp_path):
+def test_export_undistorted_pinhole_model(demo, tmp_path, capfd):
     out = tmp_path / "splat"
     assert main(["-q", "export", str(demo / "run"), "--undistort", "-o", str(out)]) == 0
+    assert capfd.readouterr().err == ""  # -q: not even COLMAP's own log lines (glog, on the C++ side)
     rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
     assert {c.model.name for c in rec.cameras.values()} == {"PINHOLE"}
     assert rec.num_reg_images() == 10

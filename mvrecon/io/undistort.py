@@ -10,6 +10,7 @@ COLMAP's own undistorter does the resampling (`pycolmap.undistort_images`), so t
 `colmap image_undistorter` gives; it writes `sparse/` flat, which is moved to `sparse/0/` here.
 """
 
+import logging
 import shutil
 from pathlib import Path
 
@@ -42,8 +43,15 @@ def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -
         shutil.rmtree(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     options = pycolmap.UndistortCameraOptions(max_image_size=int(max_image_size))
-    pycolmap.undistort_images(str(out_dir), str(model_dir), str(image_dir), output_type="COLMAP",
-                              undistort_options=options)
+    # COLMAP logs a line per image on stderr (glog); those show only with -vv, like our own debug lines
+    saved = pycolmap.logging.minloglevel
+    if not logging.getLogger("mvrecon").isEnabledFor(logging.DEBUG):
+        pycolmap.logging.minloglevel = pycolmap.logging.WARNING
+    try:
+        pycolmap.undistort_images(str(out_dir), str(model_dir), str(image_dir), output_type="COLMAP",
+                                  undistort_options=options)
+    finally:
+        pycolmap.logging.minloglevel = saved
     flat = out_dir / "sparse"
     target = flat / "0"
     target.mkdir(parents=True, exist_ok=True)

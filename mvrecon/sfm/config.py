@@ -60,7 +60,7 @@ class MapperConfig:
     """
 
     init_min_inliers: int = bounded(100, 0)
-    init_min_tri_angles_deg: tuple = (16.0, 8.0, 4.0, 2.0)
+    init_min_tri_angles_deg: tuple = bounded((16.0, 8.0, 4.0, 2.0), 0.0, 180.0)
     init_max_pairs: int = bounded(40, 1)
     two_view_max_error_px: float = bounded(4.0, 0.0, low_open=True)
     abs_pose_max_error_px: float = bounded(12.0, 0.0, low_open=True)
