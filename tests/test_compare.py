@@ -313,6 +313,13 @@ def test_cli_models_with_ground_truth(runs, tmp_path, capsys):
     m = json.loads((tmp_path / "rep" / "metrics.json").read_text())
     assert list(m["engines"]) == ["colmap", "colmap-same-matches"]
     assert load_run(colmap.out_dir).report["engine"] == "colmap"
+    # scored against the ground truth given, not against one of the models
+    assert m["reference"]["name"] == "ground truth" and m["reference"]["images"] == 8
+    assert [e["role"] for e in m["engines"].values()] == ["engine", "diagnostic"]
+    for name in m["engines"]:
+        summary = m["engines"][name]["summary"]
+        assert summary["registered"] == 8, name
+        assert summary["auc@5"] > 0.9 and summary["median_rotation_error_deg"] < 0.5, (name, summary)
 
 
 def test_compare_images_runs_all_three_and_scores_them_like_the_metrics_do(runs, tmp_path_factory):
@@ -333,6 +340,9 @@ def test_compare_images_runs_all_three_and_scores_them_like_the_metrics_do(runs,
         got = m["engines"][name]["summary"]
         for key in ("auc@1", "auc@5", "registered", "components", "median_rotation_error_deg"):
             assert got[key] == pytest.approx(expected[key], rel=1e-9), (name, key)
+    for name in ("mvrecon", "colmap-same-matches"):  # and each engine's model is right, against the ground truth
+        got = m["engines"][name]["summary"]
+        assert got["registered"] == 8 and got["auc@5"] > 0.9 and got["median_rotation_error_deg"] < 0.5, (name, got)
     ratio = m["engines"]["mvrecon"]["summary"]["time_ratio_vs_colmap"]
     assert ratio == pytest.approx(mv.wall_s / colmap.wall_s)
     assert m["engines"]["mvrecon"]["stages"].keys() >= {"features", "matching", "mapping"}

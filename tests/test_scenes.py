@@ -195,13 +195,13 @@ def test_stereo_warp_leaves_only_noise(tmp_path):
     disparity = read_pfm(out / "disp0GT.pfm")
     mask = cv2.imread(str(out / "mask0nocc.png"), cv2.IMREAD_GRAYSCALE)
     calib = dict(line.split("=", 1) for line in (out / "calib.txt").read_text().splitlines())
-    assert float(calib["baseline"]) == pytest.approx(0.16) and int(calib["width"]) == 320
+    assert float(calib["baseline"]) == pytest.approx(160.0) and int(calib["width"]) == 320  # mm, as Middlebury
     assert float(np.nanmax(disparity[np.isfinite(disparity)])) < int(calib["ndisp"])
     nocc = mask == 255
     assert 0.8 < nocc.mean() < 0.99 and (mask == 128).any()
     depth = np.load(out / "gt" / "depth" / "im0.npy")
     f = float(calib["cam0"].strip("[").split()[0])
-    np.testing.assert_allclose(float(calib["baseline"]) * f / disparity[nocc], depth[nocc], rtol=1e-5)
+    np.testing.assert_allclose(float(calib["baseline"]) * f / disparity[nocc], 1000 * depth[nocc], rtol=1e-5)
     h, w = disparity.shape
     u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
     d = np.where(np.isfinite(disparity), disparity, 0).astype(np.float32)

@@ -103,6 +103,18 @@ def test_triangulation_angle_test_agrees_with_the_largest_angle():
         fast = reaches_triangulation_angle(X, centers, mask, min_deg)
         assert 0.05 < full.mean() < 0.95  # both outcomes occur
         np.testing.assert_array_equal(fast, full)
+    # and the largest angle itself, against angles known in closed form and the pairwise arccos of the rays
+    c = np.array([[[1.0, 0, 0], [0, 1, 0], [1, 1, 0]]])  # from the origin: 90 deg between the first two
+    np.testing.assert_allclose(max_triangulation_angle_deg(np.zeros((1, 3)), c, np.ones((1, 3), bool)), [90.0])
+    np.testing.assert_allclose(max_triangulation_angle_deg(np.zeros((1, 3)), c, np.array([[1, 0, 1]], bool)),
+                               [45.0])
+    assert reaches_triangulation_angle(np.zeros((1, 3)), c, np.array([[1, 0, 1]], bool), 44.9)[0]
+    assert not reaches_triangulation_angle(np.zeros((1, 3)), c, np.array([[1, 0, 1]], bool), 45.1)[0]
+    some = np.flatnonzero(mask.sum(axis=1) >= 2)[20:220]  # past the absent and NaN points
+    rays = (centers - X[:, None]) / np.linalg.norm(centers - X[:, None], axis=-1, keepdims=True)
+    expected = [max(np.degrees(np.arccos(np.clip(rays[p, a] @ rays[p, b], -1, 1)))
+                    for a in np.flatnonzero(mask[p]) for b in np.flatnonzero(mask[p])) for p in some]
+    np.testing.assert_allclose(max_triangulation_angle_deg(X, centers, mask)[some], expected, atol=1e-6)
 
 
 def test_pnp_ransac_and_focal_refinement():

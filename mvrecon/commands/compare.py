@@ -73,17 +73,15 @@ def run(args) -> int:
     page = write_report(comparison, args.output)
     m = comparison.metrics
     engines = list(m["engines"])
-    width = max(len(e) for e in engines) + 2
-    print(f"{'':34}" + "".join(f"{e:>{width}}" for e in engines))
     shown = ("registered", "points", "mean_reprojection_error_px", "auc@1", "auc@5", "median_rotation_error_deg",
              "wall_s", "time_ratio_vs_colmap", "peak_mem_mb")
-    for row in m["rows"]:
-        if row["metric"] in shown:
-            label = row["label"] + (f" ({row['unit']})" if row["unit"] else "")
-            texts = [format_value(row["metric"], row["values"][e]) + ("*" if e in row["winners"] else "")
-                     for e in engines]
-            cells = "".join(f"{t:>{width}}" for t in texts)
-            print(f"{label:34}{cells}")
+    table = [(row["label"] + (f" ({row['unit']})" if row["unit"] else ""),
+              [format_value(row["metric"], row["values"][e]) + ("*" if e in row["winners"] else "") for e in engines])
+             for row in m["rows"] if row["metric"] in shown]
+    width = max(len(t) for t in [*engines, *(t for _, texts in table for t in texts)]) + 2
+    print(f"{'':34}" + "".join(f"{e:>{width}}" for e in engines))
+    for label, texts in table:
+        print(f"{label:34}" + "".join(f"{t:>{width}}" for t in texts))
     for name, e in m["engines"].items():
         if e["error"]:
             print(f"{name} failed: {e['error']}")

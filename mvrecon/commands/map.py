@@ -27,7 +27,7 @@ def run(args) -> int:
     from ..database import database_counts
     from ..errors import InputError
     from ..pipeline import map_workspace, write_report
-    from .reconstruct import mapper_config
+    from .reconstruct import mapper_config, no_model
 
     config = mapper_config(args)
     if args.image_dir is not None and not Path(args.image_dir).is_dir():
@@ -40,4 +40,4 @@ def run(args) -> int:
                  stages=clock.stages, total=stage,
                  counts=database_counts(f"{args.workspace}/database.db"))
     logging.getLogger("mvrecon").info("%s", summary.text())
-    return 0
+    return 0 if summary.models else no_model(args.workspace, summary.status)

@@ -82,6 +82,21 @@ def run(args) -> int:
                          overwrite=args.overwrite)
     log = logging.getLogger("mvrecon")
     registered = sum(1 for s in report["images"].values() if s["status"] == "registered")
+    if not report["models"]:
+        return no_model(args.output, report["images"])
     log.info("%s: %d of %d images registered in %d model(s); wrote sparse/, points.ply, report.json",
              args.output, registered, len(report["images"]), len(report["models"]))
     return 0
+
+
+def no_model(out, status: dict) -> int:
+    """Exit code 1 and one error line when mapping made no model: the input was readable (bad input exits 2
+    earlier), but the run failed. `status`: image name -> {"status", "reason", ...}, as in report.json."""
+    import logging
+    from collections import Counter
+
+    reason, count = Counter(s["reason"] for s in status.values()).most_common(1)[0]
+    logging.getLogger("mvrecon").error("%s: no model: none of the %d images could be registered (%d of them: %s); "
+                                       "wrote only report.json, with the reason for each image", out, len(status),
+                                       count, reason)
+    return 1

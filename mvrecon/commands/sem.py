@@ -84,7 +84,7 @@ def run(args) -> int:
     log.info("tilts (deg): %s; steps: %s; axis %.2f deg; joint RMS %.3f px",
              ", ".join(f"{t:.3f}" for t in report["tilts_deg"]),
              ", ".join(f"{t:.3f}" for t in report["tilt_steps_deg"]), report["axis_deg"], report["joint"]["rms_px"])
-    log.info("%d merged points from %d pair sets; height map %.0f%% filled, %.3g to %.3g %s; outputs in %s",
+    log.info("%d merged points from %d pair sets; height map %.1f%% filled, %.3g to %.3g %s; outputs in %s",
              report["merged_points"], len(report["pair_point_sets"]), 100 * hm["valid_fraction"],
              hm["min"] if hm["min"] is not None else float("nan"),
              hm["max"] if hm["max"] is not None else float("nan"), unit, args.output)

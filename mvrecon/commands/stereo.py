@@ -6,8 +6,9 @@ Examples:
   mvrecon stereo a.png b.png -o out --method gee          (uncalibrated: Hartley rectification, disparity only)
   mvrecon stereo left.png right.png -o out --rectified --gt disp_left.tif --mask occlusion.png   (Cones 2003)
 
-Outputs in OUT: matches_epipolar.png, rectified_{left,right}.png, rectified_pair.png, disparity.{pfm,png},
-depth.{pfm,png} and cloud.ply (with a calibration), error_map.png (with --gt), report.json.
+Outputs in OUT: matches_epipolar.png, rectified_{left,right}.png, rectified_pair.png, disparity.pfm,
+disparity.png (16-bit, 256 d, 0 = hole), disparity_view.png, depth.pfm, depth_view.png and cloud.ply (with a
+calibration), error_map.png (with --gt), report.json.
 """
 
 ORDER = 60

@@ -172,7 +172,8 @@ def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout)
                                 env={**os.environ, "PYTHONUNBUFFERED": "1"})
         try:
             code, peak_mb = _wait_measuring_memory(proc, timeout)
-            error = None if code == 0 else _failure_line(out_dir / "run.log", code)
+            error = None if code == 0 or _ran_without_model(out_dir, code) else _failure_line(out_dir / "run.log",
+                                                                                              code)
         except subprocess.TimeoutExpired:
             peak_mb = None
             os.killpg(proc.pid, signal.SIGKILL)
@@ -187,6 +188,12 @@ def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout)
             "peak_tree_mem_mb": peak_mb, "error": error, "command": cmd}
     meta_path.write_text(json.dumps(meta, indent=1))
     return _result(engine, out_dir, meta)
+
+
+def _ran_without_model(out_dir: Path, code: int) -> bool:
+    """`mvrecon reconstruct` exits 1 when it ran to the end but made no model (its report.json says so, with
+    every image's reason): a result, 0 images registered, as a COLMAP run without a model is, not a failure."""
+    return code == 1 and _read_json(out_dir / "report.json").get("models") == []
 
 
 def _cache_bytecode() -> None:

@@ -64,6 +64,17 @@ def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -
             shutil.rmtree(p)
         elif p.exists():
             p.unlink()
+    rec = pycolmap.Reconstruction(str(target))
+    kept = [cam for cam in rec.cameras.values() if cam.model != pycolmap.CameraModelId.PINHOLE]
+    for cam in kept:
+        # COLMAP copies the images of a camera without distortion (SIMPLE_PINHOLE, or k = 0) and keeps its model;
+        # the trainers read PINHOLE only, and for such a camera PINHOLE is the same projection
+        if not cam.is_undistorted():
+            raise InputError(f"{model_dir}: camera {cam.camera_id} ({cam.model.name}) was not undistorted")
+        cam.model, cam.params = pycolmap.CameraModelId.PINHOLE, [cam.focal_length_x, cam.focal_length_y,
+                                                                 cam.principal_point_x, cam.principal_point_y]
+    if kept:
+        rec.write(str(target))
     if text:
-        pycolmap.Reconstruction(str(target)).write_text(str(target))
+        rec.write_text(str(target))
     return target

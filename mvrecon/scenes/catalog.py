@@ -15,7 +15,7 @@ from pathlib import Path
 from ..errors import InputError
 
 CATALOG_DIR = Path(__file__).resolve().parent / "catalog"
-GENERATOR_VERSION = "3"  # bump when rendering changes, so cached scenes are rebuilt
+GENERATOR_VERSION = "4"  # bump when a scene's files change, so cached scenes are rebuilt (4: calib.txt in mm)
 UNITS = {
     "perspective": "scene units (metres)",
     "stereo": "scene units (metres)",

@@ -76,11 +76,13 @@ def write_depth(path, depth: np.ndarray) -> None:
 def write_middlebury_calib(
     path, fx: float, cx: float, cy: float, baseline: float, width: int, height: int, ndisp: int
 ) -> None:
-    """Middlebury calib.txt. Middlebury's pixel origin is the top-left pixel centre, so cx, cy here are
-    COLMAP's minus 0.5; the same principal point in both images means doffs = 0."""
+    """Middlebury calib.txt for a `baseline` in metres (the stereo scenes' unit), written in millimetres as the
+    format specifies, so depth from it (Z = f B / (d + doffs)) is in mm as with Middlebury's own pairs.
+    Middlebury's pixel origin is the top-left pixel centre, so cx, cy here are COLMAP's minus 0.5; the same
+    principal point in both images means doffs = 0."""
     cam = f"[{fx:.6f} 0 {cx - 0.5:.6f}; 0 {fx:.6f} {cy - 0.5:.6f}; 0 0 1]"
     text = (
-        f"cam0={cam}\ncam1={cam}\ndoffs=0\nbaseline={baseline:.6f}\nwidth={width}\nheight={height}\n"
+        f"cam0={cam}\ncam1={cam}\ndoffs=0\nbaseline={1000 * baseline:.6f}\nwidth={width}\nheight={height}\n"
         f"ndisp={ndisp}\nisint=0\nvmin=0\nvmax={ndisp - 1}\n"
     )
     Path(path).write_text(text)

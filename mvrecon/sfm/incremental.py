@@ -424,8 +424,11 @@ class IncrementalMapper:
             log.info("model %d: %d images, %d points", len(self.finished) - 1, int(m.registered.sum()),
                      len(m.alive_points()))
         else:
-            log.info("discarded a model of %d images (< %d)", int(m.registered.sum()),
-                     self.config.min_model_size)
+            n = int(m.registered.sum())
+            log.info("discarded a model of %d images (< %d)", n, self.config.min_model_size)
+            for i in np.flatnonzero(m.registered).tolist():
+                self.reasons[i] = (f"its model stayed at {n} images, under min_model_size "
+                                   f"{self.config.min_model_size}, and was discarded")
 
     # ----- report -----
     def _status(self) -> dict:

@@ -27,12 +27,12 @@ def disparity_metrics(pred, gt, valid=None) -> dict:
     m = int(predicted.sum())
     err = np.abs(pred[predicted] - gt[predicted])
     out = {"pixels": n, "invalid": 100.0 * (n - m) / max(n, 1)}
-    for t in THRESHOLDS:
+    for t in THRESHOLDS:  # the figures over predicted pixels are None (JSON null) when none was predicted
         bad = int((err > t).sum())
         out[f"bad-{_fmt(t)}"] = 100.0 * (bad + n - m) / max(n, 1)
-        out[f"bad-{_fmt(t)}-sparse"] = 100.0 * bad / max(m, 1)
-    out["avgerr"] = float(err.mean()) if m else float("nan")
-    out["rms"] = float(np.sqrt((err ** 2).mean())) if m else float("nan")
+        out[f"bad-{_fmt(t)}-sparse"] = 100.0 * bad / m if m else None
+    out["avgerr"] = float(err.mean()) if m else None
+    out["rms"] = float(np.sqrt((err ** 2).mean())) if m else None
     return out
 
 
@@ -59,5 +59,6 @@ def format_table(rows: dict) -> str:
     lines = ["| method | region | " + " | ".join(cols) + " |", "|---|---|" + "---|" * len(cols)]
     for method, result in rows.items():
         for region, m in result.items():
-            lines.append(f"| {method} | {region} | " + " | ".join(f"{m[c]:.2f}" for c in cols) + " |")
+            lines.append(f"| {method} | {region} | " + " | ".join("-" if m[c] is None else f"{m[c]:.2f}"
+                                                                 for c in cols) + " |")
     return "\n".join(lines)

@@ -36,7 +36,7 @@ class GEEResult:
     disparity: np.ndarray  # float32, NaN = no estimate (unreliable)
     energy: np.ndarray  # smoothed error energy of the chosen disparity
     threshold: float  # Ve
-    reliability: float  # inverse mean energy of the kept estimates
+    reliability: float | None  # inverse mean energy of the kept estimates; None when none is kept
 
 
 def error_energy_volume(left, right, config: GEEConfig) -> np.ndarray:
@@ -80,5 +80,5 @@ def gee_disparity(left, right, config: GEEConfig = GEEConfig()) -> GEEResult:
     ve = float(config.alpha * energy[finite].mean()) if finite.any() else 0.0
     reliable = finite & (energy <= ve)
     disparity[~reliable] = np.nan
-    reliability = float(1.0 / max(energy[reliable].mean(), 1e-12)) if reliable.any() else 0.0
+    reliability = float(1.0 / max(energy[reliable].mean(), 1e-12)) if reliable.any() else None
     return GEEResult(disparity, energy, ve, reliability)

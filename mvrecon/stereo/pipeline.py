@@ -294,12 +294,15 @@ def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=
     report.update(extra)
     report["invalid_percent"] = float(100 * np.mean(~np.isfinite(disparity)))
     write_pfm(out / "disparity.pfm", np.where(np.isfinite(disparity), disparity, np.inf))
-    figures.scalar_map_figure(out / "disparity.png", disparity, f"disparity ({config.method})", "disparity (px)")
+    report["disparity_png"] = _write_disparity_png(out / "disparity.png", disparity)
+    figures.scalar_map_figure(out / "disparity_view.png", disparity, f"disparity ({config.method})",
+                              "disparity (px)")
 
     if geometry is not None:
         depth = disparity_to_depth(disparity, geometry["focal"], geometry["baseline"], geometry["doffs"])
         write_pfm(out / "depth.pfm", np.where(np.isfinite(depth), depth, np.inf))
-        figures.scalar_map_figure(out / "depth.png", depth, "depth Z = f B / (d + doffs)", "depth (baseline units)",
+        figures.scalar_map_figure(out / "depth_view.png", depth, "depth Z = f B / (d + doffs)",
+                                  "depth (baseline units)",
                                   cmap="viridis_r")
         finite = depth[np.isfinite(depth)]
         max_depth = float(20 * np.median(finite)) if finite.size else None
@@ -322,8 +325,26 @@ def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=
             log.warning("rectified frame %s differs from the ground truth %s: not evaluated", disparity.shape,
                         gt.shape)
     report["config"] = asdict(config)
-    (out / "report.json").write_text(json.dumps(report, indent=2))
+    (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False))  # strict JSON: no NaN
     return report
+
+
+def _write_disparity_png(path: Path, disparity) -> bool:
+    """KITTI's 16-bit disparity PNG: round(256 d), 0 = hole (so d = 0, a point at infinity, reads as one too).
+    Written when every disparity fits (0 <= d < 256); a calibrated rectification can give negative ones, which
+    only the PFM holds. Returns whether it was written."""
+    import cv2
+
+    finite = np.isfinite(disparity)
+    values = disparity[finite]
+    if values.size and (values.min() < 0 or values.max() >= 65535 / 256):
+        log.info("disparities outside [0, 256): %s not written (disparity.pfm holds them)", path.name)
+        path.unlink(missing_ok=True)
+        return False
+    png = np.zeros(disparity.shape, np.uint16)
+    png[finite] = np.round(256 * values).astype(np.uint16)
+    cv2.imwrite(str(path), png)
+    return True
 
 
 def _bgr(image):
