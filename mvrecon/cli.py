@@ -10,7 +10,9 @@ import gc
 import importlib
 import logging
 import pkgutil
+import signal
 import sys
+import threading
 
 from . import __version__
 from .errors import InputError
@@ -60,7 +62,36 @@ def _setup_logging(verbose: int, quiet: bool) -> None:
     set_enabled(not quiet)
 
 
+_interrupt = threading.Event()
+
+
+def _on_sigint(signum, frame):
+    _interrupt.set()
+    raise KeyboardInterrupt
+
+
+def _interrupted(module) -> int:
+    """Exit 130 with one line; the command says what a rerun continues from (its ON_INTERRUPT), if anything."""
+    clear_line()
+    hint = getattr(module, "ON_INTERRUPT", "")
+    print(f"mvrecon: interrupted{'; ' + hint if hint else ''}", file=sys.stderr)
+    return 130
+
+
 def main(argv=None) -> int:
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGINT, _on_sigint) if in_main_thread else None
+    _interrupt.clear()
+    try:
+        return _run(argv)
+    except KeyboardInterrupt:  # before a command was chosen (while the parser imports the command modules)
+        return _interrupted(None)
+    finally:
+        if in_main_thread:
+            signal.signal(signal.SIGINT, previous)
+
+
+def _run(argv) -> int:
     args = build_parser().parse_args(argv)
     _setup_logging(args.verbose + args.global_verbose, args.quiet or args.global_quiet)
     try:
@@ -77,10 +108,11 @@ def main(argv=None) -> int:
         print(f"mvrecon: error: {exc.filename}: {exc.strerror or exc}", file=sys.stderr)
         return InputError.exit_code
     except KeyboardInterrupt:
-        clear_line()
-        print("mvrecon: interrupted; finished work is kept in the workspace, rerun the same command to resume",
-              file=sys.stderr)
-        return 130
+        return _interrupted(args._module)
+    except Exception:
+        if _interrupt.is_set():  # Ctrl-C inside a C extension's import surfaces as its own ImportError/RuntimeError
+            return _interrupted(args._module)
+        raise
     finally:
         if argv is None:
             # the `mvrecon` process (not a caller passing argv) ends now: the interpreter's exit then skips a

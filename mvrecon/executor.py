@@ -108,6 +108,14 @@ def _get_context():
 
 
 def _init_worker():
+    """Ctrl-C reaches the whole process group: only the parent acts on it, ending the pool (a worker raising
+    KeyboardInterrupt itself printed a traceback, and could leave the pool waiting for it forever). The pool ends
+    its workers with SIGTERM: they end quietly, not through a handler a library set in the parent (glog's, once
+    pycolmap is loaded, prints a stack dump)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     import cv2
 
     cv2.setNumThreads(1)

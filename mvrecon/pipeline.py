@@ -24,7 +24,7 @@ from .config import bounded, config_hash, to_dict
 from .errors import InputError
 from .executor import StageClock, WorkerPool, blas_threads, default_workers
 from .features.sift import SiftConfig
-from .io.images import IMAGE_EXTENSIONS, image_metadata, list_images
+from .io.images import IMAGE_EXTENSIONS, image_metadata, list_images, visible_files
 from .matching.matcher import MatcherConfig, match_descriptors, prepare_descriptors
 from .matching.pairs import check_spec, select_pairs
 from .matching.verify import VerifyConfig, verify_pair
@@ -104,6 +104,15 @@ def _extract_job(job):
         return name, str(exc)
     except Exception as exc:  # OpenCV or memory errors on one image must not stop the run
         return name, f"{path}: {type(exc).__name__}: {exc}"
+
+
+def require_images(folder) -> list[str]:
+    """The readable images of `folder`, or an InputError when fewer than 2 (before engines run on it)."""
+    names, skipped = list_images(folder)
+    if len(names) < 2:
+        _too_few(Path(folder), len(names), {n: f"{Path(folder) / n}: {r}" for n, r in skipped.items()
+                                            if Path(n).suffix.lower() in IMAGE_EXTENSIONS})
+    return names
 
 
 def _too_few(folder: Path, usable: int, failed: dict[str, str]):
@@ -228,17 +237,17 @@ def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
     check_spec(config.pairs)
     ws.require_stage("features", "run `mvrecon features IMAGES -w WORKSPACE` first")
     record = {"pairs": config.pairs, "matcher": to_dict(config.matcher), "verify": to_dict(config.verify)}
-    dropped = ws.begin_stage("matching", record, overwrite)
     with dbmod.open_database(ws.database_path) as db:
-        if dropped:
-            dbmod.clear_matches(db)
         images = {i.image_id: i for i in dbmod.read_images(db).values() if dbmod.has_features(db, i.image_id)}
         cameras = dbmod.read_cameras(db)
         by_name = {i.name: i.image_id for i in images.values()}
         pairs = []
+        # the pairs first: a pairs file naming an unknown image is refused before the stage is recorded
         for a, b in select_pairs(config.pairs, sorted(by_name)):
             id1, id2 = sorted((by_name[a], by_name[b]))
             pairs.append((id1, id2))
+        if ws.begin_stage("matching", record, overwrite):
+            dbmod.clear_matches(db)
         todo = [p for p in pairs if not dbmod.has_two_view_geometry(db, *p)]
         remaining = {}  # image -> number of todo pairs still needing it, to free its descriptors early
         for p in todo:
@@ -407,6 +416,24 @@ def write_report(out_dir, *, config_hash: str, seed: int, summary: MapSummary, s
     return report
 
 
+def _finished_report(out: Path, full_hash: str, image_dir: Path) -> dict | None:
+    """report.json of a finished run in `out` with this config, of these very images (the same folder, and
+    every image file in it has a status in the report: none added or removed since), else None."""
+    import json
+
+    try:
+        report = json.loads((out / "report.json").read_text())
+        recorded = Workspace(out).stage_config("features") or {}
+    except (OSError, ValueError, InputError):
+        return None
+    if not isinstance(report, dict) or report.get("config_hash") != full_hash or not (out / "sparse").is_dir():
+        return None
+    if recorded.get("images") != str(image_dir.resolve()) or not image_dir.is_dir():
+        return None
+    names = {n for n in visible_files(image_dir) if Path(n).suffix.lower() in IMAGE_EXTENSIONS}
+    return report if names == set(report.get("images") or ()) else None
+
+
 def reconstruct(config: ReconstructConfig, image_dir, out_dir, *, text: bool = False, resume: bool = False,
                 overwrite: bool = False) -> dict:
     """Images -> features -> matches -> models: OUT/database.db, sparse/N/, points.ply, report.json.
@@ -415,35 +442,32 @@ def reconstruct(config: ReconstructConfig, image_dir, out_dir, *, text: bool = F
     features and matches already in the database are kept, and mapping continues from its snapshot when
     `resume` is set. Returns the report dict.
     """
-    import json
-
     out = Path(out_dir)
     mapper = config.mapper
     full_hash = config_hash({"frontend": to_dict(config.frontend), "mapper": to_dict(mapper)})
     report_path = out / "report.json"
-    if report_path.is_file() and not overwrite:
-        try:
-            old = json.loads(report_path.read_text())
-        except json.JSONDecodeError:
-            old = {}
-        if old.get("config_hash") == full_hash and (out / "sparse").is_dir():
-            log.info("%s: finished run with the same config found; not redone", out)
-            return old
-    report_path.unlink(missing_ok=True)
+    finished = None if overwrite else _finished_report(out, full_hash, Path(image_dir))
+    if finished is not None:
+        log.info("%s: finished run with the same config and images found; not redone", out)
+        return finished
+    kept = report_path.read_bytes() if report_path.is_file() and not overwrite else None
+    report_path.unlink(missing_ok=True)  # until this run ends, the folder holds no finished run
     fresh = not out.exists()
     ws = Workspace(out).create()
     clock = StageClock()
     try:
         features = extract_features(config.frontend, image_dir, ws, overwrite=overwrite)
-    except InputError:  # rejected input: a folder this call made holds nothing worth keeping
-        if fresh:
+        log.info("%s", features.text())
+        clock.done("features")
+        matches = match(config.frontend, ws, overwrite=overwrite)
+    except InputError:
+        if fresh:  # rejected input: a folder this call made holds nothing worth keeping
             import shutil
 
             shutil.rmtree(out, ignore_errors=True)
+        elif kept is not None:  # refused (another config, say) without --overwrite: the earlier run stands
+            report_path.write_bytes(kept)
         raise
-    log.info("%s", features.text())
-    clock.done("features")
-    matches = match(config.frontend, ws, overwrite=overwrite)
     log.info("%s", matches.text())
     clock.done("matching")
     summary = map_workspace(mapper, ws, image_dir=image_dir, text=text, resume=resume, overwrite=overwrite,

@@ -38,10 +38,14 @@ class Workspace:
         if not self.config_path.is_file():
             return {}
         try:
-            return json.loads(self.config_path.read_text()).get("stages", {})
-        except (json.JSONDecodeError, AttributeError):
-            raise InputError(f"{self.config_path}: not a valid workspace config "
-                             "(delete it or use --overwrite)") from None
+            stages = json.loads(self.config_path.read_text()).get("stages", {})
+            if all(isinstance(r, dict) and isinstance(r.get("hash"), str) and isinstance(r.get("config"), dict)
+                   for r in stages.values()):
+                return stages
+        except (ValueError, AttributeError):
+            pass
+        raise InputError(f"{self.config_path}: not a valid workspace config (use --overwrite to start the "
+                         "workspace over)")
 
     def stage_config(self, stage: str) -> dict | None:
         record = self.stages().get(stage)
@@ -58,10 +62,14 @@ class Workspace:
         """Record `config` for `stage`. Returns the stages (this one and later ones) whose results must be cleared:
         [] when resuming with the same config or starting fresh, and refuses a different config unless overwrite."""
         self.create()
-        stages = self.stages()
+        try:
+            stages, dropped = self.stages(), []
+        except InputError:
+            if not overwrite:
+                raise
+            stages, dropped = {}, [stage]  # no record of what the results were made with: --overwrite redoes them
         names = list(stages)
         new_hash = cfgmod.config_hash(config)
-        dropped = []
         if stage in stages:
             if stages[stage]["hash"] == new_hash and not overwrite:
                 return []

@@ -210,8 +210,17 @@ def test_cli_skips_corrupt_and_non_image_files(tmp_path, capsys, caplog):
     assert any("truncated.png" in w and "truncated" in w.split("truncated.png", 1)[1].lower() for w in warnings)
     assert any("half.tif: cannot decode image" in w for w in warnings)
     assert sum("readme.txt" in w for w in warnings) == 1
-    code, out = run_cli(["match", "-w", str(ws)], capsys)
+    (tmp_path / "pairs.txt").write_text("view00.png nope.png\n")  # refused before the stage is recorded:
+    code, out = run_cli(["match", "-w", str(ws), "--pairs", str(tmp_path / "pairs.txt")], capsys)
+    assert code == 2 and "unknown image 'nope.png'" in out.err
+    code, out = run_cli(["match", "-w", str(ws)], capsys)  # so the default pairs are no "different config"
     assert code == 0 and "1 verified pairs" in out.out
+    for damaged in ('{"stages": {"features": {}}}', '{"stages": []}', '{"stag'):  # one line; --overwrite redoes
+        (ws / "config.json").write_text(damaged)
+        code, out = run_cli(["match", "-w", str(ws)], capsys)
+        assert code == 2 and "config.json: not a valid workspace config (use --overwrite" in out.err, damaged
+    code, out = run_cli(["features", str(images), "-w", str(ws), "--overwrite"], capsys)
+    assert code == 0 and "2 images" in out.out
 
     (images / "view01.png").unlink()
     code, out = run_cli(["features", str(images), "-w", str(tmp_path / "ws2"), "--workers", "1"], capsys)

@@ -345,6 +345,14 @@ def test_bad_scene_requests_are_input_errors(tmp_path):
     (tmp_path / "user" / "images").mkdir(parents=True)
     with pytest.raises(InputError, match="no scene.json"):
         make_scene("object_orbit_small", tmp_path / "user")
+    # any user file, not only an images/ folder: a scene's own names (calib.txt, gt/) were replaced or deleted
+    user = tmp_path / "stereo_user"
+    (user / "gt").mkdir(parents=True)
+    (user / "gt" / "notes.txt").write_text("mine")
+    (user / "calib.txt").write_text("mine")
+    with pytest.raises(InputError, match="no scene.json"):
+        make_scene("stereo_pair_small", user)
+    assert (user / "gt" / "notes.txt").read_text() == (user / "calib.txt").read_text() == "mine"
 
 
 def test_scene_command_lists_and_reports_errors(capsys, tmp_path):

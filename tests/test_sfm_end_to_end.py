@@ -62,12 +62,34 @@ def test_point_colours_from_the_keypoints_equal_colmaps_from_the_images(demo):
     assert len(diff) > 500 and diff.max() <= 1 and (diff == 0).mean() > 0.99
 
 
-def test_rerun_does_not_redo_a_finished_run(demo):
+def test_rerun_does_not_redo_a_finished_run(demo, tmp_path, capsys):
+    import shutil
+
     run = demo / "run"
     before = (run / "report.json").stat().st_mtime_ns
     scene_images = demo / "scene" / "images"
     assert main(["-q", "reconstruct", str(scene_images), "-o", str(run)]) == 0
     assert (run / "report.json").stat().st_mtime_ns == before
+    # not for other images: another folder is refused (the old result was returned for it), and a refused
+    # rerun (another config) leaves the finished run's report.json in place
+    run = tmp_path / "run"
+    shutil.copytree(demo / "run", run)
+    other = tmp_path / "other"
+    shutil.copytree(scene_images, other)
+    assert main(["-q", "reconstruct", str(other), "-o", str(run)]) == 2
+    assert "made with a different features config (images:" in capsys.readouterr().err
+    assert main(["-q", "reconstruct", str(scene_images), "-o", str(run), "--max-features", "100"]) == 2
+    assert (run / "report.json").read_bytes() == (demo / "run" / "report.json").read_bytes()
+    assert main(["-q", "reconstruct", str(scene_images), "-o", str(run)]) == 0  # still finished: not redone
+    assert (run / "report.json").read_bytes() == (demo / "run" / "report.json").read_bytes()
+    # an image added to the folder since the run finished: the run continues with it, not "finished"
+    first = sorted(other.iterdir())[0]
+    first.rename(tmp_path / first.name)
+    assert main(["-q", "reconstruct", str(other), "-o", str(tmp_path / "run2")]) == 0
+    (tmp_path / first.name).rename(first)
+    assert main(["-q", "reconstruct", str(other), "-o", str(tmp_path / "run2")]) == 0
+    report = json.loads((tmp_path / "run2" / "report.json").read_text())
+    assert len(report["images"]) == 10 and report["images"][first.name]["status"] == "registered"
 
 
 def test_export_undistorted_pinhole_model(demo, tmp_path, capfd):
@@ -125,6 +147,25 @@ def test_export_never_deletes_what_it_exports(demo, tmp_path, capsys):
     assert main(["-q", "export", str(run), "--undistort", "-o", str(tmp_path / "e"), "--image-dir",
                  str(tmp_path / "empty")]) == 2
     assert "10 of the model's 10 images are not here" in capsys.readouterr().err
+    # a cut-off image or camera file: refused, not exported as a black image or a camera of zeros
+    images = tmp_path / "images"
+    shutil.copytree(demo / "scene" / "images", images)
+    first = sorted(images.iterdir())[0]
+    first.write_bytes(first.read_bytes()[:5000])
+    (tmp_path / "e.partial").mkdir()  # what an interrupted export leaves: cleared, not in the way
+    assert main(["-q", "export", str(run), "--undistort", "-o", str(tmp_path / "e"), "--image-dir",
+                 str(images)]) == 2
+    assert f"{first}: cannot read image header" in capsys.readouterr().err
+    shutil.copy(demo / "scene" / "images" / first.name, first)
+    cameras = run / "sparse" / "0" / "cameras.bin"
+    cameras.write_bytes(cameras.read_bytes()[:30])
+    assert main(["-q", "export", str(run), "--undistort", "-o", str(tmp_path / "e"), "--image-dir",
+                 str(images)]) == 2
+    assert "cannot read this COLMAP model" in capsys.readouterr().err
+    shutil.copy(demo / "run" / "sparse" / "0" / "cameras.bin", cameras)
+    assert main(["-q", "export", str(run), "--undistort", "-o", str(tmp_path / "e"), "--image-dir",
+                 str(images)]) == 0
+    assert not (tmp_path / "e.partial").exists() and len(list((tmp_path / "e" / "images").iterdir())) == 10
 
 
 def test_a_run_without_a_model_exits_1_and_says_why(demo, tmp_path, caplog):

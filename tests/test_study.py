@@ -152,3 +152,18 @@ def test_study_input_errors_are_one_line(tiny_scene, tmp_path, capsys):
     assert main(["study", "-q", str(tiny_scene), "-o", str(tmp_path / "s"), "--engines", "colmap",
                  "--noise", "5", "--gt", str(DATA / "templeR_ang.txt")]) == 2
     assert "not a ground-truth format" in capsys.readouterr().err
+    # no engine, an output inside the image folder (its copies would count as images), one image only
+    assert main(["study", "-q", str(tiny_scene), "-o", str(tmp_path / "s"), "--engines", "",
+                 "--noise", "5"]) == 2
+    assert "--engines: no engine given" in capsys.readouterr().err
+    assert main(["study", "-q", str(tiny_scene), "-o", str(tiny_scene / "s"), "--noise", "5"]) == 2
+    assert "inside the image folder" in capsys.readouterr().err
+    one = tmp_path / "one"
+    one.mkdir()
+    first = sorted(p for p in tiny_scene.iterdir() if p.suffix == ".png")[0]
+    (one / first.name).write_bytes(first.read_bytes())
+    assert main(["study", "-q", str(one), "-o", str(tmp_path / "s1"), "--noise", "5"]) == 2
+    assert "only 1 usable image(s), need at least 2" in capsys.readouterr().err
+    assert main(["compare", "-q", str(one), "-o", str(tmp_path / "c1")]) == 2
+    assert "only 1 usable image(s), need at least 2" in capsys.readouterr().err
+    assert not (tmp_path / "c1").exists() and not (tmp_path / "s1").exists()  # no engine ran

@@ -13,6 +13,7 @@ folder or an IMC calibration/ folder. Writes REPORT/index.html (self-contained),
 """
 
 ORDER = 60
+ON_INTERRUPT = "finished runs are kept; rerun the same command to continue"
 
 
 def add_arguments(parser) -> None:
@@ -55,6 +56,10 @@ def run(args) -> int:
         raise InputError("give either IMAGES or --models A B (not both, not neither)")
     if args.labels and not args.models:
         raise InputError("--labels goes with --models")
+    if args.images:
+        from ..pipeline import require_images
+
+        require_images(args.images)
     params = parse_camera_params(args.camera_params)
     CameraConfig(model=args.camera_model, params=params).validate()
     options = RunOptions(camera_mode=args.camera_mode, camera_model=args.camera_model, camera_params=params,

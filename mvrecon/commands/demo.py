@@ -13,6 +13,7 @@ Example:
 """
 
 ORDER = 1
+ON_INTERRUPT = "features, matches and the mapping snapshot are kept; rerun the same command to continue"
 
 SCENE = "object_orbit_small"
 
@@ -42,7 +43,8 @@ def run(args) -> int:
     log.info("rendering scene %s into %s ...", args.scene, out / "scene")
     scene = make_scene(args.scene, out / "scene")
     run_dir = out / "run"
-    report = reconstruct(ReconstructConfig(mapper=MapperConfig(seed=args.seed)), scene / "images", run_dir)
+    report = reconstruct(ReconstructConfig(mapper=MapperConfig(seed=args.seed)), scene / "images", run_dir,
+                         resume=True)
     models = sparse_models(run_dir / "sparse")
     gt = load_ground_truth(scene / "gt" / "sparse")
     summary = accuracy_summary([poses(m) for m in models], gt)

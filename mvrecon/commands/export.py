@@ -9,6 +9,7 @@ Example:
 """
 
 ORDER = 32
+ON_INTERRUPT = "the export is written aside and moved into place when complete; rerun the same command"
 
 
 def add_arguments(parser) -> None:

@@ -8,6 +8,7 @@ example:  mvrecon features photos/ -w work/
 """
 
 ORDER = 10
+ON_INTERRUPT = "the images done are kept in the workspace; rerun the same command to continue"
 
 
 def add_arguments(parser):

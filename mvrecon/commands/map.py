@@ -9,6 +9,7 @@ Example:
 """
 
 ORDER = 31
+ON_INTERRUPT = "rerun the same command with --resume to continue mapping from its last snapshot"
 
 
 def add_arguments(parser) -> None:

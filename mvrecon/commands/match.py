@@ -8,6 +8,7 @@ example:  mvrecon match -w work/ --pairs sequential:10
 """
 
 ORDER = 20
+ON_INTERRUPT = "the pairs done are kept in the workspace; rerun the same command to continue"
 
 
 def add_arguments(parser):

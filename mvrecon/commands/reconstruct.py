@@ -12,6 +12,8 @@ Examples:
 """
 
 ORDER = 30
+ON_INTERRUPT = ("features and matches done are kept; rerun the same command to continue, with --resume "
+                "to continue mapping from its last snapshot too")
 OPTIMIZERS = ("lm", "sfm")
 
 

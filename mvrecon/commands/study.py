@@ -12,6 +12,7 @@ Example:
 """
 
 ORDER = 61
+ON_INTERRUPT = "finished cells are kept; rerun the same command to continue"
 
 
 def add_arguments(parser) -> None:
@@ -58,6 +59,13 @@ def run(args) -> int:
     from mvrecon.study.grid import AXES, Grid, parse_levels
     from mvrecon.study.study import StudyConfig, breaking_points, run_study
 
+    from mvrecon.errors import InputError
+    from mvrecon.pipeline import require_images
+
+    require_images(args.images)
+    images, out = Path(args.images).resolve(), Path(args.output).resolve()
+    if out == images or images in out.parents:  # its degraded copies would count as images of the clean run
+        raise InputError(f"{args.output}: inside the image folder {args.images}; choose an output folder outside it")
     levels = {name: parse_levels(name, getattr(args, name)) for name in AXES if getattr(args, name) is not None}
     grid = Grid(levels)
     config = StudyConfig(images=Path(args.images), gt=Path(args.gt) if args.gt else None,

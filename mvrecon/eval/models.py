@@ -15,9 +15,15 @@ def load_reconstruction(path) -> pycolmap.Reconstruction:
     if not (path / "images.bin").exists() and not (path / "images.txt").exists():
         raise InputError(f"{path}: no COLMAP model (images.bin or images.txt) here")
     try:
-        return pycolmap.Reconstruction(str(path))
+        rec = pycolmap.Reconstruction(str(path))
     except Exception as exc:
         raise InputError(f"{path}: cannot read this COLMAP model ({type(exc).__name__}: {exc})") from None
+    for cam in rec.cameras.values():  # a cut-off cameras.bin reads as zeros
+        params = np.asarray(cam.params, float)
+        if not len(params) or not np.isfinite(params).all() or min(cam.focal_length_x, cam.focal_length_y) <= 0:
+            raise InputError(f"{path}: cannot read this COLMAP model (camera {cam.camera_id}: parameters "
+                             f"{params.tolist()})")
+    return rec
 
 
 def poses(rec: pycolmap.Reconstruction) -> dict:

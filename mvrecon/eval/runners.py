@@ -122,6 +122,8 @@ def load_run(out_dir, engine: str | None = None) -> RunResult:
         report = json.loads(report_path.read_text())
     except ValueError as exc:
         raise InputError(f"{report_path}: not valid JSON ({exc})") from None
+    if not isinstance(report, dict):
+        raise InputError(f"{report_path}: not a run report (a JSON object)")
     meta = _read_json(out_dir / "runner.json")
     total = report.get("total", {})
     return RunResult(engine=engine or report.get("engine", "unknown"), out_dir=out_dir, report=report,
@@ -143,10 +145,12 @@ def forget_if_failed(out_dir) -> bool:
 
 
 def _read_json(path) -> dict:
+    """The JSON object in `path`, or {} when it is missing, cut off or not an object."""
     try:
-        return json.loads(Path(path).read_text())
+        data = json.loads(Path(path).read_text())
     except (OSError, ValueError):
         return {}
+    return data if isinstance(data, dict) else {}
 
 
 def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout) -> RunResult:

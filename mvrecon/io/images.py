@@ -45,6 +45,13 @@ class ImageMeta:
     focal_px_from_sensor: float | None = None  # FocalLength * FocalPlaneXResolution, in this image's pixels
 
 
+def visible_files(folder) -> list[str]:
+    """Every file under `folder` (POSIX names relative to it, sorted), hidden ones (a dot in the path) left out."""
+    folder = Path(folder)
+    return [rel.as_posix() for rel in (p.relative_to(folder) for p in sorted(folder.rglob("*")))
+            if not any(part.startswith(".") for part in rel.parts) and (folder / rel).is_file()]
+
+
 def list_images(folder) -> tuple[list[str], dict[str, str]]:
     """Image names (POSIX, relative to `folder`, sorted) and the skipped files (name -> reason)."""
     folder = Path(folder)
@@ -53,11 +60,8 @@ def list_images(folder) -> tuple[list[str], dict[str, str]]:
     if not folder.is_dir():
         raise InputError(f"{folder}: not a folder (give the folder that holds the images)")
     names, non_images, skipped = [], [], {}
-    for path in sorted(folder.rglob("*")):
-        rel = path.relative_to(folder)
-        if any(part.startswith(".") for part in rel.parts) or not path.is_file():
-            continue
-        name = rel.as_posix()
+    for name in visible_files(folder):
+        path = folder / name
         if path.suffix.lower() not in IMAGE_EXTENSIONS:
             non_images.append(name)
             skipped[name] = "not a JPEG, PNG or TIFF file"

@@ -15,6 +15,8 @@ import shutil
 from pathlib import Path
 
 from ..errors import InputError
+from ..eval.models import load_reconstruction
+from .images import image_problem
 
 
 def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -1,
@@ -27,11 +29,15 @@ def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -
         raise InputError(f"{model_dir}: no COLMAP model here (images.bin or images.txt)")
     if not image_dir.is_dir():
         raise InputError(f"{image_dir}: image folder not found (pass --image-dir)")
-    names = [im.name for im in pycolmap.Reconstruction(str(model_dir)).images.values()]
+    names = [im.name for im in load_reconstruction(model_dir).images.values()]
     missing = [n for n in names if not (image_dir / n).is_file()]
     if missing:  # COLMAP's undistorter would log each one and write an export without them
         raise InputError(f"{image_dir}: {len(missing)} of the model's {len(names)} images are not here (first: "
                          f"{missing[0]}); pass --image-dir")
+    for n in names:  # COLMAP would write a cut-off image as a mostly black one, and carry on
+        problem = image_problem(image_dir / n)
+        if problem:
+            raise InputError(f"{image_dir / n}: {problem}")
     out = out_dir.resolve()
     for source in (model_dir, image_dir):  # replacing the output must never delete what is being exported
         if out == source.resolve() or out in source.resolve().parents:
@@ -40,8 +46,12 @@ def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -
         # only an earlier export (images/ and sparse/0/, nothing else) is replaced
         if {p.name for p in out_dir.iterdir()} - {"images", "sparse"} or not (out_dir / "sparse" / "0").is_dir():
             raise InputError(f"{out_dir}: exists and is not an export folder; choose an empty or new folder")
+    # written next to it first and moved into place when complete: an interrupted export leaves only the
+    # .partial folder, which the next run clears, never a half export taken for a whole one
+    final, out_dir = out_dir, out_dir.with_name(out_dir.name + ".partial")
+    if out_dir.exists():
         shutil.rmtree(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir.mkdir(parents=True)
     options = pycolmap.UndistortCameraOptions(max_image_size=int(max_image_size))
     # COLMAP logs a line per image on stderr (glog); those show only with -vv, like our own debug lines
     saved = pycolmap.logging.minloglevel
@@ -77,4 +87,7 @@ def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -
         rec.write(str(target))
     if text:
         rec.write_text(str(target))
-    return target
+    if final.exists():
+        shutil.rmtree(final)  # the earlier export checked above
+    out_dir.replace(final)
+    return final / "sparse" / "0"

@@ -58,12 +58,14 @@ def load_entry(name: str) -> tuple[dict, str, Path]:
 
 
 def read_scene_info(out_dir) -> dict | None:
-    """The scene.json of a folder, or None."""
+    """The scene.json of a folder, or None (none there, or one cut off by an interruption: only make_scene
+    writes it, so such a folder is a scene of ours to render again)."""
     path = Path(out_dir) / "scene.json"
     try:
-        return json.loads(path.read_text())
-    except (FileNotFoundError, json.JSONDecodeError):
+        info = json.loads(path.read_text())
+    except (OSError, ValueError):
         return None
+    return info if isinstance(info, dict) else None
 
 
 def make_scene(name: str, out_dir) -> Path:
@@ -80,8 +82,9 @@ def make_scene(name: str, out_dir) -> Path:
     if info and info.get("hash") == digest and info.get("complete"):
         log.info("%s: scene %s is up to date", out, entry.get("name", path.stem))
         return out
-    if info is None and (out / "images").exists():
-        raise InputError(f"{out}: holds an images/ folder but no scene.json; refusing to overwrite it")
+    if info is None and not (out / "scene.json").exists() and out.is_dir() and any(out.iterdir()):
+        raise InputError(f"{out}: holds files but no scene.json, so it is not a scene folder; refusing to "
+                         "overwrite it (choose an empty or new folder)")
     kind = entry.get("kind", "perspective")
     if kind not in KINDS:
         raise InputError(f"{path}: unknown kind {kind!r}; expected one of {', '.join(KINDS)}")
@@ -116,4 +119,6 @@ def make_scene(name: str, out_dir) -> Path:
 
 
 def _write_json(path: Path, data: dict) -> None:
-    path.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")
+    tmp = path.with_suffix(".tmp")  # whole or not at all: a cut-off scene.json would leave the folder unclaimed
+    tmp.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")
+    tmp.replace(path)

@@ -69,6 +69,8 @@ def check_engines(engines) -> None:
     """Refuse unknown engines, and mvrecon while its `reconstruct` command is not installed."""
     import importlib.util
 
+    if not engines:
+        raise InputError("--engines: no engine given (mvrecon, colmap or both, comma-separated)")
     for engine in engines:
         _runner(engine)
     if "mvrecon" in engines and importlib.util.find_spec("mvrecon.commands.reconstruct") is None:
@@ -82,12 +84,20 @@ def claim_study_dir(study_dir: Path, config: StudyConfig) -> None:
     path = study_dir / "study.json"
     identity = config.identity()
     if path.is_file():
-        old = json.loads(path.read_text())
+        try:
+            old = json.loads(path.read_text())
+        except ValueError:
+            old = None
+        if not isinstance(old, dict):  # the cells were made under settings it no longer says: cannot be mixed
+            raise InputError(f"{path}: damaged (not a JSON object of the study's settings); use another STUDY "
+                             "folder, or delete this one to start over")
         differing = sorted(k for k in identity if old.get(k) != identity[k])
         if differing:
             raise InputError(f"{study_dir}: made with a different {', '.join(differing)}; use another STUDY folder")
     else:
-        path.write_text(json.dumps(identity, indent=1))
+        tmp = path.with_suffix(".tmp")  # whole or not at all
+        tmp.write_text(json.dumps(identity, indent=1))
+        tmp.replace(path)
 
 
 def prepare_images(study_dir: Path, config: StudyConfig, cells: list[Cell]) -> dict[str, Path]:
