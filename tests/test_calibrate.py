@@ -210,3 +210,51 @@ def test_cli_stereo_calibration_rectifies_a_held_out_pair(tmp_path):
         rows.append(cv2.cornerSubPix(img, corners, (5, 5), (-1, -1), criteria).reshape(-1, 2)[:, 1])
     dy = np.abs(rows[0] - rows[1])
     assert np.median(dy) < 0.3 and dy.max() < 1.0  # measured 0.13 and 0.29 px
+
+
+def _board_folder(folder, views) -> Path:
+    import cv2
+
+    folder.mkdir()
+    for name, img in views.items():
+        cv2.imwrite(str(folder / name), img)
+    return folder
+
+
+def test_cli_output_file_is_checked_before_the_work(tmp_path, capsys, monkeypatch):
+    import mvrecon.stereo.calibrate as calibrate
+
+    folder = _board_folder(tmp_path / "boards", dict(list(synthetic_views().items())[:2]))
+    original = (folder / "view00.png").read_bytes()
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("calibrated before the output was checked")
+
+    monkeypatch.setattr(calibrate, "calibrate_mono", no_work)
+    for output, reason in ((folder / "view00.png", "is one of the input images"),
+                           (tmp_path / "newdir" / "c.toml", "folder " + str(tmp_path / "newdir") + " does not exist"),
+                           (Path("/proc/c.toml"), "cannot write in /proc"), (folder, "is a folder")):
+        capsys.readouterr()
+        assert main(["calibrate", str(folder), "-o", str(output), "-q"]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"mvrecon: error: {output}: {reason}") and err.count("\n") == 1, err
+    assert (folder / "view00.png").read_bytes() == original
+    assert sorted(p.name for p in folder.iterdir()) == ["view00.png", "view01.png"]
+
+
+def test_cli_calibration_errors_name_the_folder(tmp_path, capsys):
+    import cv2
+
+    views = synthetic_views()
+    mixed = _board_folder(tmp_path / "mixed", {"a.png": views["view00.png"], "b.png": views["view01.png"],
+                                               "c.png": cv2.resize(views["view02.png"], (320, 240))})
+    blank = _board_folder(tmp_path / "blank", {f"{k}.png": np.full((240, 320), 128, np.uint8) for k in range(3)})
+    few = _board_folder(tmp_path / "few", dict(list(views.items())[:2]))
+    for folder, extra, message in (
+            (mixed, [], "calibration images differ in size: 320x240 (e.g. c.png), 640x480 (e.g. a.png)"),
+            (blank, [], "no chessboard found in the first 3 images; give --size CxR (inner corners)"),
+            (few, ["--size", "9x6"], "only 2 views with a detected 9x6 board; 4 needed")):
+        capsys.readouterr()
+        assert main(["calibrate", str(folder), "-o", str(tmp_path / "c.toml"), "-q", *extra]) == 2
+        assert capsys.readouterr().err == f"mvrecon: error: {folder}: {message}\n"
+    assert not (tmp_path / "c.toml").exists()

@@ -6,7 +6,8 @@ import pytest
 from PIL import Image
 
 from mvrecon.cli import main
-from mvrecon.study.degrade import Degradation, degrade_folder, degrade_image, motion_kernel
+from mvrecon.errors import InputError
+from mvrecon.study.degrade import RECORD, Degradation, degrade_folder, degrade_image, motion_kernel, with_level
 
 EXIF_IFD, FOCAL_LENGTH, PIXEL_X, PIXEL_Y = 0x8769, 0x920A, 0xA002, 0xA003
 
@@ -190,7 +191,7 @@ def test_names_and_exif_survive(tmp_path, suffix):
         Image.fromarray(rgb).save(src / name, exif=exif_block(256, 192))
     out = tmp_path / "out"
     assert main(["degrade", "-q", str(src), "-o", str(out), "--noise", "5", "--downscale", "2"]) == 0
-    assert sorted(p.name for p in out.iterdir()) == names
+    assert sorted(p.name for p in out.iterdir() if p.name != RECORD) == names
     for name in names:
         with Image.open(out / name) as im:
             assert im.size == (128, 96)
@@ -269,7 +270,71 @@ def test_bad_input_is_one_line_and_exit_code_2(tmp_path, capsys, caplog):
     with caplog.at_level("WARNING", logger="mvrecon.study.degrade"):
         assert main(["degrade", "-q", str(src), "-o", str(tmp_path / "o"), "--noise", "3"]) == 0
     assert "bad.png: cannot read image header" in caplog.text and "cut.jpg: cannot read this image" in caplog.text
-    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["x.png"]
+    assert sorted(p.name for p in (tmp_path / "o").iterdir() if p.name != RECORD) == ["x.png"]
     (src / "x.png").unlink()
     assert main(["degrade", "-q", str(src), "-o", str(tmp_path / "o2"), "--noise", "3"]) == 2
     assert "none of the 2 image(s) could be read" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("options, message", [
+    (["--blur", "inf"], "degradation: blur sigma must be a finite number, got inf"),
+    (["--motion", "inf"], "degradation: motion length must be a finite number, got inf"),
+    (["--poisson", "inf"], "degradation: poisson peak must be a finite number, got inf"),
+    (["--poisson", "1e300"], "degradation: Poisson peak must be at most 1e+12 (the noise is far below one grey level "
+                             "there)"),
+    (["--motion-angle", "nan", "--motion", "5"], "degradation: motion angle must be a finite number, got nan"),
+    # kernels must fit in the image (192 px high): --motion 1e9 ran out of memory, --blur 1e5 ran for minutes
+    (["--motion", "1e9"], "{src}: --motion 1e+09 is too large for its 256x192 pixels (at most 191: the kernel must "
+                          "fit in the image)"),
+    (["--blur", "1e5"], "{src}: --blur 100000 is too large for its 256x192 pixels (at most 23.875: the kernel must "
+                        "fit in the image)"),
+    (["--downscale", "2", "--blur", "12"], "{src}: --blur 12 is too large for its 128x96 pixels (at most 11.875: "
+                                           "the kernel must fit in the image)"),
+    (["--sharpen", "1", "--sharpen-radius", "1e4"], "{src}: --sharpen-radius 10000 is too large for its 256x192 "
+                                                    "pixels (at most 23.875: the kernel must fit in the image)"),
+])
+def test_impossible_settings_are_one_line_errors(tmp_path, capsys, options, message):
+    src = tmp_path / "src"
+    src.mkdir()
+    write_png(src / "a.png", texture())
+    assert main(["degrade", "-q", str(src), "-o", str(tmp_path / "out"), *options]) == 2
+    assert capsys.readouterr().err == f"mvrecon: error: {message.format(src=src / 'a.png')}\n"
+    assert not (tmp_path / "out" / "a.png").exists()
+    with pytest.raises(InputError, match="jpeg quality must be a finite number"):
+        with_level(Degradation(), "jpeg_quality", float("inf"))  # a study level
+
+
+def test_rerun_continues_after_an_interruption(tmp_path, capsys, monkeypatch):
+    import mvrecon.study.degrade as degrade
+
+    src, out = tmp_path / "src", tmp_path / "out"
+    src.mkdir()
+    for k in range(3):
+        write_png(src / f"{k}.png", texture(seed=k))
+    written, write = [], degrade._write
+
+    def recorded(path, *args):
+        written.append(path)
+        write(path, *args)
+
+    def interrupted_at_the_second(path, *args):
+        if written:
+            path.write_bytes(b"cut off")  # a partial file, then Ctrl-C
+            raise KeyboardInterrupt
+        recorded(path, *args)
+
+    monkeypatch.setattr(degrade, "_write", interrupted_at_the_second)
+    argv = ["degrade", "-q", str(src), "-o", str(out), "--noise", "5"]
+    assert main(argv) == 130
+    assert "rerun the same command to continue" in capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == [RECORD, "0.png"]  # nothing cut off under any name
+    first = (out / "0.png").stat().st_mtime_ns
+    written.clear()
+    monkeypatch.setattr(degrade, "_write", recorded)
+    assert main(argv) == 0
+    assert len(written) == 2 and (out / "0.png").stat().st_mtime_ns == first  # 1.png and 2.png only
+    assert sorted(p.name for p in out.iterdir()) == [RECORD, "0.png", "1.png", "2.png"]
+    whole = degrade_folder(src, tmp_path / "whole", Degradation(noise_sigma=5))  # uninterrupted: the same bytes
+    assert [p.read_bytes() for p in whole] == [(out / p.name).read_bytes() for p in whole]
+    assert main(["degrade", "-q", str(src), "-o", str(out), "--noise", "6"]) == 2  # not mixed with noise 5
+    assert capsys.readouterr().err.startswith(f"mvrecon: error: {out}: written earlier with another degradation")

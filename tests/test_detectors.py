@@ -96,3 +96,37 @@ def test_detectors_command_writes_tables(tmp_path, cones, capsys):
     assert main(["detectors", str(tmp_path / "a0.png"), "--pairs", "-o", str(out)]) == 2
     assert "even number" in capsys.readouterr().err
     assert main(["detectors", str(tmp_path / "a0.png"), "--detectors", "HARRIS", "-o", str(out)]) == 2
+
+
+def test_detectors_command_checks_its_output_and_options_before_the_work(tmp_path, capsys, monkeypatch):
+    import cv2
+
+    import mvrecon.features.detectors as detectors
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("detected before the output was checked")
+
+    monkeypatch.setattr(detectors, "detect", no_work)
+    rng = np.random.default_rng(0)
+    a, b = tmp_path / "a.png", tmp_path / "b.png"
+    for path in (a, b):
+        cv2.imwrite(str(path), rng.integers(0, 255, (64, 64), dtype=np.uint8))
+    original = b.read_bytes()
+    (tmp_path / "folder").mkdir()
+    (tmp_path / "b.csv").write_bytes(b"x")  # given as an input: the CSV written next to b.md would replace it
+    for inputs, output, culprit, reason in (
+            ([a, b], b, b, "is one of the input images"),
+            ([a, tmp_path / "b.csv"], tmp_path / "b.md", tmp_path / "b.csv", "is one of the input images"),
+            ([a, b], tmp_path / "folder", tmp_path / "folder", "is a folder"),
+            ([a, b], Path("/proc/d.md"), Path("/proc/d.md"), "cannot write in /proc")):
+        capsys.readouterr()
+        assert main(["detectors", *map(str, inputs), "-o", str(output), "-q"]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"mvrecon: error: {culprit}: {reason}") and err.count("\n") == 1, err
+    assert b.read_bytes() == original and (tmp_path / "b.csv").read_bytes() == b"x"
+    assert main(["detectors", str(a), "-o", str(tmp_path / "t.md"), "--detectors", " ,", "-q"]) == 2
+    assert "--detectors ' ,': no detector given" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        main(["detectors", str(a), "-o", str(tmp_path / "t.md"), "--angle", "nan"])
+    assert exc.value.code == 2 and "--angle: must be a finite number" in capsys.readouterr().err
+    assert not (tmp_path / "t.md").exists()

@@ -240,3 +240,32 @@ def test_cli_equal_tilts_are_one_line(sem_scene, tmp_path, capsys):
     code, lines = _error_lines(capsys, ["-q", "sem", *images, "-o", str(tmp_path / "o"),
                                         "--tilts=" + ",".join("0" for _ in images), "--axis", "y"])
     assert code == 2 and len(lines) == 1 and "no parallax (equal tilts)" in lines[0], lines
+
+
+def test_cli_refuses_an_output_folder_in_the_tilt_series(tmp_path, capsys):
+    """height.png and friends written among the tilt images would join the series (a rerun then mixed sizes)."""
+    images = _noise_images(tmp_path / "series", 3)
+    series = tmp_path / "series"
+    for inputs, output in (([str(series)], series), ([str(series)], series / "out"), (images, series)):
+        code, lines = _error_lines(capsys, ["-q", "sem", *inputs, "-o", str(output), "--tilts", "0,5,10"])
+        assert code == 2 and lines == [f"mvrecon: error: {output}: the output folder must be outside the image "
+                                       f"folder {series.resolve()}"], lines
+    assert sorted(p.name for p in series.iterdir()) == ["img_0.png", "img_1.png", "img_2.png"]
+    code, lines = _error_lines(capsys, ["-q", "sem", *images, "-o", str(tmp_path / "o"), "--tilts", "0,nan,10"])
+    assert code == 2 and lines == ["mvrecon: error: --tilts 0,nan,10: expected finite numbers"], lines
+
+
+def test_dense_heights_show_their_progress(capsys, caplog, monkeypatch):
+    import logging
+
+    from mvrecon import progress
+    from mvrecon.sem.dense import DenseMatchConfig, refine_heights
+
+    monkeypatch.setattr(progress, "_enabled", True)
+    caplog.set_level(logging.INFO, logger="mvrecon")
+    rng = np.random.default_rng(0)
+    images = [rng.integers(0, 255, (48, 48), dtype=np.uint8) for _ in range(2)]
+    config = DenseMatchConfig(iterations=2)
+    heights = refine_heights(images, [0.0, 5.0], 90.0, np.zeros((2, 2)), 0, np.zeros((48, 48)), config)
+    assert heights.shape == (48, 48)
+    assert "dense heights: 100% |####################| 6/6" in capsys.readouterr().err  # 3 scales x 2 steps

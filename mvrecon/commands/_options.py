@@ -35,6 +35,17 @@ positive_int = _number(int, 1)
 positive_float = _number(float, 0.0, low_open=True)
 
 
+def finite_float(text: str) -> float:
+    """An argparse `type` for any finite number (an angle): nan or inf would run on into meaningless results."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
+    return value
+
+
 def add_camera_options(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("cameras")
     g.add_argument("--camera-model", choices=MODELS, default=None,

@@ -40,6 +40,34 @@ def _board(text: str):
     return cols, rows
 
 
+def check_output_file(path, inputs) -> None:
+    """Refuse, before the work, an output file that is a folder, would replace one of `inputs`, or cannot be
+    written: a bad -o should not cost the whole computation. Shared with `detectors`."""
+    import os
+    import tempfile
+    from pathlib import Path
+
+    from mvrecon.errors import InputError
+
+    out = Path(path)
+    if out.is_dir():
+        raise InputError(f"{out}: is a folder; give a file name to write")
+    if any(out.resolve() == Path(p).resolve() for p in inputs):
+        raise InputError(f"{out}: is one of the input images; choose another output file")
+    folder = out.parent
+    if not folder.is_dir():
+        raise InputError(f"{out}: folder {folder} does not exist")
+    if not os.access(folder, os.W_OK):
+        raise InputError(f"{out}: folder {folder} is not writable")
+    if out.exists() and not os.access(out, os.W_OK):
+        raise InputError(f"{out}: file is not writable")
+    try:  # os.access says yes to root even for /proc: a real (unnamed, at once deleted) file tells
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise InputError(f"{out}: cannot write in {folder} ({exc.strerror})") from None
+
+
 def run(args) -> int:
     import logging
     from pathlib import Path
@@ -53,6 +81,7 @@ def run(args) -> int:
     config = CalibrationConfig(board=_board(args.size), square=args.square)
     folder = Path(args.images)
     names, _ = list_images(folder)
+    check_output_file(args.output, [folder / n for n in names])
     images = {}
     for name in names:  # a board image that cannot be decoded is left out, as a view without a board is
         try:
@@ -65,14 +94,18 @@ def run(args) -> int:
         if not pairs:
             raise InputError(f"{folder}: no readable left/right image pairs (names must differ only by "
                              "left <-> right)")
-        result = calibrate_stereo({a: images[a] for a, _ in pairs}, {b: images[b] for _, b in pairs}, pairs,
-                                  config)
-        mono = [("left", result.left), ("right", result.right)]
-    else:
-        if not images:
-            raise InputError(f"{folder}: none of the images could be decoded")
-        result = calibrate_mono(images, config)
-        mono = [("camera", result)]
+    elif not images:
+        raise InputError(f"{folder}: none of the images could be decoded")
+    try:  # the library's messages name the images, not where they are
+        if args.stereo:
+            result = calibrate_stereo({a: images[a] for a, _ in pairs}, {b: images[b] for _, b in pairs}, pairs,
+                                      config)
+            mono = [("left", result.left), ("right", result.right)]
+        else:
+            result = calibrate_mono(images, config)
+            mono = [("camera", result)]
+    except InputError as exc:
+        raise InputError(f"{folder}: {exc}") from None
     write_camera_toml(args.output, result, config)
     for label, m in mono:
         fx, fy, cx, cy, k1, k2, p1, p2 = m.camera.params

@@ -7,9 +7,13 @@ Noise is seeded per image from --seed and the file name, so the same command wri
 
 Example:
   mvrecon degrade images/ -o noisy/ --noise 10 --jpeg 50
+
+A rerun of an interrupted command continues: images finished with the same settings are kept (the settings are
+recorded in OUTPUT/.mvrecon-degrade.json; other settings need another output folder).
 """
 
 ORDER = 60
+ON_INTERRUPT = "finished images are kept; rerun the same command to continue"
 
 
 def add_arguments(parser) -> None:

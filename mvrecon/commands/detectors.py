@@ -14,13 +14,13 @@ ORDER = 64
 
 
 def add_arguments(parser) -> None:
-    from ._options import positive_float
+    from ._options import finite_float, positive_float
 
     parser.add_argument("inputs", nargs="+", help="image files and/or folders of images")
     parser.add_argument("-o", "--output", required=True, help="markdown table to write (a .csv is written too)")
     parser.add_argument("--pairs", action="store_true", help="consecutive images form pairs (A, B)")
     parser.add_argument("--detectors", default="SIFT,SURF,FAST,ORB,AKAZE,BRISK", help="comma-separated list")
-    parser.add_argument("--angle", type=float, default=20.0, help="rotation of the repeatability warp (degrees)")
+    parser.add_argument("--angle", type=finite_float, default=20.0, help="rotation of the repeatability warp (degrees)")
     parser.add_argument("--scale", type=positive_float, default=0.8, help="zoom of the repeatability warp")
 
 
@@ -56,14 +56,22 @@ def run(args) -> int:
     from mvrecon.io.images import read_image
     from mvrecon.progress import progress
 
+    from .calibrate import check_output_file
+
     log = logging.getLogger("mvrecon.detectors")
     names = [d.strip().upper() for d in args.detectors.split(",") if d.strip()]
+    if not names:
+        raise InputError(f"--detectors {args.detectors!r}: no detector given; choose from {', '.join(DETECTORS)}")
     unknown = [d for d in names if d not in DETECTORS]
     if unknown:
         raise InputError(f"--detectors: unknown {', '.join(unknown)}; choose from {', '.join(DETECTORS)}")
     paths = _collect(args.inputs)
     if args.pairs and len(paths) % 2:
         raise InputError(f"--pairs needs an even number of images, got {len(paths)}")
+    out = Path(args.output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    for path in (out, out.with_suffix(".csv")):
+        check_output_file(path, paths)
     rows, detections = [], {}
     impl = {}
     for path in progress(paths, desc="detectors", unit="img"):
@@ -94,7 +102,6 @@ def run(args) -> int:
                 row[f"{name} inliers"] = verified_inliers(detections[(str(a), name)], detections[(str(b), name)],
                                                           name)
             pair_rows.append(row)
-    out = Path(args.output)
     lines = ["# Keypoint detectors", "", f"Repeatability: rotation {args.angle:g} deg, zoom {args.scale:g}, "
              "keypoints within 2.5 px. Implementations: " + ", ".join(f"{n} {impl[n]}" for n in names), "",
              "## Keypoints per image (the seed paper's Table 1, extended)", "",
@@ -115,7 +122,6 @@ def run(args) -> int:
         lines += ["", "## Verified matches per pair (F inliers, our eight-point RANSAC, 1 px)", "",
                   "| pair | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
         lines += [f"| {r['pair']} | " + " | ".join(str(r[f'{n} inliers']) for n in names) + " |" for r in pair_rows]
-    out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(lines) + "\n")
     with open(out.with_suffix(".csv"), "w", newline="") as f:
         fields = list(rows[0])

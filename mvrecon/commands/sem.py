@@ -47,15 +47,34 @@ def add_arguments(parser) -> None:
 
 
 def _floats(text: str, option: str, count: int | None = None) -> tuple:
+    import math
+
     from mvrecon.errors import InputError
 
     try:
         values = tuple(float(v) for v in text.replace(" ", "").split(",") if v != "")
     except ValueError:
         raise InputError(f"{option} {text}: expected comma-separated numbers") from None
+    if not all(math.isfinite(v) for v in values):
+        raise InputError(f"{option} {text}: expected finite numbers")
     if count is not None and len(values) != count:
         raise InputError(f"{option} {text}: expected {count} numbers, got {len(values)}")
     return values
+
+
+def _check_output_folder(output, inputs) -> None:
+    """Refuse an output folder that is an input's folder or inside an input folder: the height map and figures
+    written there would join the tilt series of the next run (a folder is listed with its subfolders)."""
+    from pathlib import Path
+
+    from mvrecon.errors import InputError
+
+    out = Path(output).resolve()
+    for item in inputs:
+        p = Path(item).resolve()
+        folder = p if p.is_dir() else p.parent
+        if out == folder or (p.is_dir() and folder in out.parents):
+            raise InputError(f"{output}: the output folder must be outside the image folder {folder}")
 
 
 def run(args) -> int:
@@ -77,6 +96,7 @@ def run(args) -> int:
                        pixel_size_um=pixel_size, max_size=args.max_size, reference=args.reference,
                        pairs=args.pairs, icp_method=args.icp, height_source=args.height_source, densify=args.densify,
                        profile=_floats(args.profile, "--profile", 4) if args.profile else None, icp=IcpConfig())
+    _check_output_folder(args.output, args.images)
     report = run_sem(resolve_images(args.images), args.output, config)
     log = logging.getLogger("mvrecon.sem")
     unit = report["units"]

@@ -37,8 +37,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--ransac-threshold", type=positive_float, default=1.0, help="Sampson inlier threshold, px")
     parser.add_argument("--gee-window", type=positive_int, help="gee: error-energy window n=m in px (default 9)")
     parser.add_argument("--gee-iterations", type=positive_int, help="gee: averaging-filter iterations (default 16)")
-    parser.add_argument("--gee-alpha", type=float, help="gee: reliability tolerance; estimates above alpha * mean "
-                                                        "energy are removed (default 3)")
+    parser.add_argument("--gee-alpha", type=positive_float,
+                        help="gee: reliability tolerance; estimates above alpha * mean energy are removed (default 3)")
 
 
 def run(args) -> int:

@@ -278,8 +278,9 @@ def _colmap_main(image_dir: Path, out_dir: Path, options: dict, global_mapper: b
             pycolmap.extract_features(db, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
                                       reader_options=reader, extraction_options=extraction,
                                       device=pycolmap.Device.cpu)
-    else:
-        pycolmap.extract_features(db, image_dir, camera_mode=mode[options["camera_mode"]], reader_options=reader,
+    else:  # the same images as mvrecon's listing (no hidden files such as degrade's record)
+        pycolmap.extract_features(db, image_dir, image_names=sorted(sum(_camera_groups(image_dir), [])),
+                                  camera_mode=mode[options["camera_mode"]], reader_options=reader,
                                   extraction_options=extraction, device=pycolmap.Device.cpu)
     stages.done("features")
     matching = pycolmap.FeatureMatchingOptions()

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..progress import progress
 from .parallax import tilt_rotation
 
 
@@ -76,6 +77,7 @@ def refine_heights(images, tilts_deg, axis_deg: float, shifts, reference: int, s
         return warp(norm[i]), warp(grads[i][0]) * R[0, 2] + warp(grads[i][1]) * R[1, 2], inside
 
     seen = None
+    bar = progress(total=len(config.scales) * config.iterations, desc="dense heights", unit="step")
     for blur in config.scales:
         norm = [_normalise(im, config.normalise_sigma_px, blur) for im in images]
         grads = [(cv2.Sobel(n, cv2.CV_32F, 1, 0, ksize=3) / 8, cv2.Sobel(n, cv2.CV_32F, 0, 1, ksize=3) / 8)
@@ -99,6 +101,8 @@ def refine_heights(images, tilts_deg, axis_deg: float, shifts, reference: int, s
                 cv2.GaussianBlur(A, (0, 0), config.prior_sigma_px), 1e-12)
             step = (-b + lam * (near - heights)) / (A + lam)
             heights += np.clip(step, -config.max_step_px, config.max_step_px).astype(np.float32)
+            bar.update()
+    bar.close()
     return np.where(seen >= config.min_views, heights, np.nan)
 
 

@@ -171,12 +171,13 @@ def _detect_all(images: dict, board) -> tuple[tuple[int, int], dict]:
     grays = {n: _gray(img) for n, img in images.items()}
     if board is None:
         sizes = {}
-        for name, g in progress(list(grays.items())[:8], desc="board size", unit="img"):
+        first = list(grays.items())[:8]
+        for name, g in progress(first, desc="board size", unit="img"):
             s = detect_board_size(g)
             if s:
                 sizes[s] = sizes.get(s, 0) + 1
         if not sizes:
-            raise InputError("no chessboard found in the first images; give --size CxR (inner corners)")
+            raise InputError(f"no chessboard found in the first {len(first)} images; give --size CxR (inner corners)")
         board = max(sizes, key=sizes.get)
         log.info("board size detected: %dx%d inner corners", *board)
     found = {}
@@ -191,10 +192,13 @@ def _detect_all(images: dict, board) -> tuple[tuple[int, int], dict]:
 
 def calibrate_mono(images: dict, config: CalibrationConfig = CalibrationConfig()) -> MonoResult:
     """images: {name: array}. All images must share one size."""
-    sizes = {img.shape[:2] for img in images.values()}
+    sizes = {}  # (h, w) -> the first image of that size, an example to find
+    for name, img in images.items():
+        sizes.setdefault(img.shape[:2], name)
     if len(sizes) != 1:
-        raise InputError(f"calibration images differ in size: {sorted(sizes)}")
-    h, w = sizes.pop()
+        raise InputError("calibration images differ in size: " + ", ".join(
+            f"{w}x{h} (e.g. {name})" for (h, w), name in sorted(sizes.items())))
+    h, w = next(iter(sizes))
     board, found = _detect_all(images, config.board)
     return _calibrate_views(list(found), list(found.values()), (w, h), config, board)
 

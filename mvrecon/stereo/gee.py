@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..progress import progress
+
 
 @dataclass(frozen=True)
 class GEEConfig:
@@ -49,7 +51,7 @@ def error_energy_volume(left, right, config: GEEConfig) -> np.ndarray:
         L, R = L[..., None], R[..., None]
     h, w, channels = L.shape
     volume = np.empty((config.num_disparities, h, w), dtype=np.float32)
-    for i in range(config.num_disparities):
+    for i in progress(range(config.num_disparities), desc="GEE energies", unit="disparity"):
         d = config.min_disparity + i
         shifted = np.empty_like(R)
         if d >= 0:

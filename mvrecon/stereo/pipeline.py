@@ -209,6 +209,10 @@ def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=
 
     if calib_path is not None and camera_path is not None:
         raise InputError("give either --calib or --camera, not both")
+    out = Path(out_dir)
+    for path in (left_path, right_path):  # eight outputs would land among the dataset's files
+        if out.resolve() == Path(path).resolve().parent:
+            raise InputError(f"{out_dir}: the output folder must differ from the folder of {path}")
     calib = read_calib(calib_path) if calib_path is not None else None
     camera = None
     if camera_path is not None:
@@ -218,11 +222,14 @@ def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=
     gt = load_ground_truth(gt_path, gt_scale) if gt_path is not None else None
     mask = load_mask(mask_path) if mask_path is not None else None
     left, right = read_pair(left_path, right_path)
+    width = left.shape[1]  # a wider search has no pixel to match, and its cost volume may not fit in memory
+    for flag, value in (("--num-disparities", config.num_disparities), ("--min-disparity", config.min_disparity)):
+        if value is not None and abs(value) >= width:
+            raise InputError(f"{flag} {value}: beyond the image width ({width} px, {left_path})")
     for path, grid, what in ((gt_path, gt, "ground truth"), (mask_path, mask, "mask")):
         if grid is not None and grid.shape != left.shape[:2]:
             raise InputError(f"{path}: {what} is {grid.shape[1]}x{grid.shape[0]}, images are "
                              f"{left.shape[1]}x{left.shape[0]}")
-    out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     report: dict = {"left": str(left_path), "right": str(right_path), "method": config.method, "timings_s": {}}
     t0 = time.perf_counter()
@@ -288,7 +295,12 @@ def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=
     dmin, num = search_range(config, calib, p1[:, 0] - p2[:, 0], nonnegative=camera is None)
     report["disparity_range"] = [dmin, dmin + num]
     t0 = time.perf_counter()
-    disparity, extra = compute_disparity(rect_l, rect_r, config, dmin, num)
+    try:
+        disparity, extra = compute_disparity(rect_l, rect_r, config, dmin, num)
+    except MemoryError:
+        h, w = rect_l.shape[:2]
+        raise InputError(f"{left_path}: not enough memory for {num} disparities of a {w}x{h} image; give a smaller "
+                         "--num-disparities or smaller images") from None
     disparity[~inside] = np.nan  # canvas outside the warped left image has no disparity
     report["timings_s"]["disparity"] = time.perf_counter() - t0
     report.update(extra)

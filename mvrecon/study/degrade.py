@@ -18,7 +18,10 @@ when downscaled).
 """
 
 import io
+import json
 import logging
+import math
+import os
 import struct
 import zlib
 from dataclasses import asdict, dataclass, fields, replace
@@ -39,11 +42,17 @@ JPEG_SUFFIXES = {".jpg", ".jpeg"}
 # A JPEG input that is degraded but not asked to be re-compressed must still be re-encoded: as losslessly as
 # JPEG allows, so the requested degradations are the only visible ones.
 NEUTRAL_JPEG_QUALITY = 100
+RECORD = ".mvrecon-degrade.json"  # in an output folder: its settings and the images finished under them
+MAX_POISSON_PEAK = 1e12  # 1e-6 of full scale: invisible even in 16 bits; numpy's Poisson fails above ~9e18
 _EXIF_HEADER = b"Exif\x00\x00"
 # TIFF tags that describe the pixel layout (size, depth, compression, strips, predictor), not the picture
 _TIFF_LAYOUT_TAGS = (256, 257, 258, 259, 262, 273, 277, 278, 279, 284, 317, 339)
 _EXIF_IFD = 0x8769
 _EXIF_WIDTH, _EXIF_HEIGHT = 0xA002, 0xA003
+
+
+class SettingError(InputError):
+    """A setting an image cannot take (a blur wider than the image): stops the run instead of skipping the image."""
 
 
 @dataclass(frozen=True)
@@ -63,11 +72,17 @@ class Degradation:
     jpeg_quality: int = 0  # JPEG re-compression quality 1..100; 0 = no re-compression
 
     def __post_init__(self):
+        for f in fields(self):  # inf and nan pass the comparisons below (nan fails none), then break the pixels
+            if not math.isfinite(getattr(self, f.name)):
+                raise InputError(f"degradation: {f.name.replace('_', ' ')} must be a finite number, "
+                                 f"got {getattr(self, f.name)}")
         checks = [(self.downscale >= 1.0, "downscale must be >= 1"),
                   (self.blur_sigma >= 0, "blur sigma must be >= 0"),
                   (self.motion_length >= 0, "motion blur length must be >= 0"),
                   (self.brightness > 0, "brightness must be > 0"),
                   (self.poisson_peak >= 0, "Poisson peak must be >= 0"),
+                  (self.poisson_peak <= MAX_POISSON_PEAK, f"Poisson peak must be at most {MAX_POISSON_PEAK:g} "
+                                                          "(the noise is far below one grey level there)"),
                   (self.noise_sigma >= 0, "noise sigma must be >= 0"),
                   (self.gamma > 0, "gamma must be > 0"),
                   (self.sharpen_amount >= 0, "sharpen amount must be >= 0"),
@@ -94,7 +109,7 @@ class Degradation:
 
 def with_level(base: Degradation, field: str, value: float) -> Degradation:
     """`base` with one parameter changed (study grids vary one degradation at a time)."""
-    value = int(value) if field == "jpeg_quality" else float(value)
+    value = int(value) if field == "jpeg_quality" and math.isfinite(value) else float(value)
     return replace(base, **{field: value})
 
 
@@ -107,6 +122,24 @@ def image_seed(seed: int, name: str) -> np.random.SeedSequence:
 
 def _gaussian(img: np.ndarray, sigma: float) -> np.ndarray:
     return cv2.GaussianBlur(img, (0, 0), sigmaX=sigma, sigmaY=sigma, borderType=cv2.BORDER_REFLECT_101)
+
+
+def _scaled_size(width: int, height: int, downscale: float) -> tuple[int, int]:
+    return max(1, int(round(width / downscale))), max(1, int(round(height / downscale)))
+
+
+def check_kernels(deg: Degradation, width: int, height: int, src) -> None:
+    """SettingError when a blur kernel (OpenCV's Gaussian reaches 4 sigma each side) would not fit in the image
+    after downscaling: it only blurs the image to its mean, and takes minutes (--blur 1e5) or all memory
+    (--motion 1e9)."""
+    w, h = _scaled_size(width, height, deg.downscale) if deg.downscale > 1.0 else (width, height)
+    side = min(w, h)
+    for on, flag, value, limit in ((deg.blur_sigma > 0, "--blur", deg.blur_sigma, (side - 1) / 8),
+                                   (deg.motion_length > 0, "--motion", deg.motion_length, side - 1),
+                                   (deg.sharpen_amount > 0, "--sharpen-radius", deg.sharpen_radius, (side - 1) / 8)):
+        if on and value > limit:
+            raise SettingError(f"{src}: {flag} {value:g} is too large for its {w}x{h} pixels (at most {limit:g}: "
+                               "the kernel must fit in the image)")
 
 
 def motion_kernel(length: float, angle_deg: float) -> np.ndarray:
@@ -147,8 +180,7 @@ def apply_pixels(img: np.ndarray, deg: Degradation, rng: np.random.Generator, *,
     for step in deg.active():
         if step == "downscale":
             h, w = out.shape[:2]
-            size = (max(1, int(round(w / deg.downscale))), max(1, int(round(h / deg.downscale))))
-            out = cv2.resize(out, size, interpolation=cv2.INTER_AREA)
+            out = cv2.resize(out, _scaled_size(w, h, deg.downscale), interpolation=cv2.INTER_AREA)
         elif step == "blur":
             out = _gaussian(out, deg.blur_sigma)
         elif step == "motion_blur":
@@ -230,7 +262,7 @@ def _write(path: Path, pixels: np.ndarray, src: Path, exif: bytes | None, jpeg_q
     elif suffix == ".png":
         ok, buf = cv2.imencode(".png", pixels)
         if not ok:
-            raise InputError(f"{path}: PNG encoding failed")
+            raise InputError(f"{src}: PNG encoding failed")
         data = buf.tobytes()
         path.write_bytes(_png_with_exif(data, exif) if exif else data)
     else:  # TIFF: Pillow keeps the source's tags for the layouts it can hold, OpenCV writes the rest
@@ -242,16 +274,28 @@ def _write(path: Path, pixels: np.ndarray, src: Path, exif: bytes | None, jpeg_q
             _to_pil(pixels).save(path, "TIFF", exif=tags)
         else:
             if len(tags):
-                log.warning("%s: 16-bit colour TIFF written without its metadata tags", path.name)
+                log.warning("%s: 16-bit colour TIFF written without its metadata tags", src.name)
             cv2.imwrite(str(path), pixels)
 
 
+def _replace_whole(dst: Path, write) -> None:
+    """`write(tmp)` to a hidden name next to `dst`, then rename it to `dst`: an interrupted run leaves no cut-off
+    `dst` that a rerun would take for a finished image."""
+    tmp = dst.with_name(f".{dst.stem}.partial{dst.suffix}")  # same suffix: the writers choose the format by it
+    try:
+        write(tmp)
+        os.replace(tmp, dst)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 def degrade_image(src: Path, dst: Path, deg: Degradation, seed: int = 0) -> None:
-    """Write a degraded copy of `src` to `dst` (same format as dst's suffix), keeping EXIF."""
+    """Write a degraded copy of `src` to `dst` (same format as dst's suffix), keeping EXIF; `dst` appears whole."""
     raw = _read(src)
     if not deg.active():  # nothing to do: the copy is the original's bytes
-        dst.write_bytes(src.read_bytes())
+        _replace_whole(dst, lambda tmp: tmp.write_bytes(src.read_bytes()))
         return
+    check_kernels(deg, raw.shape[1], raw.shape[0], src)
     scale = 255.0 if raw.dtype == np.uint8 else 65535.0
     has_alpha = raw.ndim == 3 and raw.shape[2] in (2, 4)
     colour = raw[..., :-1] if has_alpha else raw
@@ -271,7 +315,7 @@ def degrade_image(src: Path, dst: Path, deg: Degradation, seed: int = 0) -> None
     exif = _read_exif(src)
     if exif and pixels.shape[:2] != raw.shape[:2]:
         exif = _resized_exif(exif, pixels.shape[1], pixels.shape[0])
-    _write(dst, pixels, src, exif, deg.jpeg_quality)
+    _replace_whole(dst, lambda tmp: _write(tmp, pixels, src, exif, deg.jpeg_quality))
 
 
 def list_images(path) -> list[Path]:
@@ -289,8 +333,35 @@ def list_images(path) -> list[Path]:
     return files
 
 
+def _finished(out_dir: Path, settings: dict) -> set[str]:
+    """Names finished in `out_dir` by an earlier run with the same `settings` (none in a folder without a record);
+    InputError when it was made with others: two degradations must not mix in one folder."""
+    path = out_dir / RECORD
+    if not path.is_file():
+        return set()
+    try:
+        record = json.loads(path.read_text())
+    except ValueError:
+        record = None
+    old = record.get("settings") if isinstance(record, dict) else None
+    if old != settings:
+        differing = sorted(k for k in settings if not isinstance(old, dict) or old.get(k) != settings[k])
+        raise InputError(f"{out_dir}: written earlier with another {', '.join(differing) or 'record'} ({path.name}); "
+                         "choose another output folder, or delete this one to start over")
+    return {name for name in record.get("done", []) if (out_dir / name).is_file()}
+
+
+def _save_record(out_dir: Path, settings: dict, done: set[str]) -> None:
+    tmp = out_dir / f"{RECORD}.tmp"
+    tmp.write_text(json.dumps({"settings": settings, "done": sorted(done)}, indent=1))
+    os.replace(tmp, out_dir / RECORD)
+
+
 def degrade_folder(images, out_dir, deg: Degradation, seed: int = 0, progress_desc: str = "degrade") -> list[Path]:
-    """Degrade every image of `images` into `out_dir` under the same names; returns the written paths."""
+    """Degrade every image of `images` into `out_dir` under the same names; returns the written paths.
+
+    A rerun after an interruption skips the images finished under the same settings (recorded in out_dir/RECORD
+    after each image), so it continues where the first run stopped."""
     from ..progress import progress
 
     files = list_images(images)
@@ -298,8 +369,15 @@ def degrade_folder(images, out_dir, deg: Degradation, seed: int = 0, progress_de
     if out_dir.resolve() == files[0].parent.resolve():
         raise InputError(f"{out_dir}: the output folder must differ from the input folder")
     out_dir.mkdir(parents=True, exist_ok=True)
+    settings = {"source": str(Path(images).resolve()), "seed": int(seed), "degradation": deg.to_dict()}
+    done = _finished(out_dir, settings)
+    if done:
+        log.info("%s: %d image(s) finished earlier with the same settings, kept", out_dir, len(done))
     written, skipped = [], []
     for src in progress(files, desc=progress_desc, unit="img"):
+        if src.name in done:
+            written.append(out_dir / src.name)
+            continue
         # a cut-off file is left out, as `reconstruct` leaves it out: decoded, its missing part would come back
         # grey, and a degraded copy would pass for a whole image
         problem = image_problem(src)
@@ -307,7 +385,11 @@ def degrade_folder(images, out_dir, deg: Degradation, seed: int = 0, progress_de
             try:
                 degrade_image(src, out_dir / src.name, deg, seed)
                 written.append(out_dir / src.name)
+                done.add(src.name)
+                _save_record(out_dir, settings, done)
                 continue
+            except SettingError:
+                raise
             except InputError as exc:
                 problem = str(exc).removeprefix(f"{src}: ")
         log.warning("skipping %s: %s", src, problem)
