@@ -295,8 +295,13 @@ def test_cli_models_with_damaged_files_are_one_line(runs, tmp_path, capsys):
     shutil.copytree(colmap.out_dir / "sparse" / "0", broken_model)
     data = (broken_model / "images.bin").read_bytes()
     (broken_model / "images.bin").write_bytes(data[: len(data) // 2])
+    cut_points = tmp_path / "c"  # pycolmap itself could allocate without end on this one
+    shutil.copytree(colmap.out_dir / "sparse" / "0", cut_points)
+    data = (cut_points / "points3D.bin").read_bytes()
+    (cut_points / "points3D.bin").write_bytes(data[: int(0.6 * len(data))])
     for model, message in ((broken_report, "report.json: not valid JSON"),
-                           (broken_model, f"{broken_model}: cannot read this COLMAP model")):
+                           (broken_model, f"{broken_model}: cannot read this COLMAP model (images.bin: cut off"),
+                           (cut_points, f"{cut_points}: cannot read this COLMAP model (points3D.bin: cut off")):
         assert main(["compare", "-q", "--models", str(colmap.out_dir), str(model), "-o", str(tmp_path / "r")]) == 2
         err = capsys.readouterr().err
         assert message in err and len(err.splitlines()) == 1, err
