@@ -24,6 +24,7 @@ from .config import bounded, config_hash, to_dict
 from .errors import InputError
 from .executor import StageClock, WorkerPool, blas_threads, default_workers
 from .features.sift import SiftConfig
+from .io.files import read_json_object, write_json
 from .io.images import IMAGE_EXTENSIONS, image_metadata, list_images, visible_files
 from .matching.matcher import MatcherConfig, match_descriptors, prepare_descriptors
 from .matching.pairs import check_spec, select_pairs
@@ -106,13 +107,18 @@ def _extract_job(job):
         return name, f"{path}: {type(exc).__name__}: {exc}"
 
 
-def require_images(folder) -> list[str]:
-    """The readable images of `folder`, or an InputError when fewer than 2 (before engines run on it)."""
+def require_images(folder) -> tuple[list[str], dict[str, str]]:
+    """`list_images(folder)`, or an InputError when fewer than 2 images are readable: checked before any work
+    (extraction here, the engines in compare and study)."""
     names, skipped = list_images(folder)
     if len(names) < 2:
-        _too_few(Path(folder), len(names), {n: f"{Path(folder) / n}: {r}" for n, r in skipped.items()
-                                            if Path(n).suffix.lower() in IMAGE_EXTENSIONS})
-    return names
+        _too_few(Path(folder), len(names), _unreadable(Path(folder), skipped))
+    return names, skipped
+
+
+def _unreadable(folder: Path, skipped: dict[str, str]) -> dict[str, str]:
+    """The image files among the skipped ones (not the other files), name -> "path: why"."""
+    return {n: f"{folder / n}: {r}" for n, r in skipped.items() if Path(n).suffix.lower() in IMAGE_EXTENSIONS}
 
 
 def _too_few(folder: Path, usable: int, failed: dict[str, str]):
@@ -133,11 +139,9 @@ def extract_features(config: FrontendConfig, image_dir, workspace, *, overwrite:
 
 def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite: bool,
                  on_image: Callable[[str], None] | None, pool: WorkerPool) -> FeatureSummary:
-    names, skipped = list_images(folder)
+    names, skipped = require_images(folder)
     config.camera.validate()
-    failed = {n: f"{folder / n}: {r}" for n, r in skipped.items() if Path(n).suffix.lower() in IMAGE_EXTENSIONS}
-    if len(names) < 2:
-        _too_few(folder, len(names), failed)
+    failed = _unreadable(folder, skipped)
     record = {"images": str(folder.resolve()), "camera": to_dict(config.camera), "sift": to_dict(config.sift)}
     if ws.begin_stage("features", record, overwrite):
         for suffix in ("", "-wal", "-shm", "-journal"):
@@ -398,8 +402,6 @@ def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resu
 def write_report(out_dir, *, config_hash: str, seed: int, summary: MapSummary, stages: dict, total: dict,
                  counts: dict, skipped: dict | None = None) -> dict:
     """OUT/report.json in the schema the compare and study tools read (see docs/sfm.md)."""
-    import json
-
     from . import __version__
 
     images = {name: dict(s) for name, s in summary.status.items()}
@@ -409,24 +411,19 @@ def write_report(out_dir, *, config_hash: str, seed: int, summary: MapSummary, s
               "images": dict(sorted(images.items())),
               "models": [{"index": k, **s} for k, s in enumerate(summary.model_stats)],
               "stages": stages, "total": total, "counts": counts}
-    path = Path(out_dir) / "report.json"
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(report, indent=1) + "\n")
-    tmp.replace(path)
+    write_json(Path(out_dir) / "report.json", report, indent=1)
     return report
 
 
 def _finished_report(out: Path, full_hash: str, image_dir: Path) -> dict | None:
     """report.json of a finished run in `out` with this config, of these very images (the same folder, and
     every image file in it has a status in the report: none added or removed since), else None."""
-    import json
-
-    try:
-        report = json.loads((out / "report.json").read_text())
-        recorded = Workspace(out).stage_config("features") or {}
-    except (OSError, ValueError, InputError):
+    report = read_json_object(out / "report.json")
+    if report is None or report.get("config_hash") != full_hash or not (out / "sparse").is_dir():
         return None
-    if not isinstance(report, dict) or report.get("config_hash") != full_hash or not (out / "sparse").is_dir():
+    try:
+        recorded = Workspace(out).stage_config("features") or {}
+    except InputError:
         return None
     if recorded.get("images") != str(image_dir.resolve()) or not image_dir.is_dir():
         return None

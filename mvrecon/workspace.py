@@ -7,12 +7,11 @@ the record of every stage recorded after it, because their results were built on
 the matching database tables (`begin_stage` returns the names of the stages it dropped).
 """
 
-import json
-import os
 from pathlib import Path
 
 from . import config as cfgmod
 from .errors import InputError
+from .io.files import read_json_object, write_json
 
 
 class Workspace:
@@ -37,13 +36,11 @@ class Workspace:
         """{stage: {"hash": ..., "config": {...}}} in the order the stages were first run."""
         if not self.config_path.is_file():
             return {}
-        try:
-            stages = json.loads(self.config_path.read_text()).get("stages", {})
-            if all(isinstance(r, dict) and isinstance(r.get("hash"), str) and isinstance(r.get("config"), dict)
-                   for r in stages.values()):
-                return stages
-        except (ValueError, AttributeError):
-            pass
+        data = read_json_object(self.config_path)
+        stages = data.get("stages", {}) if data is not None else None
+        if isinstance(stages, dict) and all(isinstance(r, dict) and isinstance(r.get("hash"), str)
+                                            and isinstance(r.get("config"), dict) for r in stages.values()):
+            return stages
         raise InputError(f"{self.config_path}: not a valid workspace config (use --overwrite to start the "
                          "workspace over)")
 
@@ -85,6 +82,4 @@ class Workspace:
         return dropped
 
     def _write(self, stages: dict) -> None:
-        tmp = self.config_path.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps({"stages": stages}, indent=2, sort_keys=False) + "\n")
-        os.replace(tmp, self.config_path)  # atomic: a crash never leaves half a config
+        write_json(self.config_path, {"stages": stages}, indent=2)

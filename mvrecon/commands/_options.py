@@ -3,7 +3,8 @@
 `add_camera_options`, `add_feature_options`, `add_matching_options` and `add_run_options` add one argument group
 each (`add_frontend_options` adds all four); `frontend_config_from_args(args)` builds the `FrontendConfig` from
 the defaults, then a `--config` TOML file, then the flags actually given. Commands such as `reconstruct` reuse these
-instead of redefining flags, so the same words mean the same thing everywhere.
+instead of redefining flags, so the same words mean the same thing everywhere. The argparse number types
+(`positive_int`, `finite_float`, ...) and `check_output_file` serve every command.
 """
 
 import argparse
@@ -16,15 +17,17 @@ from ..errors import InputError
 from ..geometry.camera import MODELS
 
 
-def _number(kind, low, low_open: bool = False):
-    """An argparse `type` for numbers of `kind` at least `low` (above it with `low_open`)."""
+def _number(kind, low=None, low_open: bool = False):
+    """An argparse `type` for finite numbers of `kind`, at least `low` (above it with `low_open`) when given."""
     def parse(text: str):
         try:
             value = kind(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected {'a whole number' if kind is int else 'a number'}, "
                                              f"got {text!r}") from None
-        if not math.isfinite(value) or value < low or (low_open and value == low):
+        if low is None and not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
+        if low is not None and (not math.isfinite(value) or value < low or (low_open and value == low)):
             raise argparse.ArgumentTypeError(f"must be {'above' if low_open else 'at least'} {low}, got {text}")
         return value
     return parse
@@ -33,17 +36,33 @@ def _number(kind, low, low_open: bool = False):
 non_negative_int = _number(int, 0)  # seeds, counts where 0 means "none" or "all"
 positive_int = _number(int, 1)
 positive_float = _number(float, 0.0, low_open=True)
+finite_float = _number(float)  # an angle, say: nan or inf would run on into meaningless results
 
 
-def finite_float(text: str) -> float:
-    """An argparse `type` for any finite number (an angle): nan or inf would run on into meaningless results."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
-    return value
+def check_output_file(path, inputs) -> None:
+    """Refuse, before the work, an output file that is a folder, would replace one of `inputs`, or cannot be
+    written: a bad -o should not cost the whole computation (calibrate, detectors)."""
+    import os
+    import tempfile
+    from pathlib import Path
+
+    out = Path(path)
+    if out.is_dir():
+        raise InputError(f"{out}: is a folder; give a file name to write")
+    if any(out.resolve() == Path(p).resolve() for p in inputs):
+        raise InputError(f"{out}: is one of the input images; choose another output file")
+    folder = out.parent
+    if not folder.is_dir():
+        raise InputError(f"{out}: folder {folder} does not exist")
+    if not os.access(folder, os.W_OK):
+        raise InputError(f"{out}: folder {folder} is not writable")
+    if out.exists() and not os.access(out, os.W_OK):
+        raise InputError(f"{out}: file is not writable")
+    try:  # os.access says yes to root even for /proc: a real (unnamed, at once deleted) file tells
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise InputError(f"{out}: cannot write in {folder} ({exc.strerror})") from None
 
 
 def add_camera_options(parser: argparse.ArgumentParser) -> None:

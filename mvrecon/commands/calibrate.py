@@ -40,34 +40,6 @@ def _board(text: str):
     return cols, rows
 
 
-def check_output_file(path, inputs) -> None:
-    """Refuse, before the work, an output file that is a folder, would replace one of `inputs`, or cannot be
-    written: a bad -o should not cost the whole computation. Shared with `detectors`."""
-    import os
-    import tempfile
-    from pathlib import Path
-
-    from mvrecon.errors import InputError
-
-    out = Path(path)
-    if out.is_dir():
-        raise InputError(f"{out}: is a folder; give a file name to write")
-    if any(out.resolve() == Path(p).resolve() for p in inputs):
-        raise InputError(f"{out}: is one of the input images; choose another output file")
-    folder = out.parent
-    if not folder.is_dir():
-        raise InputError(f"{out}: folder {folder} does not exist")
-    if not os.access(folder, os.W_OK):
-        raise InputError(f"{out}: folder {folder} is not writable")
-    if out.exists() and not os.access(out, os.W_OK):
-        raise InputError(f"{out}: file is not writable")
-    try:  # os.access says yes to root even for /proc: a real (unnamed, at once deleted) file tells
-        with tempfile.TemporaryFile(dir=folder):
-            pass
-    except OSError as exc:
-        raise InputError(f"{out}: cannot write in {folder} ({exc.strerror})") from None
-
-
 def run(args) -> int:
     import logging
     from pathlib import Path
@@ -76,6 +48,8 @@ def run(args) -> int:
     from mvrecon.io.images import list_images, read_image
     from mvrecon.stereo.calibrate import (CalibrationConfig, calibrate_mono, calibrate_stereo, stereo_pairs,
                                           write_camera_toml)
+
+    from ._options import check_output_file
 
     log = logging.getLogger("mvrecon.calibrate")
     config = CalibrationConfig(board=_board(args.size), square=args.square)

@@ -56,7 +56,7 @@ def run(args) -> int:
     from mvrecon.io.images import read_image
     from mvrecon.progress import progress
 
-    from .calibrate import check_output_file
+    from ._options import check_output_file
 
     log = logging.getLogger("mvrecon.detectors")
     names = [d.strip().upper() for d in args.detectors.split(",") if d.strip()]

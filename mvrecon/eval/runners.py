@@ -29,6 +29,7 @@ from pathlib import Path
 from ..database import database_counts
 from ..errors import InputError
 from ..executor import StageClock
+from ..io.files import read_json_object
 
 log = logging.getLogger("mvrecon.eval.runners")
 
@@ -146,11 +147,7 @@ def forget_if_failed(out_dir) -> bool:
 
 def _read_json(path) -> dict:
     """The JSON object in `path`, or {} when it is missing, cut off or not an object."""
-    try:
-        data = json.loads(Path(path).read_text())
-    except (OSError, ValueError):
-        return {}
-    return data if isinstance(data, dict) else {}
+    return read_json_object(path) or {}
 
 
 def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout) -> RunResult:

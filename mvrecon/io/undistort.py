@@ -25,11 +25,9 @@ def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -
     import pycolmap
 
     model_dir, image_dir, out_dir = Path(model_dir), Path(image_dir), Path(out_dir)
-    if not (model_dir / "images.bin").is_file() and not (model_dir / "images.txt").is_file():
-        raise InputError(f"{model_dir}: no COLMAP model here (images.bin or images.txt)")
+    names = [im.name for im in load_reconstruction(model_dir).images.values()]
     if not image_dir.is_dir():
         raise InputError(f"{image_dir}: image folder not found (pass --image-dir)")
-    names = [im.name for im in load_reconstruction(model_dir).images.values()]
     missing = [n for n in names if not (image_dir / n).is_file()]
     if missing:  # COLMAP's undistorter would log each one and write an export without them
         raise InputError(f"{image_dir}: {len(missing)} of the model's {len(names)} images are not here (first: "

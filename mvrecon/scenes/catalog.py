@@ -5,7 +5,6 @@ version) it was made from; asking again for the same scene into the same folder 
 """
 
 import hashlib
-import json
 import logging
 import shutil
 import time
@@ -13,6 +12,7 @@ import tomllib
 from pathlib import Path
 
 from ..errors import InputError
+from ..io.files import read_json_object, write_json
 
 CATALOG_DIR = Path(__file__).resolve().parent / "catalog"
 GENERATOR_VERSION = "4"  # bump when a scene's files change, so cached scenes are rebuilt (4: calib.txt in mm)
@@ -60,12 +60,7 @@ def load_entry(name: str) -> tuple[dict, str, Path]:
 def read_scene_info(out_dir) -> dict | None:
     """The scene.json of a folder, or None (none there, or one cut off by an interruption: only make_scene
     writes it, so such a folder is a scene of ours to render again)."""
-    path = Path(out_dir) / "scene.json"
-    try:
-        info = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-    return info if isinstance(info, dict) else None
+    return read_json_object(Path(out_dir) / "scene.json")
 
 
 def make_scene(name: str, out_dir) -> Path:
@@ -119,6 +114,4 @@ def make_scene(name: str, out_dir) -> Path:
 
 
 def _write_json(path: Path, data: dict) -> None:
-    tmp = path.with_suffix(".tmp")  # whole or not at all: a cut-off scene.json would leave the folder unclaimed
-    tmp.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")
-    tmp.replace(path)
+    write_json(path, data, indent=1, sort_keys=True)

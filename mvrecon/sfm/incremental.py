@@ -10,13 +10,13 @@ give several models. Every image that ends unregistered gets a reason.
 """
 
 import logging
-import os
 import pickle
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from ..io.files import replace_whole
 from ..progress import progress
 from . import filtering
 from .ba_points import select_points
@@ -52,10 +52,8 @@ class _Snapshot:
         if self.path is None:
             return
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = self.path.with_suffix(".tmp")
-        with open(tmp, "wb") as f:
-            pickle.dump({"version": SNAPSHOT_VERSION, "signature": self.signature, "state": state}, f)
-        os.replace(tmp, self.path)
+        data = pickle.dumps({"version": SNAPSHOT_VERSION, "signature": self.signature, "state": state})
+        replace_whole(self.path, lambda tmp: tmp.write_bytes(data))
 
     def load(self) -> dict | None:
         if self.path is None or not self.path.is_file():

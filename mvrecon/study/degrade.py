@@ -18,10 +18,8 @@ when downscaled).
 """
 
 import io
-import json
 import logging
 import math
-import os
 import struct
 import zlib
 from dataclasses import asdict, dataclass, fields, replace
@@ -32,6 +30,7 @@ import numpy as np
 from PIL import Image
 
 from ..errors import InputError
+from ..io.files import read_json_object, replace_whole, write_json
 from ..io.images import image_problem
 
 log = logging.getLogger(__name__)
@@ -278,22 +277,11 @@ def _write(path: Path, pixels: np.ndarray, src: Path, exif: bytes | None, jpeg_q
             cv2.imwrite(str(path), pixels)
 
 
-def _replace_whole(dst: Path, write) -> None:
-    """`write(tmp)` to a hidden name next to `dst`, then rename it to `dst`: an interrupted run leaves no cut-off
-    `dst` that a rerun would take for a finished image."""
-    tmp = dst.with_name(f".{dst.stem}.partial{dst.suffix}")  # same suffix: the writers choose the format by it
-    try:
-        write(tmp)
-        os.replace(tmp, dst)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
 def degrade_image(src: Path, dst: Path, deg: Degradation, seed: int = 0) -> None:
     """Write a degraded copy of `src` to `dst` (same format as dst's suffix), keeping EXIF; `dst` appears whole."""
     raw = _read(src)
     if not deg.active():  # nothing to do: the copy is the original's bytes
-        _replace_whole(dst, lambda tmp: tmp.write_bytes(src.read_bytes()))
+        replace_whole(dst, lambda tmp: tmp.write_bytes(src.read_bytes()))
         return
     check_kernels(deg, raw.shape[1], raw.shape[0], src)
     scale = 255.0 if raw.dtype == np.uint8 else 65535.0
@@ -315,7 +303,7 @@ def degrade_image(src: Path, dst: Path, deg: Degradation, seed: int = 0) -> None
     exif = _read_exif(src)
     if exif and pixels.shape[:2] != raw.shape[:2]:
         exif = _resized_exif(exif, pixels.shape[1], pixels.shape[0])
-    _replace_whole(dst, lambda tmp: _write(tmp, pixels, src, exif, deg.jpeg_quality))
+    replace_whole(dst, lambda tmp: _write(tmp, pixels, src, exif, deg.jpeg_quality))
 
 
 def list_images(path) -> list[Path]:
@@ -339,11 +327,8 @@ def _finished(out_dir: Path, settings: dict) -> set[str]:
     path = out_dir / RECORD
     if not path.is_file():
         return set()
-    try:
-        record = json.loads(path.read_text())
-    except ValueError:
-        record = None
-    old = record.get("settings") if isinstance(record, dict) else None
+    record = read_json_object(path)
+    old = record.get("settings") if record is not None else None
     if old != settings:
         differing = sorted(k for k in settings if not isinstance(old, dict) or old.get(k) != settings[k])
         raise InputError(f"{out_dir}: written earlier with another {', '.join(differing) or 'record'} ({path.name}); "
@@ -352,9 +337,7 @@ def _finished(out_dir: Path, settings: dict) -> set[str]:
 
 
 def _save_record(out_dir: Path, settings: dict, done: set[str]) -> None:
-    tmp = out_dir / f"{RECORD}.tmp"
-    tmp.write_text(json.dumps({"settings": settings, "done": sorted(done)}, indent=1))
-    os.replace(tmp, out_dir / RECORD)
+    write_json(out_dir / RECORD, {"settings": settings, "done": sorted(done)}, indent=1)
 
 
 def degrade_folder(images, out_dir, deg: Degradation, seed: int = 0, progress_desc: str = "degrade") -> list[Path]:

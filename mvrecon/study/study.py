@@ -23,6 +23,7 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..eval.runners import RunOptions, RunResult, run_colmap, run_mvrecon
+from ..io.files import read_json_object, write_json
 from ..progress import progress
 from .degrade import Degradation, degrade_folder, list_images
 from .grid import CLEAN, Cell, Grid
@@ -84,20 +85,15 @@ def claim_study_dir(study_dir: Path, config: StudyConfig) -> None:
     path = study_dir / "study.json"
     identity = config.identity()
     if path.is_file():
-        try:
-            old = json.loads(path.read_text())
-        except ValueError:
-            old = None
-        if not isinstance(old, dict):  # the cells were made under settings it no longer says: cannot be mixed
+        old = read_json_object(path)
+        if old is None:  # the cells were made under settings it no longer says: cannot be mixed
             raise InputError(f"{path}: damaged (not a JSON object of the study's settings); use another STUDY "
                              "folder, or delete this one to start over")
         differing = sorted(k for k in identity if old.get(k) != identity[k])
         if differing:
             raise InputError(f"{study_dir}: made with a different {', '.join(differing)}; use another STUDY folder")
     else:
-        tmp = path.with_suffix(".tmp")  # whole or not at all
-        tmp.write_text(json.dumps(identity, indent=1))
-        tmp.replace(path)
+        write_json(path, identity, indent=1)
 
 
 def prepare_images(study_dir: Path, config: StudyConfig, cells: list[Cell]) -> dict[str, Path]:
