@@ -3,10 +3,13 @@ geometry, the catalog is deterministic and cached, COLMAP reconstructs a small s
 
 import json
 import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
+from mvrecon.commands import scene as scene_command
 from mvrecon.errors import InputError
 from mvrecon.eval.models import load_reconstruction
 from mvrecon.geometry.rotation import rotation_error_deg
@@ -330,6 +333,74 @@ def test_make_scene_is_deterministic_and_cached(tmp_path):
         "0001.png",
     ]  # changed entry: rebuilt, stale files gone
     assert json.loads((a / "scene.json").read_text())["complete"] is True
+
+
+def test_make_scene_resumes_after_ctrl_c(tmp_path, monkeypatch):
+    """Ctrl-C while view 2's depth is being written: the rerun renders views 2 and 3 only, same bytes."""
+    toml = tmp_path / "tiny.toml"
+    toml.write_text(TINY.replace("count = 3", "count = 4"))
+    whole = _files(make_scene(str(toml), tmp_path / "whole"))
+    renders, saves, save = [], [], np.save
+    render = Renderer.render
+    monkeypatch.setattr(Renderer, "render", lambda self, *a, **k: renders.append(1) or render(self, *a, **k))
+
+    def cut_save(path, array):
+        saves.append(path)
+        if len(saves) == 3:  # the third depth map is cut off
+            with open(path, "wb") as f:
+                f.write(b"\x93NUMPY")
+            raise KeyboardInterrupt
+        save(path, array)
+
+    monkeypatch.setattr(np, "save", cut_save)
+    with pytest.raises(KeyboardInterrupt):
+        make_scene(str(toml), tmp_path / "cut")
+    monkeypatch.setattr(np, "save", save)
+    assert json.loads((tmp_path / "cut" / "scene.json").read_text())["complete"] is False
+    renders.clear()
+    make_scene(str(toml), tmp_path / "cut")
+    assert len(renders) == 2 and _files(tmp_path / "cut") == whole
+    toml.write_text(TINY.replace("count = 3", "count = 4").replace("seed = 5", "seed = 6"))
+    renders.clear()
+    make_scene(str(toml), tmp_path / "cut")  # other settings: all views again
+    assert len(renders) == 4 and _files(tmp_path / "cut") != whole
+
+
+@pytest.mark.parametrize("module, event, count", [("open3d.pybind", "builtins.id", 12),
+                                                  ("scipy._lib._ccallback_c", "register", 1)])
+def test_ctrl_c_while_libraries_initialise_exits_130(tmp_path, module, event, count):
+    """Ctrl-C inside Open3D's C++ initialisation left it counting unfreed memory: its exit check printed
+    a page of statistics and made the process exit 1. Inside scipy's Cython initialisation (imported by
+    the first photo texture) it was swallowed: exit 0 after the whole scene. SIGINT at a fixed point of
+    each (the count-th `event`, audit event or Python call, after `module` starts importing)."""
+    toml = tmp_path / "tiny.toml"
+    toml.write_text(TINY)
+    script = """
+import os, signal, sys
+module, event, count = sys.argv[3], sys.argv[4], int(sys.argv[5])
+seen = []
+def tick():
+    seen.append(1)
+    if len(seen) == count + 1:
+        os.kill(os.getpid(), signal.SIGINT)
+def audit(name, args):
+    if name == "import" and args[0] == module and not seen:
+        seen.append(0)
+    elif seen and name == event:
+        tick()
+def profile(frame, what, arg):
+    if seen and what == "call" and frame.f_code.co_name == event:
+        tick()
+sys.addaudithook(audit)
+if event == "register":
+    sys.setprofile(profile)
+from mvrecon.cli import main
+sys.exit(main(["scene", "make", sys.argv[1], "-o", sys.argv[2]]))
+"""
+    args = [str(toml), str(tmp_path / "out"), module, event, str(count)]
+    run = subprocess.run([sys.executable, "-c", script, *args], capture_output=True, text=True, timeout=120)
+    assert (run.returncode, run.stdout) == (130, ""), run.stdout[-500:] + run.stderr[-500:]
+    assert run.stderr.splitlines() == [f"mvrecon: interrupted; {scene_command.ON_INTERRUPT}"]
 
 
 def test_bad_scene_requests_are_input_errors(tmp_path):

@@ -1,16 +1,19 @@
 """Ground-truth scenes: list the catalog, or render one into a folder (images, COLMAP model, depth, extras).
 
 mvrecon scene list                      names, kinds and descriptions of the catalog's scenes
-mvrecon scene make NAME -o DIR          render scene NAME (or a path to a .toml) into DIR; cached
+mvrecon scene make NAME -o DIR          render scene NAME (or a path to a .toml) into DIR; cached,
+                                        resumed after Ctrl-C
 """
 
 ORDER = 80
+ON_INTERRUPT = "the views rendered are kept; rerun the same command to continue"
 
 
 def add_arguments(parser) -> None:
     parser.add_argument("action", choices=("list", "make"), help="list the catalog, or make (render) a scene")
     parser.add_argument("name", nargs="?", help="make: a catalog name (`mvrecon scene list`) or a .toml path")
-    parser.add_argument("-o", "--output", help="make: output folder (created; reused when up to date)")
+    parser.add_argument("-o", "--output",
+                        help="make: output folder (created; reused when up to date, continued after Ctrl-C)")
 
 
 def run(args) -> int:

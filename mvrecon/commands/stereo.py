@@ -8,10 +8,13 @@ Examples:
 
 Outputs in OUT: matches_epipolar.png, rectified_{left,right}.png, rectified_pair.png, disparity.pfm,
 disparity.png (16-bit, 256 d, 0 = hole), disparity_view.png, depth.pfm, depth_view.png and cloud.ply (with a
-calibration), error_map.png (with --gt), report.json.
+calibration), error_map.png (with --gt), report.json. A rerun into the same OUT reuses the stages done before
+with the same inputs and settings (SIFT matches and F, each method's disparity, the figures; kept in OUT/.stages).
 """
 
 ORDER = 60
+ON_INTERRUPT = ("the matches, disparities and figures done are kept in the output folder; rerun the same command "
+                "to continue")
 
 
 def add_arguments(parser) -> None:
@@ -66,8 +69,9 @@ def run(args) -> int:
     vd = report["vertical_disparity_px"]
     log.info("%s rectification: vertical disparity of inliers median %.2f px, 95%% %.2f px; disparity range %s",
              report["rectification"], vd["median"], vd["p95"], report["disparity_range"])
-    log.info("%s disparity: %.1f %% holes, %.1f s", args.method, report["invalid_percent"],
-             report["timings_s"]["disparity"])
+    log.info("%s disparity: %.1f %% holes, %.1f s%s", args.method, report["invalid_percent"],
+             report["timings_s"]["disparity"], " (earlier run, reused)" if f"disparity_{args.method}" in
+             report["reused"] else "")
     if "metrics" in report:
         print(format_table({args.method: report["metrics"]}))
     print(f"wrote {args.output}/report.json")

@@ -2,6 +2,8 @@
 
 import numpy as np
 
+from ..interrupts import import_open3d
+
 
 def write_ply(path, points, colors=None, normals=None) -> None:
     """points (N,3) float; colors (N,3) uint8 (or floats in [0,1]); normals (N,3) float."""
@@ -34,7 +36,7 @@ def write_ply(path, points, colors=None, normals=None) -> None:
 
 def read_ply_points(path) -> tuple[np.ndarray, np.ndarray | None]:
     """Points (N,3) and colours (N,3) uint8 or None, from a PLY written by `write_ply` (or any Open3D can read)."""
-    import open3d as o3d
+    o3d = import_open3d()
 
     cloud = o3d.io.read_point_cloud(str(path))
     points = np.asarray(cloud.points)

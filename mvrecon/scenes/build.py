@@ -7,6 +7,7 @@ disparity, occlusion mask and calib.txt), `sem_tilt` (orthographic tilt series +
 
 import inspect
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +17,8 @@ from . import cameras, meshes
 from .render import Hits, Renderer, RenderSettings
 from .textures import TextureSpec
 from .writers import write_colmap_model, write_depth, write_disparity, write_image, write_middlebury_calib
+
+log = logging.getLogger("mvrecon.scenes")
 
 TRAJECTORIES = {
     "orbit": cameras.orbit,
@@ -142,21 +145,26 @@ def render_settings(entry: dict) -> tuple[RenderSettings, float]:
 
 def _render_all(
     renderer: Renderer, cam, poses, names, out: Path, seed: int, jitter: float, grey: bool = False
-):
+) -> None:
+    """Render each view into images/ and gt/depth/, skipping views whose two files are there: make_scene
+    leaves only those of an interrupted run of the same entry, and both are written whole (seeded per view,
+    so the views rendered now are the bytes an uninterrupted run gives)."""
     rng = np.random.default_rng(seed)
     exposures = 1.0 + jitter * rng.uniform(-1.0, 1.0, len(poses))
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "gt" / "depth").mkdir(parents=True, exist_ok=True)
-    depths = []
-    for k in progress(range(len(poses)), desc="render", unit="image"):
+    files = [(out / "images" / n, out / "gt" / "depth" / (Path(n).stem + ".npy")) for n in names]
+    todo = [k for k, (image, depth) in enumerate(files) if not (image.is_file() and depth.is_file())]
+    if len(todo) < len(poses):
+        log.info("%s: %d of %d views already rendered, rendering the other %d", out, len(poses) - len(todo),
+                 len(poses), len(todo))
+    for k in progress(todo, desc="render", unit="image"):
         image, depth = renderer.render(cam, poses[k], exposure=float(exposures[k]), seed=seed * 7919 + k)
         if grey:
             image = np.round(image.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32))
             image = np.clip(image, 0, 255).astype(np.uint8)
-        write_image(out / "images" / names[k], image)
-        write_depth(out / "gt" / "depth" / (Path(names[k]).stem + ".npy"), depth)
-        depths.append(depth)
-    return depths
+        write_image(files[k][0], image)
+        write_depth(files[k][1], depth)
 
 
 def surface_points(renderer: Renderer, count: int, seed: int):

@@ -1,7 +1,8 @@
 """The scene catalog: TOML entries shipped in `scenes/catalog/`, and `make_scene` that renders one on demand.
 
 A scene folder is complete when its `scene.json` says so and carries the hash of the TOML (plus the generator
-version) it was made from; asking again for the same scene into the same folder then returns at once.
+version) it was made from; asking again for the same scene into the same folder then returns at once, or,
+after an interruption, renders only the views still missing.
 """
 
 import hashlib
@@ -67,7 +68,8 @@ def make_scene(name: str, out_dir) -> Path:
     """Render catalog scene `name` (or a .toml path) into out_dir and return out_dir.
 
     Deterministic: the same TOML gives the same bytes. Cached: when out_dir already holds the complete scene
-    made from the same TOML, nothing is recomputed. A folder holding other files than a scene's is refused.
+    made from the same TOML, nothing is recomputed; when it holds an interrupted one, the views rendered are
+    kept and only the others rendered. A folder holding other files than a scene's is refused.
     """
     from .build import KINDS
 
@@ -83,7 +85,9 @@ def make_scene(name: str, out_dir) -> Path:
     kind = entry.get("kind", "perspective")
     if kind not in KINDS:
         raise InputError(f"{path}: unknown kind {kind!r}; expected one of {', '.join(KINDS)}")
-    for item in _OWNED:  # remove what an older version of this scene left behind
+    # an interrupted run of the same entry: keep its views (written whole: see `resumable` below)
+    resume = bool(info) and info.get("hash") == digest and info.get("resumable") is True
+    for item in () if resume else _OWNED:  # remove what an older version of this scene left behind
         target = out / item
         if target.is_dir():
             shutil.rmtree(target)
@@ -100,7 +104,8 @@ def make_scene(name: str, out_dir) -> Path:
         "seed": int(entry.get("seed", 0)),
         "complete": False,
     }
-    _write_json(out / "scene.json", meta)
+    # only this version marks a folder resumable: an older one may have left a cut-off image
+    _write_json(out / "scene.json", {**meta, "resumable": True})
     start = time.perf_counter()
     try:
         details = KINDS[kind](entry, path.parent, out)

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..interrupts import import_open3d
 from .textures import TextureSpec
 
 
@@ -197,7 +198,7 @@ def relief(
 
 def load_mesh(path, texture: TextureSpec, scale: float = 1.0, translate=(0.0, 0.0, 0.0)) -> TexturedMesh:
     """A PLY/OBJ triangle mesh; its own UVs are kept, else UVs are a planar projection on its x-y extent."""
-    import open3d as o3d
+    o3d = import_open3d()
 
     m = o3d.io.read_triangle_mesh(str(path))
     vertices = np.asarray(m.vertices, dtype=float) * scale + np.asarray(translate, float)

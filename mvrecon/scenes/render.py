@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..interrupts import import_open3d
 from .cameras import CameraRays
 from .meshes import TexturedMesh
 from .textures import TextureAtlas, make_texture
@@ -61,7 +62,7 @@ class Renderer:
         texture_arrays: list[np.ndarray] | None = None,
     ):
         """texture_arrays (float RGB in [0, 1]) replace the mesh's texture specs (targets)."""
-        import open3d as o3d
+        o3d = import_open3d()
 
         self.mesh = mesh
         self.settings = settings
@@ -87,7 +88,7 @@ class Renderer:
         return self._cast(np.concatenate([origins, directions], axis=1, dtype=np.float32))
 
     def _cast(self, rays: np.ndarray) -> Hits:
-        import open3d as o3d
+        o3d = import_open3d()
 
         ans = self._scene.cast_rays(o3d.core.Tensor(rays))
         # copy out of Open3D's buffers: the arrays must not outlive `ans` as views

@@ -10,6 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..interrupts import ctrl_c_deferred
+
 # Photographs that scikit-image ships inside the wheel (no network fetch needed).
 PHOTOS = (
     "astronaut",
@@ -70,9 +72,10 @@ def load_photo(name: str) -> np.ndarray:
     """A bundled scikit-image photograph as float32 RGB in [0, 1]."""
     if name not in PHOTOS:
         raise ValueError(f"unknown photo {name!r}; expected one of {', '.join(PHOTOS)} or 'noise'")
-    import skimage.data
+    with ctrl_c_deferred():  # the first photo imports skimage.io and scipy
+        import skimage.data
 
-    image = np.asarray(getattr(skimage.data, name)())
+        image = np.asarray(getattr(skimage.data, name)())
     if image.dtype == bool:
         image = image.astype(np.uint8) * 255
     image = image.astype(np.float32) / 255.0

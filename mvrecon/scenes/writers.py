@@ -8,19 +8,20 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io.files import replace_whole
 from ..io.pfm import write_pfm
 
 
 def write_image(path, image: np.ndarray, jpeg_quality: int = 95) -> None:
-    """PNG or JPEG by the file suffix; RGB uint8 (H,W,3) or grey (H,W)."""
+    """PNG or JPEG by the file suffix; RGB uint8 (H,W,3) or grey (H,W). Whole or not at all, as a rerun after
+    Ctrl-C keeps the views on disk."""
     from PIL import Image
 
-    path = Path(path)
     pil = Image.fromarray(image)
-    if path.suffix.lower() in (".jpg", ".jpeg"):
-        pil.save(path, quality=jpeg_quality, subsampling=0, optimize=False)
+    if Path(path).suffix.lower() in (".jpg", ".jpeg"):
+        replace_whole(path, lambda tmp: pil.save(tmp, quality=jpeg_quality, subsampling=0, optimize=False))
     else:
-        pil.save(path, compress_level=6, optimize=False)
+        replace_whole(path, lambda tmp: pil.save(tmp, compress_level=6, optimize=False))
 
 
 def write_colmap_model(
@@ -69,8 +70,8 @@ def write_colmap_model(
 
 
 def write_depth(path, depth: np.ndarray) -> None:
-    """float32 z-depth (H,W), inf where no surface."""
-    np.save(path, np.asarray(depth, np.float32))
+    """float32 z-depth (H,W), inf where no surface; whole or not at all, as images."""
+    replace_whole(path, lambda tmp: np.save(tmp, np.asarray(depth, np.float32)))
 
 
 def write_middlebury_calib(

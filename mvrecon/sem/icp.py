@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry.sim3 import umeyama
+from ..interrupts import import_open3d
 
 METHODS = ("kdtree", "brute", "open3d-point", "open3d-plane")
 
@@ -69,7 +70,7 @@ class KDTreeSearch:
     """Open3D's KD-tree (nanoflann) over the target points, built once and queried every iteration."""
 
     def __init__(self, targets):
-        import open3d as o3d
+        o3d = import_open3d()
 
         self._o3d = o3d
         self._nns = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(np.ascontiguousarray(targets, dtype=float)))
@@ -113,7 +114,7 @@ def icp(source, target, method: str = "kdtree", config: IcpConfig = IcpConfig(),
 
 
 def _open3d_icp(source, target, method, config: IcpConfig, init):
-    import open3d as o3d
+    o3d = import_open3d()
 
     reg = o3d.pipelines.registration
     src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(source))

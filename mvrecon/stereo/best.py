@@ -5,9 +5,11 @@ Why each piece: census (Zabih & Woodfill 1994) is robust to the exposure and vig
 stereo cameras; a small absolute-gradient term sharpens it on fine texture. Semi-global matching (Hirschmueller 2008)
 adds P1/P2 smoothness along 8 scanline directions, with P2 lowered across intensity edges so depth edges follow
 image edges. The left-right check removes occlusions and mismatches; the parabola fit gives sub-pixel disparities.
-Holes are then filled with the smaller (farther) of the nearest valid disparities to the left and right, since
-occluded pixels belong to the background (the band at the left edge that the right camera cannot see is refilled
-from its right), and a weighted median guided by the image cleans the filled areas.
+Small blobs that passed the check (speckles: mostly wrong matches against the right image's border columns in the
+left-edge band, where the true, larger disparity cannot be evaluated) are removed, as is the band the right camera
+cannot see. Holes are then filled with the smaller (farther) of the nearest valid disparities to the left and right,
+since occluded pixels belong to the background (the left-edge band is refilled from its right), and a weighted
+median guided by the image cleans the filled areas.
 Everything is vectorised numpy except the scanline recursion, which loops over one image axis.
 """
 
@@ -22,8 +24,10 @@ from ..progress import progress
 class BestConfig:
     """census_size: (width, height) of the census window; gradient_weight: weight of the gradient cost against
     census bits; p1/p2: SGM penalties in cost units (p2 divided by 1 + |dI|/p2_edge across intensity edges);
-    lr_threshold: max left-right disagreement (px); median_radius/median_sigma: weighted-median filter after
-    filling (radius 0 disables); fill_holes: fill occlusions and mismatches (False leaves them NaN).
+    lr_threshold: max left-right disagreement (px); speckle_size/speckle_diff: blobs of at most that many pixels
+    (neighbours within speckle_diff px) are removed after the check (size 0 disables); median_radius/median_sigma:
+    weighted-median filter after filling (radius 0 disables); fill_holes: fill occlusions and mismatches (False
+    leaves them NaN).
     Defaults were chosen on Motorcycle and checked on Cones (docs/stereo.md)."""
 
     min_disparity: int = 0
@@ -35,6 +39,8 @@ class BestConfig:
     p2: float = 56.0
     p2_edge: float = 16.0
     lr_threshold: float = 1.0
+    speckle_size: int = 20
+    speckle_diff: float = 1.0
     fill_holes: bool = True
     median_radius: int = 7
     median_sigma: float = 25.5
@@ -70,7 +76,9 @@ def census_transform(gray, size=(9, 7)) -> np.ndarray:
 def cost_volume(left, right, config: BestConfig) -> np.ndarray:
     """(H, W, D) float32 matching cost: census Hamming distance + gradient_weight * capped |dI/dx| difference.
 
-    Pixels whose match falls outside the right image get the cost of the border column (no preference)."""
+    Pixels whose match falls outside the right image (x - d < 0) get the cost against the right image's border
+    column: a real comparison, so at the left edge the range d > x collapses onto it and can win there (wrong
+    matches that `remove_speckles` and `clear_left_border` take out)."""
     gl, gr = _gray(left), _gray(right)
     cl, cr = census_transform(gl, config.census_size), census_transform(gr, config.census_size)
     gxl = np.gradient(gl, axis=1)
@@ -203,17 +211,34 @@ def _nearest_valid_right(d) -> np.ndarray:
     return np.where(right_idx < W, d[np.arange(H)[:, None], np.clip(right_idx, 0, W - 1)], np.nan)
 
 
+def remove_speckles(disparity, size: int, max_diff: float) -> np.ndarray:
+    """NaN over blobs of at most `size` pixels whose neighbours differ by at most `max_diff` (OpenCV's
+    filterSpeckles on 1/16 px): small islands that passed the left-right check are wrong matches, and in the
+    left-edge band a chain of them would stop `clear_left_border`'s run (Motorcycle: disparities 0 at columns 0-5)."""
+    d = np.asarray(disparity, dtype=np.float32)
+    if size <= 0:
+        return d
+    import cv2
+
+    hole = np.iinfo(np.int16).min  # disparities stay within +-2047 px: a wider range has no cost volume in memory
+    fixed = np.where(np.isfinite(d), np.round(np.clip(d, -2047, 2047) * 16), hole).astype(np.int16)
+    cv2.filterSpeckles(fixed, hole, size, max(1, round(16 * max_diff)))
+    return np.where(fixed == hole, np.nan, d).astype(np.float32)
+
+
 def clear_left_border(disparity) -> np.ndarray:
     """NaN over the band at the left edge that the right camera cannot see.
 
-    A pixel at column x whose surface continues with disparity d > x from the right has no partner in the right
-    image, so whatever matched there (often a small, wrong disparity that passed the left-right check by chance) is
-    removed; hole filling then extends the surface from the right. The band is the run of such pixels that starts
-    at column 0."""
+    A pixel at column x next to a surface of disparity d > x on its right could not test that surface (x - d < 0
+    is outside the right image), so whatever matched there (often a small, wrong disparity that passed the
+    left-right check by chance) is removed; hole filling then extends the surface from the right. The band is the
+    run of such pixels that starts at column 0. The surface is the nearest valid pixel strictly to the right: a
+    pixel's own wrong disparity (0 at column 0) must not vouch for itself."""
     d = np.asarray(disparity, dtype=np.float32)
+    ref = np.full_like(d, np.nan)
+    ref[:, :-1] = _nearest_valid_right(d)[:, 1:]
     with np.errstate(invalid="ignore"):
-        outside = np.arange(d.shape[1])[None, :] < _nearest_valid_right(d)
-    band = np.logical_and.accumulate(outside | ~np.isfinite(d), axis=1) & outside
+        band = np.logical_and.accumulate(np.arange(d.shape[1])[None, :] < ref, axis=1)
     return np.where(band, np.nan, d).astype(np.float32)
 
 
@@ -235,7 +260,7 @@ def weighted_median(disparity, guide, radius: int, sigma: float) -> np.ndarray:
     """Edge-aware weighted median of the disparity (OpenCV ximgproc), guided by the left image in grey: with a
     colour guide OpenCV 5.0's filter gives different results from run to run on the same input (58 % of the
     pixels of a random map, by up to 30 px); in grey it is repeatable (Motorcycle bad-2 6.58 against
-    6.32-6.34 in colour)."""
+    6.32-6.34 in colour, before the speckle filter)."""
     import cv2
 
     d = np.nan_to_num(np.asarray(disparity, dtype=np.float32), nan=0.0)
@@ -253,9 +278,10 @@ def best_disparity(left, right, config: BestConfig = BestConfig()) -> np.ndarray
     disp_l = _subpixel(aggregated, index_l) + config.min_disparity
     keep = left_right_check(disp_l, right_disparity(aggregated, config.min_disparity), config.lr_threshold)
     disparity = np.where(keep, disp_l, np.nan).astype(np.float32)
+    disparity = clear_left_border(remove_speckles(disparity, config.speckle_size, config.speckle_diff))
     if not config.fill_holes:
         return disparity
-    disparity = fill_holes_background(clear_left_border(disparity))
+    disparity = fill_holes_background(disparity)
     if config.median_radius > 0:
         guide = np.asarray(left)
         disparity = weighted_median(disparity, guide, config.median_radius, config.median_sigma)

@@ -2,9 +2,11 @@
 rectification -> disparity (gee | sgbm | best) -> depth, point cloud, figures, and scores against ground truth.
 
 `run_stereo(config, left_path, right_path, out_dir, ...)` is what `mvrecon stereo` calls; it returns the report
-dict it also writes to `out_dir/report.json`.
+dict it also writes to `out_dir/report.json`. A rerun into the same folder reuses the stages already done (`Stages`).
 """
 
+import hashlib
+import importlib.util
 import json
 import logging
 import time
@@ -14,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..io.files import read_json_object, replace_whole, write_json
 from ..geometry.fundamental import RansacConfig, ransac_fundamental, sampson_distance
 from ..geometry.rectification import apply_homography, calibrated_rectification, fit_to_canvas, hartley_rectification
 from ..io.pfm import read_pfm, write_pfm
@@ -196,6 +199,64 @@ def _rectify_with_camera(left, right, camera, x1, x2):
     return out[0], out[1], p1, p2, geometry, inside
 
 
+class Stages:
+    """The stages of a run finished in OUT, so that a rerun (after Ctrl-C, or with another method) redoes only what
+    is missing. `OUT/.stages/record.json` holds each stage's key, a hash of everything it was computed from (input
+    pixels, settings, the code of the modules doing the work), its report entries and its time; a stage is redone
+    when its key differs or one of its files is missing. Its entry is dropped before its files are rewritten, and
+    every file is written whole, so a stage cut off by Ctrl-C is never taken for a finished one."""
+
+    def __init__(self, out: Path):
+        self.out, self.path = out, out / ".stages" / "record.json"
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.record = read_json_object(self.path) or {}
+        self.reused: list[str] = []
+
+    def run(self, name: str, key: str, files, make) -> dict:
+        """make() writes `files` (in OUT) and returns the stage's report entries, or the record has them."""
+        entry = self.record.get(name)
+        if isinstance(entry, dict) and entry.get("key") == key and all((self.out / f).is_file() for f in files):
+            self.reused.append(name)
+            return entry.get("report") or {}
+        if self.record.pop(name, None) is not None:
+            write_json(self.path, self.record, indent=1)
+        t0 = time.perf_counter()
+        report = make() or {}
+        self.record[name] = {"key": key, "report": report, "seconds": time.perf_counter() - t0}
+        write_json(self.path, self.record, indent=1)
+        return report
+
+    def seconds(self, name: str) -> float:
+        return float(self.record[name]["seconds"])
+
+
+def _key(*parts) -> str:
+    """sha256 of arrays (shape, dtype, bytes) and JSON-able settings, in order."""
+    h = hashlib.sha256()
+    for part in parts:
+        if isinstance(part, np.ndarray):
+            h.update(f"{part.shape} {part.dtype}".encode())
+            h.update(np.ascontiguousarray(part).tobytes())
+        else:
+            h.update(json.dumps(part, sort_keys=True, default=str).encode())
+    return h.hexdigest()
+
+
+def _code(*modules) -> str:
+    """Hash of the modules' source files: an edited method must not reuse an older run's results."""
+    return _key([Path(importlib.util.find_spec(m).origin).read_text() for m in modules])
+
+
+def _save_pfm(path: Path, values) -> None:
+    replace_whole(path, lambda tmp: write_pfm(tmp, np.where(np.isfinite(values), values, np.inf)))
+
+
+def _load_pfm(path: Path) -> np.ndarray:
+    values = read_pfm(path)
+    values[~np.isfinite(values)] = np.nan
+    return values
+
+
 def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=None, camera_path=None,
                gt_path=None, mask_path=None, gt_scale: float = 1.0, rectified: bool = False) -> dict:
     """The whole two-view run; writes rectified images, disparity/depth PFM and PNG, cloud.ply, figures, report.
@@ -230,33 +291,47 @@ def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=
         if grid is not None and grid.shape != left.shape[:2]:
             raise InputError(f"{path}: {what} is {grid.shape[1]}x{grid.shape[0]}, images are "
                              f"{left.shape[1]}x{left.shape[0]}")
+    if config.method not in METHODS:
+        raise InputError(f"unknown stereo method {config.method!r}; expected one of {', '.join(METHODS)}")
     out.mkdir(parents=True, exist_ok=True)
-    report: dict = {"left": str(left_path), "right": str(right_path), "method": config.method, "timings_s": {}}
-    t0 = time.perf_counter()
+    stages = Stages(out)
+    report: dict = {"left": str(left_path), "right": str(right_path), "method": config.method}
 
-    x1, x2 = sift_matches(left, right, config.ratio, config.max_features)
-    report["matches"] = int(len(x1))
-    if len(x1) < 8:
-        raise InputError(f"{left_path}, {right_path}: only {len(x1)} SIFT matches (8 needed for the fundamental "
-                         f"matrix); are these two views of the same scene?")
-    try:
-        F, inliers = ransac_fundamental(x1, x2, config.ransac)
-    except ValueError as exc:
-        raise InputError(f"{left_path}, {right_path}: {exc}") from None
-    report["timings_s"]["matching_and_F"] = time.perf_counter() - t0
-    report["inliers"] = int(inliers.sum())
-    report["F"] = F.tolist()
-    report["sampson_median_px"] = float(np.median(sampson_distance(F, x1[inliers], x2[inliers])))
-    F_cv, mask_cv = cv2.findFundamentalMat(x1, x2, cv2.FM_RANSAC, config.ransac.threshold, 0.999)
-    if F_cv is not None and F_cv.shape == (3, 3):
-        F_cv = F_cv / np.linalg.norm(F_cv)
-        report["opencv"] = {
-            "F": F_cv.tolist(), "inliers": int(mask_cv.sum()),
-            "sampson_median_px_of_our_inliers": float(np.median(sampson_distance(F_cv, x1[inliers], x2[inliers]))),
-            "our_F_sampson_median_px_of_its_inliers": float(np.median(
-                sampson_distance(F, x1[mask_cv.ravel() > 0], x2[mask_cv.ravel() > 0]))),
-        }
-    figures.matches_epipolar_figure(out / "matches_epipolar.png", left, right, x1, x2, F, inliers)
+    def figure(name, key, draw):
+        """Figures take seconds (matplotlib): drawn again only when what they show changed."""
+        stages.run(name, _key(key, _code(figures.__name__)), [name], lambda: replace_whole(out / name, draw))
+
+    def find_matches():
+        x1, x2 = sift_matches(left, right, config.ratio, config.max_features)
+        if len(x1) < 8:
+            raise InputError(f"{left_path}, {right_path}: only {len(x1)} SIFT matches (8 needed for the fundamental "
+                             f"matrix); are these two views of the same scene?")
+        try:
+            F, inliers = ransac_fundamental(x1, x2, config.ransac)
+        except ValueError as exc:
+            raise InputError(f"{left_path}, {right_path}: {exc}") from None
+        part = {"matches": int(len(x1)), "inliers": int(inliers.sum()), "F": F.tolist(),
+                "sampson_median_px": float(np.median(sampson_distance(F, x1[inliers], x2[inliers])))}
+        F_cv, mask_cv = cv2.findFundamentalMat(x1, x2, cv2.FM_RANSAC, config.ransac.threshold, 0.999)
+        if F_cv is not None and F_cv.shape == (3, 3):
+            F_cv = F_cv / np.linalg.norm(F_cv)
+            part["opencv"] = {
+                "F": F_cv.tolist(), "inliers": int(mask_cv.sum()),
+                "sampson_median_px_of_our_inliers": float(np.median(sampson_distance(F_cv, x1[inliers], x2[inliers]))),
+                "our_F_sampson_median_px_of_its_inliers": float(np.median(
+                    sampson_distance(F, x1[mask_cv.ravel() > 0], x2[mask_cv.ravel() > 0]))),
+            }
+        replace_whole(out / ".stages" / "matches.npz", lambda tmp: np.savez(tmp, x1=x1, x2=x2, F=F, inliers=inliers))
+        return part
+
+    matches_key = _key(left, right, config.ratio, config.max_features, asdict(config.ransac),
+                       _code(__name__, "mvrecon.features.sift", "mvrecon.matching.matcher",
+                             "mvrecon.geometry.fundamental"), cv2.__version__)
+    report.update(stages.run("matches", matches_key, [".stages/matches.npz"], find_matches))
+    with np.load(out / ".stages" / "matches.npz") as saved:
+        x1, x2, F, inliers = saved["x1"], saved["x2"], saved["F"], saved["inliers"]
+    figure("matches_epipolar.png", matches_key,
+           lambda path: figures.matches_epipolar_figure(path, left, right, x1, x2, F, inliers))
     xi1, xi2 = x1[inliers], x2[inliers]
 
     t0 = time.perf_counter()
@@ -287,39 +362,49 @@ def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=
     dy = np.abs(p1[:, 1] - p2[:, 1])
     report["vertical_disparity_px"] = {"median": float(np.median(dy)), "p95": float(np.percentile(dy, 95)),
                                        "max": float(dy.max())}
-    report["timings_s"]["rectification"] = time.perf_counter() - t0
-    cv2.imwrite(str(out / "rectified_left.png"), _bgr(rect_l))
-    cv2.imwrite(str(out / "rectified_right.png"), _bgr(rect_r))
-    figures.rectified_figure(out / "rectified_pair.png", rect_l, rect_r)
+    timings = {"matching_and_F": stages.seconds("matches"), "rectification": time.perf_counter() - t0}
+    for name, image in (("rectified_left.png", rect_l), ("rectified_right.png", rect_r)):
+        replace_whole(out / name, lambda tmp: cv2.imwrite(str(tmp), _bgr(image)))
+    figure("rectified_pair.png", _key(rect_l, rect_r), lambda path: figures.rectified_figure(path, rect_l, rect_r))
 
     dmin, num = search_range(config, calib, p1[:, 0] - p2[:, 0], nonnegative=camera is None)
     report["disparity_range"] = [dmin, dmin + num]
-    t0 = time.perf_counter()
-    try:
-        disparity, extra = compute_disparity(rect_l, rect_r, config, dmin, num)
-    except MemoryError:
-        h, w = rect_l.shape[:2]
-        raise InputError(f"{left_path}: not enough memory for {num} disparities of a {w}x{h} image; give a smaller "
-                         "--num-disparities or smaller images") from None
+    cached = out / ".stages" / f"disparity_{config.method}.pfm"
+
+    def find_disparity():
+        try:
+            disparity, extra = compute_disparity(rect_l, rect_r, config, dmin, num)
+        except MemoryError:
+            h, w = rect_l.shape[:2]
+            raise InputError(f"{left_path}: not enough memory for {num} disparities of a {w}x{h} image; give a "
+                             "smaller --num-disparities or smaller images") from None
+        _save_pfm(cached, disparity)
+        return extra
+
+    disparity_key = _key(rect_l, rect_r, config.method, asdict(getattr(config, config.method)), dmin, num,
+                         _code(f"{__package__}.{config.method}"), cv2.__version__)
+    report.update(stages.run(cached.stem, disparity_key, [cached.relative_to(out)], find_disparity))
+    disparity = _load_pfm(cached)
     disparity[~inside] = np.nan  # canvas outside the warped left image has no disparity
-    report["timings_s"]["disparity"] = time.perf_counter() - t0
-    report.update(extra)
+    timings["disparity"] = stages.seconds(cached.stem)
     report["invalid_percent"] = float(100 * np.mean(~np.isfinite(disparity)))
-    write_pfm(out / "disparity.pfm", np.where(np.isfinite(disparity), disparity, np.inf))
+    _save_pfm(out / "disparity.pfm", disparity)
     report["disparity_png"] = _write_disparity_png(out / "disparity.png", disparity)
-    figures.scalar_map_figure(out / "disparity_view.png", disparity, f"disparity ({config.method})",
-                              "disparity (px)")
+    figure("disparity_view.png", _key(disparity, config.method), lambda path: figures.scalar_map_figure(
+        path, disparity, f"disparity ({config.method})", "disparity (px)"))
 
     if geometry is not None:
         depth = disparity_to_depth(disparity, geometry["focal"], geometry["baseline"], geometry["doffs"])
-        write_pfm(out / "depth.pfm", np.where(np.isfinite(depth), depth, np.inf))
-        figures.scalar_map_figure(out / "depth_view.png", depth, "depth Z = f B / (d + doffs)",
-                                  "depth (baseline units)",
-                                  cmap="viridis_r")
+        _save_pfm(out / "depth.pfm", depth)
+        figure("depth_view.png", _key(depth), lambda path: figures.scalar_map_figure(
+            path, depth, "depth Z = f B / (d + doffs)", "depth (baseline units)", cmap="viridis_r"))
         finite = depth[np.isfinite(depth)]
         max_depth = float(20 * np.median(finite)) if finite.size else None
-        report["points"] = write_point_cloud(out / "cloud.ply", depth, rect_l, geometry["focal"], geometry["cx"],
-                                             geometry["cy"], max_depth)
+
+        def write_cloud(tmp):
+            report["points"] = write_point_cloud(tmp, depth, rect_l, geometry["focal"], geometry["cx"],
+                                                 geometry["cy"], max_depth)
+        replace_whole(out / "cloud.ply", write_cloud)
         report["geometry"] = geometry
     else:
         log.info("no calibration given: disparity only (no metric depth without --calib or --camera)")
@@ -331,13 +416,17 @@ def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=
         if gt.shape == disparity.shape:
             report["metrics"] = evaluate(disparity, gt, mask)
             bad2 = report["metrics"]["all"]["bad-2"]
-            figures.error_map_figure(out / "error_map.png", error_map(disparity, gt),
-                                     f"{config.method}: bad-2.0 = {bad2:.2f} % (all, holes count as bad)")
+            errors = error_map(disparity, gt)
+            title = f"{config.method}: bad-2.0 = {bad2:.2f} % (all, holes count as bad)"
+            figure("error_map.png", _key(errors, title),
+                   lambda path: figures.error_map_figure(path, errors, title))
         else:
             log.warning("rectified frame %s differs from the ground truth %s: not evaluated", disparity.shape,
                         gt.shape)
+    report["timings_s"] = timings
+    report["reused"] = stages.reused
     report["config"] = asdict(config)
-    (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False))  # strict JSON: no NaN
+    write_json(out / "report.json", report, indent=2, allow_nan=False)  # strict JSON: no NaN
     return report
 
 
@@ -355,7 +444,7 @@ def _write_disparity_png(path: Path, disparity) -> bool:
         return False
     png = np.zeros(disparity.shape, np.uint16)
     png[finite] = np.round(256 * values).astype(np.uint16)
-    cv2.imwrite(str(path), png)
+    replace_whole(path, lambda tmp: cv2.imwrite(str(tmp), png))
     return True
 
 
