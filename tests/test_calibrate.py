@@ -166,16 +166,17 @@ def test_cli_calibrate_writes_the_camera_file_and_stereo_refuses_one_without_a_r
     whole = (tmp_path / "whole.jpg").read_bytes()
     (folder / "view99.jpg").write_bytes(whole[: len(whole) // 2])  # cut off: left out with a warning
     with caplog.at_level("WARNING"):
-        assert main(["calibrate", str(folder), "-o", str(tmp_path / "camera.toml"), "--square", "30", "-q"]) == 0
+        camera = tmp_path / "new" / "camera.toml"  # its folder is made
+        assert main(["calibrate", str(folder), "-o", str(camera), "--square", "30", "-q"]) == 0
     assert "skipping" in caplog.text and "view99.jpg" in caplog.text
-    cam = read_camera_toml(tmp_path / "camera.toml")
+    cam = read_camera_toml(camera)
     assert abs(cam["left"].params[0] - 620) / 620 < 0.005
     (folder / "view99.jpg").unlink()
     capsys.readouterr()
     assert main(["calibrate", str(tmp_path / "nothing"), "-o", str(tmp_path / "c.toml")]) == 2
     assert "mvrecon: error:" in capsys.readouterr().err
     assert main(["stereo", str(folder / "view00.png"), str(folder / "view01.png"), "-o", str(tmp_path / "s"),
-                 "--camera", str(tmp_path / "camera.toml")]) == 2
+                 "--camera", str(camera)]) == 2
     assert "no [stereo] section" in capsys.readouterr().err
 
 
@@ -232,7 +233,7 @@ def test_cli_output_file_is_checked_before_the_work(tmp_path, capsys, monkeypatc
 
     monkeypatch.setattr(calibrate, "calibrate_mono", no_work)
     for output, reason in ((folder / "view00.png", "is one of the input images"),
-                           (tmp_path / "newdir" / "c.toml", "folder " + str(tmp_path / "newdir") + " does not exist"),
+                           (folder / "view01.png" / "c.toml", f"cannot make folder {folder / 'view01.png'}"),
                            (Path("/proc/c.toml"), "cannot write in /proc"), (folder, "is a folder")):
         capsys.readouterr()
         assert main(["calibrate", str(folder), "-o", str(output), "-q"]) == 2

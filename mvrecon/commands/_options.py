@@ -41,7 +41,7 @@ finite_float = _number(float)  # an angle, say: nan or inf would run on into mea
 
 def check_output_file(path, inputs) -> None:
     """Refuse, before the work, an output file that is a folder, would replace one of `inputs`, or cannot be
-    written: a bad -o should not cost the whole computation (calibrate, detectors)."""
+    written (its folder is made if missing): a bad -o should not cost the whole computation (calibrate, detectors)."""
     import os
     import tempfile
     from pathlib import Path
@@ -52,8 +52,10 @@ def check_output_file(path, inputs) -> None:
     if any(out.resolve() == Path(p).resolve() for p in inputs):
         raise InputError(f"{out}: is one of the input images; choose another output file")
     folder = out.parent
-    if not folder.is_dir():
-        raise InputError(f"{out}: folder {folder} does not exist")
+    try:  # as every other -o: a missing folder is made
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"{out}: cannot make folder {folder} ({exc.strerror})") from None
     if not os.access(folder, os.W_OK):
         raise InputError(f"{out}: folder {folder} is not writable")
     if out.exists() and not os.access(out, os.W_OK):

@@ -53,6 +53,7 @@ def run(args) -> int:
     from mvrecon.errors import InputError
     from mvrecon.features.detectors import (DETECTORS, detect, synthetic_homography, verified_inliers,
                                             warp_repeatability)
+    from mvrecon.io.files import replace_whole
     from mvrecon.io.images import read_image
     from mvrecon.progress import progress
 
@@ -69,7 +70,6 @@ def run(args) -> int:
     if args.pairs and len(paths) % 2:
         raise InputError(f"--pairs needs an even number of images, got {len(paths)}")
     out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
     for path in (out, out.with_suffix(".csv")):
         check_output_file(path, paths)
     rows, detections = [], {}
@@ -122,15 +122,18 @@ def run(args) -> int:
         lines += ["", "## Verified matches per pair (F inliers, our eight-point RANSAC, 1 px)", "",
                   "| pair | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
         lines += [f"| {r['pair']} | " + " | ".join(str(r[f'{n} inliers']) for n in names) + " |" for r in pair_rows]
-    out.write_text("\n".join(lines) + "\n")
-    with open(out.with_suffix(".csv"), "w", newline="") as f:
-        fields = list(rows[0])
-        writer = csv.DictWriter(f, fieldnames=fields + (list(pair_rows[0])[1:] if pair_rows else []) + ["pair"])
-        writer.writeheader()
-        pairs = {str(a): p for a, p in zip(paths[::2], pair_rows)} if pair_rows else {}
-        for r in rows:
-            extra = pairs.get(r["image"], {})
-            writer.writerow({**r, **{k: v for k, v in extra.items()}})
+    replace_whole(out, lambda tmp: tmp.write_text("\n".join(lines) + "\n"))
+
+    def write_csv(tmp):
+        with open(tmp, "w", newline="") as f:
+            fields = list(rows[0]) + (list(pair_rows[0])[1:] if pair_rows else []) + ["pair"]
+            writer = csv.DictWriter(f, fieldnames=fields)
+            writer.writeheader()
+            pairs = {str(a): p for a, p in zip(paths[::2], pair_rows)} if pair_rows else {}
+            for r in rows:
+                writer.writerow({**r, **pairs.get(r["image"], {})})
+
+    replace_whole(out.with_suffix(".csv"), write_csv)
     log.info("\n".join(lines))
     print(f"wrote {out} and {out.with_suffix('.csv')}")
     return 0

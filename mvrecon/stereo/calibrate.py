@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..io.files import replace_whole
 from ..progress import progress
 
 log = logging.getLogger("mvrecon.calibrate")
@@ -282,7 +283,7 @@ def write_camera_toml(path, result: "MonoResult | StereoResult", config: Calibra
             f"baseline = {float(np.linalg.norm(result.t)):.10g}\nrms_px = {result.rms_px:.6f}\n"
             f"pairs_used = {len(result.per_pair_rms_px)}\npairs_dropped = [{dropped}]\n"
             f"per_pair_rms_px = {{ {per_pair} }}\n")
-    Path(path).write_text(text)
+    replace_whole(path, lambda tmp: tmp.write_text(text))
 
 
 def read_camera_toml(path) -> dict:
