@@ -71,6 +71,13 @@ def group_cameras(names: list[str], metas: dict[str, ImageMeta],
         else:
             key = (m.width, m.height, m.make, m.model, m.focal_mm, m.focal_35mm)
         groups.setdefault(key, []).append(name)
+    if config.params:  # known intrinsics hold for one image size: a principal point is in pixels of it
+        first = metas[names[0]]
+        odd = next((n for n in names if (metas[n].width, metas[n].height) != (first.width, first.height)), None)
+        if odd is not None:
+            raise InputError(f"{odd}: is {metas[odd].width}x{metas[odd].height} but {names[0]} is "
+                             f"{first.width}x{first.height}, and --camera-params holds the intrinsics of one "
+                             "image size; give images of one size, or leave --camera-params out")
     out = []
     for members in groups.values():
         sizes = {(metas[n].width, metas[n].height) for n in members}

@@ -121,6 +121,34 @@ def _unreadable(folder: Path, skipped: dict[str, str]) -> dict[str, str]:
     return {n: f"{folder / n}: {r}" for n, r in skipped.items() if Path(n).suffix.lower() in IMAGE_EXTENSIONS}
 
 
+STAMPS = "images.json"  # in the workspace: name -> [size, mtime_ns] of every image file when features were read
+
+
+def _stamps(folder: Path, names) -> dict[str, list[int]]:
+    """Size and modification time of each file: what tells a rerun that an image changed since it was read."""
+    out = {}
+    for name in names:
+        try:
+            st = (folder / name).stat()
+        except OSError:
+            continue
+        out[name] = [st.st_size, st.st_mtime_ns]
+    return out
+
+
+def _check_unchanged(folder: Path, ws: Workspace, extracted, now: dict[str, list[int]]) -> None:
+    """Refuse a workspace whose images were replaced or removed since their features were extracted: their
+    keypoints would stand for pixels that are no longer there, and the model for images that are gone."""
+    before = read_json_object(ws.path / STAMPS) or {}
+    for name in sorted(extracted):
+        if name not in now:
+            raise InputError(f"{folder / name}: in the workspace {ws.path} but no longer in the folder; rerun "
+                             "with --overwrite to start over without it")
+        if name in before and before[name] != now[name]:
+            raise InputError(f"{folder / name}: changed since its features were extracted (size or time); rerun "
+                             "with --overwrite to start over")
+
+
 def _too_few(folder: Path, usable: int, failed: dict[str, str]):
     why = f" (skipped {'; '.join(failed.values())})" if failed else ""
     raise InputError(f"{folder}: only {usable} usable image(s), need at least 2{why}")
@@ -142,6 +170,7 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
     names, skipped = require_images(folder)
     config.camera.validate()
     failed = _unreadable(folder, skipped)
+    stamps = _stamps(folder, [*names, *failed])
     record = {"images": str(folder.resolve()), "camera": to_dict(config.camera), "sift": to_dict(config.sift)}
     if ws.begin_stage("features", record, overwrite):
         for suffix in ("", "-wal", "-shm", "-journal"):
@@ -163,6 +192,8 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
     extracted, colors = 0, {}
     with dbmod.open_database(ws.database_path) as db:
         existing = {info.name: info for info in dbmod.read_images(db).values()}
+        _check_unchanged(folder, ws, [n for n, info in existing.items() if dbmod.has_features(db, info.image_id)],
+                         stamps)
         camera_ids: dict[int, int] = {}
         for name, info in existing.items():
             if name in group_of:
@@ -194,6 +225,7 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
         counts = {n: dbmod.num_keypoints(db, existing[n].image_id) for n in names if n in existing}
         counts = {n: c for n, c in counts.items() if n not in failed}
         num_cameras = len({existing[n].camera_id for n in counts})
+    write_json(ws.path / STAMPS, stamps)
     if len(counts) < 2:
         _too_few(folder, len(counts), failed)
     return FeatureSummary(num_images=len(counts), num_extracted=extracted, keypoints=counts, failed=failed,
@@ -417,7 +449,8 @@ def write_report(out_dir, *, config_hash: str, seed: int, summary: MapSummary, s
 
 def _finished_report(out: Path, full_hash: str, image_dir: Path) -> dict | None:
     """report.json of a finished run in `out` with this config, of these very images (the same folder, and
-    every image file in it has a status in the report: none added or removed since), else None."""
+    every image file in it has a status in the report: none added or removed since, and none changed in size or
+    time), else None."""
     report = read_json_object(out / "report.json")
     if report is None or report.get("config_hash") != full_hash or not (out / "sparse").is_dir():
         return None
@@ -428,7 +461,10 @@ def _finished_report(out: Path, full_hash: str, image_dir: Path) -> dict | None:
     if recorded.get("images") != str(image_dir.resolve()) or not image_dir.is_dir():
         return None
     names = {n for n in visible_files(image_dir) if Path(n).suffix.lower() in IMAGE_EXTENSIONS}
-    return report if names == set(report.get("images") or ()) else None
+    if names != set(report.get("images") or ()):
+        return None
+    stamps = read_json_object(out / STAMPS)  # none in a workspace of an older version: names decide there
+    return report if stamps is None or stamps == _stamps(image_dir, names) else None
 
 
 def reconstruct(config: ReconstructConfig, image_dir, out_dir, *, text: bool = False, resume: bool = False,
@@ -457,18 +493,18 @@ def reconstruct(config: ReconstructConfig, image_dir, out_dir, *, text: bool = F
         log.info("%s", features.text())
         clock.done("features")
         matches = match(config.frontend, ws, overwrite=overwrite)
-    except InputError:
-        if fresh:  # rejected input: a folder this call made holds nothing worth keeping
+        log.info("%s", matches.text())
+        clock.done("matching")
+        summary = map_workspace(mapper, ws, image_dir=image_dir, text=text, resume=resume, overwrite=overwrite,
+                                keypoint_colors=features.keypoint_colors)
+    except InputError:  # rejected input (no verified pairs, say), or refused settings
+        if fresh:  # a folder this call made holds nothing worth keeping
             import shutil
 
             shutil.rmtree(out, ignore_errors=True)
         elif kept is not None:  # refused (another config, say) without --overwrite: the earlier run stands
             report_path.write_bytes(kept)
         raise
-    log.info("%s", matches.text())
-    clock.done("matching")
-    summary = map_workspace(mapper, ws, image_dir=image_dir, text=text, resume=resume, overwrite=overwrite,
-                            keypoint_colors=features.keypoint_colors)
     clock.done("mapping")
     log.info("%s", summary.text())
     skipped = dict(features.failed)

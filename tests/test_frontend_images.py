@@ -109,6 +109,14 @@ def test_listing_is_recursive_and_reports_non_images_and_corrupt_files(tmp_path,
     non_image_warnings = [r for r in caplog.records if "non-image" in r.getMessage()]
     assert len(non_image_warnings) == 1 and "notes.txt" in non_image_warnings[0].getMessage()
     assert any("broken.jpg" in r.getMessage() for r in caplog.records)
+    # outputs written inside the image folder (a workspace, an export, a scene) are not read back as images
+    for out, mark in (("run", "database.db"), ("run/splat", "sparse"), ("scene", "scene.json")):
+        (tmp_path / out / "images").mkdir(parents=True)
+        Image.fromarray(pattern()).save(tmp_path / out / "images" / "c.png")
+        (tmp_path / out / mark).touch()
+    assert list_images(tmp_path)[0] == ["b.jpg", "sub/deeper/a.PNG"]
+    (tmp_path / "scene" / "scene.json").unlink()  # an ordinary sub-folder again
+    assert list_images(tmp_path)[0] == ["b.jpg", "scene/images/c.png", "sub/deeper/a.PNG"]
 
 
 def test_bad_folders_raise_input_errors(tmp_path):
@@ -151,6 +159,10 @@ def test_focal_priors_and_camera_grouping(tmp_path):
         group_cameras(names, metas, CameraConfig(mode="single"))
     known = group_cameras(names[:2], metas, CameraConfig(model="PINHOLE", params=parse_camera_params("50,51,40,30")))
     assert known[0][0].prior_trusted and list(known[0][0].params) == [50, 51, 40, 30]
+    # known intrinsics of one size given to images of two: the other size's principal point would be off centre
+    for mode in ("auto", "per-image"):
+        with pytest.raises(InputError, match=r"^small.jpg: is 80x40 but a.jpg is 80x60, and --camera-params"):
+            group_cameras(names, metas, CameraConfig(mode=mode, model="PINHOLE", params=(50, 51, 40, 30)))
     with pytest.raises(InputError, match="PINHOLE takes 4 parameters"):
         CameraConfig(model="PINHOLE", params=(1.0, 2.0)).validate()
 

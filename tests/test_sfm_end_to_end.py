@@ -90,6 +90,25 @@ def test_rerun_does_not_redo_a_finished_run(demo, tmp_path, capsys):
     assert main(["-q", "reconstruct", str(other), "-o", str(tmp_path / "run2")]) == 0
     report = json.loads((tmp_path / "run2" / "report.json").read_text())
     assert len(report["images"]) == 10 and report["images"][first.name]["status"] == "registered"
+    # an image replaced under its name, or removed: one line and exit 2, not the stale model of the old pixels
+    victim, donor = sorted(other.iterdir())[1:3]
+    original = victim.read_bytes()
+    victim.write_bytes(donor.read_bytes())
+    capsys.readouterr()
+    assert main(["-q", "reconstruct", str(other), "-o", str(tmp_path / "run2")]) == 2
+    assert capsys.readouterr().err == (f"mvrecon: error: {victim}: changed since its features were extracted (size "
+                                       "or time); rerun with --overwrite to start over\n")
+    victim.unlink()
+    assert main(["-q", "reconstruct", str(other), "-o", str(tmp_path / "run2")]) == 2
+    assert f"{victim}: in the workspace {tmp_path / 'run2'} but no longer in the folder" in capsys.readouterr().err
+    # an image that could not be read, repaired since: the rerun takes it in
+    victim.write_bytes(original[: len(original) // 2])
+    assert main(["-q", "reconstruct", str(other), "-o", str(tmp_path / "run3")]) == 0
+    assert json.loads((tmp_path / "run3" / "report.json").read_text())["images"][victim.name]["status"] == "skipped"
+    victim.write_bytes(original)
+    assert main(["-q", "reconstruct", str(other), "-o", str(tmp_path / "run3")]) == 0
+    report = json.loads((tmp_path / "run3" / "report.json").read_text())
+    assert report["images"][victim.name]["status"] == "registered"
 
 
 def test_export_undistorted_pinhole_model(demo, tmp_path, capfd):
@@ -253,6 +272,22 @@ def test_map_without_verified_pairs_exits_2_with_a_message(tmp_path, capsys):
         assert main(["-q", "map", "-w", str(tmp_path)]) == 2
         err = capsys.readouterr().err
         assert f"{tmp_path / 'database.db'}: not a readable COLMAP database" in err and err.count("\n") == 1
+
+
+def test_reconstruct_of_unrelated_images_exits_2_and_leaves_no_folder(tmp_path, capsys):
+    """Images that share no verified pair: one line, exit 2, and the output folder this run made is removed."""
+    import cv2
+
+    images = tmp_path / "images"
+    images.mkdir()
+    for k in range(3):  # independent noise: plenty of SIFT features, no geometry between them
+        noise = np.random.default_rng(k).integers(0, 256, (120, 160), dtype=np.uint8)
+        cv2.imwrite(str(images / f"{k}.png"), cv2.GaussianBlur(noise, (0, 0), 1.5))
+    out = tmp_path / "out"
+    assert main(["-q", "reconstruct", str(images), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "no verified image pairs among 3 images" in err and err.count("\n") == 1
+    assert not out.exists()
 
 
 def test_mapper_settings_from_toml_and_flags(demo, tmp_path, capsys):

@@ -86,7 +86,7 @@ def run(args) -> int:
     registered = sum(1 for s in report["images"].values() if s["status"] == "registered")
     if not report["models"]:
         return no_model(args.output, report["images"])
-    log.info("%s: %d of %d images registered in %d model(s); wrote sparse/, points.ply, report.json",
+    log.info("%s: %d of %d images registered in %d model(s): sparse/, points.ply, report.json",
              args.output, registered, len(report["images"]), len(report["models"]))
     return 0
 

@@ -15,8 +15,9 @@ without decoding pixels, which is all the camera grouping needs.
 """
 
 import logging
+import os
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 from PIL import ExifTags, Image
@@ -45,11 +46,24 @@ class ImageMeta:
     focal_px_from_sensor: float | None = None  # FocalLength * FocalPlaneXResolution, in this image's pixels
 
 
+OUTPUT_MARKS = ("database.db", "sparse", "scene.json", "study.json")  # a workspace, an export, a scene, a study
+
+
 def visible_files(folder) -> list[str]:
-    """Every file under `folder` (POSIX names relative to it, sorted), hidden ones (a dot in the path) left out."""
+    """Every file under `folder` (POSIX names relative to it, sorted as paths), hidden ones (a dot in the path)
+    left out, and so are sub-folders holding a run's outputs (one of OUTPUT_MARKS): an output or export written
+    inside the image folder must not come back as input images on the next run."""
     folder = Path(folder)
-    return [rel.as_posix() for rel in (p.relative_to(folder) for p in sorted(folder.rglob("*")))
-            if not any(part.startswith(".") for part in rel.parts) and (folder / rel).is_file()]
+    names = []
+    for root, dirs, files in os.walk(folder, followlinks=True):
+        here = Path(root)
+        skip = [d for d in dirs if not d.startswith(".") and any((here / d / m).exists() for m in OUTPUT_MARKS)]
+        for d in skip:
+            log.info("skipping %s: it holds the outputs of a run", here / d)
+        dirs[:] = [d for d in dirs if not d.startswith(".") and d not in skip]
+        names += [(here / f).relative_to(folder).as_posix() for f in files
+                  if not f.startswith(".") and (here / f).is_file()]
+    return sorted(names, key=lambda n: PurePosixPath(n).parts)
 
 
 def list_images(folder) -> tuple[list[str], dict[str, str]]:
