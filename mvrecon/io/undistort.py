@@ -7,16 +7,21 @@ reference code (`convert.py` output) read:
     DIR/sparse/0/            cameras/images/points3D .bin with PINHOLE cameras matching those images
 
 COLMAP's own undistorter does the resampling (`pycolmap.undistort_images`), so the result is exactly what
-`colmap image_undistorter` gives; it writes `sparse/` flat, which is moved to `sparse/0/` here.
+`colmap image_undistorter` gives; it writes `sparse/` flat, which is moved to `sparse/0/` here. COLMAP reads pixels
+as stored, so images with an EXIF orientation (our cameras are upright) and 16-bit ones (trainers read 8 bits) are
+given to it as upright 8-bit copies in DIR.partial/input/, the others as links.
 """
 
 import logging
 import shutil
 from pathlib import Path
 
+import numpy as np
+from PIL import Image
+
 from ..errors import InputError
 from ..eval.models import load_reconstruction
-from .images import image_problem
+from .images import image_metadata, image_problem, read_image
 
 
 def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -1,
@@ -25,17 +30,25 @@ def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -
     import pycolmap
 
     model_dir, image_dir, out_dir = Path(model_dir), Path(image_dir), Path(out_dir)
-    names = [im.name for im in load_reconstruction(model_dir).images.values()]
+    rec = load_reconstruction(model_dir)
+    names = [im.name for im in rec.images.values()]
     if not image_dir.is_dir():
         raise InputError(f"{image_dir}: image folder not found (pass --image-dir)")
     missing = [n for n in names if not (image_dir / n).is_file()]
     if missing:  # COLMAP's undistorter would log each one and write an export without them
         raise InputError(f"{image_dir}: {len(missing)} of the model's {len(names)} images are not here (first: "
                          f"{missing[0]}); pass --image-dir")
-    for n in names:  # COLMAP would write a cut-off image as a mostly black one, and carry on
-        problem = image_problem(image_dir / n)
+    metas = {}
+    for im in rec.images.values():
+        path, cam = image_dir / im.name, rec.cameras[im.camera_id]
+        problem = image_problem(path)  # COLMAP would write a cut-off image as a mostly black one, and carry on
         if problem:
-            raise InputError(f"{image_dir / n}: {problem}")
+            raise InputError(f"{path}: {problem}")
+        m = metas[im.name] = image_metadata(path)
+        if (m.width, m.height) != (cam.width, cam.height):  # pycolmap would abort the whole process (SIGABRT)
+            turned = f" upright (EXIF orientation {m.orientation})" if m.orientation != 1 else ""
+            raise InputError(f"{path}: is {m.width}x{m.height}{turned} but its camera {cam.camera_id} in the model is "
+                             f"{cam.width}x{cam.height}: not the image the model was made from; pass --image-dir")
     out = out_dir.resolve()
     for source in (model_dir, image_dir):  # replacing the output must never delete what is being exported
         if out == source.resolve() or out in source.resolve().parents:
@@ -50,13 +63,18 @@ def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -
     if out_dir.exists():
         shutil.rmtree(out_dir)
     out_dir.mkdir(parents=True)
+    try:
+        source = _upright_8bit(image_dir, metas, out_dir / "input")
+    except InputError:
+        shutil.rmtree(out_dir)  # a failed export leaves nothing behind
+        raise
     options = pycolmap.UndistortCameraOptions(max_image_size=int(max_image_size))
     # COLMAP logs a line per image on stderr (glog); those show only with -vv, like our own debug lines
     saved = pycolmap.logging.minloglevel
     if not logging.getLogger("mvrecon").isEnabledFor(logging.DEBUG):
         pycolmap.logging.minloglevel = pycolmap.logging.WARNING
     try:
-        pycolmap.undistort_images(str(out_dir), str(model_dir), str(image_dir), output_type="COLMAP",
+        pycolmap.undistort_images(str(out_dir), str(model_dir), str(source), output_type="COLMAP",
                                   undistort_options=options)
     finally:
         pycolmap.logging.minloglevel = saved
@@ -66,7 +84,7 @@ def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -
     for f in list(flat.iterdir()):
         if f.is_file():
             shutil.move(str(f), str(target / f.name))
-    for extra in ("stereo", "run-colmap-geometric.sh", "run-colmap-photometric.sh"):
+    for extra in ("input", "stereo", "run-colmap-geometric.sh", "run-colmap-photometric.sh"):
         p = out_dir / extra
         if p.is_dir():
             shutil.rmtree(p)
@@ -89,3 +107,44 @@ def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -
         shutil.rmtree(final)  # the earlier export checked above
     out_dir.replace(final)
     return final / "sparse" / "0"
+
+
+def _upright_8bit(image_dir: Path, metas: dict, folder: Path) -> Path:
+    """`image_dir`, or `folder` holding upright 8-bit copies (no EXIF) of the images that are rotated by EXIF or
+    16-bit, and links to the others. COLMAP kept 16 bits, which 8-bit readers divide by 256 (14-bit data came out
+    dark); like our feature reader we stretch by the maximum, but one for all images, so views keep their relative
+    brightness."""
+    import cv2
+
+    deep = [n for n in metas if _more_than_8_bits(image_dir / n)]
+    copies = set(deep) | {n for n, m in metas.items() if m.orientation != 1}
+    if not copies:
+        return image_dir
+    top = max((int(read_image(image_dir / n).max()) for n in deep), default=255)
+    for name in metas:
+        src, dst = image_dir / name, folder / name
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        if name not in copies:
+            try:
+                dst.symlink_to(src.resolve())
+            except OSError:  # a file system without links (FAT, some Windows set-ups)
+                shutil.copyfile(src, dst)
+            continue
+        image = read_image(src)  # upright, as the model's cameras
+        if image.dtype != np.uint8:
+            image = cv2.convertScaleAbs(image, alpha=255.0 / max(top, 1))
+        if image.ndim == 3:
+            image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+        ok, data = cv2.imencode(dst.suffix, image, [cv2.IMWRITE_JPEG_QUALITY, 100, cv2.IMWRITE_JPEG_SAMPLING_FACTOR,
+                                                    cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444])
+        if not ok:
+            raise InputError(f"{src}: cannot write an upright copy to {dst}")
+        data.tofile(dst)
+    return folder
+
+
+def _more_than_8_bits(path: Path) -> bool:
+    """Whether `read_image` gives uint16 for this file (16/32-bit or float samples), from the header only."""
+    with Image.open(path) as im:
+        raw = str(im.tile[0].args) if im.tile else ""
+        return im.mode.startswith(("I", "F")) or ";16" in raw or ";32" in raw
