@@ -1,5 +1,6 @@
 """The incremental mapper on pycolmap synthetic scenes with ground truth: accuracy, outputs, seeds, resume."""
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -285,6 +286,137 @@ def test_disconnected_scene_gives_two_models_and_reasons(tmp_path):
     assert result.status[names[lonely]] == {"status": "unregistered", "model": None,
                                             "reason": "no verified pairs with any other image"}
     assert {result.status[names[i]]["model"] for i in ids[:6]} == {0}
+
+
+def lined_up_views(groups, seed=0, noise_px=0.2):
+    """Correspondences of hand-made views. groups: (x positions, (near, far), points). A group's views look
+    along +z from those points of the x axis with one trusted camera (f 3000 px, 3200 x 2400: the relative
+    pose of a baseline of 1/30 of the depth is then well posed under the 4 px epipolar threshold), and see
+    `points` points between the depths, all of them; every pair of the group is verified with all of them.
+    Groups share no points and no pairs. Images are named g<group>_<view>.png."""
+    rng = np.random.default_rng(seed)
+    f, width, height = 3000.0, 3200, 2400
+    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]])
+    corr = database.Correspondences()
+    corr.cameras[1] = database.CameraInfo(camera_id=1, model="SIMPLE_RADIAL", width=width, height=height,
+                                          params=np.array([f, width / 2, height / 2, 0]), prior_trusted=True)
+    for g, (xs, (near, far), num_points) in enumerate(groups):
+        centers = [np.array([x, 0.0, 0.0]) for x in xs]
+        X = np.zeros((0, 3))
+        while len(X) < num_points:
+            uv = rng.uniform([0, 0], [width, height], (4 * num_points, 2))
+            rays = np.linalg.solve(K, np.c_[uv, np.ones(len(uv))].T).T
+            candidates = rays * rng.uniform(near, far, (len(uv), 1)) + centers[0]
+            seen = np.ones(len(candidates), bool)
+            for c in centers:
+                p = (candidates - c) @ K.T
+                uv = p[:, :2] / p[:, 2:]
+                seen &= ((uv > 10) & (uv < [width - 10, height - 10])).all(axis=1)
+            X = np.r_[X, candidates[seen]][:num_points]
+        ids = []
+        for k, c in enumerate(centers):
+            image_id = len(corr.images) + 1
+            p = (X - c) @ K.T
+            corr.images[image_id] = database.ImageInfo(image_id=image_id, name=f"g{g}_{k}.png", camera_id=1)
+            corr.keypoints[image_id] = p[:, :2] / p[:, 2:] + rng.normal(0, noise_px, (len(X), 2))
+            ids.append(image_id)
+        matches = np.tile(np.arange(len(X))[:, None], (1, 2))
+        for a in range(len(ids)):
+            for b in range(a + 1, len(ids)):
+                corr.pairs.append(database.PairGeometry(image_id1=ids[a], image_id2=ids[b],
+                                                        config="CALIBRATED", inliers=matches))
+    return corr
+
+
+@pytest.mark.parametrize("xs, depths, points, noise_px, missed", [
+    # baseline 1/25-1/40 of the depth: a median angle of about 1.75 deg, under the last relaxed threshold
+    # (the SEM tilt series: 1.2-1.9 deg); the third view, half-way, has worse pairs of its own
+    ((0.0, 1.0, 0.5), (25, 40), 300, 0.2, r"a median triangulation angle of 1\.[5-9] deg < 2 deg"),
+    # farther (36-46 baselines, near the 50 beyond which a match does not count for the relative pose): under
+    # 100 points triangulate at 1.5 deg or more. Without noise, as an estimate of E this close to degenerate
+    # can, with noise, fail in another way.
+    ((0.0, 1.0), (36, 46), 300, 0.0,
+     r"\d\d? points triangulated at 1\.5 deg or more, < init_min_inliers 100"),
+    # a wide baseline but 90 matches, under init_min_inliers (a phototourism folder: 90 and 40)
+    ((0.0, 8.0), (20, 40), 90, 0.2, r"90 inliers < init_min_inliers 100"),
+])
+def test_without_an_initial_pair_each_image_says_what_its_best_pair_missed(xs, depths, points, noise_px,
+                                                                           missed, caplog):
+    """No initial pair accepted, so no model was ever started: the images used to say "too few 2D-3D
+    matches: it shares no triangulated points with a model". Now each says what its best pair missed, and the
+    command's one error line (the most common reason) says it too."""
+    from mvrecon.commands.reconstruct import no_model
+
+    result = map_correspondences(lined_up_views([(xs, depths, points)], noise_px=noise_px))
+    assert result.models == []
+    reasons = {name: s["reason"] for name, s in result.status.items()}
+    expected = re.escape("no initial pair accepted: its best pair (g0_0.png / g0_1.png) has ") + missed
+    assert re.fullmatch(expected, reasons["g0_0.png"]), reasons
+    assert reasons["g0_1.png"] == reasons["g0_0.png"]
+    if len(xs) == 3:
+        assert re.fullmatch(r"no initial pair accepted: its best pair \(g0_[01]\.png / g0_2\.png\) has .*",
+                            reasons["g0_2.png"])
+    caplog.clear()
+    assert no_model("out", result.status) == 1
+    assert f"(2 of them: {reasons['g0_0.png']})" in caplog.text
+
+
+def test_images_left_when_no_later_model_can_start_say_what_their_best_pair_missed():
+    """A 4-view model is made; the two views left, which share no points with it, make no second model: their
+    pair's median angle is about 1.75 deg."""
+    corr = lined_up_views([((0.0, 6.0, 12.0, 18.0), (20, 40), 300), ((0.0, 1.0), (25, 40), 300)])
+    result = map_correspondences(corr)
+    assert [int(m.registered.sum()) for m in result.models] == [4]
+    for name in ("g1_0.png", "g1_1.png"):
+        expected = re.escape("too few 2D-3D matches: it shares no triangulated points with a model, and no "
+                             "initial pair was accepted among the images left: its best pair (g1_0.png / "
+                             "g1_1.png) has a median triangulation angle of ") + r"1\.[5-9] deg < 2 deg"
+        assert re.fullmatch(expected, result.status[name]["reason"]), result.status[name]
+
+
+def test_a_discarded_pair_is_not_built_again_and_the_bar_counts_each_image_once(monkeypatch):
+    """Two separate pairs, each with a median angle over 16 deg, so each passes every angle threshold; each
+    makes a 2-image model, which is discarded (min_model_size 3). Each pair used to be built again at every
+    lower threshold (4 times: the same model, discarded again), and the progress bar counted every build's
+    images: 16 of 4. With nothing changed since its model was discarded (no model finished in between, the
+    same cameras), a pair is not built again, and the bar counts the images registered now (0 at the end)."""
+    from mvrecon.progress import Bar
+
+    seeded, shown = [], []
+    real_seed = incremental.IncrementalMapper._seed_model
+
+    def seed(self, m, init):
+        assert init.median_angle_deg > 16
+        seeded.append((init.image1, init.image2))
+        return real_seed(self, m, init)
+
+    class Recorded(Bar):
+        def update(self, n=1):
+            super().update(n)
+            shown.append(self.n)
+
+    monkeypatch.setattr(incremental.IncrementalMapper, "_seed_model", seed)
+    monkeypatch.setattr(incremental, "progress", lambda **kw: Recorded(**kw, disable=True))
+    result = map_correspondences(lined_up_views([((0.0, 12.0), (20, 40), 200), ((0.0, 12.0), (20, 40), 200)]))
+    assert result.models == []
+    assert sorted(seeded) == [(0, 1), (2, 3)]
+    assert {s["reason"] for s in result.status.values()} == {
+        "its model stayed at 2 images, under min_model_size 3, and was discarded"}
+    assert max(shown) == 2 and shown[-1] == 0
+
+
+def test_the_bar_ends_at_the_registered_images(monkeypatch):
+    """A model of 4 images, and a pair whose 2-image model is discarded: the bar ends at 4 of 6 (it ended at
+    12 of 6: the pair was built 4 times, and each build's 2 images counted)."""
+    from mvrecon.progress import Bar
+
+    bars = []
+    monkeypatch.setattr(incremental, "progress",
+                        lambda **kw: bars.append(Bar(**kw, disable=True)) or bars[-1])
+    corr = lined_up_views([((0.0, 6.0, 12.0, 18.0), (20, 40), 300), ((0.0, 12.0), (20, 40), 200)])
+    result = map_correspondences(corr)
+    assert [int(m.registered.sum()) for m in result.models] == [4]
+    assert bars[0].total == 6 and bars[0].n == 4
 
 
 TEMPLE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "middlebury_templeRing"

@@ -22,7 +22,7 @@ from . import filtering
 from .ba_points import select_points
 from .bundle import bundle_adjust as _bundle_adjust
 from .config import MapperConfig
-from .initialize import evaluate_pair, find_initial_pair
+from .initialize import evaluate_pair, find_initial_pair, initial_pair_rejections
 from .model import Camera, Reconstruction
 from .register import correspondences_2d3d, rank_candidates, register_image
 from .tracks import build_tracks
@@ -98,6 +98,11 @@ class IncrementalMapper:
         self.snapshot = _Snapshot(snapshot_path, _signature(corr, config))
         self.finished: list[Reconstruction] = []
         self.tried_init: set = set()
+        # what a model was started from (`_start_key`) when the model was discarded: starting it again from
+        # the same pair and state would only build the same model again
+        self.dropped_starts: set = set()
+        self.start_key = None  # that of the current model
+        self.init_rejections: dict[int, str] = {}  # image -> its best pair's miss, when no model could start
         self.evaluated_init: dict = {}  # pair -> evaluate_pair result, for this run only
         self.evaluated_with: dict = {}  # the trusted calibrations evaluated_init was computed with
         self.reasons: dict[int, str] = {}
@@ -165,13 +170,15 @@ class IncrementalMapper:
         self.snapshot.save({"finished": [m.state() for m in self.finished],
                             "current": self.current.state() if self.current is not None else None,
                             "tried_init": set(self.tried_init), "reasons": dict(self.reasons),
-                            "last_global": self.last_global, "attempts": dict(self.attempts)})
+                            "last_global": self.last_global, "attempts": dict(self.attempts),
+                            "dropped_starts": set(self.dropped_starts), "start_key": self.start_key})
 
     def _restore(self, s: dict) -> None:
         self.finished = [Reconstruction.from_state(m, self.keypoints) for m in s["finished"]]
         self.current = Reconstruction.from_state(s["current"], self.keypoints) if s["current"] else None
         self.tried_init, self.reasons = s["tried_init"], s["reasons"]
         self.last_global, self.attempts = s["last_global"], s["attempts"]
+        self.dropped_starts, self.start_key = s.get("dropped_starts", set()), s.get("start_key")
 
     # ----- main loop -----
     def run(self, resume: bool = False) -> MappingResult:
@@ -181,14 +188,15 @@ class IncrementalMapper:
             log.info("resuming from %s: %d finished models, current model with %d images", self.snapshot.path,
                      len(self.finished), int(self.current.registered.sum()) if self.current else 0)
         bar = progress(total=len(self.image_ids), desc="mapping", unit="img")
-        bar.update(sum(int(m.registered.sum()) for m in self.finished))
+        self._show_progress(bar)
         while len(self.finished) < self.config.max_models:
             if self.current is None and not self._start_model():
                 break
-            bar.update(int(self.current.registered.sum()))
+            self._show_progress(bar)
             self._grow(self.current, bar)
             self._finish_model(self.current)
             self.current = None
+            self._show_progress(bar)
             self._save()
         bar.close()
         self.finished.sort(key=lambda m: -int(m.registered.sum()))
@@ -197,6 +205,12 @@ class IncrementalMapper:
                               "split_inconsistent_tracks": self.tracks.split_inconsistent,
                               "ba_calls": self.ba_calls, "ba_seconds": self.ba_seconds})
 
+    def _show_progress(self, bar) -> None:
+        """The bar counts the images registered now, in the finished models and the current one: each image
+        once, and a discarded model's images (or an image the filters deregistered) no longer."""
+        n = len(self._excluded()) + (int(self.current.registered.sum()) if self.current is not None else 0)
+        bar.update(n - bar.n)
+
     def _excluded(self) -> set:
         out = set()
         for m in self.finished:
@@ -204,25 +218,73 @@ class IncrementalMapper:
         return out
 
     def _start_model(self) -> bool:
-        scratch = self._new_model()
-        calibration = {c: cam.params.tobytes() for c, cam in scratch.cameras.items() if cam.prior_trusted}
-        if calibration != self.evaluated_with:  # pairs evaluated before a camera was calibrated are stale
-            self.evaluated_init, self.evaluated_with = {}, calibration
-        init = find_initial_pair(scratch, self.pairs, self._excluded(), self.config, self.tried_init,
-                                 self.evaluated_init)
-        if init is None:
-            return False
-        init = self._focal_from_third_view(init, scratch)
-        m = scratch
-        n_init = self._seed_model(m, init)
-        log.info("initial pair %s / %s: %d points, median triangulation angle %.1f deg",
-                 self.names[init.image1], self.names[init.image2], n_init, init.median_angle_deg)
-        self._global_refine(m)
-        if m.stats()["points"] < self.config.abs_pose_min_inliers:
-            return self._start_model()
-        self.current, self.last_global, self.attempts = m, 2, {}
-        self._save()
-        return True
+        """Start the next model from the first initial pair accepted (and that keeps enough points after its
+        BA); False when there is none, with each left image's reason in init_rejections."""
+        while True:
+            scratch = self._new_model()
+            calibration = {c: cam.params.tobytes() for c, cam in scratch.cameras.items() if cam.prior_trusted}
+            if calibration != self.evaluated_with:  # pairs evaluated before a camera was calibrated are stale
+                self.evaluated_init, self.evaluated_with = {}, calibration
+            init = find_initial_pair(scratch, self.pairs, self._excluded(), self.config, self.tried_init,
+                                     self.evaluated_init)
+            if init is None:
+                self._explain_no_initial_pair(scratch)
+                return False
+            key = self._start_key(init, scratch)
+            if key in self.dropped_starts:
+                # the pair passes a lower angle threshold too, but with everything else as when its model was
+                # discarded the same model would be built and discarded again
+                log.debug("initial pair %s / %s: its model was discarded before; not built again",
+                          self.names[init.image1], self.names[init.image2])
+                continue
+            init = self._focal_from_third_view(init, scratch)
+            m = scratch
+            n_init = self._seed_model(m, init)
+            log.info("initial pair %s / %s: %d points, median triangulation angle %.1f deg",
+                     self.names[init.image1], self.names[init.image2], n_init, init.median_angle_deg)
+            self._global_refine(m)
+            points, least = m.stats()["points"], self.config.abs_pose_min_inliers
+            if points < least:
+                self.dropped_starts.add(key)
+                pair = (init.image1, init.image2)
+                for i, j in (pair, pair[::-1]):
+                    self.reasons[i] = (f"its two-view model with {self.names[j]} kept {points} points after "
+                                       f"bundle adjustment, < abs_pose_min_inliers {least}, and was dropped")
+                log.info("dropped the two-view model of %s / %s: %d points < abs_pose_min_inliers %d",
+                         self.names[init.image1], self.names[init.image2], points, least)
+                continue
+            self.current, self.last_global, self.attempts, self.start_key = m, 2, {}, key
+            self._save()
+            return True
+
+    def _start_key(self, init, scratch: Reconstruction) -> tuple:
+        """Everything the model started from `init` depends on: the pair's pose, every camera of the scratch
+        model (a guessed focal of another camera may have been moved by the pairs evaluated before), and the
+        finished models (their images are left out, their calibrations reused). Building is deterministic, so
+        equal keys give equal models."""
+        cams = tuple((c, cam.params.tobytes(), cam.prior_trusted, cam.prior_focal)
+                     for c, cam in sorted(scratch.cameras.items()))
+        return (init.image1, init.image2, init.R.tobytes(), init.t.tobytes(), cams, len(self.finished),
+                frozenset(self._excluded()))
+
+    def _explain_no_initial_pair(self, scratch: Reconstruction) -> None:
+        """Why no model could start from the images left: per image, what the nearest miss among its pairs
+        with other images left missed (for `_status`, which gives it to the images without another reason), and
+        the nearest miss of all in the log."""
+        rejected = initial_pair_rejections(scratch, self.pairs, self._excluded(), self.config,
+                                           self.evaluated_init, {key[:2] for key in self.dropped_starts})
+        best = {}
+        for r in rejected.values():
+            for i in (r.image1, r.image2):
+                if i not in best or r.closeness > best[i].closeness:
+                    best[i] = r
+        self.init_rejections = {i: f"its best pair ({self.names[r.image1]} / {self.names[r.image2]}) has "
+                                   f"{r.text}" for i, r in best.items()}
+        if best:
+            r = max(best.values(), key=lambda r: r.closeness)
+            log.info("no initial pair accepted%s: the best pair (%s / %s) has %s",
+                     " among the images left" if self.finished else "", self.names[r.image1],
+                     self.names[r.image2], r.text)
 
     def _seed_model(self, m: Reconstruction, init) -> int:
         """Register the initial pair in `m` and triangulate every track the two images share; returns the
@@ -313,7 +375,7 @@ class IncrementalMapper:
                     continue
                 self.reasons.pop(i, None)
                 self._after_registration(m, i)
-                bar.update(1)
+                self._show_progress(bar)
                 added = True
                 break
             if not added:
@@ -424,6 +486,8 @@ class IncrementalMapper:
         else:
             n = int(m.registered.sum())
             log.info("discarded a model of %d images (< %d)", n, self.config.min_model_size)
+            if self.start_key is not None:
+                self.dropped_starts.add(self.start_key)
             for i in np.flatnonzero(m.registered).tolist():
                 self.reasons[i] = (f"its model stayed at {n} images, under min_model_size "
                                    f"{self.config.min_model_size}, and was discarded")
@@ -449,6 +513,11 @@ class IncrementalMapper:
                 reason = "no consistent feature tracks (all its matches conflict)"
             elif i in self.reasons:
                 reason = self.reasons[i]
+            elif i in self.init_rejections and not self.finished:
+                reason = f"no initial pair accepted: {self.init_rejections[i]}"
+            elif i in self.init_rejections:
+                reason = ("too few 2D-3D matches: it shares no triangulated points with a model, and no "
+                          f"initial pair was accepted among the images left: {self.init_rejections[i]}")
             else:
                 reason = "too few 2D-3D matches: it shares no triangulated points with a model"
             out[name] = {"status": "unregistered", "model": None, "reason": reason}

@@ -6,7 +6,8 @@ accepted when enough points triangulate with a median angle above the threshold.
 (from at most 1000 of its matches); the mapper then triangulates all the tracks the two images share.
 Thresholds are relaxed in turn (16 deg, then 8, 4, 2) so scenes without a wide baseline still start, as COLMAP
 relaxes its own. Pure rotation and planar-with-no-baseline pairs fail the angle check; that is how they are
-rejected.
+rejected. When no pair is accepted, `initial_pair_rejections` says what each pair missed (the mapper gives the
+nearest miss as the reason of the images that stay unregistered).
 """
 
 from dataclasses import dataclass
@@ -26,6 +27,22 @@ class InitialPair:
     t: np.ndarray
     median_angle_deg: float
     focals: dict  # camera id -> the focal length the pose was estimated with
+
+
+@dataclass
+class PairRejection:
+    """Why a pair did not become the initial pair. `text` completes "the pair (A / B) has ...";
+    `closeness` orders rejections, the nearest miss largest: how far the pair got (the stages below), then how
+    close it came at that stage."""
+
+    image1: int  # internal indices
+    image2: int
+    closeness: tuple
+    text: str
+
+
+# how far a rejected pair got, from the least to the most promising
+_FEW_MATCHES, _NOT_TRIED, _NO_POSE, _FEW_POSE_INLIERS, _FEW_POINTS, _SMALL_ANGLE, _DISCARDED = range(7)
 
 
 _DECISION_MATCHES = 1000  # a pose and a median angle from this many matches decide as well as from all
@@ -52,6 +69,13 @@ def evaluate_pair(model, pair, i1: int, i2: int, config: MapperConfig,
     1000 of its matches), or None when it fails the criteria that do not depend on the angle threshold.
     With `focal_from_pair` a guessed focal is first replaced by the pair's estimate (below); without, the
     cameras' current focal lengths are used."""
+    found = assess_pair(model, pair, i1, i2, config, focal_from_pair)
+    return found if isinstance(found, InitialPair) else None
+
+
+def assess_pair(model, pair, i1: int, i2: int, config: MapperConfig,
+                focal_from_pair: bool = True) -> InitialPair | PairRejection:
+    """`evaluate_pair`, with a PairRejection saying which criterion failed instead of None."""
     k1, k2 = pair.inliers[:, 0], pair.inliers[:, 1]
     if len(k1) > _DECISION_MATCHES:
         pick = np.sort(np.random.default_rng(config.seed).choice(len(k1), _DECISION_MATCHES, replace=False))
@@ -65,17 +89,22 @@ def evaluate_pair(model, pair, i1: int, i2: int, config: MapperConfig,
     f = 0.5 * (model.camera(i1).focal() + model.camera(i2).focal())
     est = relative_pose(x1, x2, config.two_view_max_error_px / f, seed=config.seed)
     if est is None:
-        return None
+        return PairRejection(i1, i2, (_NO_POSE, 0.0), "no relative pose: its essential matrix puts too few "
+                                                      "matches in front of both views")
     R, t, inl = est
     if inl.sum() < config.init_min_inliers:
-        return None
+        return PairRejection(i1, i2, (_FEW_POSE_INLIERS, float(inl.sum())),
+                             f"{int(inl.sum())} of {len(x1)} matches fitting its relative pose in front of "
+                             f"both views, < init_min_inliers {config.init_min_inliers}")
     X, z, err = two_view_points(R, t, x1[inl], x2[inl])
     angle = triangulation_angle_deg(np.zeros(3), -R.T @ t, X)
     good = (z > 0).all(axis=1) & (err.max(axis=1) * f < config.max_reproj_error_px)
     good &= np.isfinite(X).all(axis=1)
     good &= angle >= config.min_tri_angle_deg
     if good.sum() < config.init_min_inliers:
-        return None
+        return PairRejection(i1, i2, (_FEW_POINTS, float(good.sum())),
+                             f"{int(good.sum())} points triangulated at {config.min_tri_angle_deg:g} deg or "
+                             f"more, < init_min_inliers {config.init_min_inliers}")
     focals = {int(model.camera_of[i]): model.camera(i).focal() for i in (i1, i2)}
     return InitialPair(i1, i2, R, t, float(np.median(angle[good])), focals)
 
@@ -120,22 +149,77 @@ def find_initial_pair(model, pairs_by_index, excluded, config: MapperConfig, tri
     """First pair meeting the criteria; `pairs_by_index` maps (i1, i2) internal indices -> PairGeometry.
 
     excluded: images already in another model; tried: (pair, angle threshold) that failed before (updated in
-    place); evaluated: pair -> `evaluate_pair` result, so relaxing the angle does not estimate a pair again.
+    place); evaluated: pair -> `assess_pair` result, so relaxing the angle does not estimate a pair again.
     """
-    candidates = sorted(((len(p.inliers), key) for key, p in pairs_by_index.items()
-                         if key[0] not in excluded and key[1] not in excluded
-                         and len(p.inliers) >= config.init_min_inliers),
-                        key=lambda c: (-c[0], c[1]))
+    candidates = _candidates(pairs_by_index, excluded, config)
     for min_angle in config.init_min_tri_angles_deg:
         for _, key in candidates[:config.init_max_pairs]:
             if (key, min_angle) in tried:
                 continue
             tried.add((key, min_angle))
             if key not in evaluated:
-                evaluated[key] = evaluate_pair(model, pairs_by_index[key], key[0], key[1], config)
+                evaluated[key] = assess_pair(model, pairs_by_index[key], key[0], key[1], config)
             found = evaluated[key]
-            if found is not None and found.median_angle_deg >= min_angle:
+            if isinstance(found, InitialPair) and found.median_angle_deg >= min_angle:
                 for cid, focal in found.focals.items():  # later candidates may have moved a guessed focal
                     model.cameras[cid].set_focal(focal)
                 return found
     return None
+
+
+def _candidates(pairs_by_index, excluded, config: MapperConfig) -> list:
+    """(inliers, pair) of the pairs between images not in `excluded` with enough inliers, most inliers
+    first."""
+    return sorted(((len(p.inliers), key) for key, p in pairs_by_index.items()
+                   if key[0] not in excluded and key[1] not in excluded
+                   and len(p.inliers) >= config.init_min_inliers),
+                  key=lambda c: (-c[0], c[1]))
+
+
+def initial_pair_rejections(model, pairs_by_index, excluded, config: MapperConfig, evaluated: dict,
+                            started=frozenset()) -> dict:
+    """pair -> PairRejection for every pair between images not in `excluded`, after `find_initial_pair`
+    accepted none of them: what each missed. A candidate not evaluated yet (the mapper resumed from a
+    snapshot, or a camera's calibration changed since) is evaluated now, into `evaluated`. A pair whose angle
+    passes a threshold was accepted before: it is in `started` (pairs whose model was discarded), or it was
+    tried at every threshold before the calibration changed."""
+    out = {}
+    thresholds = config.init_min_tri_angles_deg
+    loosest = min(thresholds) if thresholds else np.inf
+    for rank, (n, key) in enumerate(_candidates(pairs_by_index, excluded, config)):
+        if rank >= config.init_max_pairs:
+            out[key] = PairRejection(*key, (_NOT_TRIED, float(n)),
+                                     f"{n} inliers, but is not among the init_max_pairs "
+                                     f"{config.init_max_pairs} pairs with the most, which are the ones tried")
+            continue
+        if key not in evaluated:
+            evaluated[key] = assess_pair(model, pairs_by_index[key], key[0], key[1], config)
+        found = evaluated[key]
+        if isinstance(found, PairRejection):
+            out[key] = found
+        elif key in started:
+            out[key] = PairRejection(*key, (_DISCARDED, found.median_angle_deg),
+                                     "been the initial pair of a model that was discarded")
+        elif found.median_angle_deg >= loosest:
+            out[key] = PairRejection(*key, (_DISCARDED, found.median_angle_deg),
+                                     f"a median triangulation angle of {found.median_angle_deg:.1f} deg, but "
+                                     f"was tried at every threshold before a finished model calibrated its "
+                                     f"camera")
+        else:
+            angle = _below(found.median_angle_deg, loosest)
+            out[key] = PairRejection(*key, (_SMALL_ANGLE, found.median_angle_deg),
+                                     f"a median triangulation angle of {angle} deg < {loosest:g} deg")
+    for key, p in pairs_by_index.items():
+        if key not in out and key[0] not in excluded and key[1] not in excluded:
+            out[key] = PairRejection(*key, (_FEW_MATCHES, float(len(p.inliers))),
+                                     f"{len(p.inliers)} inliers < init_min_inliers {config.init_min_inliers}")
+    return out
+
+
+def _below(value: float, limit: float) -> str:
+    """`value` (< `limit`) to one decimal, or to as many as it takes not to print it as `limit` (1.97 < 2)."""
+    for digits in (1, 2, 3):
+        text = f"{value:.{digits}f}"
+        if float(text) < limit:
+            return text
+    return f"{value:g}"
