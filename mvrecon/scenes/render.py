@@ -62,7 +62,7 @@ class Renderer:
         texture_arrays: list[np.ndarray] | None = None,
     ):
         """texture_arrays (float RGB in [0, 1]) replace the mesh's texture specs (targets)."""
-        o3d = import_open3d()
+        o3d = self._o3d = import_open3d()  # once: its Ctrl-C guard need not run on every cast
 
         self.mesh = mesh
         self.settings = settings
@@ -88,9 +88,7 @@ class Renderer:
         return self._cast(np.concatenate([origins, directions], axis=1, dtype=np.float32))
 
     def _cast(self, rays: np.ndarray) -> Hits:
-        o3d = import_open3d()
-
-        ans = self._scene.cast_rays(o3d.core.Tensor(rays))
+        ans = self._scene.cast_rays(self._o3d.core.Tensor(rays))
         # copy out of Open3D's buffers: the arrays must not outlive `ans` as views
         t = ans["t_hit"].numpy().copy()
         tri = np.where(np.isfinite(t), ans["primitive_ids"].numpy().astype(np.int64), -1)

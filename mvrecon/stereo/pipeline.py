@@ -296,10 +296,11 @@ def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=
     out.mkdir(parents=True, exist_ok=True)
     stages = Stages(out)
     report: dict = {"left": str(left_path), "right": str(right_path), "method": config.method}
+    figures_code = _code(figures.__name__)  # read once, not per figure
 
     def figure(name, key, draw):
         """Figures take seconds (matplotlib): drawn again only when what they show changed."""
-        stages.run(name, _key(key, _code(figures.__name__)), [name], lambda: replace_whole(out / name, draw))
+        stages.run(name, _key(key, figures_code), [name], lambda: replace_whole(out / name, draw))
 
     def find_matches():
         x1, x2 = sift_matches(left, right, config.ratio, config.max_features)
