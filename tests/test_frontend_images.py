@@ -4,7 +4,7 @@ import logging
 
 import numpy as np
 import pytest
-from PIL import Image
+from PIL import ExifTags, Image
 
 from mvrecon import config as cfgmod
 from mvrecon.cameras import CameraConfig, focal_prior, group_cameras, parse_camera_params
@@ -127,6 +127,95 @@ def test_bad_folders_raise_input_errors(tmp_path):
     (tmp_path / "x.png").write_bytes(b"\x89PNG\r\n\x1a\n garbage")
     with pytest.raises(InputError, match="cannot decode image"):
         read_image(tmp_path / "x.png")
+
+
+TRUNCATED = "truncated JPEG: the file ends before its end-of-image marker"
+
+
+def _texture(h=240, w=320, seed=0):
+    """Smooth random RGB texture: enough entropy-coded data that a cut falls well inside the pixels."""
+    cv2 = pytest.importorskip("cv2")
+    rng = np.random.default_rng(seed)
+    return cv2.resize(rng.integers(0, 256, (h // 10, w // 10, 3), dtype=np.uint8), (w, h),
+                      interpolation=cv2.INTER_CUBIC)
+
+
+def _exif_with_thumbnail(thumbnail: bytes, orientation: int) -> bytes:
+    """An APP1 EXIF block as cameras write it: IFD0 (orientation), then IFD1 pointing at a JPEG thumbnail, which
+    brings its own SOI and EOI markers into the main image's header."""
+    import struct
+
+    ifd1 = 8 + 2 + 12 + 4
+    data = ifd1 + 2 + 2 * 12 + 4
+    tiff = b"II*\x00" + struct.pack("<I", 8)
+    tiff += struct.pack("<H", 1) + struct.pack("<HHIHH", 0x0112, 3, 1, orientation, 0) + struct.pack("<I", ifd1)
+    tiff += struct.pack("<H", 2) + struct.pack("<HHII", 0x0201, 4, 1, data)
+    tiff += struct.pack("<HHII", 0x0202, 4, 1, len(thumbnail)) + struct.pack("<I", 0)
+    return b"Exif\x00\x00" + tiff + thumbnail
+
+
+@pytest.mark.parametrize("kind", ["baseline", "progressive", "restart-markers"])
+def test_cut_off_jpegs_are_skipped_as_truncated(tmp_path, kind, caplog):
+    """An interrupted copy keeps the JPEG header, so the EXIF walk passed it, and OpenCV decoded it with its
+    missing part grey. Every cut, from 60% of the bytes to all but the last one, is reported and skipped."""
+    cv2 = pytest.importorskip("cv2")
+    from mvrecon.io.images import image_problem
+
+    image = _texture()
+    if kind == "restart-markers":  # RSTn markers inside the scan must not end it
+        ok, data = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_RST_INTERVAL, 4])
+        data = data.tobytes()
+        assert ok and b"\xff\xd3" in data
+    else:
+        import io
+
+        buffer = io.BytesIO()
+        Image.fromarray(image).save(buffer, "JPEG", quality=90, progressive=kind == "progressive")
+        data = buffer.getvalue()
+        assert data.count(b"\xff\xda") == (1 if kind == "baseline" else 10)  # one scan, or ten
+    (tmp_path / "whole.jpg").write_bytes(data)
+    (tmp_path / "other.png").write_bytes(b"")  # unrelated: listed as unreadable, not as truncated
+    assert image_problem(tmp_path / "whole.jpg") is None
+    for keep in (int(len(data) * 0.6), int(len(data) * 0.95), len(data) - 2, len(data) - 1):
+        (tmp_path / "cut.jpg").write_bytes(data[:keep])
+        assert image_problem(tmp_path / "cut.jpg") == TRUNCATED, keep
+    with caplog.at_level(logging.WARNING):
+        names, skipped = list_images(tmp_path)
+    assert names == ["whole.jpg"] and skipped["cut.jpg"] == TRUNCATED
+    assert any(r.getMessage() == f"skipping {tmp_path / 'cut.jpg'}: {TRUNCATED}" for r in caplog.records)
+
+
+def test_jpegs_with_a_thumbnail_or_data_after_their_end_are_whole(tmp_path):
+    """An EXIF thumbnail holds an EOI marker of its own, and phone Motion Photos append a video after the EOI
+    (MPO files more pictures): neither may count as truncated, nor hide a cut in the main image."""
+    import io
+
+    from mvrecon.io.images import image_problem
+
+    image = _texture()
+    buffer = io.BytesIO()
+    Image.fromarray(image).resize((80, 60)).save(buffer, "JPEG")
+    thumbnail = buffer.getvalue()
+    buffer = io.BytesIO()
+    Image.fromarray(image).save(buffer, "JPEG", quality=90, exif=_exif_with_thumbnail(thumbnail, 6))
+    data = buffer.getvalue()
+    video = b"\x00\x00\x00\x18ftypmp42" + bytes(range(256)) * 40 + thumbnail  # with markers, FFD9 included
+    (tmp_path / "motion.jpg").write_bytes(data + video)
+    with Image.open(tmp_path / "motion.jpg") as im:  # a real EXIF thumbnail, as Pillow reads it
+        assert im.getexif().get_ifd(ExifTags.IFD.IFD1) == {0x0201: 56, 0x0202: len(thumbnail)}
+    assert image_problem(tmp_path / "motion.jpg") is None
+    assert image_metadata(tmp_path / "motion.jpg").orientation == 6
+    (tmp_path / "cut.jpg").write_bytes(data[:int(len(data) * 0.6)])  # still holds the thumbnail's EOI
+    assert b"\xff\xd9" in data[:int(len(data) * 0.6)]
+    assert image_problem(tmp_path / "cut.jpg") == TRUNCATED
+    Image.fromarray(image).save(tmp_path / "pair.mpo", "MPO", save_all=True,
+                                append_images=[Image.fromarray(image[::-1])])
+    with Image.open(tmp_path / "pair.mpo") as im:
+        assert im.format == "MPO" and im.n_frames == 2
+    assert image_problem(tmp_path / "pair.mpo") is None
+    first_picture = (tmp_path / "pair.mpo").read_bytes()
+    (tmp_path / "pair.mpo").write_bytes(first_picture[:len(first_picture) // 4])
+    assert image_problem(tmp_path / "pair.mpo") is not None
 
 
 def test_focal_priors_and_camera_grouping(tmp_path):

@@ -8,8 +8,10 @@ reference code (`convert.py` output) read:
 
 COLMAP's own undistorter does the resampling (`pycolmap.undistort_images`), so the result is exactly what
 `colmap image_undistorter` gives; it writes `sparse/` flat, which is moved to `sparse/0/` here. COLMAP reads pixels
-as stored, so images with an EXIF orientation (our cameras are upright) and 16-bit ones (trainers read 8 bits) are
-given to it as upright 8-bit copies in DIR.partial/input/, the others as links.
+as stored, so images with an EXIF orientation and 16-bit ones (trainers read 8 bits) are given to it as 8-bit
+copies without the tag in DIR.partial/input/, the others as links. The copies are in the frame the model was made
+in: upright when mvrecon extracted the image's features (its reader applies the orientation), as stored when
+COLMAP did (a COLMAP database mapped with `mvrecon map -w`); see `stored_frame_images`.
 """
 
 import logging
@@ -21,12 +23,13 @@ from PIL import Image
 
 from ..errors import InputError
 from ..eval.models import load_reconstruction
-from .images import image_metadata, image_problem, read_image
+from .images import TRANSPOSED, image_metadata, image_problem, read_image
 
 
-def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -1,
-                       text: bool = False) -> Path:
-    """Undistort the images of the model in `model_dir` into `out_dir`; returns out_dir/sparse/0."""
+def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -1, text: bool = False,
+                       database=None) -> Path:
+    """Undistort the images of the model in `model_dir` into `out_dir`; returns out_dir/sparse/0. `database`:
+    the database the model was mapped from, which tells the frame of images with an EXIF orientation."""
     import pycolmap
 
     model_dir, image_dir, out_dir = Path(model_dir), Path(image_dir), Path(out_dir)
@@ -40,14 +43,27 @@ def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -
                          f"{missing[0]}); pass --image-dir")
     metas = {}
     for im in rec.images.values():
-        path, cam = image_dir / im.name, rec.cameras[im.camera_id]
+        path = image_dir / im.name
         problem = image_problem(path)  # COLMAP would write a cut-off image as a mostly black one, and carry on
         if problem:
             raise InputError(f"{path}: {problem}")
-        m = metas[im.name] = image_metadata(path)
-        if (m.width, m.height) != (cam.width, cam.height):  # pycolmap would abort the whole process (SIGABRT)
-            turned = f" upright (EXIF orientation {m.orientation})" if m.orientation != 1 else ""
-            raise InputError(f"{path}: is {m.width}x{m.height}{turned} but its camera {cam.camera_id} in the model is "
+        metas[im.name] = image_metadata(path)
+    turned = [n for n, m in metas.items() if m.orientation != 1]
+    stored = stored_frame_images(database, turned) if turned else set()
+    if stored:
+        logging.getLogger(__name__).info("%s: COLMAP extracted the features of %d of the %d image(s) with an EXIF "
+                                         "orientation: exported as stored (not turned), without the tag, as the "
+                                         "model sees them", database, len(stored), len(turned))
+    for im in rec.images.values():
+        path, cam, m = image_dir / im.name, rec.cameras[im.camera_id], metas[im.name]
+        size = (m.width, m.height)
+        if im.name in stored and m.orientation in TRANSPOSED:
+            size = (m.height, m.width)
+        if size != (cam.width, cam.height):  # pycolmap would abort the whole process (SIGABRT)
+            frame = "" if m.orientation == 1 else (f" as stored (EXIF orientation {m.orientation} not applied)"
+                                                   if im.name in stored else
+                                                   f" upright (EXIF orientation {m.orientation})")
+            raise InputError(f"{path}: is {size[0]}x{size[1]}{frame} but its camera {cam.camera_id} in the model is "
                              f"{cam.width}x{cam.height}: not the image the model was made from; pass --image-dir")
     out = out_dir.resolve()
     for source in (model_dir, image_dir):  # replacing the output must never delete what is being exported
@@ -64,7 +80,7 @@ def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -
         shutil.rmtree(out_dir)
     out_dir.mkdir(parents=True)
     try:
-        source = _upright_8bit(image_dir, metas, out_dir / "input")
+        source = _8bit_in_model_frame(image_dir, metas, stored, out_dir / "input")
     except InputError:
         shutil.rmtree(out_dir)  # a failed export leaves nothing behind
         raise
@@ -109,11 +125,39 @@ def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -
     return final / "sparse" / "0"
 
 
-def _upright_8bit(image_dir: Path, metas: dict, folder: Path) -> Path:
-    """`image_dir`, or `folder` holding upright 8-bit copies (no EXIF) of the images that are rotated by EXIF or
-    16-bit, and links to the others. COLMAP kept 16 bits, which 8-bit readers divide by 256 (14-bit data came out
-    dark); like our feature reader we stretch by the maximum, but one for all images, so views keep their relative
-    brightness."""
+def stored_frame_images(database, names) -> set[str]:
+    """The images among `names` whose model is in the stored pixel frame, because COLMAP extracted their features.
+
+    Told by the keypoints table of the database the model was mapped from: COLMAP writes 6 columns per keypoint
+    (x, y and the affine shape a11 a12 a21 a22), mvrecon 4 (x, y, scale, orientation; `database.write_features`).
+    This travels with the features themselves, image by image: it still holds when a COLMAP database was copied
+    into a workspace of ours, or the two were mixed, where config.json (our features stage) or images.json would
+    speak for the folder, and report.json is written by `map` for either. Images without keypoints there (or no
+    database: a bare model folder) are taken as mvrecon's, upright; so are those of a COLMAP from before its
+    affine keypoints (about 2018), which wrote 4 columns too."""
+    import sqlite3
+    from contextlib import closing
+
+    if database is None or not Path(database).is_file():
+        return set()
+    uri = Path(database).resolve().as_uri() + "?mode=ro"
+    try:
+        with closing(sqlite3.connect(uri, uri=True)) as con:
+            rows = con.execute("SELECT images.name, keypoints.cols FROM images JOIN keypoints "
+                               "ON images.image_id = keypoints.image_id").fetchall()
+    except sqlite3.Error as exc:
+        raise InputError(f"{database}: cannot read it to tell which frame the model's EXIF-rotated images are in "
+                         f"({exc})") from None
+    wanted = set(names)
+    return {name for name, cols in rows if name in wanted and cols == 6}
+
+
+def _8bit_in_model_frame(image_dir: Path, metas: dict, stored: set, folder: Path) -> Path:
+    """`image_dir`, or `folder` holding 8-bit copies without EXIF of the images that are rotated by EXIF or 16-bit,
+    and links to the others. A copy is upright, as mvrecon's cameras are, or as stored for the images in `stored`
+    (the model's frame; without the tag, viewers and trainers see what the model describes). COLMAP kept 16 bits,
+    which 8-bit readers divide by 256 (14-bit data came out dark); like our feature reader we stretch by the
+    maximum, but one for all images, so views keep their relative brightness."""
     import cv2
 
     deep = [n for n in metas if _more_than_8_bits(image_dir / n)]
@@ -130,7 +174,7 @@ def _upright_8bit(image_dir: Path, metas: dict, folder: Path) -> Path:
             except OSError:  # a file system without links (FAT, some Windows set-ups)
                 shutil.copyfile(src, dst)
             continue
-        image = read_image(src)  # upright, as the model's cameras
+        image = read_image(src, upright=name not in stored)  # in the frame of the model's cameras
         if image.dtype != np.uint8:
             image = cv2.convertScaleAbs(image, alpha=255.0 / max(top, 1))
         if image.ndim == 3:
@@ -138,7 +182,7 @@ def _upright_8bit(image_dir: Path, metas: dict, folder: Path) -> Path:
         ok, data = cv2.imencode(dst.suffix, image, [cv2.IMWRITE_JPEG_QUALITY, 100, cv2.IMWRITE_JPEG_SAMPLING_FACTOR,
                                                     cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444])
         if not ok:
-            raise InputError(f"{src}: cannot write an upright copy to {dst}")
+            raise InputError(f"{src}: cannot write an 8-bit copy to {dst}")
         data.tofile(dst)
     return folder
 
