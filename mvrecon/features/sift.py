@@ -22,7 +22,7 @@ from ..io.images import to_gray_uint8
 
 @dataclass(frozen=True)
 class SiftConfig:
-    max_num_features: int = bounded(8192, 1)  # keep the strongest responses, as COLMAP's max_num_features
+    max_num_features: int = bounded(8192, 1)  # beyond it, keep the coarsest scales (`_capped`)
     max_image_size: int = bounded(3200, 16)  # long side in pixels before detection; keypoints are mapped back
     # smallest |DoG| at the interpolated extremum, on [0,1] intensities: COLMAP's (VLFeat's) peak_threshold.
     # The default is twice COLMAP's 0.02 / 3: COLMAP's finds 1.5-1.75x the keypoints where the 8192 cap is not
@@ -56,7 +56,7 @@ def extract_sift(image: np.ndarray, config: SiftConfig = SiftConfig()) -> tuple[
     sx, sy = w / gray.shape[1], h / gray.shape[0]
     # OpenCV keeps an extremum whose interpolated |DoG| reaches contrastThreshold / nOctaveLayers (after a
     # pre-filter at half that), the test VLFeat/COLMAP make with peak_threshold
-    sift = cv2.SIFT_create(nfeatures=config.max_num_features, nOctaveLayers=config.num_octave_layers,
+    sift = cv2.SIFT_create(nfeatures=0, nOctaveLayers=config.num_octave_layers,
                            contrastThreshold=config.peak_threshold * config.num_octave_layers,
                            edgeThreshold=config.edge_threshold, enable_precise_upscale=config.precise_upscale)
     if config.upright:
@@ -66,9 +66,14 @@ def extract_sift(image: np.ndarray, config: SiftConfig = SiftConfig()) -> tuple[
             unique.setdefault((round(kp.pt[0], 2), round(kp.pt[1], 2), round(kp.size, 2)), kp)
         kps = [cv2.KeyPoint(k.pt[0], k.pt[1], k.size, 0.0, k.response, k.octave, k.class_id)
                for k in unique.values()]
+        kps = [kps[i] for i in _capped(kps, config)]
         kps, desc = sift.compute(gray, kps) if kps else ((), None)
     else:
+        # describing the keypoints dropped below costs less than detecting first and building a second pyramid
         kps, desc = sift.detectAndCompute(gray, None)
+        if len(kps) > config.max_num_features:
+            keep = _capped(kps, config)
+            kps, desc = [kps[i] for i in keep], desc[keep]
     if not kps or desc is None:
         return np.zeros((0, 4), np.float32), np.zeros((0, 128), np.uint8)
     keypoints = np.array([(k.pt[0], k.pt[1], k.size, k.angle) for k in kps], dtype=np.float64)
@@ -79,6 +84,22 @@ def extract_sift(image: np.ndarray, config: SiftConfig = SiftConfig()) -> tuple[
     keypoints[:, 2] *= 0.5 * (sx + sy) / 2
     keypoints[:, 3] = np.radians(keypoints[:, 3])
     return keypoints.astype(np.float32), descriptors_to_uint8(desc, root=config.root_sift)
+
+
+def _capped(kps, config: SiftConfig) -> np.ndarray:
+    """Indices (in detection order) of the max_num_features keypoints of the coarsest DoG levels, the
+    strongest within the last level kept.
+
+    COLMAP caps features the same way (coarse levels first), where OpenCV's `nfeatures` keeps the strongest
+    responses, two thirds of them from the two finest levels on large photos (they repeat poorly across views):
+    full-size Sceaux castle lost an image with those (docs/frontend.md, "Feature cap")."""
+    if len(kps) <= config.max_num_features:
+        return np.arange(len(kps))
+    octave = np.array([k.octave for k in kps], dtype=np.int64)
+    # OpenCV packs a signed octave in the low byte and the layer in the next one
+    level = (((octave & 255) ^ 128) - 128) * config.num_octave_layers + ((octave >> 8) & 255)
+    order = np.lexsort((-np.array([k.response for k in kps]), -level))
+    return np.sort(order[:config.max_num_features])
 
 
 def descriptors_to_uint8(desc: np.ndarray, root: bool) -> np.ndarray:
