@@ -3,10 +3,11 @@
 import cv2
 import numpy as np
 import pytest
-from PIL import Image
+from PIL import Image, JpegImagePlugin
 
 from mvrecon.cli import main
 from mvrecon.errors import InputError
+from mvrecon.io.images import list_images
 from mvrecon.study.degrade import RECORD, Degradation, degrade_folder, degrade_image, motion_kernel, with_level
 
 EXIF_IFD, FOCAL_LENGTH, PIXEL_X, PIXEL_Y = 0x8769, 0x920A, 0xA002, 0xA003
@@ -256,7 +257,7 @@ def test_bad_input_is_one_line_and_exit_code_2(tmp_path, capsys, caplog):
     src = tmp_path / "src"
     src.mkdir()
     assert main(["degrade", "-q", str(src), "-o", str(tmp_path / "o")]) == 2
-    assert "no JPEG, PNG or TIFF images here" in capsys.readouterr().err
+    assert "no readable JPEG, PNG or TIFF images found" in capsys.readouterr().err
     write_png(src / "x.png", texture())
     assert main(["degrade", "-q", str(src), "-o", str(tmp_path / "o"), "--jpeg", "150"]) == 2
     assert "JPEG quality must be 1..100" in capsys.readouterr().err
@@ -267,22 +268,29 @@ def test_bad_input_is_one_line_and_exit_code_2(tmp_path, capsys, caplog):
     assert cv2.imwrite(str(tmp_path / "whole.jpg"), np.dstack([texture()] * 3))
     whole = (tmp_path / "whole.jpg").read_bytes()
     (src / "cut.jpg").write_bytes(whole[: len(whole) // 2])  # cv2.imread would fill its lower half with grey
-    with caplog.at_level("WARNING", logger="mvrecon.study.degrade"):
+    with caplog.at_level("WARNING"):  # the listing `reconstruct` uses says why, once per file
         assert main(["degrade", "-q", str(src), "-o", str(tmp_path / "o"), "--noise", "3"]) == 0
-    assert "bad.png: cannot read image header" in caplog.text and "cut.jpg: cannot read this image" in caplog.text
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert [m for m in warned if "bad.png" in m] == [f"skipping {src / 'bad.png'}: {list_images(src)[1]['bad.png']}"]
+    assert len([m for m in warned if "cut.jpg" in m]) == 1 and "cut.jpg" in list_images(src)[1]
     assert sorted(p.name for p in (tmp_path / "o").iterdir() if p.name != RECORD) == ["x.png"]
     (src / "x.png").unlink()
     assert main(["degrade", "-q", str(src), "-o", str(tmp_path / "o2"), "--noise", "3"]) == 2
-    assert "none of the 2 image(s) could be read" in capsys.readouterr().err
+    assert "no readable JPEG, PNG or TIFF images found (2 file(s) skipped)" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("options, message", [
-    (["--blur", "inf"], "degradation: blur sigma must be a finite number, got inf"),
-    (["--motion", "inf"], "degradation: motion length must be a finite number, got inf"),
-    (["--poisson", "inf"], "degradation: poisson peak must be a finite number, got inf"),
-    (["--poisson", "1e300"], "degradation: Poisson peak must be at most 1e+12 (the noise is far below one grey level "
-                             "there)"),
-    (["--motion-angle", "nan", "--motion", "5"], "degradation: motion angle must be a finite number, got nan"),
+    # the flag and the value the user typed
+    (["--noise=-5"], "--noise -5: noise sigma must be >= 0"),
+    (["--jpeg", "150"], "--jpeg 150: JPEG quality must be 1..100 (0 = off)"),
+    (["--downscale", "0.5"], "--downscale 0.5: downscale factor must be >= 1"),
+    (["--sharpen", "1", "--sharpen-radius", "0"], "--sharpen-radius 0: sharpen radius must be > 0"),
+    (["--blur", "inf"], "--blur inf: blur sigma must be a finite number"),
+    (["--motion", "inf"], "--motion inf: motion blur length must be a finite number"),
+    (["--poisson", "inf"], "--poisson inf: Poisson peak must be a finite number"),
+    (["--poisson", "1e300"], "--poisson 1e+300: Poisson peak must be at most 1e+12 (the noise is far below one grey "
+                             "level there)"),
+    (["--motion-angle", "nan", "--motion", "5"], "--motion-angle nan: motion angle must be a finite number"),
     # kernels must fit in the image (192 px high): --motion 1e9 ran out of memory, --blur 1e5 ran for minutes
     (["--motion", "1e9"], "{src}: --motion 1e+09 is too large for its 256x192 pixels (at most 191: the kernel must "
                           "fit in the image)"),
@@ -300,7 +308,7 @@ def test_impossible_settings_are_one_line_errors(tmp_path, capsys, options, mess
     assert main(["degrade", "-q", str(src), "-o", str(tmp_path / "out"), *options]) == 2
     assert capsys.readouterr().err == f"mvrecon: error: {message.format(src=src / 'a.png')}\n"
     assert not (tmp_path / "out" / "a.png").exists()
-    with pytest.raises(InputError, match="jpeg quality must be a finite number"):
+    with pytest.raises(InputError, match="^--jpeg inf: JPEG quality must be a finite number$"):
         with_level(Degradation(), "jpeg_quality", float("inf"))  # a study level
 
 
@@ -338,3 +346,49 @@ def test_rerun_continues_after_an_interruption(tmp_path, capsys, monkeypatch):
     assert [p.read_bytes() for p in whole] == [(out / p.name).read_bytes() for p in whole]
     assert main(["degrade", "-q", str(src), "-o", str(out), "--noise", "6"]) == 2  # not mixed with noise 5
     assert capsys.readouterr().err.startswith(f"mvrecon: error: {out}: written earlier with another degradation")
+
+
+def test_sub_folders_are_searched_and_kept_as_reconstruct_lists_them(tmp_path, capsys):
+    """The images `reconstruct` takes (io.images.list_images), under the same relative paths: a folder with
+    images only in sub-folders was refused ("no JPEG, PNG or TIFF images here")."""
+    src = tmp_path / "src"
+    same = texture()
+    for name in ("a/0.png", "a/1.png", "b/0.png", "b/deeper/2.png", "run/3.png", ".hidden/4.png"):
+        (src / name).parent.mkdir(parents=True, exist_ok=True)
+        write_png(src / name, same)
+    (src / "run" / "database.db").write_bytes(b"")  # a run's outputs: not images
+    (src / "notes.txt").write_text("not an image")
+    out = tmp_path / "out"
+    assert main(["degrade", "-q", str(src), "-o", str(out), "--noise", "5"]) == 0
+    names = list_images(src)[0]
+    assert names == ["a/0.png", "a/1.png", "b/0.png", "b/deeper/2.png"]
+    assert list_images(out)[0] == names
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()) == sorted(names + [RECORD])
+    a, b = (cv2.imread(str(out / n), cv2.IMREAD_UNCHANGED).astype(float) for n in ("a/0.png", "b/0.png"))
+    assert np.std(a - same) == pytest.approx(5.0, rel=0.05) and np.std(a - b) > 5.0  # each its own noise
+    # the output folder may neither sit inside the input folder (its copies would be listed as images) nor hold it
+    assert main(["degrade", "-q", str(src), "-o", str(src / "noisy"), "--noise", "5"]) == 2
+    assert "inside the input folder" in capsys.readouterr().err and not (src / "noisy").exists()
+    assert main(["degrade", "-q", str(src / "a"), "-o", str(src), "--noise", "5"]) == 2
+    assert "holds the input folder" in capsys.readouterr().err
+
+
+def test_noise_on_a_jpeg_input_keeps_its_colour_and_jpeg_quality_is_unchanged(tmp_path):
+    """A JPEG input re-encoded after --noise keeps the noise of each colour channel (4:4:4, quality 100: the
+    default 4:2:0 averaged it to a std of 7.1 for sigma 10); --jpeg Q stays Pillow's encoding at quality Q."""
+    src = tmp_path / "src"
+    src.mkdir()
+    rgb = np.zeros((192, 256, 3), np.uint8) + np.array([128, 100, 160], np.uint8)
+    Image.fromarray(rgb).save(src / "c.jpg", quality=95)
+    clean = np.asarray(Image.open(src / "c.jpg")).astype(float)
+    degrade_folder(src, tmp_path / "noisy", Degradation(noise_sigma=10))
+    with Image.open(tmp_path / "noisy" / "c.jpg") as im:
+        noisy, sampling = np.asarray(im).astype(float), JpegImagePlugin.get_sampling(im)
+    assert [np.std(noisy[..., c] - clean[..., c]) for c in range(3)] == pytest.approx([10.0] * 3, rel=0.05)
+    assert sampling == 0  # 4:4:4
+    degrade_folder(src, tmp_path / "q50", Degradation(jpeg_quality=50))
+    Image.fromarray(np.asarray(Image.open(src / "c.jpg"))).save(tmp_path / "pillow50.jpg", quality=50)
+    with Image.open(tmp_path / "q50" / "c.jpg") as im, Image.open(tmp_path / "pillow50.jpg") as ref:
+        assert JpegImagePlugin.get_sampling(im) == JpegImagePlugin.get_sampling(ref) == 2  # 4:2:0
+        assert im.quantization == ref.quantization
+    assert (tmp_path / "q50" / "c.jpg").read_bytes() == (tmp_path / "pillow50.jpg").read_bytes()

@@ -109,8 +109,9 @@ def test_listing_is_recursive_and_reports_non_images_and_corrupt_files(tmp_path,
     non_image_warnings = [r for r in caplog.records if "non-image" in r.getMessage()]
     assert len(non_image_warnings) == 1 and "notes.txt" in non_image_warnings[0].getMessage()
     assert any("broken.jpg" in r.getMessage() for r in caplog.records)
-    # outputs written inside the image folder (a workspace, an export, a scene) are not read back as images
-    for out, mark in (("run", "database.db"), ("run/splat", "sparse"), ("scene", "scene.json")):
+    # outputs written inside the image folder (a workspace, an export, a scene, degraded copies) are not read back
+    for out, mark in (("run", "database.db"), ("run/splat", "sparse"), ("scene", "scene.json"),
+                      ("noisy", ".mvrecon-degrade.json")):
         (tmp_path / out / "images").mkdir(parents=True)
         Image.fromarray(pattern()).save(tmp_path / out / "images" / "c.png")
         (tmp_path / out / mark).touch()

@@ -1,12 +1,15 @@
 """The study machinery: grid, breaking points, and a tiny real study (both engines, 6 templeRing views, half size)."""
 
+import html
 import json
+import shutil
 from pathlib import Path
 
 import pytest
 
 from mvrecon.cli import main
 from mvrecon.errors import InputError
+from mvrecon.io.images import list_images
 from mvrecon.study.degrade import Degradation, degrade_image
 from mvrecon.study.grid import Cell, Grid, parse_levels
 from mvrecon.study.study import breaking_points, read_csv
@@ -25,9 +28,11 @@ def test_grid_cells_share_the_clean_run_and_keep_the_given_order():
     assert Cell(None, None).degradation(Degradation()).active() == []
 
 
-@pytest.mark.parametrize("axis, text, message", [
-    ("jpeg", "95,150", "JPEG quality must be 1..100"), ("noise", "0,a", "expected comma-separated numbers"),
-    ("blur", "1,1", "a level is repeated"), ("downscale", "0.5", "downscale must be >= 1")])
+@pytest.mark.parametrize("axis, text, message", [  # the errors of a level name its flag, as the user typed it
+    ("jpeg", "95,150", "^--jpeg 150: JPEG quality must be 1..100"),
+    ("noise", "0,a", "expected comma-separated numbers"), ("blur", "1,1", "a level is repeated"),
+    ("downscale", "0.5", "^--downscale 0.5: downscale factor must be >= 1"),
+    ("noise", "0,-5", "^--noise -5: noise sigma must be >= 0$")])
 def test_impossible_levels_are_refused(axis, text, message):
     with pytest.raises(InputError, match=message):
         parse_levels(axis, text)
@@ -167,3 +172,69 @@ def test_study_input_errors_are_one_line(tiny_scene, tmp_path, capsys):
     assert main(["compare", "-q", str(one), "-o", str(tmp_path / "c1")]) == 2
     assert "only 1 usable image(s), need at least 2" in capsys.readouterr().err
     assert not (tmp_path / "c1").exists() and not (tmp_path / "s1").exists()  # no engine ran
+
+
+def copy_images(tiny_scene, folder, layout):
+    """`layout`: relative name -> the index of the tiny scene's image to copy there."""
+    sources = sorted(p for p in tiny_scene.iterdir() if p.suffix == ".png")
+    for name, k in layout.items():
+        (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        (folder / name).write_bytes(sources[k].read_bytes())
+    return folder
+
+
+def run_images(study, engine, cell):
+    """The images an engine's run took (its report also names the files it skipped)."""
+    report = json.loads((study / "runs" / engine / cell / "report.json").read_text())
+    return sorted(n for n, image in report["images"].items() if image["status"] != "skipped")
+
+
+def test_study_uses_the_images_reconstruct_takes_in_every_cell(tiny_scene, tmp_path):
+    """Images at the top and in a sub-folder, with unreadable and non-image files: every cell is made from the
+    same six images (registered % was 200: the clean run took the sub-folder's images, the noisy cells and the
+    denominator did not; unreadable files counted as images gave 75 % where compare says 100)."""
+    images = copy_images(tiny_scene, tmp_path / "in", {"0.png": 0, "1.png": 1, "2.png": 2, "sub/3.png": 3,
+                                                       "sub/4.png": 4, "sub/deeper/5.png": 5})
+    (images / "sub" / "junk.png").write_text("junk")
+    whole = (images / "1.png").read_bytes()
+    (images / "cut.png").write_bytes(whole[: len(whole) // 2])
+    (images / "notes.txt").write_text("not an image")
+    names, skipped = list_images(images)
+    assert len(names) == 6 and sorted(skipped) == ["cut.png", "notes.txt", "sub/junk.png"]
+    study = tmp_path / "s"
+    assert main(["study", "-q", str(images), "-o", str(study), "--engines", "mvrecon", "--noise", "0,3",
+                 "--jobs", "1"]) == 0
+    table = read_csv(study / "study.csv")
+    assert [(r["level"], r["registered"], r["images"], r["registered_pct"]) for r in table] == [
+        (0.0, 6.0, 6.0, 100.0), (3.0, 6.0, 6.0, 100.0)]
+    assert run_images(study, "mvrecon", "clean") == run_images(study, "mvrecon", "noise-3") == sorted(names)
+    assert list_images(study / "images" / "noise-3")[0] == names  # sub-folders kept
+    page = (study / "study.html").read_text()
+    assert "3 file(s) in the image folder left out" in page
+    for name, why in skipped.items():  # each file left out, with list_images' reason
+        assert f"<code>{name}</code>: {html.escape(why)}" in page
+    assert "(6 images)" in page
+
+
+def test_study_of_images_only_in_sub_folders_and_cells_made_from_other_images(tiny_scene, tmp_path, capsys):
+    images = copy_images(tiny_scene, tmp_path / "in", {f"{'ab'[k // 3]}/{k}.png": k for k in range(6)})
+    study = tmp_path / "s"
+    args = ["study", "-q", str(images), "-o", str(study), "--engines", "mvrecon", "--noise", "0,3",
+            "--timeout", "0.01"]  # the runs time out (failed cells): only the image sets are looked at here
+    assert main(args) == 0  # was refused: "no JPEG, PNG or TIFF images here"
+    assert [r["images"] for r in read_csv(study / "study.csv")] == [6.0, 6.0]
+    assert list_images(study / "images" / "noise-3")[0] == list_images(images)[0] == [
+        "a/0.png", "a/1.png", "a/2.png", "b/3.png", "b/4.png", "b/5.png"]
+    # a cell made from other images is not mixed with the images the folder holds now
+    copy_images(tiny_scene, images, {"b/6.png": 0})
+    assert main(args) == 2
+    assert "images/noise-3: made from other images than" in capsys.readouterr().err
+    (images / "b" / "6.png").unlink()
+    assert main(args) == 0
+    # a cell made before sub-folders were searched (its marker has no names; it holds the top level only)
+    marker = study / "images" / "noise-3.json"
+    marker.write_text(json.dumps({k: v for k, v in json.loads(marker.read_text()).items() if k != "images"}))
+    assert main(args) == 0
+    shutil.rmtree(study / "images" / "noise-3" / "b")
+    assert main(args) == 2
+    assert "(without b/3.png, b/4.png, b/5.png)" in capsys.readouterr().err

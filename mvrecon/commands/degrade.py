@@ -4,6 +4,8 @@ The degradations compose in one fixed order, the path light takes through a came
   downscale -> blur -> motion blur -> brightness -> Poisson noise -> Gaussian noise -> gamma -> sharpen -> JPEG
 Noise is seeded per image from --seed and the file name, so the same command writes the same bytes.
 8/16-bit, grey, colour and alpha images are handled (grey levels are 8-bit levels, scaled for 16-bit images).
+A folder's images are the ones `reconstruct` takes (sub-folders searched; unreadable files and folders holding a
+run's outputs left out, with a warning); the output keeps their sub-folder paths.
 
 Example:
   mvrecon degrade images/ -o noisy/ --noise 10 --jpeg 50
@@ -19,8 +21,9 @@ ON_INTERRUPT = "finished images are kept; rerun the same command to continue"
 def add_arguments(parser) -> None:
     from ._options import non_negative_int
 
-    parser.add_argument("images", help="an image folder (JPEG, PNG, TIFF) or a single image")
-    parser.add_argument("-o", "--output", required=True, help="output folder (created; files keep their names)")
+    parser.add_argument("images", help="an image folder (JPEG, PNG, TIFF; sub-folders too) or a single image")
+    parser.add_argument("-o", "--output", required=True,
+                        help="output folder, outside IMAGES (created; files keep their names and sub-folders)")
     g = parser.add_argument_group("degradations (defaults leave the image unchanged)")
     g.add_argument("--downscale", type=float, default=1.0, metavar="F", help="divide width and height by F (>= 1)")
     g.add_argument("--blur", type=float, default=0.0, metavar="SIGMA", help="Gaussian blur sigma in pixels")

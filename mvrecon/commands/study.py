@@ -21,7 +21,8 @@ def add_arguments(parser) -> None:
     from ..geometry.camera import MODELS
     from ._options import non_negative_int, positive_float
 
-    parser.add_argument("images", help="folder of the clean images")
+    parser.add_argument("images", help="folder of the clean images (searched with its sub-folders, as reconstruct "
+                                       "searches it)")
     parser.add_argument("-o", "--output", required=True, metavar="STUDY", help="study folder (created; reused)")
     parser.add_argument("--gt", metavar="MODEL",
                         help="ground truth: COLMAP model folder, Middlebury *_par.txt, Strecha gt_dense_cameras/, "
@@ -62,7 +63,7 @@ def run(args) -> int:
     from mvrecon.errors import InputError
     from mvrecon.pipeline import require_images
 
-    require_images(args.images)
+    listing = require_images(args.images)  # the images reconstruct takes: every cell is made from these
     images, out = Path(args.images).resolve(), Path(args.output).resolve()
     if out == images or images in out.parents:  # its degraded copies would count as images of the clean run
         raise InputError(f"{args.output}: inside the image folder {args.images}; choose an output folder outside it")
@@ -75,7 +76,7 @@ def run(args) -> int:
                                                 seed=args.seed),
                          jobs=args.jobs, timeout_s=args.timeout)
     command = "mvrecon " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-    rows = run_study(config, grid, args.output, command=command, retry_failed=args.retry_failed)
+    rows = run_study(config, grid, args.output, command=command, retry_failed=args.retry_failed, listing=listing)
     log = logging.getLogger("mvrecon")
     for (engine, axis), verdict in breaking_points(rows).items():
         where = ("holds at every level" if verdict["level"] is None and verdict["metric"] is None else

@@ -49,7 +49,8 @@ class ImageMeta:
     focal_px_from_sensor: float | None = None  # FocalLength * FocalPlaneXResolution, in this image's pixels
 
 
-OUTPUT_MARKS = ("database.db", "sparse", "scene.json", "study.json")  # a workspace, an export, a scene, a study
+# a workspace, an export, a scene, a study, degraded copies (their folders are image folders of their own)
+OUTPUT_MARKS = ("database.db", "sparse", "scene.json", "study.json", ".mvrecon-degrade.json")
 
 
 def visible_files(folder) -> list[str]:

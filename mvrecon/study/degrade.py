@@ -15,6 +15,10 @@ levels (a sigma of 10 adds 10/255 of full scale, i.e. 2570 levels in a 16-bit im
 Random noise is seeded per image from (seed, file name), so the same command gives the same bytes whatever the
 order or the subset of files processed. Output files keep their names, formats and EXIF (updated for the new size
 when downscaled).
+
+A folder's images are the ones `reconstruct` takes (`io.images.list_images`: sub-folders searched, run outputs and
+unreadable files left out) and keep their sub-folder paths in the output, so every engine of a study sees the
+same image set in every cell.
 """
 
 import io
@@ -31,16 +35,18 @@ from PIL import Image
 
 from ..errors import InputError
 from ..io.files import read_json_object, replace_whole, write_json
-from ..io.images import image_problem
+from ..io.images import IMAGE_EXTENSIONS, image_problem, list_images
 
 log = logging.getLogger(__name__)
 
 ORDER = ("downscale", "blur", "motion_blur", "brightness", "poisson", "noise", "gamma", "sharpen", "jpeg")
-IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff"}
 JPEG_SUFFIXES = {".jpg", ".jpeg"}
 # A JPEG input that is degraded but not asked to be re-compressed must still be re-encoded: as losslessly as
-# JPEG allows, so the requested degradations are the only visible ones.
+# JPEG allows, so the requested degradations are the only visible ones: quality 100 and no chroma subsampling
+# (4:4:4; the default 4:2:0 averages colour over 2x2 pixels, which took --noise 10 down to a per-channel std
+# of 7.1). `--jpeg Q` is encoded as any JPEG writer does at quality Q, 4:2:0 included: that is the degradation.
 NEUTRAL_JPEG_QUALITY = 100
+NEUTRAL_JPEG_SUBSAMPLING = 0  # Pillow's 4:4:4
 RECORD = ".mvrecon-degrade.json"  # in an output folder: its settings and the images finished under them
 MAX_POISSON_PEAK = 1e12  # 1e-6 of full scale: invisible even in 16 bits; numpy's Poisson fails above ~9e18
 _EXIF_HEADER = b"Exif\x00\x00"
@@ -52,6 +58,15 @@ _EXIF_WIDTH, _EXIF_HEIGHT = 0xA002, 0xA003
 
 class SettingError(InputError):
     """A setting an image cannot take (a blur wider than the image): stops the run instead of skipping the image."""
+
+
+# Degradation field -> (the command-line flag of `degrade` and of a study axis, what it is), for error messages
+FLAGS = {"downscale": ("--downscale", "downscale factor"), "blur_sigma": ("--blur", "blur sigma"),
+         "motion_length": ("--motion", "motion blur length"), "motion_angle": ("--motion-angle", "motion angle"),
+         "brightness": ("--brightness", "brightness gain"), "poisson_peak": ("--poisson", "Poisson peak"),
+         "noise_sigma": ("--noise", "noise sigma"), "gamma": ("--gamma", "gamma"),
+         "sharpen_amount": ("--sharpen", "sharpen amount"), "sharpen_radius": ("--sharpen-radius", "sharpen radius"),
+         "jpeg_quality": ("--jpeg", "JPEG quality")}
 
 
 @dataclass(frozen=True)
@@ -71,25 +86,28 @@ class Degradation:
     jpeg_quality: int = 0  # JPEG re-compression quality 1..100; 0 = no re-compression
 
     def __post_init__(self):
+        def refuse(name, rule):  # "--noise -5: noise sigma must be >= 0": the flag the user typed, and its value
+            flag, label = FLAGS[name]
+            raise InputError(f"{flag} {getattr(self, name):g}: {label} must be {rule}")
+
         for f in fields(self):  # inf and nan pass the comparisons below (nan fails none), then break the pixels
             if not math.isfinite(getattr(self, f.name)):
-                raise InputError(f"degradation: {f.name.replace('_', ' ')} must be a finite number, "
-                                 f"got {getattr(self, f.name)}")
-        checks = [(self.downscale >= 1.0, "downscale must be >= 1"),
-                  (self.blur_sigma >= 0, "blur sigma must be >= 0"),
-                  (self.motion_length >= 0, "motion blur length must be >= 0"),
-                  (self.brightness > 0, "brightness must be > 0"),
-                  (self.poisson_peak >= 0, "Poisson peak must be >= 0"),
-                  (self.poisson_peak <= MAX_POISSON_PEAK, f"Poisson peak must be at most {MAX_POISSON_PEAK:g} "
-                                                          "(the noise is far below one grey level there)"),
-                  (self.noise_sigma >= 0, "noise sigma must be >= 0"),
-                  (self.gamma > 0, "gamma must be > 0"),
-                  (self.sharpen_amount >= 0, "sharpen amount must be >= 0"),
-                  (self.sharpen_radius > 0, "sharpen radius must be > 0"),
-                  (self.jpeg_quality == 0 or 1 <= self.jpeg_quality <= 100, "JPEG quality must be 1..100 (0 = off)")]
-        for ok, message in checks:
+                refuse(f.name, "a finite number")
+        checks = [("downscale", self.downscale >= 1.0, ">= 1"),
+                  ("blur_sigma", self.blur_sigma >= 0, ">= 0"),
+                  ("motion_length", self.motion_length >= 0, ">= 0"),
+                  ("brightness", self.brightness > 0, "> 0"),
+                  ("poisson_peak", self.poisson_peak >= 0, ">= 0"),
+                  ("poisson_peak", self.poisson_peak <= MAX_POISSON_PEAK,
+                   f"at most {MAX_POISSON_PEAK:g} (the noise is far below one grey level there)"),
+                  ("noise_sigma", self.noise_sigma >= 0, ">= 0"),
+                  ("gamma", self.gamma > 0, "> 0"),
+                  ("sharpen_amount", self.sharpen_amount >= 0, ">= 0"),
+                  ("sharpen_radius", self.sharpen_radius > 0, "> 0"),
+                  ("jpeg_quality", self.jpeg_quality == 0 or 1 <= self.jpeg_quality <= 100, "1..100 (0 = off)")]
+        for name, ok, rule in checks:
             if not ok:
-                raise InputError(f"degradation: {message}")
+                refuse(name, rule)
 
     def active(self) -> list[str]:
         """Names (from ORDER) of the steps that change an image, in the order they are applied."""
@@ -257,7 +275,11 @@ def _write(path: Path, pixels: np.ndarray, src: Path, exif: bytes | None, jpeg_q
         extra = {"exif": exif} if exif else {}
         if icc:
             extra["icc_profile"] = icc
-        _to_pil(pixels).save(path, "JPEG", quality=jpeg_quality or NEUTRAL_JPEG_QUALITY, **extra)
+        if jpeg_quality:  # the --jpeg degradation: Pillow's encoder at that quality, with its usual 4:2:0
+            _to_pil(pixels).save(path, "JPEG", quality=jpeg_quality, **extra)
+        else:  # only a re-encode, which must not hide what the other degradations did (the noise's colour)
+            _to_pil(pixels).save(path, "JPEG", quality=NEUTRAL_JPEG_QUALITY, subsampling=NEUTRAL_JPEG_SUBSAMPLING,
+                                 **extra)
     elif suffix == ".png":
         ok, buf = cv2.imencode(".png", pixels)
         if not ok:
@@ -277,8 +299,11 @@ def _write(path: Path, pixels: np.ndarray, src: Path, exif: bytes | None, jpeg_q
             cv2.imwrite(str(path), pixels)
 
 
-def degrade_image(src: Path, dst: Path, deg: Degradation, seed: int = 0) -> None:
-    """Write a degraded copy of `src` to `dst` (same format as dst's suffix), keeping EXIF; `dst` appears whole."""
+def degrade_image(src: Path, dst: Path, deg: Degradation, seed: int = 0, name: str | None = None) -> None:
+    """Write a degraded copy of `src` to `dst` (same format as dst's suffix), keeping EXIF; `dst` appears whole.
+
+    `name` (default: the file's name) seeds the noise: a folder passes the path relative to it, so that a/0.png and
+    b/0.png do not get the same noise."""
     raw = _read(src)
     if not deg.active():  # nothing to do: the copy is the original's bytes
         replace_whole(dst, lambda tmp: tmp.write_bytes(src.read_bytes()))
@@ -288,7 +313,7 @@ def degrade_image(src: Path, dst: Path, deg: Degradation, seed: int = 0) -> None
     has_alpha = raw.ndim == 3 and raw.shape[2] in (2, 4)
     colour = raw[..., :-1] if has_alpha else raw
     is_jpeg_file = dst.suffix.lower() in JPEG_SUFFIXES
-    rng = np.random.default_rng(image_seed(seed, src.name))
+    rng = np.random.default_rng(image_seed(seed, name or Path(src).name))
     out = apply_pixels(colour.astype(np.float32) / scale, deg, rng, encode_jpeg=not is_jpeg_file)
     if out.ndim == 2 and colour.ndim == 3:
         out = out[..., None]  # OpenCV drops a single channel axis
@@ -306,19 +331,19 @@ def degrade_image(src: Path, dst: Path, deg: Degradation, seed: int = 0) -> None
     replace_whole(dst, lambda tmp: _write(tmp, pixels, src, exif, deg.jpeg_quality))
 
 
-def list_images(path) -> list[Path]:
-    """The images of a folder (sorted by name), or a single image file; InputError when there are none."""
-    path = Path(path)
-    if path.is_file():
-        files = [path]
-    elif path.is_dir():
-        files = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
-    else:
+def image_sources(images) -> tuple[Path, list[str]]:
+    """The folder and the image names in it (POSIX, relative to it) that `degrade_folder` degrades: the images
+    `reconstruct` takes from a folder (`io.images.list_images`), or one image file; InputError when there are none."""
+    path = Path(images)
+    if not path.exists():
         raise InputError(f"{path}: no such file or folder")
-    files = [p for p in files if p.suffix.lower() in IMAGE_SUFFIXES]
-    if not files:
-        raise InputError(f"{path}: no JPEG, PNG or TIFF images here")
-    return files
+    if path.is_file():
+        problem = image_problem(path) if path.suffix.lower() in IMAGE_EXTENSIONS else "not a JPEG, PNG or TIFF file"
+        if problem:
+            raise InputError(f"{path}: {problem}")
+        return path.parent, [path.name]
+    names, _ = list_images(path)  # warns about each file it leaves out, with the reason
+    return path, names
 
 
 def _finished(out_dir: Path, settings: dict) -> set[str]:
@@ -340,43 +365,53 @@ def _save_record(out_dir: Path, settings: dict, done: set[str]) -> None:
     write_json(out_dir / RECORD, {"settings": settings, "done": sorted(done)}, indent=1)
 
 
-def degrade_folder(images, out_dir, deg: Degradation, seed: int = 0, progress_desc: str = "degrade") -> list[Path]:
-    """Degrade every image of `images` into `out_dir` under the same names; returns the written paths.
+def degrade_folder(images, out_dir, deg: Degradation, seed: int = 0, progress_desc: str = "degrade",
+                   names: list[str] | None = None) -> list[Path]:
+    """Degrade every image of `images` (a folder or one image) into `out_dir` under the same names, sub-folders
+    kept; returns the written paths. `names` (POSIX, relative to the folder `images`): the images to degrade when
+    the caller has listed them already (a study lists once for all its cells); default `image_sources(images)`.
 
     A rerun after an interruption skips the images finished under the same settings (recorded in out_dir/RECORD
     after each image), so it continues where the first run stopped."""
     from ..progress import progress
 
-    files = list_images(images)
+    folder, names = image_sources(images) if names is None else (Path(images), list(names))
     out_dir = Path(out_dir)
-    if out_dir.resolve() == files[0].parent.resolve():
+    source, out = folder.resolve(), out_dir.resolve()
+    if out == source:
         raise InputError(f"{out_dir}: the output folder must differ from the input folder")
+    if Path(images).is_dir() and source in out.parents:  # sub-folders are images too: the copies would come back
+        raise InputError(f"{out_dir}: inside the input folder {images}, whose sub-folders are searched for images "
+                         "too; choose an output folder outside it")
+    if Path(images).is_dir() and out in source.parents:  # the output folder would hold the clean originals
+        raise InputError(f"{out_dir}: holds the input folder {images}, so its images would sit among the degraded "
+                         "copies; choose an output folder outside it")
     out_dir.mkdir(parents=True, exist_ok=True)
     settings = {"source": str(Path(images).resolve()), "seed": int(seed), "degradation": deg.to_dict()}
     done = _finished(out_dir, settings)
     if done:
         log.info("%s: %d image(s) finished earlier with the same settings, kept", out_dir, len(done))
     written, skipped = [], []
-    for src in progress(files, desc=progress_desc, unit="img"):
-        if src.name in done:
-            written.append(out_dir / src.name)
+    for name in progress(names, desc=progress_desc, unit="img"):
+        src, dst = folder / name, out_dir / name
+        if name in done:
+            written.append(dst)
             continue
-        # a cut-off file is left out, as `reconstruct` leaves it out: decoded, its missing part would come back
-        # grey, and a degraded copy would pass for a whole image
-        problem = image_problem(src)
-        if problem is None:
-            try:
-                degrade_image(src, out_dir / src.name, deg, seed)
-                written.append(out_dir / src.name)
-                done.add(src.name)
-                _save_record(out_dir, settings, done)
-                continue
-            except SettingError:
-                raise
-            except InputError as exc:
-                problem = str(exc).removeprefix(f"{src}: ")
+        # files whose header is broken or that are cut off are not listed (as `reconstruct` does not take them);
+        # what is left is a file the decoder refuses
+        try:
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            degrade_image(src, dst, deg, seed, name=name)
+            written.append(dst)
+            done.add(name)
+            _save_record(out_dir, settings, done)
+            continue
+        except SettingError:
+            raise
+        except InputError as exc:
+            problem = str(exc).removeprefix(f"{src}: ")
         log.warning("skipping %s: %s", src, problem)
-        skipped.append(src.name)
+        skipped.append(name)
     if not written:
-        raise InputError(f"{images}: none of the {len(files)} image(s) could be read (first: {skipped[0]})")
+        raise InputError(f"{images}: none of the {len(names)} image(s) could be read (first: {skipped[0]})")
     return written

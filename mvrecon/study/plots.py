@@ -89,19 +89,24 @@ def detailed_window(img: np.ndarray, size: int) -> tuple[int, int]:
     return int(x), int(y)
 
 
-def contact_sheet(folders: dict, grid: Grid, path, crop: int = 160, example: str | None = None) -> Path:
+def contact_sheet(folders: dict, grid: Grid, path, crop: int = 160, example: str | None = None,
+                  names: list[str] | None = None) -> Path:
     """A grid of crops of one example image: a row per degradation, a column per level (clean first).
 
     The crop is the same scene region in every cell (scaled for downscaled cells, then shown enlarged).
+    `names`: the study's images (default: `io.images.list_images` of the clean folder); the example is one that
+    every cell has (a cell leaves out an image its decoder refused).
     """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .degrade import list_images
+    from ..io.images import list_images
 
-    names = [p.name for p in list_images(folders[CLEAN])]
+    if names is None:
+        names, _ = list_images(folders[CLEAN])
+    names = [n for n in names if all((Path(f) / n).is_file() for f in folders.values())] or list(names)
     name = example if example in names else names[len(names) // 2]
     clean = _to_display(cv2.imread(str(Path(folders[CLEAN]) / name), cv2.IMREAD_UNCHANGED))
     crop = min(crop, *clean.shape[:2])

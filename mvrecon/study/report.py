@@ -43,7 +43,8 @@ def describe_breaking_point(verdict: dict, axis: str) -> tuple[str, str]:
 
 
 def write_report(path, config, grid, rows: list[dict], verdicts: dict, plots: list, sheet: Path,
-                 command: str | None = None) -> Path:
+                 command: str | None = None, skipped: dict | None = None) -> Path:
+    """`skipped`: the files of IMAGES left out of the study (name -> why), from `io.images.list_images`."""
     engines = list(dict.fromkeys(r["engine"] for r in rows))
     reference = ("ground truth " + html.escape(str(config.gt))) if config.gt else \
         "each engine's own reconstruction of the clean images (no ground truth given)"
@@ -53,6 +54,11 @@ def write_report(path, config, grid, rows: list[dict], verdicts: dict, plots: li
            f"<p>Images: <code>{html.escape(str(config.images))}</code> ({rows[0]['images'] if rows else 0} images). "
            f"Accuracy measured against {reference}. Seed {config.seed}. "
            f"Generated {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC.</p>"]
+    if skipped:
+        out.append(f"<p>{len(skipped)} file(s) in the image folder left out (not given to any engine, not "
+                   "counted in registered %):</p><ul>" + "".join(
+                       f"<li><code>{html.escape(name)}</code>: {html.escape(why)}</li>"
+                       for name, why in skipped.items()) + "</ul>")
     if command:
         out.append(f"<p>Command: <code>{html.escape(command)}</code></p>")
     out.append("<h2>Breaking points</h2><p>The first level (mild to severe, as listed) where registered % or "

@@ -3,10 +3,15 @@
 STUDY layout (everything is cached, so an interrupted study resumes and a wider grid reuses what exists):
 
     study.json               the settings every cell was made with (a study refuses to mix settings)
-    images/<cell>/           degraded copies of the images (same names, EXIF kept); the clean cell uses IMAGES
-    images/<cell>.json       written once the cell's images are complete
+    images/<cell>/           degraded copies of the images (same names and sub-folders, EXIF kept); the clean
+                             cell uses IMAGES
+    images/<cell>.json       written once the cell's images are complete, with the image names it was made from
     runs/<engine>/<cell>/    each engine's workspace (report.json, sparse/), cached by eval.runners
     study.csv                one row per engine x degradation x level (the clean row repeated per degradation)
+
+The study's images are the ones `reconstruct` takes from IMAGES (`io.images.list_images`: sub-folders searched,
+run outputs and unreadable files left out), listed once: every cell is made from them and registered % counts
+them, so every engine sees the same image set in every cell. The files left out are named in study.html.
 
 Accuracy is measured against the ground truth when given; otherwise against each engine's own reconstruction of
 the clean images (so the clean cell scores itself perfectly and the degraded cells show what was lost).
@@ -24,8 +29,9 @@ from pathlib import Path
 from ..errors import InputError
 from ..eval.runners import RunOptions, RunResult, run_colmap, run_mvrecon
 from ..io.files import read_json_object, write_json
+from ..io.images import list_images
 from ..progress import progress
-from .degrade import Degradation, degrade_folder, list_images
+from .degrade import Degradation, degrade_folder
 from .grid import CLEAN, Cell, Grid
 
 log = logging.getLogger(__name__)
@@ -96,8 +102,11 @@ def claim_study_dir(study_dir: Path, config: StudyConfig) -> None:
         write_json(path, identity, indent=1)
 
 
-def prepare_images(study_dir: Path, config: StudyConfig, cells: list[Cell]) -> dict[str, Path]:
-    """The image folder of each cell, degrading the ones not on disk yet (the clean cell is IMAGES itself)."""
+def prepare_images(study_dir: Path, config: StudyConfig, cells: list[Cell], names: list[str]) -> dict[str, Path]:
+    """The image folder of each cell, degrading the ones not on disk yet (the clean cell is IMAGES itself).
+
+    `names`: the study's images (`io.images.list_images` of IMAGES); a cell made earlier from other names is
+    refused (its runs would count other images)."""
     folders = {}
     todo = []
     for cell in cells:
@@ -106,14 +115,33 @@ def prepare_images(study_dir: Path, config: StudyConfig, cells: list[Cell]) -> d
             continue
         folder = study_dir / "images" / cell.key
         folders[cell.key] = folder
-        if not (study_dir / "images" / f"{cell.key}.json").is_file():
+        marker = study_dir / "images" / f"{cell.key}.json"
+        if marker.is_file():
+            _check_cell_images(folder, marker, names, config.images)
+        else:
             todo.append(cell)
     for cell in progress(todo, desc="degrade cells", unit="cell"):
         deg = cell.degradation(config.base)
-        degrade_folder(config.images, folders[cell.key], deg, seed=config.seed, progress_desc=cell.key)
+        degrade_folder(config.images, folders[cell.key], deg, seed=config.seed, progress_desc=cell.key, names=names)
         (study_dir / "images" / f"{cell.key}.json").write_text(json.dumps(
-            {"degradation": deg.to_dict(), "order": deg.active(), "seed": config.seed}, indent=1))
+            {"degradation": deg.to_dict(), "order": deg.active(), "seed": config.seed, "images": names}, indent=1))
     return folders
+
+
+def _check_cell_images(folder: Path, marker: Path, names: list[str], images) -> None:
+    """InputError when a finished cell was made from other images than IMAGES gives now (added or removed files,
+    or a study made before sub-folders were searched, whose cells hold only the top-level images)."""
+    made = read_json_object(marker) or {}
+    if "images" in made:
+        recorded, current = set(made["images"]), set(names)
+        missing, extra = [n for n in names if n not in recorded], [n for n in made["images"] if n not in current]
+    else:  # a cell marked before the names were recorded: its folder tells
+        missing, extra = [n for n in names if not (folder / n).is_file()], []
+    if missing or extra:
+        what = "; ".join(f"{label} {', '.join(group[:3])}{' ...' if len(group) > 3 else ''}"
+                         for label, group in (("without", missing), ("with", extra)) if group)
+        raise InputError(f"{folder}: made from other images than {images} holds now ({what}); use another STUDY "
+                         "folder, or delete this one to start over")
 
 
 def forget_failed_runs(study_dir: Path, engines, cells: list[Cell]) -> list[str]:
@@ -163,15 +191,19 @@ def load_reference(config: StudyConfig, image_names: list[str]):
     return gt
 
 
-def measure(result: RunResult, reference: dict, n_images: int) -> dict:
-    """The study's metrics for one run (failed runs: 0 registered, AUC 0, the rest NaN, with the error)."""
+def measure(result: RunResult, reference: dict, image_names: list[str]) -> dict:
+    """The study's metrics for one run (failed runs: 0 registered, AUC 0, the rest NaN, with the error).
+
+    Registered % is of `image_names`, the study's images: an image a model holds that is not one of them (a stale
+    run) is not counted, so it can never pass 100."""
     from ..eval.metrics import accuracy_summary
 
     nan = float("nan")
+    n_images = len(image_names)
     report = result.report or {}
     models = result.poses if not result.error else []
     summary = accuracy_summary(models, reference) if reference else {}
-    registered = len(set().union(*[set(m) for m in models])) if models else 0
+    registered = len(set(image_names).intersection(set().union(*models))) if models else 0
     largest = (report.get("models") or [{}])[0]
     counts = report.get("counts", {})
     return {
@@ -201,7 +233,7 @@ def tabulate(config: StudyConfig, grid: Grid, results: dict, image_names: list[s
         measured = {}
         for (eng, key), result in results.items():
             if eng == engine:
-                measured[key] = measure(result, reference, len(image_names))
+                measured[key] = measure(result, reference, image_names)
         for axis in grid.axes():
             levels = [AXES[axis].identity] + grid.degraded_levels(axis)
             for level in levels:
@@ -256,21 +288,23 @@ def breaking_points(rows: list[dict], fraction: float = 0.5) -> dict:
 
 
 def run_study(config: StudyConfig, grid: Grid, study_dir, command: str | None = None,
-              retry_failed: bool = False) -> list[dict]:
+              retry_failed: bool = False, listing: tuple[list[str], dict[str, str]] | None = None) -> list[dict]:
     """Everything `mvrecon study` does: cells, runs, study.csv, plots, contact sheet and study.html.
 
     `retry_failed` reruns the cells whose engine run failed before (otherwise a failure is a cached result).
+    `listing`: `io.images.list_images(config.images)` when the caller has it already (its warnings are not
+    repeated).
     """
     from .plots import contact_sheet, metric_plots
     from .report import write_report
 
     study_dir = Path(study_dir)
     check_engines(config.engines)
-    image_names = [p.name for p in list_images(config.images)]
+    image_names, skipped = listing if listing is not None else list_images(config.images)
     load_reference(config, image_names)  # fail on a bad ground truth before hours of runs
     claim_study_dir(study_dir, config)
     cells = grid.cells()
-    folders = prepare_images(study_dir, config, cells)
+    folders = prepare_images(study_dir, config, cells, image_names)
     if retry_failed:
         for name in forget_failed_runs(study_dir, config.engines, cells):
             log.info("retrying %s (it failed before)", name)
@@ -278,6 +312,7 @@ def run_study(config: StudyConfig, grid: Grid, study_dir, command: str | None = 
     rows = tabulate(config, grid, results, image_names)
     write_csv(rows, study_dir / "study.csv")
     plots = metric_plots(rows, grid, study_dir / "plots")
-    sheet = contact_sheet(folders, grid, study_dir / "contact_sheet.png")
-    write_report(study_dir / "study.html", config, grid, rows, breaking_points(rows), plots, sheet, command)
+    sheet = contact_sheet(folders, grid, study_dir / "contact_sheet.png", names=image_names)
+    write_report(study_dir / "study.html", config, grid, rows, breaking_points(rows), plots, sheet, command,
+                 skipped=skipped)
     return rows
