@@ -259,3 +259,50 @@ def test_cli_calibration_errors_name_the_folder(tmp_path, capsys):
         assert main(["calibrate", str(folder), "-o", str(tmp_path / "c.toml"), "-q", *extra]) == 2
         assert capsys.readouterr().err == f"mvrecon: error: {folder}: {message}\n"
     assert not (tmp_path / "c.toml").exists()
+
+
+def test_cli_calibrate_resumes_after_ctrl_c(tmp_path, monkeypatch, capsys, caplog):
+    """Ctrl-C while the fifth board's corners are searched, then the same command: the board size and the four
+    boards done are not searched again, and the camera file is byte for byte that of an uninterrupted run (the
+    solvers run on one thread: on two, each run gave other 9th-10th digits). A board whose pixels changed is
+    searched again."""
+    import cv2
+
+    import mvrecon.stereo.calibrate as calibrate
+
+    folder = _board_folder(tmp_path / "boards", dict(list(synthetic_views().items())[:8]))
+    searched, sized = [], []
+    find_corners, detect_board_size = calibrate.find_corners, calibrate.detect_board_size
+
+    def counted(gray, board):
+        searched.append(1)
+        if len(searched) == stop_at:
+            raise KeyboardInterrupt
+        return find_corners(gray, board)
+
+    monkeypatch.setattr(calibrate, "find_corners", counted)
+    monkeypatch.setattr(calibrate, "detect_board_size", lambda gray: sized.append(1) or detect_board_size(gray))
+
+    def run(name):
+        searched.clear()
+        sized.clear()
+        return main(["calibrate", str(folder), "-o", str(tmp_path / name), "--square", "30"])
+
+    stop_at = None
+    assert run("ref.toml") == 0 and len(searched) == 8 and len(sized) == 8
+    stop_at = 5
+    capsys.readouterr()
+    assert run("cut.toml") == 130 and not (tmp_path / "cut.toml").exists()
+    interrupted = capsys.readouterr().err.splitlines()[-1]
+    stop_at = None
+    with caplog.at_level("INFO", logger="mvrecon"):
+        assert run("cut.toml") == 0
+    assert len(searched) == 4 and len(sized) == 0  # view04 (cut off) to view07
+    assert (tmp_path / "cut.toml").read_bytes() == (tmp_path / "ref.toml").read_bytes()
+    assert interrupted == ("mvrecon: interrupted; the corners found are kept next to the camera file (in .stages); "
+                           "rerun the same command to continue")
+    assert "the corners of 4 of the 8 images and the board size search" in caplog.text
+    img = cv2.imread(str(folder / "view06.png"), cv2.IMREAD_GRAYSCALE)
+    img[0, 0] ^= 1
+    cv2.imwrite(str(folder / "view06.png"), img)
+    assert run("cut.toml") == 0 and len(searched) == 1 and len(sized) == 1  # view06 is one of the first eight

@@ -130,3 +130,80 @@ def test_detectors_command_checks_its_output_and_options_before_the_work(tmp_pat
         main(["detectors", str(a), "-o", str(tmp_path / "t.md"), "--angle", "nan"])
     assert exc.value.code == 2 and "--angle: must be a finite number" in capsys.readouterr().err
     assert not (tmp_path / "t.md").exists()
+
+
+def test_detectors_command_resumes_after_ctrl_c(tmp_path, cones, monkeypatch, capsys, caplog):
+    """Ctrl-C while the third image is measured, then the same command: only the missing images (and the pair they
+    form) are computed, and the tables are byte for byte those of an uninterrupted run. Reused figures keep the time
+    measured when they were computed, and the log names them."""
+    import types
+
+    import cv2
+
+    import mvrecon.features.detectors as detectors
+
+    left, right = cones
+    crops = {"a0.png": left[:160, :240], "a1.png": right[:160, :240], "b0.png": left[150:310, 100:340],
+             "b1.png": right[150:310, 100:340]}
+    for name, img in crops.items():
+        cv2.imwrite(str(tmp_path / name), img)
+    which = {img.tobytes(): name for name, img in crops.items()}
+    clock = {"now": 0.0, "step": 0.001}  # detection times that do not depend on the machine: one step each
+
+    def perf_counter():
+        clock["now"] += clock["step"]
+        return clock["now"]
+
+    monkeypatch.setattr(detectors, "time", types.SimpleNamespace(perf_counter=perf_counter))
+    measured, verified = [], []  # (image, detector) measured; pairs verified
+    warp_repeatability, verified_inliers = detectors.warp_repeatability, detectors.verified_inliers
+
+    def counted(name, image, H):  # once per image and detector
+        measured.append((which[image.tobytes()], name))
+        if len(measured) == stop_at:
+            raise KeyboardInterrupt
+        return warp_repeatability(name, image, H)
+
+    monkeypatch.setattr(detectors, "warp_repeatability", counted)
+    monkeypatch.setattr(detectors, "verified_inliers", lambda *a, **k: verified.append(1) or verified_inliers(*a, **k))
+
+    def run(out, *extra):
+        measured.clear()
+        verified.clear()
+        return main(["detectors", *(str(tmp_path / n) for n in crops), "--pairs", "-o", str(tmp_path / out),
+                     "--detectors", "SIFT,FAST,ORB", *extra])
+
+    stop_at = None
+    assert run("ref/t.md", "-q") == 0 and len(measured) == 12 and len(verified) == 6
+    stop_at = 8  # b0.png: SIFT measured, FAST cut off
+    capsys.readouterr()
+    assert run("cut/t.md", "-q") == 130
+    interrupted = capsys.readouterr().err
+    assert not (tmp_path / "cut" / "t.md").exists() and not (tmp_path / "cut" / "t.csv").exists()
+    stop_at = None
+    with caplog.at_level("INFO", logger="mvrecon"):
+        assert run("cut/t.md") == 0
+    assert measured == [("b0.png", "FAST"), ("b0.png", "ORB"), ("b1.png", "SIFT"), ("b1.png", "FAST"),
+                        ("b1.png", "ORB")]
+    assert len(verified) == 3  # the pair b0 / b1 only
+    assert interrupted == ("mvrecon: interrupted; the images done are kept next to the table (in .stages); rerun "
+                           "the same command to continue\n")
+    for table in ("t.md", "t.csv"):
+        assert (tmp_path / "cut" / table).read_bytes() == (tmp_path / "ref" / table).read_bytes(), table
+    assert ("with the times measured then: 3 of 4 images: a0.png, a1.png, b0.png (SIFT); "
+            "1 of 2 pairs: a0.png / a1.png") in caplog.text
+    # everything reused: the slower clock shows nowhere (the times are those measured then)
+    clock["step"] = 0.005
+    caplog.clear()
+    with caplog.at_level("INFO", logger="mvrecon"):
+        assert run("cut/t.md") == 0 and measured == [] and verified == []
+    assert "with the times measured then: all 4 images; all 2 pairs" in caplog.text
+    assert (tmp_path / "cut" / "t.md").read_bytes() == (tmp_path / "ref" / "t.md").read_bytes()
+    # another setting: every image again; another pixel in b1.png: that image and its pair only
+    assert run("cut/t.md", "--angle", "25", "-q") == 0 and len(measured) == 12
+    img = crops["b1.png"].copy()
+    img[0, 0] = 255 - img[0, 0]
+    cv2.imwrite(str(tmp_path / "b1.png"), img)
+    which[img.tobytes()] = "b1.png"
+    assert run("cut/t.md", "--angle", "25", "-q") == 0
+    assert measured == [("b1.png", n) for n in ("SIFT", "FAST", "ORB")] and len(verified) == 3

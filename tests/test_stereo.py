@@ -266,8 +266,11 @@ def test_bad_input_gives_one_line_errors(tmp_path, capsys, motorcycle):
 
     left, right, _ = motorcycle
     cv2.imwrite(str(tmp_path / "l.png"), left)
+    cv2.imwrite(str(tmp_path / "r.png"), right)
     cv2.imwrite(str(tmp_path / "small.png"), right[:400, :600])
     cv2.imwrite(str(tmp_path / "blank.png"), np.full_like(left, 128))
+    cv2.imwrite(str(tmp_path / "blank2.png"), np.full_like(left, 129))
+    np.savez(tmp_path / "gt.npz", np.zeros(left.shape[:2], np.float32))
     out = str(tmp_path / "out")
 
     def error(args):
@@ -279,14 +282,177 @@ def test_bad_input_gives_one_line_errors(tmp_path, capsys, motorcycle):
 
     assert "differs from the left image" in error([str(tmp_path / "l.png"), str(tmp_path / "small.png")])
     assert "calib.txt: calibration file not found" in error(
-        [str(tmp_path / "l.png"), str(tmp_path / "l.png"), "--calib", str(tmp_path / "calib.txt")])
-    assert "SIFT matches" in error([str(tmp_path / "blank.png"), str(tmp_path / "blank.png")])
+        [str(tmp_path / "l.png"), str(tmp_path / "r.png"), "--calib", str(tmp_path / "calib.txt")])
+    assert "SIFT matches" in error([str(tmp_path / "blank.png"), str(tmp_path / "blank2.png")])
     (tmp_path / "bad.txt").write_text("hello=1\n")
     assert "not a Middlebury calib.txt" in error(
-        [str(tmp_path / "l.png"), str(tmp_path / "l.png"), "--calib", str(tmp_path / "bad.txt")])
-    pair = [str(tmp_path / "l.png"), str(tmp_path / "l.png"), "--rectified", "--method", "sgbm"]
+        [str(tmp_path / "l.png"), str(tmp_path / "r.png"), "--calib", str(tmp_path / "bad.txt")])
+    pair = [str(tmp_path / "l.png"), str(tmp_path / "r.png"), "--rectified", "--method", "sgbm",
+            "--gt", str(tmp_path / "gt.npz")]
     assert "bad.txt: cannot read the mask image" in error(pair + ["--mask", str(tmp_path / "bad.txt")])
     assert "small.png: mask is 600x400, images are" in error(pair + ["--mask", str(tmp_path / "small.png")])
+
+
+def small_pair(folder, shift: int = 6) -> tuple[Path, Path]:
+    """A 240x160 textured pair, already rectified, every pixel at disparity `shift` (x_left = x_right + shift)."""
+    import cv2
+
+    rng = np.random.default_rng(0)
+    base = cv2.GaussianBlur((rng.random((160, 260)) * 255).astype(np.float32), (0, 0), 2)
+    base = cv2.normalize(base, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    left, right = Path(folder) / "l.png", Path(folder) / "r.png"
+    cv2.imwrite(str(left), base[:, 10 - shift:250 - shift])
+    cv2.imwrite(str(right), base[:, 10:250])
+    return left, right
+
+
+def small_calib(path, width: int = 240, height: int = 160, ndisp: int = 16) -> Path:
+    K = np.array([[200.0, 0, 119.5], [0, 200, 79.5], [0, 0, 1]])
+    write_calib(path, StereoCalib(K, K, 0.0, 10.0, width, height, ndisp))
+    return Path(path)
+
+
+CAMERA_TOML = """[camera]
+model = "OPENCV"
+width = 640
+height = 512
+params = [512.0, 512.0, 320.0, 256.0, 0, 0, 0, 0]
+
+[camera_right]
+model = "OPENCV"
+width = 640
+height = 512
+params = [512.0, 512.0, 320.0, 256.0, 0, 0, 0, 0]
+
+[stereo]
+R = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]
+t = [-1, 0, 0]
+"""
+
+
+def test_a_calibration_for_another_image_size_is_refused(tmp_path, capsys):
+    """calib.txt and camera.toml hold f, cx, cy (and ndisp) in the pixels of the images they were made for: another
+    size gave wrong depth and search range with exit 0 (the rendered scene's 640x480 calib.txt on Motorcycle's
+    741x500: 30 % holes; a 640x512 rig file: rows 27 px apart). Refused before any work, OUT not made."""
+    left, right = small_pair(tmp_path)
+    out = tmp_path / "out"
+
+    def error(*extra):
+        capsys.readouterr()
+        assert main(["stereo", str(left), str(right), "-o", str(out), "-q", *extra]) == 2
+        return capsys.readouterr().err
+
+    calib = small_calib(tmp_path / "calib.txt", 640, 480)
+    assert error("--calib", str(calib)) == (f"mvrecon: error: {calib}: made for 640x480 images, these are 240x160 "
+                                            f"({left})\n")
+    # no width/height in the file: a principal point outside the image tells another size
+    (tmp_path / "nosize.txt").write_text("cam0=[500 0 319.5; 0 500 239.5; 0 0 1]\n"
+                                         "cam1=[500 0 319.5; 0 500 239.5; 0 0 1]\nbaseline=10\n")
+    assert error("--calib", str(tmp_path / "nosize.txt")) == (
+        f"mvrecon: error: {tmp_path / 'nosize.txt'}: no width/height given and its principal point (319.5, 239.5) "
+        f"lies outside these 240x160 images ({left}): made for other images?\n")
+    camera = tmp_path / "camera.toml"
+    camera.write_text(CAMERA_TOML)
+    assert error("--camera", str(camera)) == (f"mvrecon: error: {camera}: [camera] made for 640x512 images, these "
+                                              f"are 240x160 ({left})\n")
+    assert not out.exists()
+
+
+def test_a_calibration_file_that_cannot_be_parsed_is_one_line(tmp_path, capsys):
+    """A binary file given as --calib raised UnicodeDecodeError with a traceback (exit 1)."""
+    left, right = small_pair(tmp_path)
+
+    def error(*extra):
+        capsys.readouterr()
+        assert main(["stereo", str(left), str(right), "-o", str(tmp_path / "out"), "-q", *extra]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("mvrecon: error: ") and err.count("\n") == 1
+        return err
+
+    assert f"{left}: not a Middlebury calib.txt (not text)" in error("--calib", str(left))
+    assert f"{left}: not a camera file from `mvrecon calibrate` (not text)" in error("--camera", str(left))
+    bad = tmp_path / "bad.toml"
+    for text, reason in (("[camera\nwidth = 3\n", "not TOML: "), ("[other]\nx = 1\n", "no [camera] table"),
+                         (CAMERA_TOML.replace("width = 640\n", "", 1), "[camera] has no width"),
+                         (CAMERA_TOML.replace("t = [-1, 0, 0]", "t = [-1, 0]"), "[stereo] needs R as 3x3")):
+        bad.write_text(text)
+        assert f"{bad}: not a camera file from `mvrecon calibrate` ({reason}" in error("--camera", str(bad))
+    (tmp_path / "calib.txt").write_text("cam0=[0 0 1; 0 0 1; 0 0 1]\ncam1=[0 0 1; 0 0 1; 0 0 1]\nbaseline=1\n")
+    assert "calib.txt: focal length 0 and baseline 1 must be positive" in error("--calib", str(tmp_path / "calib.txt"))
+
+
+def test_the_same_image_twice_is_refused(tmp_path, capsys):
+    """The same image as left and right ran F estimation and rectification on zero parallax, exit 0. Refused: the
+    same file, a copy (identical pixels), and a copy moved by 0.3 px (the matches show no parallax)."""
+    import shutil
+
+    import cv2
+
+    left, right = small_pair(tmp_path)
+    shutil.copy(left, tmp_path / "copy.png")
+    moved = cv2.warpAffine(cv2.imread(str(left)), np.float32([[1, 0, 0.3], [0, 1, 0]]), (240, 160),
+                           borderMode=cv2.BORDER_REFLECT)
+    cv2.imwrite(str(tmp_path / "moved.png"), moved)
+    out = tmp_path / "out"
+
+    def error(other):
+        capsys.readouterr()
+        assert main(["stereo", str(left), str(other), "-o", str(out), "-q"]) == 2
+        return capsys.readouterr().err
+
+    assert error(left) == (f"mvrecon: error: {left}: given as both left and right image; stereo needs two views from "
+                           "different positions (no parallax, no depth)\n")
+    assert error(tmp_path / "copy.png") == (f"mvrecon: error: {left}, {tmp_path / 'copy.png'}: identical pixels; "
+                                            "stereo needs two views from different positions (no parallax, no depth)\n")
+    assert not out.exists()
+    err = error(tmp_path / "moved.png")
+    assert err.startswith(f"mvrecon: error: {left}, {tmp_path / 'moved.png'}: no parallax: the ") and err.endswith(
+        " px between the images (0.5 px at least); stereo needs two views from different positions\n")
+    assert main(["stereo", str(left), str(right), "-o", str(out), "-q", "--method", "sgbm"]) == 0  # 6 px: fine
+
+
+def test_a_swapped_or_misaligned_pair_is_flagged(tmp_path, caplog):
+    """Left and right exchanged: every match disparity is negative, calib.txt's range 0..ndisp misses them all (the
+    rendered pair: 58.6 % holes, exit 0, no word). Now a warning in the log and in report.json. With --rectified the
+    range clipped at 0 was empty and SGBM raised an OpenCV assertion. Rows that do not line up are flagged too;
+    the pair in the right order gets no warning."""
+    import logging
+
+    import cv2
+
+    left, right = small_pair(tmp_path)
+    calib = small_calib(tmp_path / "calib.txt")
+    cv2.imwrite(str(tmp_path / "low.png"), np.roll(cv2.imread(str(right)), -5, axis=0))  # rows 5 px apart
+
+    def warnings(name, *args):
+        caplog.clear()
+        caplog.set_level(logging.WARNING, logger="mvrecon")
+        assert main(["stereo", *map(str, args), "-o", str(tmp_path / name), "-q", "--method", "sgbm"]) == 0
+        report = json.loads((tmp_path / name / "report.json").read_text())
+        assert [f"warning: {w}" for w in report["warnings"]] == [r.getMessage() for r in caplog.records]
+        return report
+
+    assert warnings("ok", left, right, "--calib", calib)["warnings"] == []
+    swapped = ("100 % of the inlier matches have a negative disparity (x_left - x_right, median -6.0 px): the left and "
+               "right images are probably swapped; give them the other way round")
+    report = warnings("swap", right, left, "--calib", calib)
+    assert report["warnings"] == [swapped] and report["match_disparities_px"]["negative_percent"] == 100
+    assert warnings("swap_rect", right, left, "--rectified")["warnings"] == [swapped]
+    # the rendered pair swapped (disparities -36..-16) left a range of -16 disparities after the clip at 0
+    from mvrecon.stereo.pipeline import StereoConfig, search_range
+
+    assert search_range(StereoConfig(), None, np.full(50, -25.0), nonnegative=True) == (0, 16)
+    assert warnings("ok_rect", left, right, "--rectified")["warnings"] == []
+    (vertical,) = warnings("low", left, tmp_path / "low.png", "--rectified")["warnings"]
+    assert vertical.startswith("rows do not line up after rectification (the inlier matches lie a median 5.0 px "
+                               "apart vertically")
+
+
+def test_mask_without_gt_is_refused(tmp_path, capsys):
+    left, right = small_pair(tmp_path)
+    assert main(["stereo", str(left), str(right), "-o", str(tmp_path / "out"), "--mask", str(left), "-q"]) == 2
+    assert capsys.readouterr().err == ("mvrecon: error: --mask goes with --gt: it selects the non-occluded pixels "
+                                       "scored against the ground truth\n")
 
 
 def test_output_folder_and_search_range_are_checked_first(tmp_path, capsys, motorcycle):

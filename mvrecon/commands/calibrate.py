@@ -9,9 +9,14 @@ The file holds the OPENCV model in COLMAP pixels (fx, fy, cx, cy, k1, k2, p1, p2
 view, the dropped outlier views and, with --stereo, R, t (x_right = R x_left + t, in square units).
 Use it with `mvrecon stereo L R --camera rig.toml`, or pass its `colmap_params` line to
 `--camera-model OPENCV --camera-params`.
+
+A rerun for the same camera file continues: each image's corners are kept as they are found (in
+.stages/calibrate-CAMERA.json next to the file, keyed on the image pixels, the board size and the code), so only
+the images not searched yet are.
 """
 
 ORDER = 62
+ON_INTERRUPT = "the corners found are kept next to the camera file (in .stages); rerun the same command to continue"
 
 
 def add_arguments(parser) -> None:
@@ -46,6 +51,7 @@ def run(args) -> int:
 
     from mvrecon.errors import InputError
     from mvrecon.io.images import list_images, read_image
+    from mvrecon.io.stage_cache import Stages
     from mvrecon.stereo.calibrate import (CalibrationConfig, calibrate_mono, calibrate_stereo, stereo_pairs,
                                           write_camera_toml)
 
@@ -56,6 +62,8 @@ def run(args) -> int:
     folder = Path(args.images)
     names, _ = list_images(folder)
     check_output_file(args.output, [folder / n for n in names])
+    out = Path(args.output)
+    stages = Stages(out.parent, f"calibrate-{out.stem}.json")  # the corners earlier runs for this file found
     images = {}
     for name in names:  # a board image that cannot be decoded is left out, as a view without a board is
         try:
@@ -73,14 +81,15 @@ def run(args) -> int:
     try:  # the library's messages name the images, not where they are
         if args.stereo:
             result = calibrate_stereo({a: images[a] for a, _ in pairs}, {b: images[b] for _, b in pairs}, pairs,
-                                      config)
+                                      config, stages)
             mono = [("left", result.left), ("right", result.right)]
         else:
-            result = calibrate_mono(images, config)
+            result = calibrate_mono(images, config, stages)
             mono = [("camera", result)]
     except InputError as exc:
         raise InputError(f"{folder}: {exc}") from None
     write_camera_toml(args.output, result, config)
+    stages.prune()
     for label, m in mono:
         fx, fy, cx, cy, k1, k2, p1, p2 = m.camera.params
         log.info("%s: fx %.2f fy %.2f cx %.2f cy %.2f k1 %.4f k2 %.4f; RMS %.3f px over %d views%s", label, fx, fy,
@@ -89,5 +98,11 @@ def run(args) -> int:
     if args.stereo:
         log.info("stereo: baseline %.4g (square units), RMS %.3f px over %d pairs", float((result.t ** 2).sum()) ** 0.5,
                  result.rms_px, len(result.per_pair_rms_px))
+    if stages.reused:
+        searched = [n for n in stages.used if n.startswith("corners ")]
+        reused = [n for n in stages.reused if n.startswith("corners ")]
+        log.info("reused from an earlier run for this camera file (%s): the corners of %s images%s", stages.path,
+                 "all" if len(reused) == len(searched) else f"{len(reused)} of the {len(searched)}",
+                 " and the board size search" if any(n.startswith("board size ") for n in stages.reused) else "")
     print(f"wrote {args.output}")
     return 0

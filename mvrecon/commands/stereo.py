@@ -33,8 +33,8 @@ def add_arguments(parser) -> None:
                              "with left-right check, sub-pixel, hole filling, weighted median (default)")
     parser.add_argument("--gt", help="ground-truth disparity (.pfm inf=unknown, .npz, .tif 0=unknown, .png)")
     parser.add_argument("--gt-scale", type=positive_float, default=1.0, help="divide the ground truth by this (4 for "
-                                                                        "Middlebury 2003 PNGs)")
-    parser.add_argument("--mask", help="non-occlusion mask (brightest value = non-occluded)")
+                                                                        "Middlebury 2003 PNGs); with --gt")
+    parser.add_argument("--mask", help="non-occlusion mask (brightest value = non-occluded); with --gt")
     parser.add_argument("--min-disparity", type=int, help="search range start (default: calib/matches)")
     parser.add_argument("--num-disparities", type=positive_int, help="search range length (default: calib/matches)")
     parser.add_argument("--ransac-threshold", type=positive_float, default=1.0, help="Sampson inlier threshold, px")

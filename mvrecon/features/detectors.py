@@ -9,6 +9,10 @@ Repeatability (Mikolajczyk & Schmid): warp the image by a known homography, dete
 keypoints of the region both images see that reappear within `eps` px (the smaller of the two directions' counts),
 divided by the smaller keypoint count of that region. Dense detectors (thousands of corners) get some help from
 chance neighbours at 2.5 px; compare detectors with similar counts, or lower eps.
+
+`measure` gives one image's figures for one detector as a JSON-able dict, which the `detectors` command keeps (as
+it keeps each pair's `verified_inliers`) for a rerun; `CODE` names the modules these figures are computed by, so
+that a rerun after an edit of one of them computes them again.
 """
 
 import time
@@ -18,6 +22,8 @@ import numpy as np
 
 DETECTORS = ("SIFT", "SURF", "FAST", "ORB", "AKAZE", "BRISK")
 BINARY = {"FAST", "ORB", "BRISK", "AKAZE"}  # Hamming-distance descriptors
+CODE = ("mvrecon.features.detectors", "mvrecon.features.sift", "mvrecon.features.surf", "mvrecon.io.images",
+        "mvrecon.matching.matcher", "mvrecon.matching.int_product", "mvrecon.geometry.fundamental")
 
 
 @dataclass(frozen=True)
@@ -170,3 +176,11 @@ def warp_repeatability(name: str, image, H, eps: float = 2.5) -> float:
     k1 = detect(name, gray).keypoints
     k2 = detect(name, warped).keypoints
     return repeatability(k1, k2, H, gray.shape, warped.shape, eps)
+
+
+def measure(name: str, image, H) -> tuple[Detection, dict]:
+    """One detector on one image: its Detection (for the pairs) and the table's figures: keypoints, detect_s (the
+    time of the detection alone), repeatability under the warp H (0..1) and implementation."""
+    det = detect(name, image)
+    return det, {"keypoints": len(det.keypoints), "detect_s": det.seconds,
+                 "repeatability": warp_repeatability(name, image, H), "implementation": det.implementation}

@@ -2,12 +2,9 @@
 rectification -> disparity (gee | sgbm | best) -> depth, point cloud, figures, and scores against ground truth.
 
 `run_stereo(config, left_path, right_path, out_dir, ...)` is what `mvrecon stereo` calls; it returns the report
-dict it also writes to `out_dir/report.json`. A rerun into the same folder reuses the stages already done (`Stages`).
+dict it also writes to `out_dir/report.json`. A rerun into the same folder reuses the stages already done (`io.stage_cache`).
 """
 
-import hashlib
-import importlib.util
-import json
 import logging
 import time
 from dataclasses import asdict, dataclass, replace
@@ -16,12 +13,13 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..io.files import read_json_object, replace_whole, write_json
+from ..io.files import replace_whole, write_json
 from ..geometry.fundamental import RansacConfig, ransac_fundamental, sampson_distance
 from ..geometry.rectification import apply_homography, calibrated_rectification, fit_to_canvas, hartley_rectification
 from ..io.pfm import read_pfm, write_pfm
+from ..io.stage_cache import Stages, code_digest, digest
 from .best import BestConfig, best_disparity
-from .calib import read_calib
+from .calib import check_image_size, read_calib
 from .gee import GEEConfig, gee_disparity
 from .sgbm import SGBMConfig, sgbm_disparity
 
@@ -154,8 +152,8 @@ def search_range(config: StereoConfig, calib, match_disparities, nonnegative: bo
         dmin, num = 0, int(np.ceil(calib.ndisp / 16) * 16)
     else:
         dmin, num = _disparity_range(match_disparities)
-        if nonnegative and dmin < 0:
-            dmin, num = 0, int(np.ceil((num + dmin) / 16) * 16)
+        if nonnegative and dmin < 0:  # at least 16: a swapped pair's matches all lie below 0 (judge_matches says so)
+            dmin, num = 0, max(16, int(np.ceil((num + dmin) / 16) * 16))
     if config.min_disparity is not None:
         dmin = config.min_disparity
     if config.num_disparities is not None:
@@ -178,12 +176,67 @@ def compute_disparity(left, right, config: StereoConfig, min_disparity: int, num
     raise InputError(f"unknown stereo method {config.method!r}; expected one of {', '.join(METHODS)}")
 
 
+VERTICAL_LIMIT_PX = 2.0  # median |y_left - y_right| of the inlier matches after rectification: 0.05-0.15 px measured
+MIN_PARALLAX_PX = 0.5  # median |x_left - x_right| of the SIFT matches below this: no depth to measure
+
+
+def judge_matches(p1, p2, dmin: int, num: int, kind: str, doffs: float = 0.0) -> tuple[dict, list[str]]:
+    """Figures of the inlier matches in the rectified frame, and warnings for a result that is likely wrong
+    although every step ran: rows that do not line up (a camera file of another rig, a pair that is not
+    rectified), disparities that are mostly negative (left and right swapped: the search range, calib.txt's
+    0..ndisp or clipped at 0, then misses every surface), or many outside the search range (those surfaces come out
+    as holes or wrong). kind: "calib", "rectified", "camera" or "uncalibrated"; the sign is judged on d + doffs for
+    "camera" (Z = f B / (d + doffs) > 0), on d for calib.txt and --rectified (Middlebury: 0 <= d), and not at all
+    for "uncalibrated" (`fit_to_canvas` shifts the right image so the disparities are positive either way)."""
+    dy = float(np.median(np.abs(p1[:, 1] - p2[:, 1])))
+    d = p1[:, 0] - p2[:, 0]
+    signed = d + (doffs if kind == "camera" else 0.0)
+    outside = (d < dmin - 1) | (d > dmin + num)  # 1 px of slack: sub-pixel matches at the ends of the range
+    lo, median, hi = (float(v) for v in np.percentile(d, [1, 50, 99]))
+    figures = {"p1": lo, "median": median, "p99": hi, "negative_percent": float(100 * np.mean(signed < 0)),
+               "outside_search_range_percent": float(100 * np.mean(outside))}
+    warnings = []
+    if dy > VERTICAL_LIMIT_PX:
+        hint = {"camera": "the camera file may be another rig's, or LEFT and RIGHT swapped",
+                "uncalibrated": "the fundamental matrix is probably wrong (too few or wrong matches)"}.get(
+            kind, "the pair may not be rectified")
+        warnings.append(f"rows do not line up after rectification (the inlier matches lie a median {dy:.1f} px apart "
+                        f"vertically, under {VERTICAL_LIMIT_PX:g} px expected): {hint}; the disparity map is likely "
+                        "wrong")
+    if kind != "uncalibrated" and figures["negative_percent"] > 50:
+        what = "x_left - x_right + doffs" if kind == "camera" else "x_left - x_right"
+        warnings.append(f"{figures['negative_percent']:.0f} % of the inlier matches have a negative disparity ({what}, "
+                        f"median {float(np.median(signed)):.1f} px): the left and right images are probably swapped; "
+                        "give them the other way round")
+    elif figures["outside_search_range_percent"] > 10:
+        warnings.append(f"{figures['outside_search_range_percent']:.0f} % of the inlier matches' disparities "
+                        f"(1-99 %: {lo:.1f} to {hi:.1f} px) lie outside the search range [{dmin}, {dmin + num}]: "
+                        "those surfaces come out as holes or wrong; give --min-disparity and --num-disparities")
+    return figures, warnings
+
+
+def _check_camera(camera, width: int, height: int, image) -> None:
+    """Refuse, before any work, a camera file without a rig or made for another image size: its focal lengths,
+    principal points and distortion are in that size's pixels (reconstruct and export refuse such an image too)."""
+    if camera.get("stereo") is None or camera.get("right") is None:
+        raise InputError(f"{camera['path']}: camera file has no [stereo] section; run `mvrecon calibrate --stereo`")
+    for section, cam in (("[camera]", camera["left"]), ("[camera_right]", camera.get("right"))):
+        if cam is not None and (cam.width, cam.height) != (width, height):
+            raise InputError(f"{camera['path']}: {section} made for {cam.width}x{cam.height} images, these are "
+                             f"{width}x{height} ({image})")
+
+
+def _same_file(a, b) -> bool:
+    try:
+        return Path(a).samefile(b)
+    except OSError:  # a missing file: read_pair names it
+        return False
+
+
 def _rectify_with_camera(left, right, camera, x1, x2):
     """Undistort and rectify with a stereo calibration from `mvrecon calibrate --stereo`."""
     import cv2
 
-    if camera.get("stereo") is None or camera.get("right") is None:
-        raise InputError(f"{camera['path']}: camera file has no [stereo] section; run `mvrecon calibrate --stereo`")
     (K1, D1), (K2, D2) = camera["left"].opencv(), camera["right"].opencv()
     rect = calibrated_rectification(K1, K2, camera["stereo"]["R"], camera["stereo"]["t"])
     h, w = left.shape[:2]
@@ -197,54 +250,6 @@ def _rectify_with_camera(left, right, camera, x1, x2):
     geometry = {"focal": float(rect.K1[0, 0]), "baseline": rect.baseline, "cx": float(rect.K1[0, 2]),
                 "cy": float(rect.K1[1, 2]), "doffs": float(rect.K2[0, 2] - rect.K1[0, 2])}
     return out[0], out[1], p1, p2, geometry, inside
-
-
-class Stages:
-    """The stages of a run finished in OUT, so that a rerun (after Ctrl-C, or with another method) redoes only what
-    is missing. `OUT/.stages/record.json` holds each stage's key, a hash of everything it was computed from (input
-    pixels, settings, the code of the modules doing the work), its report entries and its time; a stage is redone
-    when its key differs or one of its files is missing. Its entry is dropped before its files are rewritten, and
-    every file is written whole, so a stage cut off by Ctrl-C is never taken for a finished one."""
-
-    def __init__(self, out: Path):
-        self.out, self.path = out, out / ".stages" / "record.json"
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.record = read_json_object(self.path) or {}
-        self.reused: list[str] = []
-
-    def run(self, name: str, key: str, files, make) -> dict:
-        """make() writes `files` (in OUT) and returns the stage's report entries, or the record has them."""
-        entry = self.record.get(name)
-        if isinstance(entry, dict) and entry.get("key") == key and all((self.out / f).is_file() for f in files):
-            self.reused.append(name)
-            return entry.get("report") or {}
-        if self.record.pop(name, None) is not None:
-            write_json(self.path, self.record, indent=1)
-        t0 = time.perf_counter()
-        report = make() or {}
-        self.record[name] = {"key": key, "report": report, "seconds": time.perf_counter() - t0}
-        write_json(self.path, self.record, indent=1)
-        return report
-
-    def seconds(self, name: str) -> float:
-        return float(self.record[name]["seconds"])
-
-
-def _key(*parts) -> str:
-    """sha256 of arrays (shape, dtype, bytes) and JSON-able settings, in order."""
-    h = hashlib.sha256()
-    for part in parts:
-        if isinstance(part, np.ndarray):
-            h.update(f"{part.shape} {part.dtype}".encode())
-            h.update(np.ascontiguousarray(part).tobytes())
-        else:
-            h.update(json.dumps(part, sort_keys=True, default=str).encode())
-    return h.hexdigest()
-
-
-def _code(*modules) -> str:
-    """Hash of the modules' source files: an edited method must not reuse an older run's results."""
-    return _key([Path(importlib.util.find_spec(m).origin).read_text() for m in modules])
 
 
 def _save_pfm(path: Path, values) -> None:
@@ -261,7 +266,9 @@ def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=
                gt_path=None, mask_path=None, gt_scale: float = 1.0, rectified: bool = False) -> dict:
     """The whole two-view run; writes rectified images, disparity/depth PFM and PNG, cloud.ply, figures, report.
 
-    rectified=True takes the pair as already rectified without a calib.txt (disparity only, no metric depth)."""
+    rectified=True takes the pair as already rectified without a calib.txt (disparity only, no metric depth).
+    Input that cannot give a right answer (a calibration for another image size, the same image twice) is an
+    InputError before any work; a result that is likely wrong (`judge_matches`) is listed in report["warnings"]."""
     import cv2
 
     from . import figures
@@ -270,6 +277,13 @@ def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=
 
     if calib_path is not None and camera_path is not None:
         raise InputError("give either --calib or --camera, not both")
+    if mask_path is not None and gt_path is None:  # it would be read and never used
+        raise InputError("--mask goes with --gt: it selects the non-occluded pixels scored against the ground truth")
+    if gt_scale != 1.0 and gt_path is None:
+        raise InputError("--gt-scale goes with --gt: it divides the ground-truth disparities")
+    if _same_file(left_path, right_path):
+        raise InputError(f"{left_path}: given as both left and right image; stereo needs two views from different "
+                         "positions (no parallax, no depth)")
     out = Path(out_dir)
     for path in (left_path, right_path):  # eight outputs would land among the dataset's files
         if out.resolve() == Path(path).resolve().parent:
@@ -283,6 +297,13 @@ def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=
     gt = load_ground_truth(gt_path, gt_scale) if gt_path is not None else None
     mask = load_mask(mask_path) if mask_path is not None else None
     left, right = read_pair(left_path, right_path)
+    if np.array_equal(left, right):
+        raise InputError(f"{left_path}, {right_path}: identical pixels; stereo needs two views from different "
+                         "positions (no parallax, no depth)")
+    if calib is not None:
+        check_image_size(calib_path, calib, left.shape[1], left.shape[0], left_path)
+    if camera is not None:
+        _check_camera(camera, left.shape[1], left.shape[0], left_path)
     width = left.shape[1]  # a wider search has no pixel to match, and its cost volume may not fit in memory
     for flag, value in (("--num-disparities", config.num_disparities), ("--min-disparity", config.min_disparity)):
         if value is not None and abs(value) >= width:
@@ -295,18 +316,30 @@ def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=
         raise InputError(f"unknown stereo method {config.method!r}; expected one of {', '.join(METHODS)}")
     out.mkdir(parents=True, exist_ok=True)
     stages = Stages(out)
-    report: dict = {"left": str(left_path), "right": str(right_path), "method": config.method}
-    figures_code = _code(figures.__name__)  # read once, not per figure
+    stages.path.parent.mkdir(parents=True, exist_ok=True)  # the matches and disparities are kept there too
+    report: dict = {"left": str(left_path), "right": str(right_path), "method": config.method, "warnings": []}
+
+    def warn(text):
+        """A result that is likely wrong says so: in the log and in report.json's "warnings"."""
+        log.warning("warning: %s", text)
+        report["warnings"].append(text)
+
+    figures_code = code_digest(figures.__name__)  # read once, not per figure
 
     def figure(name, key, draw):
         """Figures take seconds (matplotlib): drawn again only when what they show changed."""
-        stages.run(name, _key(key, figures_code), [name], lambda: replace_whole(out / name, draw))
+        stages.run(name, digest(key, figures_code), [name], lambda: replace_whole(out / name, draw))
 
     def find_matches():
         x1, x2 = sift_matches(left, right, config.ratio, config.max_features)
         if len(x1) < 8:
             raise InputError(f"{left_path}, {right_path}: only {len(x1)} SIFT matches (8 needed for the fundamental "
                              f"matrix); are these two views of the same scene?")
+        parallax = float(np.median(np.hypot(*(x1 - x2).T)))
+        if parallax < MIN_PARALLAX_PX:
+            raise InputError(f"{left_path}, {right_path}: no parallax: the {len(x1)} SIFT matches moved a median "
+                             f"{parallax:.2f} px between the images ({MIN_PARALLAX_PX:g} px at least); stereo needs "
+                             "two views from different positions")
         try:
             F, inliers = ransac_fundamental(x1, x2, config.ransac)
         except ValueError as exc:
@@ -325,8 +358,8 @@ def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=
         replace_whole(out / ".stages" / "matches.npz", lambda tmp: np.savez(tmp, x1=x1, x2=x2, F=F, inliers=inliers))
         return part
 
-    matches_key = _key(left, right, config.ratio, config.max_features, asdict(config.ransac),
-                       _code(__name__, "mvrecon.features.sift", "mvrecon.matching.matcher",
+    matches_key = digest(left, right, config.ratio, config.max_features, asdict(config.ransac),
+                       code_digest(__name__, "mvrecon.features.sift", "mvrecon.matching.matcher",
                              "mvrecon.geometry.fundamental"), cv2.__version__)
     report.update(stages.run("matches", matches_key, [".stages/matches.npz"], find_matches))
     with np.load(out / ".stages" / "matches.npz") as saved:
@@ -366,10 +399,16 @@ def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=
     timings = {"matching_and_F": stages.seconds("matches"), "rectification": time.perf_counter() - t0}
     for name, image in (("rectified_left.png", rect_l), ("rectified_right.png", rect_r)):
         replace_whole(out / name, lambda tmp: cv2.imwrite(str(tmp), _bgr(image)))
-    figure("rectified_pair.png", _key(rect_l, rect_r), lambda path: figures.rectified_figure(path, rect_l, rect_r))
+    figure("rectified_pair.png", digest(rect_l, rect_r), lambda path: figures.rectified_figure(path, rect_l, rect_r))
 
     dmin, num = search_range(config, calib, p1[:, 0] - p2[:, 0], nonnegative=camera is None)
     report["disparity_range"] = [dmin, dmin + num]
+    kind = ("calib" if calib is not None else "camera" if camera is not None else
+            "rectified" if rectified else "uncalibrated")
+    report["match_disparities_px"], warnings = judge_matches(p1, p2, dmin, num, kind,
+                                                             geometry["doffs"] if geometry else 0.0)
+    for text in warnings:
+        warn(text)
     cached = out / ".stages" / f"disparity_{config.method}.pfm"
 
     def find_disparity():
@@ -382,8 +421,8 @@ def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=
         _save_pfm(cached, disparity)
         return extra
 
-    disparity_key = _key(rect_l, rect_r, config.method, asdict(getattr(config, config.method)), dmin, num,
-                         _code(f"{__package__}.{config.method}"), cv2.__version__)
+    disparity_key = digest(rect_l, rect_r, config.method, asdict(getattr(config, config.method)), dmin, num,
+                         code_digest(f"{__package__}.{config.method}"), cv2.__version__)
     report.update(stages.run(cached.stem, disparity_key, [cached.relative_to(out)], find_disparity))
     disparity = _load_pfm(cached)
     disparity[~inside] = np.nan  # canvas outside the warped left image has no disparity
@@ -391,13 +430,13 @@ def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=
     report["invalid_percent"] = float(100 * np.mean(~np.isfinite(disparity)))
     _save_pfm(out / "disparity.pfm", disparity)
     report["disparity_png"] = _write_disparity_png(out / "disparity.png", disparity)
-    figure("disparity_view.png", _key(disparity, config.method), lambda path: figures.scalar_map_figure(
+    figure("disparity_view.png", digest(disparity, config.method), lambda path: figures.scalar_map_figure(
         path, disparity, f"disparity ({config.method})", "disparity (px)"))
 
     if geometry is not None:
         depth = disparity_to_depth(disparity, geometry["focal"], geometry["baseline"], geometry["doffs"])
         _save_pfm(out / "depth.pfm", depth)
-        figure("depth_view.png", _key(depth), lambda path: figures.scalar_map_figure(
+        figure("depth_view.png", digest(depth), lambda path: figures.scalar_map_figure(
             path, depth, "depth Z = f B / (d + doffs)", "depth (baseline units)", cmap="viridis_r"))
         finite = depth[np.isfinite(depth)]
         max_depth = float(20 * np.median(finite)) if finite.size else None
@@ -412,18 +451,17 @@ def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=
 
     if gt is not None:
         if report["rectification"].startswith("uncalibrated"):
-            log.warning("ground truth is compared in the frame of the uncalibrated rectification; give --calib or "
-                        "--rectified for pairs that are already rectified")
+            warn("ground truth is compared in the frame of the uncalibrated rectification; give --calib or "
+                 "--rectified for pairs that are already rectified")
         if gt.shape == disparity.shape:
             report["metrics"] = evaluate(disparity, gt, mask)
             bad2 = report["metrics"]["all"]["bad-2"]
             errors = error_map(disparity, gt)
             title = f"{config.method}: bad-2.0 = {bad2:.2f} % (all, holes count as bad)"
-            figure("error_map.png", _key(errors, title),
+            figure("error_map.png", digest(errors, title),
                    lambda path: figures.error_map_figure(path, errors, title))
         else:
-            log.warning("rectified frame %s differs from the ground truth %s: not evaluated", disparity.shape,
-                        gt.shape)
+            warn(f"rectified frame {disparity.shape} differs from the ground truth {gt.shape}: not evaluated")
     report["timings_s"] = timings
     report["reused"] = stages.reused
     report["config"] = asdict(config)
