@@ -91,8 +91,19 @@ def main(argv=None) -> int:
             signal.signal(signal.SIGINT, previous)
 
 
+def parse_args(argv=None) -> argparse.Namespace:
+    """The command line (sys.argv by default) parsed, with `--mvrecon-args "--upright"` read as a value that starts
+    with a dash (`commands._options.DASHED_VALUES`), which argparse alone refuses."""
+    from .commands._options import DASHED_VALUES, join_option_value
+
+    argv = sys.argv[1:] if argv is None else list(argv)
+    for option in DASHED_VALUES:
+        argv = join_option_value(argv, option)
+    return build_parser().parse_args(argv)
+
+
 def _run(argv) -> int:
-    args = build_parser().parse_args(argv)
+    args = parse_args(argv)
     _setup_logging(args.verbose + args.global_verbose, args.quiet or args.global_quiet)
     try:
         return int(args._module.run(args) or 0)

@@ -162,7 +162,8 @@ def test_colmap_runner_report_and_cache(runs):
     # a finished run is read back, not rerun; other options in the same folder are refused
     again = run_colmap(images, colmap.out_dir, OPTS)
     assert again.wall_s == colmap.wall_s and again.report == colmap.report
-    with pytest.raises(InputError, match="holds a run with a different options"):
+    with pytest.raises(InputError, match=r"holds a run of colmap made with other settings "
+                                         r"\(options.camera_mode: single -> per-image\)"):
         run_colmap(images, colmap.out_dir, RunOptions(camera_mode="per-image"))
 
 
@@ -283,6 +284,135 @@ def test_cli_errors(tmp_path, capsys):
     assert "at least two models" in capsys.readouterr().err
     assert main(["compare", str(tmp_path / "none"), "-o", str(tmp_path / "r")]) == 2
     assert "none: no such folder" in capsys.readouterr().err
+
+
+def strict_json(text: str):
+    """JSON as a browser reads it: NaN or Infinity is an error there, not a number."""
+    def refuse(constant):
+        raise ValueError(f"{constant} is not JSON")
+    return json.loads(text, parse_constant=refuse)
+
+
+def test_mvrecon_args_in_the_documented_form_reach_mvrecons_run(tmp_path):
+    from mvrecon.cli import parse_args
+
+    for argv, value in ((["--mvrecon-args", "--upright"], "--upright"),  # rejected: "expected one argument"
+                        (["--mvrecon-args", "--max-features 2000"], "--max-features 2000"),
+                        (["--mvrecon-args=--upright"], "--upright"),
+                        (["--mvrecon-args", "--upright", "--seed", "2"], "--upright")):
+        args = parse_args(["compare", "imgs", "-o", "r", *argv])
+        assert args.mvrecon_args == value and args.images == "imgs", argv
+    assert parse_args(["compare", "imgs", "-o", "r", "--mvrecon-args", "--upright", "--seed", "2"]).seed == 2
+    # through to the command that ran (both runs stopped at once by the timeout: no time spent on them)
+    images, _ = synthetic_scene(tmp_path / "scene")
+    out = tmp_path / "r"
+    assert main(["-q", "compare", str(images), "-o", str(out), "--no-same-matches", "--timeout", "0.01",
+                 "--mvrecon-args", "--upright"]) == 1
+    meta = json.loads((out / "runs" / "mvrecon" / "runner.json").read_text())
+    assert meta["command"][-1] == "--upright" and meta["options"]["mvrecon_args"] == ["--upright"]
+
+
+def test_bad_mvrecon_args_are_refused_before_any_engine_runs(tmp_path, capsys):
+    images, _ = synthetic_scene(tmp_path / "scene")
+    out = tmp_path / "r"
+    for extra, message in ((["--mvrecon-args=--bogus"], "--mvrecon-args: unrecognized arguments: --bogus"),
+                           (["--mvrecon-args", "--bogus"], "--mvrecon-args: unrecognized arguments: --bogus"),
+                           (["--mvrecon-args", "--max-features 0"], "max_num_features: must be at least 1"),
+                           (["--mvrecon-args", "--seed 3"], "--seed would make mvrecon's run differ from COLMAP's"),
+                           (["--mvrecon-args", "-o elsewhere"], "-o/--output is compare's to choose"),
+                           (["--mvrecon-args", f"--config {tmp_path / 'none.toml'}"], "none.toml"),
+                           (["--mvrecon-args", "--upright 'x"], "--mvrecon-args: No closing quotation")):
+        code = main(["compare", str(images), "-o", str(out), "--no-same-matches", "--timeout", "60", *extra])
+        err = capsys.readouterr().err
+        assert code == 2 and message in err and len(err.splitlines()) == 1, (extra, err)
+        assert not out.exists(), extra  # nothing ran (a misspelt flag used to let COLMAP run, then exit 0)
+
+
+def test_models_refuse_the_options_of_runs(runs, tmp_path, capsys):
+    images, gt, colmap, same = runs
+    base = ["compare", "--models", str(colmap.out_dir), str(same.out_dir), "-o", str(tmp_path / "r")]
+    for extra, named in ((["--colmap-global"], "--colmap-global"), (["--seed", "3"], "--seed"),
+                         (["--camera-params", "1200,320,240,0"], "--camera-params"),
+                         (["--seed", "0", "--timeout", "5"], "--seed, --timeout")):
+        assert main(base + extra) == 2, extra
+        err = capsys.readouterr().err
+        assert f"error: {named}: only for runs on IMAGES" in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / "r").exists()
+
+
+def test_skipped_images_are_in_the_report_and_warned_once(tmp_path, caplog):
+    import shutil
+
+    from mvrecon.io.images import image_problem
+
+    images, _ = synthetic_scene(tmp_path / "scene")
+    folder = tmp_path / "imgs"
+    shutil.copytree(images, folder)
+    data = sorted(images.glob("*.png"))[0].read_bytes()
+    (folder / "cut.png").write_bytes(data[: len(data) // 2])  # a copy cut off in its pixel data
+    (folder / "notes.txt").write_text("not an image, not an image file either")
+    reason = image_problem(folder / "cut.png")
+    assert reason
+    out = tmp_path / "r"
+    with caplog.at_level("WARNING"):
+        assert main(["-q", "compare", str(folder), "-o", str(out), "--no-same-matches", "--timeout", "0.01"]) == 1
+    warned = [r.getMessage() for r in caplog.records if "cut.png" in r.getMessage()]
+    assert len(warned) == 1, warned  # it was printed twice
+    m = strict_json((out / "metrics.json").read_text())
+    assert m["skipped_images"] == {"cut.png": reason}
+    assert "cut.png" not in m["images"] and len(m["images"]) == 8
+    page = (out / "index.html").read_text()
+    assert "<h2>Images skipped</h2>" in page and "<td>cut.png</td>" in page
+    with open(out / "metrics.csv") as f:
+        assert ["skipped", "", "cut.png", "reason", reason] in list(csv.reader(f))
+
+
+def failed_engine_metrics(rel_errors, per_image):
+    """A metrics dict as `evaluate` makes it: a good engine with these errors, and one whose run failed."""
+    images = sorted(per_image)
+    good = {"role": "engine", "error": None, "summary": {"auc@5": 0.99}, "stages": {},
+            "relative_pose_errors_deg": rel_errors, "per_image": per_image}
+    failed = {"role": "engine", "error": "exit code 1: boom", "summary": {"auc@5": 0.0}, "stages": {},
+              "relative_pose_errors_deg": [180.0] * len(rel_errors),
+              "per_image": {n: {"status": "unregistered", "model": None, "reason": "run failed"} for n in images}}
+    return {"images": images, "engines": {"mvrecon": failed, "colmap": good}}
+
+
+def test_cumulative_plot_fits_the_data_and_is_quiet_when_an_engine_failed(monkeypatch):
+    import warnings
+
+    from mvrecon.eval import figures
+
+    rng = np.random.default_rng(0)
+    names = [f"{k:04d}.png" for k in range(8)]
+    per_image = {n: {"status": "registered", "model": 0, "rotation_error_deg": float(r), "center_error_pct": float(c)}
+                 for n, r, c in zip(names, rng.uniform(0.02, 0.08, 8), rng.uniform(0.02, 0.15, 8))}
+    metrics = failed_engine_metrics(rng.uniform(0.01, 0.2, 28).tolist(), per_image)
+    figs = []
+    monkeypatch.setattr(figures, "_png", lambda fig: figs.append(fig) or b"png")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # matplotlib's "No artists with labels found to put in legend"
+        assert figures.cumulative_errors_png(metrics) == b"png"
+        figures.per_image_errors_png(metrics)
+        figures.timing_png({**metrics, "engines": {**metrics["engines"], "colmap": {
+            **metrics["engines"]["colmap"], "summary": {"wall_s": 3.0}}}})
+    fig = figs[0]
+    relative, rotation, centre = fig.axes
+    assert 0.2 <= relative.get_xlim()[1] < 0.5  # errors up to 0.2 deg: not 0-10 deg, all on the y axis
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    for ax in (rotation, centre):
+        lo, hi = ax.get_xlim()
+        assert lo <= 0.02 and 0.08 <= hi <= 1.0
+        labels = [t for t in ax.xaxis.get_majorticklabels() + ax.xaxis.get_minorticklabels()
+                  if t.get_visible() and t.get_text() and lo <= t.get_position()[0] <= hi]
+        boxes = sorted((t.get_window_extent(renderer) for t in labels), key=lambda b: b.x0)
+        assert len(boxes) >= 2
+        assert all(a.x1 <= b.x0 for a, b in zip(boxes, boxes[1:])), [t.get_text() for t in labels]
+    import matplotlib.pyplot as plt
+
+    for f in figs:
+        plt.close(f)
 
 
 def test_cli_models_with_damaged_files_are_one_line(runs, tmp_path, capsys):

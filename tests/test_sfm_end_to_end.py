@@ -35,6 +35,46 @@ def test_demo_scene_meets_accuracy_targets(demo):
     assert accuracy_summary([poses(m) for m in models], gt)["auc@1"] == pytest.approx(acc["auc@1"])
 
 
+def test_demo_refuses_stereo_and_sem_scenes_before_any_work(tmp_path, capsys):
+    # a stereo pair "succeeded" with 0 of 2 registered and NaN in accuracy.json; an SEM series failed only after
+    # rendering and a whole reconstruction
+    for scene, kind, command in (("stereo_pair_small", "stereo", "mvrecon stereo"),
+                                 ("sem_tilt_small", "sem_tilt", "mvrecon sem")):
+        out = tmp_path / scene
+        assert main(["-q", "demo", "-o", str(out), "--scene", scene]) == 2
+        err = capsys.readouterr().err
+        assert len(err.splitlines()) == 1 and f"--scene {scene}: a {kind} scene" in err and f"`{command}`" in err
+        assert "mvrecon scene list" in err and not out.exists()  # nothing rendered
+
+
+def test_demo_without_a_model_fails_with_strict_json_and_overwrite_works(tmp_path, capsys, caplog):
+    from pathlib import Path
+
+    import mvrecon.scenes.catalog as catalog
+
+    # object_orbit_small cut to two views: one verified pair, whose 2-image model is discarded (< 3 images)
+    toml = (Path(catalog.CATALOG_DIR) / "object_orbit_small.toml").read_text()
+    toml = toml.replace('name = "object_orbit_small"', 'name = "two_views"')
+    toml = toml.replace("count = 10", "count = 2").replace("arc_deg = 180.0", "arc_deg = 20.0")
+    (tmp_path / "two_views.toml").write_text(toml)
+    out = tmp_path / "demo"
+    args = ["-q", "demo", "-o", str(out), "--scene", str(tmp_path / "two_views.toml")]
+    assert main(args) == 1  # was 0, with "registered images 0 / 2" and outputs that did not exist
+
+    def refuse(constant):
+        raise ValueError(f"{constant} is not JSON")
+
+    acc = json.loads((out / "accuracy.json").read_text(), parse_constant=refuse)  # was NaN: not JSON
+    assert acc["registered"] == 0 and acc["models"] == 0 and acc["mean_reprojection_error_px"] is None
+    assert "outputs" not in capsys.readouterr().out
+    assert "no model: none of the 2 images could be registered" in caplog.text
+    # another seed on the same folder: refused, and the advice given is an option demo has
+    assert main(args + ["--seed", "4"]) == 2
+    assert "rerun with --overwrite" in capsys.readouterr().err
+    assert main(args + ["--seed", "4", "--overwrite"]) == 1
+    assert json.loads((out / "run" / "report.json").read_text())["seed"] == 4
+
+
 def test_reconstruct_outputs_follow_the_contract(demo):
     run = demo / "run"
     report = json.loads((run / "report.json").read_text())
@@ -214,7 +254,7 @@ def test_export_never_deletes_what_it_exports(demo, tmp_path, capsys):
     (tmp_path / "e.partial").mkdir()  # what an interrupted export leaves: cleared, not in the way
     assert main(["-q", "export", str(run), "--undistort", "-o", str(tmp_path / "e"), "--image-dir",
                  str(images)]) == 2
-    assert f"{first}: cannot read image header" in capsys.readouterr().err
+    assert f"{first}: cut off or corrupt after its header" in capsys.readouterr().err
     shutil.copy(demo / "scene" / "images" / first.name, first)
     cameras = run / "sparse" / "0" / "cameras.bin"
     cameras.write_bytes(cameras.read_bytes()[:30])

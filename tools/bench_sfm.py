@@ -10,7 +10,8 @@ Without ground truth, the AUCs of mvrecon are computed against pycolmap's model.
 Usage:
   python tools/bench_sfm.py ../shared/data/middlebury_templeSparseRing/images
   python tools/bench_sfm.py IMAGES --gt MODEL_OR_PAR_FILE [--work DIR] [--camera-mode single]
-  python tools/bench_sfm.py IMAGES --mvrecon-args="--peak-threshold 0.00667"   (flags for mvrecon only)
+  python tools/bench_sfm.py IMAGES --mvrecon-args "--peak-threshold 0.00667"   (flags for mvrecon only; a
+      single flag too: --mvrecon-args "--upright"; checked by reconstruct's parser before anything runs)
   python tools/bench_sfm.py IMAGES --repeat 3   (alternating runs; wall times are their medians)
 
 A 2-core VM's speed can drift by a third between runs a minute apart, so one pair of runs gives a noisy
@@ -28,6 +29,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from mvrecon.commands._options import join_option_value  # noqa: E402
+from mvrecon.commands.compare import check_mvrecon_args  # noqa: E402
+from mvrecon.errors import InputError  # noqa: E402
 from mvrecon.eval.ground_truth import find_ground_truth, load_ground_truth_for  # noqa: E402
 from mvrecon.io.images import list_images  # noqa: E402
 from mvrecon.eval.metrics import AUC_THRESHOLDS, accuracy_summary  # noqa: E402
@@ -76,7 +80,18 @@ def main(argv=None) -> int:
     ap.add_argument("--mvrecon-args", default="", help="extra flags for `mvrecon reconstruct`, in one string")
     ap.add_argument("--repeat", type=int, default=1,
                     help="run both engines this many times, alternating; accuracy from the first run")
-    args = ap.parse_args(argv)
+    # `--mvrecon-args "--upright"`: argparse alone takes a value starting with a dash for an unknown option
+    args = ap.parse_args(join_option_value(sys.argv[1:] if argv is None else argv, "--mvrecon-args"))
+    try:
+        extra = tuple(shlex.split(args.mvrecon_args))
+    except ValueError as exc:  # an unclosed quote
+        ap.error(f"--mvrecon-args: {exc}")
+    try:
+        options = RunOptions(camera_mode=args.camera_mode, camera_model=args.camera_model, seed=args.seed,
+                             mvrecon_args=extra)
+        check_mvrecon_args(options)  # before any run: a misspelt flag would fail mvrecon's run only
+    except InputError as exc:
+        ap.error(str(exc))
 
     images = Path(args.images)
     gt_path = args.gt or find_ground_truth(images) or find_ground_truth(images.parent)
@@ -84,8 +99,6 @@ def main(argv=None) -> int:
     names = [Path(n).name for n in list_images(images)[0]]
     gt = load_ground_truth_for(gt_path, names) if gt_path else None
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="bench_sfm_"))
-    options = RunOptions(camera_mode=args.camera_mode, camera_model=args.camera_model, seed=args.seed,
-                         mvrecon_args=tuple(shlex.split(args.mvrecon_args)))
     runs = []
     for k in range(max(args.repeat, 1)):
         where = work if args.repeat <= 1 else work / f"run{k + 1}"

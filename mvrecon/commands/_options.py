@@ -173,3 +173,23 @@ def frontend_config_from_args(args: argparse.Namespace, from_file=None):
     config = with_overrides(config, overrides, source="command line")
     config.camera.validate()
     return config
+
+
+DASHED_VALUES = ("--mvrecon-args",)  # options whose value is itself a list of flags
+
+
+def join_option_value(argv, option: str) -> list[str]:
+    """`OPTION VALUE` as `OPTION=VALUE` in argv (up to a `--`), so that a VALUE starting with a dash is the
+    option's value: argparse takes a lone `--upright` for an unknown option and stops at `--mvrecon-args
+    "--upright"` (the documented form) with "expected one argument"; only values with a space got through."""
+    argv, out, k = list(argv), [], 0
+    while k < len(argv):
+        if argv[k] == "--":
+            return out + argv[k:]
+        if argv[k] == option and k + 1 < len(argv):
+            out.append(f"{option}={argv[k + 1]}")
+            k += 2
+        else:
+            out.append(argv[k])
+            k += 1
+    return out

@@ -4,6 +4,7 @@
       runs mvrecon end to end, pycolmap end to end (extract_features, match_exhaustive, incremental_mapping;
       --colmap-global adds global_mapping) and COLMAP's incremental mapper on mvrecon's database ("same matches"),
       with the same camera settings; the runs go to REPORT/runs/ and a finished run is reused, not redone.
+      --mvrecon-args "--upright" (one string) gives mvrecon's run more flags, checked before anything runs.
   mvrecon compare --models A B [C ...] [--labels ...] [--gt GT] -o REPORT
       compares models that exist: run folders (report.json + sparse/), sparse/ folders or COLMAP model folders.
 
@@ -25,20 +26,72 @@ def add_arguments(parser) -> None:
     parser.add_argument("--gt", help="ground truth: COLMAP model folder, *_par.txt, gt_dense_cameras/, calibration/")
     parser.add_argument("--models", nargs="+", metavar="MODEL", help="compare these existing models instead")
     parser.add_argument("--labels", nargs="+", help="names for --models in the report (default: folder names)")
+    # the options of runs on IMAGES default to None, so that --models can tell one given and refuse it
     parser.add_argument("--colmap-global", action="store_true", help="also run pycolmap's global mapper")
     parser.add_argument("--no-same-matches", action="store_true",
                         help="skip COLMAP's mapper on mvrecon's database")
-    parser.add_argument("--camera-mode", default="auto", choices=("auto", "single", "per-folder", "per-image"),
+    parser.add_argument("--camera-mode", choices=("auto", "single", "per-folder", "per-image"),
                         help="which images share intrinsics, for both engines (default: auto)")
-    parser.add_argument("--camera-model", default="SIMPLE_RADIAL", choices=MODELS,
+    parser.add_argument("--camera-model", choices=MODELS,
                         help="COLMAP camera model for both engines (default: SIMPLE_RADIAL)")
     parser.add_argument("--camera-params", help="known intrinsics in the model's order, e.g. 1520,320,240,0")
-    parser.add_argument("--seed", type=non_negative_int, default=0, help="random seed of both engines (default: 0)")
-    parser.add_argument("--mvrecon-args", default="",
-                        help="extra flags for `mvrecon reconstruct` only, as one quoted string")
+    parser.add_argument("--seed", type=non_negative_int, help="random seed of both engines (default: 0)")
+    parser.add_argument("--mvrecon-args", metavar="FLAGS",
+                        help='extra flags for `mvrecon reconstruct` only, as one quoted string, e.g. '
+                             '--mvrecon-args "--upright --max-features 4000"')
     parser.add_argument("--timeout", type=positive_float, help="seconds per run; a run over time is reported as failed")
     parser.add_argument("--retry-failed", action="store_true",
                         help="run again the engines whose run in OUTPUT failed (otherwise a failure is kept)")
+
+
+RUN_ONLY = {"colmap_global": "--colmap-global", "no_same_matches": "--no-same-matches",
+            "camera_mode": "--camera-mode", "camera_model": "--camera-model", "camera_params": "--camera-params",
+            "seed": "--seed", "mvrecon_args": "--mvrecon-args", "timeout": "--timeout",
+            "retry_failed": "--retry-failed"}  # dest -> flag: what only a run on IMAGES uses
+
+
+def check_mvrecon_args(options) -> None:
+    """Refuse, before any engine runs, extra flags that `mvrecon reconstruct` would reject (a misspelt one
+    failed mvrecon's run only after COLMAP's, and compare still exited 0) and flags that would override what
+    compare sets for both engines (the comparison would no longer be like for like). The flags are parsed by
+    reconstruct's own parser, in the very command `run_mvrecon` runs, and their values checked as reconstruct
+    checks them (bounds, a --config file)."""
+    import argparse
+    import dataclasses
+
+    from ..errors import InputError
+    from ..eval.runners import reconstruct_args
+    from . import reconstruct
+    from ._options import config_file, frontend_config_from_args
+
+    if not options.mvrecon_args:
+        return
+
+    class Parser(argparse.ArgumentParser):
+        def error(self, message):
+            raise InputError(f"--mvrecon-args: {message} (see `mvrecon reconstruct --help`)")
+
+    parser = Parser(prog="mvrecon reconstruct", add_help=False)
+    parser.add_argument("-v", "--verbose", action="count", default=0)
+    parser.add_argument("-q", "--quiet", action="store_true")
+    reconstruct.add_arguments(parser)
+    given = parser.parse_args(reconstruct_args("IMAGES", "OUT", options)[1:])
+    plain = parser.parse_args(reconstruct_args("IMAGES", "OUT", dataclasses.replace(options, mvrecon_args=()))[1:])
+    if given.output != plain.output:
+        raise InputError("--mvrecon-args: -o/--output is compare's to choose (mvrecon's run goes to "
+                         "OUTPUT/runs/mvrecon); leave it out")
+    own = [RUN_ONLY[dest] for dest in ("seed", "camera_mode", "camera_model", "camera_params")
+           if getattr(given, dest) != getattr(plain, dest)]
+    if own:
+        raise InputError(f"--mvrecon-args: {', '.join(own)} would make mvrecon's run differ from COLMAP's; give "
+                         f"{', '.join(own)} as {'an option' if len(own) == 1 else 'options'} of "
+                         f"{'its' if len(own) == 1 else 'their'} own, which go to both engines")
+    try:
+        from_file = config_file(given)
+        frontend_config_from_args(given, from_file)
+        reconstruct.mapper_config(given, from_file)
+    except InputError as exc:
+        raise InputError(f"--mvrecon-args: {exc}") from None
 
 
 def run(args) -> int:
@@ -56,25 +109,36 @@ def run(args) -> int:
         raise InputError("give either IMAGES or --models A B (not both, not neither)")
     if args.labels and not args.models:
         raise InputError("--labels goes with --models")
+    if args.models:
+        given = [flag for dest, flag in RUN_ONLY.items() if getattr(args, dest) is not None
+                 and getattr(args, dest) is not False]  # `--seed 0` is given too (0 == False)
+        if given:
+            raise InputError(f"{', '.join(given)}: only for runs on IMAGES; --models compares models that exist, "
+                             f"so {'it' if len(given) == 1 else 'they'} would have no effect")
+    params = parse_camera_params(args.camera_params)
+    camera_model = args.camera_model or "SIMPLE_RADIAL"
+    CameraConfig(model=camera_model, params=params).validate()
+    try:
+        extra = tuple(shlex.split(args.mvrecon_args or ""))
+    except ValueError as exc:  # an unclosed quote
+        raise InputError(f"--mvrecon-args: {exc}") from None
+    options = RunOptions(camera_mode=args.camera_mode or "auto", camera_model=camera_model, camera_params=params,
+                         seed=0 if args.seed is None else args.seed, mvrecon_args=extra)
+    config = CompareConfig(options=options, colmap_global=args.colmap_global,
+                           same_matches=not args.no_same_matches, timeout_s=args.timeout)
     if args.images:
         from ..pipeline import require_images
 
-        require_images(args.images)
-    params = parse_camera_params(args.camera_params)
-    CameraConfig(model=args.camera_model, params=params).validate()
-    options = RunOptions(camera_mode=args.camera_mode, camera_model=args.camera_model, camera_params=params,
-                         seed=args.seed,
-                         mvrecon_args=tuple(shlex.split(args.mvrecon_args)))
-    config = CompareConfig(options=options, colmap_global=args.colmap_global,
-                           same_matches=not args.no_same_matches, timeout_s=args.timeout)
-    if args.retry_failed and not args.models:
+        check_mvrecon_args(options)
+        listing = require_images(args.images)  # listed once: its warnings are printed once
+    if args.retry_failed:
         for run_dir in sorted((Path(args.output) / "runs").glob("*")):
             if forget_if_failed(run_dir):
                 print(f"retrying {run_dir.name} (it failed before)")
     if args.models:
         comparison = compare_models(args.models, gt=args.gt, labels=args.labels, config=config)
     else:
-        comparison = compare_images(args.images, args.output, gt=args.gt, config=config)
+        comparison = compare_images(args.images, args.output, gt=args.gt, config=config, listing=listing)
     page = write_report(comparison, args.output)
     m = comparison.metrics
     engines = list(m["engines"])

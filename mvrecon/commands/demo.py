@@ -2,14 +2,15 @@
 
 Renders the catalog scene `object_orbit_small` (10 views, 640x480, known cameras) into OUT/scene, runs
 `reconstruct` on its images into OUT/run, and compares the result with the scene's ground truth: registered
-images, points, reprojection error, relative-pose AUC@1/5 deg, median rotation and camera-centre errors after
-a
-Sim3 alignment. The figures are also written to OUT/accuracy.json. Everything is cached: a second run reuses
-the
-scene and the finished reconstruction.
+images, points, reprojection error, relative-pose AUC@1/5 deg, median rotation and camera-centre errors after a
+Sim3 alignment. The figures are also written to OUT/accuracy.json. Everything is cached: a second run reuses the
+scene and the finished reconstruction (--overwrite reconstructs again, e.g. with another --seed). --scene takes
+the catalog's perspective scenes (kinds perspective and colmap_synthetic in `mvrecon scene list`); stereo pairs
+and SEM tilt series have their own commands, `mvrecon stereo` and `mvrecon sem`.
 
 Example:
   mvrecon demo -o out/demo
+  mvrecon demo -o out/demo_wide --scene wide_orbit_small
 """
 
 ORDER = 1
@@ -18,47 +19,78 @@ ON_INTERRUPT = "features, matches and the mapping snapshot are kept; rerun the s
 SCENE = "object_orbit_small"
 
 
+KINDS = ("perspective", "colmap_synthetic")  # scene kinds `reconstruct` is for (multi-view, perspective cameras)
+OTHER_COMMANDS = {"stereo": "mvrecon stereo", "sem_tilt": "mvrecon sem"}  # the command for each other kind
+
+
 def add_arguments(parser) -> None:
     from ._options import non_negative_int
 
     parser.add_argument("-o", "--output", default="out/demo", help="output folder (default: out/demo)")
-    parser.add_argument("--scene", default=SCENE, help=f"catalog scene to use (default: {SCENE})")
+    parser.add_argument("--scene", default=SCENE,
+                        help=f"catalog scene to use, a perspective one (`mvrecon scene list`; default: {SCENE})")
     parser.add_argument("--seed", type=non_negative_int, default=0, help="mapper seed")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="reconstruct OUT/run again from the start, e.g. with another --seed (the scene is "
+                             "kept: it is the same for the same --scene)")
+
+
+def check_scene_kind(name: str) -> None:
+    """Refuse, before rendering, a scene demo cannot reconstruct: a stereo pair or an SEM tilt series ran to the
+    end with 0 images registered (stereo) or failed after the whole reconstruction (SEM: no gt/sparse)."""
+    from ..errors import InputError
+    from ..scenes.catalog import load_entry
+
+    kind = load_entry(name)[0].get("kind", "perspective")
+    if kind not in KINDS:
+        other = OTHER_COMMANDS.get(kind)
+        instead = f"; for this one use `{other}` on the images of `mvrecon scene make {name} -o DIR`" if other else ""
+        raise InputError(f"--scene {name}: a {kind} scene; demo reconstructs perspective scenes (kind "
+                         f"{' or '.join(KINDS)} in `mvrecon scene list`){instead}")
 
 
 def run(args) -> int:
-    import json
     import logging
+    import math
     from pathlib import Path
 
+    from ..eval.compare import jsonable
     from ..eval.ground_truth import load_ground_truth
     from ..eval.metrics import accuracy_summary
     from ..eval.models import model_stats, poses, sparse_models
+    from ..io.files import write_json
     from ..pipeline import ReconstructConfig, reconstruct
     from ..scenes import make_scene
     from ..sfm.config import MapperConfig
+    from .reconstruct import no_model
 
+    check_scene_kind(args.scene)
     log = logging.getLogger("mvrecon")
     out = Path(args.output)
     log.info("rendering scene %s into %s ...", args.scene, out / "scene")
     scene = make_scene(args.scene, out / "scene")
     run_dir = out / "run"
     report = reconstruct(ReconstructConfig(mapper=MapperConfig(seed=args.seed)), scene / "images", run_dir,
-                         resume=True)
+                         resume=True, overwrite=args.overwrite)
     models = sparse_models(run_dir / "sparse")
     gt = load_ground_truth(scene / "gt" / "sparse")
     summary = accuracy_summary([poses(m) for m in models], gt)
     stats = model_stats(models[0]) if models else {"registered": 0, "points": 0,
-                                                   "mean_reprojection_error_px": float("nan")}
+                                                   "mean_reprojection_error_px": None}
     keys = ("registered", "points", "mean_reprojection_error_px")
     result = {"scene": args.scene, "images": len(gt), **{k: stats[k] for k in keys},
               "models": len(models), "wall_s": report["total"]["wall_s"], **summary}
-    (out / "accuracy.json").write_text(json.dumps(result, indent=1) + "\n")
+    # strict JSON (no NaN, which JSON has not): a figure there is none of is null
+    write_json(out / "accuracy.json", jsonable(result), indent=1, allow_nan=False)
+    if not models:  # the scene's images gave no model: say why (reconstruct's line), no figures to show
+        return no_model(run_dir, report["images"])
+    reprojection = stats["mean_reprojection_error_px"]
     lines = [
         f"mvrecon demo: scene {args.scene} ({len(gt)} images, ground truth in {scene / 'gt' / 'sparse'})",
         f"  registered images      {summary['registered']} / {len(gt)} in {len(models)} model(s)",
         f"  points                 {stats['points']}",
-        f"  reprojection error     {stats['mean_reprojection_error_px']:.3f} px (mean)",
+        "  reprojection error     "
+        + (f"{reprojection:.3f} px (mean)" if reprojection is not None and math.isfinite(reprojection) else "-"),
         f"  relative pose AUC@1    {summary['auc@1']:.3f}",
         f"  relative pose AUC@5    {summary['auc@5']:.3f}",
     ]

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..io.images import IMAGE_EXTENSIONS, list_images
 from . import metrics as M
 from .runners import RunOptions, RunResult, load_run, run_colmap, run_colmap_on_database, run_mvrecon
 
@@ -86,14 +87,20 @@ class Comparison:
     geometry: dict  # engine or "ground truth" -> Geometry, for the 3D view
 
 
-def compare_images(image_dir, report_dir, gt=None, config: CompareConfig = CompareConfig()) -> Comparison:
-    """Run mvrecon, pycolmap (and the same-matches run) on IMAGE_DIR into REPORT_DIR/runs/ and measure them."""
-    from ..io.images import list_images
+def compare_images(image_dir, report_dir, gt=None, config: CompareConfig = CompareConfig(), *,
+                   listing: tuple[list[str], dict[str, str]] | None = None) -> Comparison:
+    """Run mvrecon, pycolmap (and the same-matches run) on IMAGE_DIR into REPORT_DIR/runs/ and measure them.
+
+    `listing`: what `io.images.list_images(image_dir)` returned, when the caller has listed the folder already
+    (its warnings are then printed once). Image files that cannot be read are named, with the reason, in the
+    metrics' "skipped_images": no engine sees them, and a report that left them out would look complete.
+    """
     from ..progress import progress
     from .ground_truth import load_ground_truth_for
 
     image_dir, report_dir = Path(image_dir), Path(report_dir)
-    names, _ = list_images(image_dir)
+    names, skipped = listing if listing is not None else list_images(image_dir)
+    skipped = {n: r for n, r in skipped.items() if Path(n).suffix.lower() in IMAGE_EXTENSIONS}
     gt_poses = load_ground_truth_for(gt, names) if gt else None
     runs_dir = report_dir / "runs"
     steps = ["mvrecon", "colmap"] + (["colmap-global"] if config.colmap_global else []) \
@@ -122,7 +129,7 @@ def compare_images(image_dir, report_dir, gt=None, config: CompareConfig = Compa
     bar.close()
     title = image_dir.resolve().name if image_dir.name != "images" else image_dir.resolve().parent.name
     return evaluate(runs, names, gt_poses, config, title=title, source=str(image_dir),
-                    gt_source=str(gt) if gt else None)
+                    gt_source=str(gt) if gt else None, skipped=skipped)
 
 
 def compare_models(paths, gt=None, labels=None, config: CompareConfig = CompareConfig()) -> Comparison:
@@ -179,8 +186,9 @@ def _folder_label(path: Path) -> str:
 
 def evaluate(runs: list[RunResult], image_names, gt_poses=None, config: CompareConfig = CompareConfig(), *,
              title: str = "", source: str = "", gt_source: str | None = None,
-             reference_engine: str | None = "colmap") -> Comparison:
-    """Metrics of every run against the reference (ground truth, else `reference_engine`'s largest model)."""
+             reference_engine: str | None = "colmap", skipped: dict[str, str] | None = None) -> Comparison:
+    """Metrics of every run against the reference (ground truth, else `reference_engine`'s largest model).
+    `skipped`: image files of the source that no engine could read, name -> reason (listed, not counted)."""
     image_names = sorted(image_names)
     if gt_poses is not None:
         ref_poses, ref_name, reference_engine = dict(gt_poses), "ground truth", None
@@ -207,9 +215,10 @@ def evaluate(runs: list[RunResult], image_names, gt_poses=None, config: CompareC
                       "images": len(ref_poses),
                       "note": "" if len(ref_poses) >= 2 else
                       "no reference: no ground truth was given and the reference engine made no model"},
-        "images": image_names, "engines": engines, "rows": summary_rows(engines),
+        "images": image_names, "skipped_images": dict(sorted((skipped or {}).items())),
+        "engines": engines, "rows": summary_rows(engines),
     }
-    return Comparison(metrics=_jsonable(metrics), geometry=geometry)
+    return Comparison(metrics=jsonable(metrics), geometry=geometry)
 
 
 def _evaluate_run(run: RunResult, role: str, image_names, ref_poses: dict, config: CompareConfig):
@@ -382,16 +391,16 @@ def _finite(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
-def _jsonable(obj):
+def jsonable(obj):
     """Plain JSON types; NaN and inf become None (JSON has no NaN, and JavaScript would choke on it)."""
     if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
+        return {str(k): jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
+        return [jsonable(v) for v in obj]
     if isinstance(obj, (np.integer,)):
         return int(obj)
     if isinstance(obj, (float, np.floating)):
         return float(obj) if math.isfinite(obj) else None
     if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
+        return jsonable(obj.tolist())
     return obj

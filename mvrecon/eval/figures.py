@@ -9,6 +9,8 @@ import math
 
 import numpy as np
 
+from . import metrics as M
+
 ENGINE_COLORS = {"mvrecon": "#1f77b4", "colmap": "#ff7f0e", "colmap-global": "#9467bd",
                  "colmap-same-matches": "#2ca02c", "ground truth": "#222222"}
 _EXTRA_COLORS = ("#d62728", "#17becf", "#8c564b", "#e377c2", "#bcbd22", "#7f7f7f")
@@ -61,16 +63,51 @@ def cumulative_errors_png(metrics: dict) -> bytes | None:
             if len(vals):
                 ax.step(np.r_[0, vals], np.arange(len(vals) + 1) / n_images, where="post", color=colors[name],
                         label=name)
-    axes[0].set(xlim=(0, 10), ylim=(0, 1.02), xlabel="relative-pose error (deg)", ylabel="fraction of image pairs",
-                title="Relative pose, all pairs (failed = 180 deg)")
-    axes[1].set(xscale="log", ylim=(0, 1.02), xlabel="rotation error (deg)", ylabel="fraction of images",
+    failed = M.FAILED_DEG
+    shown = [v for e in engines.values() for v in e["relative_pose_errors_deg"] if v is not None and v < failed]
+    # over the pairs' errors (~0.05 deg ones sat on the y axis of a 0-10 range), at most to 10 deg, the last AUC
+    # threshold: failed pairs (180 deg) stay off the plot, below the top
+    top = min(max(max(shown, default=10.0) * 1.1, 0.01), max(M.AUC_THRESHOLDS))
+    for t in M.AUC_THRESHOLDS:
+        if t <= top:
+            axes[0].axvline(t, color="#bbb", lw=0.8, ls=":")
+    axes[0].set(xlim=(0, top), ylim=(0, 1.02), xlabel="relative-pose error (deg; dotted: the AUC thresholds)",
+                ylabel="fraction of image pairs", title=f"Relative pose, all pairs (failed = {failed:g} deg)")
+    axes[1].set(ylim=(0, 1.02), xlabel="rotation error (deg)", ylabel="fraction of images",
                 title="Absolute rotation after Sim3")
-    axes[2].set(xscale="log", ylim=(0, 1.02), xlabel="centre error (% of scene extent)",
+    axes[2].set(ylim=(0, 1.02), xlabel="centre error (% of scene extent)",
                 ylabel="fraction of images", title="Absolute camera centre after Sim3")
+    for ax, key in ((axes[1], "rotation_error_deg"), (axes[2], "center_error_pct")):
+        _log_axis(ax, [v[key] for e in engines.values() for v in e["per_image"].values() if v.get(key)])
     for ax in axes:
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8, loc="lower right")
+        _legend(ax, fontsize=8, loc="lower right")
     return _png(fig)
+
+
+def _legend(ax, **kwargs) -> None:
+    """A legend when the axes have labelled lines: an engine that failed leaves some empty, and matplotlib warns
+    on the console ("No artists with labels found") for an empty one."""
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(**kwargs)
+
+
+def _log_axis(ax, values) -> None:
+    """A log x axis over the data (errors of 0.01-0.1 deg sit in a tenth of a decade, invisible on a fixed
+    range), ticked at 1-2-5 per decade (or per decade, over many) as plain numbers: matplotlib's own minor
+    labels ("2x10^-2 3x10^-2 ...") ran into each other."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    ax.set_xscale("log")
+    positive = [v for v in values if v is not None and v > 0 and math.isfinite(v)]
+    if not positive:
+        return
+    lo, hi = min(positive) / 1.5, max(positive) * 1.5
+    ax.set_xlim(lo, hi)
+    decades = math.log10(hi / lo)
+    ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0) if decades <= 2 else (1.0,)))
+    ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    ax.xaxis.set_minor_formatter(NullFormatter())
 
 
 def per_image_errors_png(metrics: dict) -> bytes | None:
@@ -99,7 +136,7 @@ def per_image_errors_png(metrics: dict) -> bytes | None:
                 ax.plot(pos[missing], np.full(missing.sum(), top * 0.05), "x", color=colors[name], ms=8, mew=2)
         ax.set_ylabel(label)
         ax.grid(axis="y", alpha=0.3)
-    axes[0].legend(fontsize=8, ncol=len(engines))
+    _legend(axes[0], fontsize=8, ncol=len(engines))
     axes[0].set_title("Per-image errors after Sim3 alignment (x: not in the largest model)")
     axes[1].set_xticks(x, names, rotation=70, fontsize=7, ha="right")
     return _png(fig)
@@ -132,7 +169,7 @@ def timing_png(metrics: dict) -> bytes | None:
     ax.set_yticks(y, labels)
     ax.invert_yaxis()
     ax.set(xlabel="wall time (s); bar = stages, | = whole run incl. start-up", title="Time per stage")
-    ax.legend(fontsize=8, loc="lower right")
+    _legend(ax, fontsize=8, loc="lower right")
     ax.grid(axis="x", alpha=0.3)
     mem = [engines[n]["summary"].get("peak_mem_mb") or 0.0 for n in labels]
     colors = engine_colors(metrics["engines"])

@@ -37,7 +37,7 @@ def write_report(comparison, report_dir) -> Path:
     report_dir = Path(report_dir)
     report_dir.mkdir(parents=True, exist_ok=True)
     m = comparison.metrics
-    (report_dir / "metrics.json").write_text(json.dumps(m, indent=1))
+    (report_dir / "metrics.json").write_text(json.dumps(m, indent=1, allow_nan=False))  # strict JSON: no NaN
     write_csv(m, report_dir / "metrics.csv")
     page = report_dir / "index.html"
     page.write_text(render_html(comparison), encoding="utf-8")
@@ -45,7 +45,8 @@ def write_report(comparison, report_dir) -> Path:
 
 
 def write_csv(m: dict, path) -> None:
-    """Long format, one number per line: section (summary, stage, image), engine, item, metric, value."""
+    """Long format, one number per line: section (summary, stage, image), engine, item, metric, value; and a
+    "skipped" line per image file no engine could read, with the reason as its value."""
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["section", "engine", "item", "metric", "value"])
@@ -63,6 +64,8 @@ def write_csv(m: dict, path) -> None:
                 for key in ("rotation_error_deg", "center_error", "center_error_pct"):
                     if v.get(key) is not None:
                         w.writerow(["image", engine, name, key, v[key]])
+        for name, reason in m.get("skipped_images", {}).items():
+            w.writerow(["skipped", "", name, "reason", reason])
 
 
 def _img(png: bytes | None, alt: str) -> str:
@@ -119,6 +122,17 @@ def _unregistered(m: dict) -> str:
     return "".join(parts)
 
 
+def _skipped(m: dict) -> str:
+    """The image files of the folder that no engine could read, each with its reason (none: nothing)."""
+    skipped = m.get("skipped_images") or {}
+    if not skipped:
+        return ""
+    rows = "".join(f"<tr><td>{html.escape(n)}</td><td>{html.escape(r)}</td></tr>" for n, r in skipped.items())
+    return (f"<h2>Images skipped</h2><p class='meta'>{len(skipped)} image file(s) of the folder could not be read; "
+            "no engine saw them, and they are not counted above.</p>"
+            f"<table id='skipped' class='grid unreg'><tr><th>image</th><th>reason</th></tr>{rows}</table>")
+
+
 def _per_image_table(m: dict) -> str:
     engines = [n for n, e in m["engines"].items() if e["role"] != "reference"]
     head = "".join(f"<th colspan=2>{html.escape(n)}</th>" for n in engines)
@@ -166,12 +180,14 @@ def render_html(comparison) -> str:
                       "cells read 'ref', and images it did not register cannot be scored")
     note = f"<p class='error'>{html.escape(ref['note'])}</p>" if ref.get("note") else ""
     folders = ", ".join(html.escape(e["out_dir"]) for e in m["engines"].values())
+    n_skipped = len(m.get("skipped_images") or {})
+    skipped_note = (f" ({n_skipped} more skipped: <a href='#skipped'>unreadable</a>)" if n_skipped else "")
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>mvrecon compare: {html.escape(m['title'])}</title>
 <meta name="viewport" content="width=device-width, initial-scale=1"><style>{CSS}</style></head>
 <body>
 <h1>mvrecon vs COLMAP: {html.escape(m['title'])}</h1>
-<div class="meta">{len(m['images'])} images from <code>{html.escape(m['source'])}</code><br>
+<div class="meta">{len(m['images'])} images from <code>{html.escape(m['source'])}</code>{skipped_note}<br>
 Reference: {reference_line}<br>
 Run {html.escape(m['created'])} on {html.escape(str(machine['cpu']))}, {machine['cores']} cores,
 {machine['memory_gb']} GB, {html.escape(machine['system'])}, Python {html.escape(machine['python'])}</div>{note}
@@ -197,6 +213,7 @@ against pycolmap's own alignment ("our Sim3 vs pycolmap's": largest disagreement
 
 <h2>Images not registered</h2>
 {_unregistered(m)}
+{_skipped(m)}
 
 <h2>3D view (aligned to the reference)</h2>
 <p class="meta">Drag to rotate, scroll to zoom; click a legend entry to hide or show a model's cameras or points.</p>

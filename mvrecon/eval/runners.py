@@ -26,6 +26,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from ..config import diff
 from ..database import database_counts
 from ..errors import InputError
 from ..executor import StageClock
@@ -80,12 +81,18 @@ def run_mvrecon(image_dir, out_dir, options: RunOptions = RunOptions(), timeout:
     """`mvrecon reconstruct IMAGE_DIR -o OUT_DIR` with the options' camera settings and seed.
 
     Known intrinsics (`camera_params`) are held fixed, as `run_colmap` holds them in COLMAP's bundle adjustment."""
-    cmd = [sys.executable, "-m", "mvrecon.cli", "reconstruct", str(image_dir), "-o", str(out_dir), "-q",
-           "--seed", str(options.seed), "--camera-mode", options.camera_mode, "--camera-model", options.camera_model]
-    if options.camera_params:  # known intrinsics stay fixed, in both engines
-        cmd += ["--camera-params", ",".join(f"{p:.17g}" for p in options.camera_params), "--fix-intrinsics"]
-    cmd += list(options.mvrecon_args)
+    cmd = [sys.executable, "-m", "mvrecon.cli", *reconstruct_args(image_dir, out_dir, options)]
     return _run("mvrecon", cmd, Path(image_dir), Path(out_dir), options, timeout)
+
+
+def reconstruct_args(image_dir, out_dir, options: RunOptions) -> list[str]:
+    """The `mvrecon` arguments of `run_mvrecon` (`reconstruct IMAGES -o OUT ...`, the extra flags last): one
+    place, so that `--mvrecon-args` can be checked against the very command that will run."""
+    args = ["reconstruct", str(image_dir), "-o", str(out_dir), "-q", "--seed", str(options.seed),
+            "--camera-mode", options.camera_mode, "--camera-model", options.camera_model]
+    if options.camera_params:  # known intrinsics stay fixed, in both engines
+        args += ["--camera-params", ",".join(f"{p:.17g}" for p in options.camera_params), "--fix-intrinsics"]
+    return args + list(options.mvrecon_args)
 
 
 def run_colmap(image_dir, out_dir, options: RunOptions = RunOptions(), global_mapper: bool = False,
@@ -157,10 +164,10 @@ def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout)
     meta_path = out_dir / "runner.json"
     meta = _read_json(meta_path)
     if meta:
-        differing = [k for k in identity if meta.get(k) != identity[k]]
+        differing = diff({k: meta.get(k) for k in identity}, identity)
         if differing:
-            raise InputError(f"{out_dir}: holds a run with a different {', '.join(differing)} "
-                             f"({meta.get('engine')} on {meta.get('source')}); use another folder or delete it")
+            raise InputError(f"{out_dir}: holds a run of {meta.get('engine')} made with other settings "
+                             f"({'; '.join(differing)}); use another folder or delete it")
         if meta.get("finished"):
             return _result(engine, out_dir, meta)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -113,15 +113,19 @@ def image_problem(path: Path) -> str | None:
     """Why a file cannot be used as an image (a cut-off PNG or JPEG, a broken header), or None; read without
     decoding the pixels."""
     try:
-        with Image.open(path) as im:
-            w, h = im.size
+        im = Image.open(path)
+    except Exception as exc:  # Pillow raises many types for broken files; the message is what the user needs
+        return f"cannot read image header ({type(exc).__name__}: {exc})"
+    with im:
+        w, h = im.size
+        jpeg = im.format in ("JPEG", "MPO")  # MPO: Pillow's name for a JPEG followed by more JPEGs
+        try:
             if im.format == "PNG":
                 im.verify()  # reads every chunk to the end and checks its CRC, without inflating the pixels
             else:
                 im.getexif()  # walks the file's metadata blocks: catches most truncated files without decoding
-            jpeg = im.format in ("JPEG", "MPO")  # MPO: Pillow's name for a JPEG followed by more JPEGs
-    except Exception as exc:  # Pillow raises many types for broken files; the message is what the user needs
-        return f"cannot read image header ({type(exc).__name__}: {exc})"
+        except Exception as exc:  # the header was read: what follows it is missing or damaged
+            return f"cut off or corrupt after its header ({type(exc).__name__}: {exc})"
     if w <= 0 or h <= 0:
         return f"empty image ({w}x{h})"
     if jpeg:
