@@ -426,6 +426,67 @@ def test_bad_scene_requests_are_input_errors(tmp_path):
     assert (user / "gt" / "notes.txt").read_text() == (user / "calib.txt").read_text() == "mine"
 
 
+TINY_TILT = """
+kind = "sem_tilt"
+[camera]
+orthographic = true
+width = 32
+height = 32
+pixel_size = 1.0
+[trajectory]
+type = "tilt"
+angles_deg = [-5.0, 5.0]
+distance = 50.0
+[[objects]]
+type = "quad"
+origin = [-10.0, -10.0, 0.0]
+u = [20.0, 0.0, 0.0]
+v = [0.0, 20.0, 0.0]
+texture = "noise"
+"""
+
+
+@pytest.mark.parametrize("base, old, new, expected", [
+    # a TypeError ("PerspectiveCamera.__init__() missing 4 required positional arguments") and a folder
+    # holding scene.json
+    (TINY, "[camera]\nmodel = \"SIMPLE_RADIAL\"\nwidth = 96\nheight = 72\nparams = [80.0, 48.0, 36.0, 0.01]\n", "",
+     "no [camera] table; a perspective scene needs one with model, width, height and params (or focal)"),
+    (TINY, "width = 96\n", "", "[camera] lacks width"),
+    (TINY, "radius = 3.0\n", "", "[trajectory] (orbit) lacks radius"),
+    (TINY, "size = [1.0, 1.0, 1.0]\n", "", "[[objects]] #1 box lacks size"),
+    (TINY_TILT, "pixel_size = 1.0\n", "", "[camera] lacks pixel_size"),
+    # a 0-image scene, exit 0
+    (TINY, "count = 3", "count = 0", "[trajectory] count = 0: a scene needs a whole number of views, 2 or more"),
+    (TINY, "count = 3", "count = 1", "[trajectory] count = 1: a scene needs a whole number of views, 2 or more"),
+    (TINY_TILT, "[-5.0, 5.0]", "[5.0]", "[trajectory] angles_deg = [5.0]: a tilt series needs 2 tilts or more"),
+    (TINY_TILT, "[-5.0, 5.0]", "[5.0, 5.01]",
+     "[trajectory] angles_deg: 5 and 5.01 deg both make tilt_+5.0.png; tilts must differ by 0.1 deg or more"),
+])
+def test_scene_entries_lacking_keys_or_views_are_one_line(tmp_path, capsys, base, old, new, expected):
+    """Refused in one line naming the file, the table and the key, before a folder is made or a view rendered."""
+    from mvrecon.cli import main
+
+    assert old in base
+    toml = tmp_path / "entry.toml"
+    toml.write_text(base.replace(old, new))
+    assert main(["scene", "make", str(toml), "-o", str(tmp_path / "out" / "scene")]) == 2
+    assert capsys.readouterr().err.splitlines() == [f"mvrecon: error: {toml}: {expected}"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["entry.toml"]
+
+
+def test_a_failed_make_leaves_no_folder_it_made(tmp_path):
+    """An error found while building (an unknown photo) removes the new folder; an existing one stays."""
+    toml = tmp_path / "tiny.toml"
+    toml.write_text(TINY.replace('{ photo = "coffee", size = 128 }', '{ photo = "nosuch" }'))
+    with pytest.raises(InputError, match="unknown photo 'nosuch'"):
+        make_scene(str(toml), tmp_path / "new")
+    assert not (tmp_path / "new").exists()
+    (tmp_path / "mine").mkdir()
+    with pytest.raises(InputError, match="unknown photo 'nosuch'"):
+        make_scene(str(toml), tmp_path / "mine")
+    assert (tmp_path / "mine").is_dir()
+
+
 def test_scene_command_lists_and_reports_errors(capsys, tmp_path):
     from mvrecon.cli import main
 

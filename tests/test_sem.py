@@ -162,6 +162,30 @@ def test_scene_known_tilts_end_to_end(sem_scene, tmp_path):
         assert (out / name).is_file(), name
     # the default height map (sparse points refined by least-squares matching of all views): measured 0.81%
     assert _scene_height_rms_percent(root, out) < 1.0
+    # the right axis agrees with the matches' own estimate (measured 89.89 deg, median of the 10 pairs)
+    report = json.loads((out / "report.json").read_text())
+    assert report["warnings"] == [] and report["axis_check"]["difference_deg"] < 0.5, report["axis_check"]
+
+
+def test_scene_given_axis_contradicting_the_matches_is_warned(sem_scene, tmp_path, caplog):
+    """--axis x on a series tilted about y: the heights come out 26 % of the range off (0.81 % with y), exit 0.
+    The log and report.json say so, with the matches' axis and both adjustment RMS figures."""
+    root, images, tilts, meta = sem_scene
+    out = tmp_path / "axis_x"
+    code = main(["-q", "sem", *images, "-o", str(out), "--tilts=" + ",".join(map(str, tilts)), "--axis", "x",
+                 "--height-source", "joint"])
+    assert code == 0
+    report = json.loads((out / "report.json").read_text())
+    check = report["axis_check"]
+    assert check["given_deg"] == 0.0 and abs(check["from_pairs_deg"] - 90.0) < 1.0, check
+    assert check["difference_deg"] > 85.0 and abs(check["axis_estimated_deg"] - 90.0) < 0.5, check
+    # measured 1.124 px with the given axis, 0.135 px with the axis estimated
+    assert check["rms_given_px"] > 5 * check["rms_axis_estimated_px"], check
+    assert len(report["warnings"]) == 1
+    warning = report["warnings"][0]
+    assert warning.startswith("--axis 0 deg contradicts the matches, which put the tilt axis at 89.9 deg")
+    assert f"{check['rms_given_px']:.3f} px with the given axis" in warning and "likely wrong" in warning
+    assert [r.getMessage() for r in caplog.records if r.levelname == "WARNING"] == [f"warning: {warning}"]
 
 
 def test_scene_estimated_tilts_end_to_end(sem_scene, tmp_path):
@@ -233,6 +257,65 @@ def test_cli_bad_input(tmp_path, capsys):
     for argv, expected in cases:
         code, lines = _error_lines(capsys, argv)
         assert code == 2 and len(lines) == 1 and expected in lines[0], (argv, code, lines)
+    # o3 failed after its folder was made (matching): a failed run leaves no folder it created, nested ones too
+    code, lines = _error_lines(capsys, ["-q", "sem", images[0], images[1], "-o", str(tmp_path / "o4" / "deep"),
+                                        "--tilts", "0,5"])
+    assert code == 2 and "no image pair has verified matches" in lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["noise"]
+    (tmp_path / "mine").mkdir()  # a folder the user made stays
+    assert _error_lines(capsys, ["-q", "sem", images[0], images[1], "-o", str(tmp_path / "mine"), "--tilts",
+                                 "0,5"])[0] == 2
+    assert (tmp_path / "mine").is_dir()
+
+
+def test_cli_refuses_one_view_given_twice(tmp_path, capsys):
+    """The same image twice made a height map of -10.9..11 px out of zero parallax, exit 0. Refused in one line:
+    the same file (before reading), identical pixels (before matching), or matches that move only by a common
+    shift (a noisy or shifted copy: 2.3x and 0x the matching noise, tilted pairs 14.7x or more)."""
+    import cv2
+
+    images = _noise_images(tmp_path / "noise", 1)
+    image = cv2.imread(images[0], cv2.IMREAD_UNCHANGED)
+    noisy = np.clip(image + np.random.default_rng(1).normal(0, 2, image.shape), 0, 255).astype(np.uint8)
+    copies = {"copy.png": image, "noisy.png": noisy, "shifted.png": np.roll(image, (2, 3), axis=(0, 1))}
+    for name, pixels in copies.items():
+        cv2.imwrite(str(tmp_path / name), pixels)
+    cases = [([images[0], images[0]], f"{images[0]}: the same file as {images[0]} (given twice)"),
+             ([images[0], str(tmp_path / "copy.png")], f"copy.png: identical pixels to {images[0]}"),
+             ([images[0], str(tmp_path / "noisy.png")], "the matches show no parallax: the largest, with noisy.png"),
+             ([images[0], str(tmp_path / "shifted.png")], "no parallax: the largest, with shifted.png, is 0.000 px")]
+    for inputs, expected in cases:
+        code, lines = _error_lines(capsys, ["-q", "sem", *inputs, "-o", str(tmp_path / "out"), "--tilts", "0,5"])
+        assert code == 2 and len(lines) == 1 and expected in lines[0], (inputs, code, lines)
+        assert not (tmp_path / "out").exists()
+
+
+def test_cli_equal_tilts_are_refused_before_matching(tmp_path, capsys):
+    """Images that share no match at all: the tilts are refused first (before, they were matched and then
+    refused for having no verified matches)."""
+    images = _noise_images(tmp_path / "noise", 3)
+    code, lines = _error_lines(capsys, ["-q", "sem", *images, "-o", str(tmp_path / "o"), "--tilts", "2,2,2"])
+    assert code == 2 and lines == ["mvrecon: error: --tilts 2,2,2: no two tilts differ, so the image pairs have "
+                                   "no parallax (equal tilts) to give heights"], lines
+    assert not (tmp_path / "o").exists()
+
+
+def test_scene_repeated_exposure_in_a_series(sem_scene, tmp_path):
+    """Two exposures at one tilt (--tilts 0,0,10) joined the series but made the run fail after the joint
+    adjustment (their pair matched best, and gives no heights). The pair step now takes pairs with parallax."""
+    import cv2
+
+    root, images, tilts, meta = sem_scene
+    zero, ten = images[tilts.index(0.0)], images[tilts.index(10.0)]
+    image = cv2.imread(zero, cv2.IMREAD_UNCHANGED)
+    again = tmp_path / "again.png"
+    noise = np.random.default_rng(2).normal(0, 2, image.shape)
+    cv2.imwrite(str(again), np.clip(image + noise, 0, 255).astype(np.uint8))
+    out = tmp_path / "repeated"
+    assert main(["-q", "sem", zero, str(again), ten, "-o", str(out), "--tilts", "0,0,10", "--axis", "y",
+                 "--height-source", "joint"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert [0, 1] not in [p["pair"] for p in report["pair_point_sets"]] and report["warnings"] == []
 
 
 def test_cli_equal_tilts_are_one_line(sem_scene, tmp_path, capsys):
@@ -240,6 +323,7 @@ def test_cli_equal_tilts_are_one_line(sem_scene, tmp_path, capsys):
     code, lines = _error_lines(capsys, ["-q", "sem", *images, "-o", str(tmp_path / "o"),
                                         "--tilts=" + ",".join("0" for _ in images), "--axis", "y"])
     assert code == 2 and len(lines) == 1 and "no parallax (equal tilts)" in lines[0], lines
+    assert not (tmp_path / "o").exists()
 
 
 def test_cli_refuses_an_output_folder_in_the_tilt_series(tmp_path, capsys):

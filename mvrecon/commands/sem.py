@@ -7,7 +7,9 @@ Examples:
 Images are taken in the order given (a folder: natural name order). Estimated tilts are relative to the
 reference image and increase along that order (parallel projection cannot tell a tilt's sign from the relief's).
 Outputs in OUT: height.tif (32-bit float), height.png, profile.png, points.ply (merged points),
-surface.ply (height map as points), report.json (tilts, axis, scale, matches, point counts, ICP, timings).
+surface.ply (height map as points), report.json (tilts, axis, scale, matches, point counts, ICP, timings,
+warnings). A given --axis more than 5 deg from the matches' own estimate is warned about; one view given twice
+(the same file, identical pixels, or matches without parallax) is refused.
 """
 
 ORDER = 70
@@ -23,7 +25,8 @@ def add_arguments(parser) -> None:
     tilts.add_argument("--estimate-tilts", action="store_true",
                        help="estimate the tilts by affine factorisation (3 or more images)")
     parser.add_argument("--axis", help="tilt axis in the image: y (vertical), x, or degrees from +x towards +y "
-                                       "(default: estimated)")
+                                       "(default: estimated; a given axis the matches contradict is warned "
+                                       "about)")
     parser.add_argument("--pixel-size", help="size of an input pixel, e.g. 0.05um or 50nm (default: heights "
                                              "in pixels)")
     parser.add_argument("--max-size", type=positive_int,

@@ -41,6 +41,139 @@ OBJECT_KEYS = {
 }
 
 
+# keys an [[objects]] table of each type cannot do without (the others have defaults)
+OBJECT_REQUIRED = {
+    "quad": ("origin", "u", "v", "texture"),
+    "box": ("center", "size"),
+    "room": ("center", "size"),
+    "sphere": ("center", "radius", "texture"),
+    "heightfield": ("origin", "u", "v", "texture"),
+    "mesh": ("path",),
+}
+CAMERA_KEYS = {
+    "perspective": {"model", "width", "height", "params", "focal", "distortion", "orthographic"},
+    "orthographic": {"width", "height", "pixel_size", "orthographic"},
+}
+MIN_VIEWS = 2  # fewer views make no scene to reconstruct (two-view geometry, an SEM pair)
+
+
+def _listing(names) -> str:
+    names = list(names)
+    return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
+
+
+def _table(entry: dict, name: str, kind: str, needs: str) -> dict:
+    """entry[name] when it is a table; a ValueError naming the table and what it must hold otherwise."""
+    if name not in entry:
+        raise ValueError(f"no [{name}] table; a {kind} scene needs one with {needs}")
+    if not isinstance(entry[name], dict):
+        raise ValueError(f"{name} = {entry[name]!r}: must be a [{name}] table with {needs}")
+    return entry[name]
+
+
+def _check_keys(table: dict, required, accepted, what: str) -> None:
+    missing = [k for k in required if k not in table]
+    if missing:
+        raise ValueError(f"{what} lacks {_listing(missing)}")
+    unknown = set(table) - set(accepted)
+    if unknown:
+        raise ValueError(f"{what}: unknown keys {sorted(unknown)}; accepted: {', '.join(sorted(accepted))}")
+
+
+def _whole(value, least: int) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= least
+
+
+def check_entry(entry: dict) -> None:
+    """Refuse an entry that lacks a table or key its kind needs, has keys nothing reads, or cannot make a usable
+    scene (fewer than 2 views), before a folder is made or a view rendered. The ValueError names the table and
+    key; `make_scene` puts the file in front."""
+    kind = entry.get("kind", "perspective")
+    if kind == "colmap_synthetic":
+        _check_synthetic(entry)
+        return
+    ortho = kind == "sem_tilt"
+    needs = ("orthographic = true, width, height and pixel_size" if ortho
+             else "model, width, height and params (or focal)")
+    cam = _table(entry, "camera", kind, needs)
+    if bool(cam.get("orthographic", False)) != ortho:
+        raise ValueError("an SEM tilt series needs an orthographic camera ([camera] orthographic = true)" if ortho
+                         else f"a {kind} scene needs a perspective camera (orthographic ones are for sem_tilt)")
+    if ortho:
+        _check_keys(cam, ("width", "height", "pixel_size"), CAMERA_KEYS["orthographic"], "[camera]")
+    else:
+        required = ("model", "width", "height") + (() if "focal" in cam else ("params",))
+        _check_keys(cam, required, CAMERA_KEYS["perspective"], "[camera]")
+    if kind == "stereo" and cam["model"] not in ("PINHOLE", "SIMPLE_PINHOLE"):
+        raise ValueError(f"[camera] model = {cam['model']!r}: a rectified stereo pair needs PINHOLE or "
+                         "SIMPLE_PINHOLE")
+    for key in ("width", "height"):
+        if not _whole(cam[key], 1):
+            raise ValueError(f"[camera] {key} = {cam[key]!r}: must be a whole number of pixels, 1 or more")
+    traj = _table(entry, "trajectory", kind, {"sem_tilt": 'type = "tilt", angles_deg and distance',
+                                              "stereo": 'type = "stereo", center, target and baseline'}
+                  .get(kind, f"type ({', '.join(TRAJECTORIES)}) and its keys"))
+    ttype = traj.get("type")
+    if ttype not in TRAJECTORIES:
+        raise ValueError(f"[trajectory] type {ttype!r}: expected one of {', '.join(TRAJECTORIES)}")
+    expected = {"sem_tilt": "tilt", "stereo": "stereo"}.get(kind)
+    if expected and ttype != expected:
+        raise ValueError(f'a {kind} scene needs [trajectory] type = "{expected}", got {ttype!r}')
+    params = inspect.signature(TRAJECTORIES[ttype]).parameters
+    required = [n for n, p in params.items() if p.default is p.empty]
+    _check_keys(traj, required, {"type", *params}, f"[trajectory] ({ttype})")
+    if "count" in params and not _whole(traj["count"], MIN_VIEWS):
+        raise ValueError(f"[trajectory] count = {traj['count']!r}: a scene needs a whole number of views, "
+                         f"{MIN_VIEWS} or more")
+    if ttype == "tilt":
+        _check_tilt_angles(traj["angles_deg"])
+    objects = entry.get("objects")
+    if not objects:
+        raise ValueError("no [[objects]] table; a rendered scene needs at least one")
+    if not isinstance(objects, list) or not all(isinstance(o, dict) for o in objects):
+        raise ValueError("objects: must be [[objects]] tables")
+    for k, spec in enumerate(objects, 1):
+        otype = spec.get("type")
+        if otype not in OBJECT_KEYS:
+            raise ValueError(f"[[objects]] #{k}: unknown object type {otype!r}; expected one of "
+                             f"{', '.join(OBJECT_KEYS)}")
+        _check_keys(spec, OBJECT_REQUIRED[otype], {"type", *OBJECT_KEYS[otype]}, f"[[objects]] #{k} {otype}")
+
+
+def _check_tilt_angles(angles) -> None:
+    """At least 2 tilts, numbers, each with its own image name (tilt_<angle to 0.1 deg>.png)."""
+    if not isinstance(angles, list) or not all(isinstance(a, (int, float)) and not isinstance(a, bool)
+                                               and np.isfinite(a) for a in angles):
+        raise ValueError(f"[trajectory] angles_deg = {angles!r}: must be a list of numbers (degrees)")
+    if len(angles) < MIN_VIEWS:
+        raise ValueError(f"[trajectory] angles_deg = {angles!r}: a tilt series needs {MIN_VIEWS} tilts or more")
+    seen = {}
+    for a in angles:
+        name = f"tilt_{float(a):+.1f}.png"
+        if name in seen:
+            raise ValueError(f"[trajectory] angles_deg: {seen[name]:g} and {a:g} deg both make {name}; tilts must "
+                             "differ by 0.1 deg or more")
+        seen[name] = a
+
+
+def _check_synthetic(entry: dict) -> None:
+    """COLMAP's generator makes rigs x cameras per rig x frames per rig images: 2 or more."""
+    import pycolmap
+
+    opts = entry.get("synthetic", {})
+    if not isinstance(opts, dict):
+        raise ValueError(f"synthetic = {opts!r}: must be a [synthetic] table")
+    defaults = pycolmap.SyntheticDatasetOptions()
+    counts = {}
+    for key in ("num_rigs", "num_cameras_per_rig", "num_frames_per_rig"):
+        counts[key] = opts.get(key, getattr(defaults, key))
+        if not _whole(counts[key], 1):
+            raise ValueError(f"[synthetic] {key} = {counts[key]!r}: must be a whole number, 1 or more")
+    if int(np.prod(list(counts.values()))) < MIN_VIEWS:
+        raise ValueError(f"[synthetic] {' x '.join(f'{k} {v}' for k, v in counts.items())} make fewer than "
+                         f"{MIN_VIEWS} images")
+
+
 def _call(func, kwargs: dict, what: str):
     """func(**kwargs) with a ValueError that names the entry and the accepted keys when a key is wrong."""
     params = inspect.signature(func).parameters

@@ -69,9 +69,11 @@ def make_scene(name: str, out_dir) -> Path:
 
     Deterministic: the same TOML gives the same bytes. Cached: when out_dir already holds the complete scene
     made from the same TOML, nothing is recomputed; when it holds an interrupted one, the views rendered are
-    kept and only the others rendered. A folder holding other files than a scene's is refused.
+    kept and only the others rendered. A folder holding other files than a scene's is refused, and so is an
+    entry that lacks a table or key or makes fewer than 2 views (`build.check_entry`), before the folder is
+    touched; an error while building removes the folder when this call created it.
     """
-    from .build import KINDS
+    from .build import KINDS, check_entry
 
     entry, digest, path = load_entry(name)
     out = Path(out_dir)
@@ -85,6 +87,10 @@ def make_scene(name: str, out_dir) -> Path:
     kind = entry.get("kind", "perspective")
     if kind not in KINDS:
         raise InputError(f"{path}: unknown kind {kind!r}; expected one of {', '.join(KINDS)}")
+    try:
+        check_entry(entry)  # before anything is removed, made or rendered
+    except ValueError as exc:
+        raise InputError(f"{path}: {exc}") from None
     # an interrupted run of the same entry: keep its views (written whole: see `resumable` below)
     resume = bool(info) and info.get("hash") == digest and info.get("resumable") is True
     for item in () if resume else _OWNED:  # remove what an older version of this scene left behind
@@ -93,6 +99,9 @@ def make_scene(name: str, out_dir) -> Path:
             shutil.rmtree(target)
         elif target.exists():
             target.unlink()
+    created = None if out.exists() else out
+    while created is not None and not created.parent.exists() and created.parent != created:
+        created = created.parent
     out.mkdir(parents=True, exist_ok=True)
     scene_name = entry.get("name", path.stem)
     meta = {
@@ -110,6 +119,8 @@ def make_scene(name: str, out_dir) -> Path:
     try:
         details = KINDS[kind](entry, path.parent, out)
     except (ValueError, KeyError, TypeError) as exc:
+        if created is not None:  # a folder this call made holds nothing a rerun of a corrected TOML reuses
+            shutil.rmtree(created, ignore_errors=True)
         raise InputError(f"{path}: {type(exc).__name__}: {exc}") from None
     meta.update(details)
     meta["complete"] = True

@@ -7,9 +7,11 @@ ICP. Unknown tilts (common on real microscopes) come from the joint solution of 
 which also supplies the frame the pair sets are merged into.
 """
 
+import hashlib
 import json
 import logging
 import re
+import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -20,7 +22,8 @@ from ..errors import InputError
 from ..features.sift import SiftConfig
 from ..matching.matcher import MatcherConfig
 from ..progress import progress
-from .affine import AffineRansacConfig, ransac_affine_fundamental, tilt_axis_from_affine_fundamental
+from .affine import (AffineRansacConfig, affine_epipolar_error, ransac_affine_fundamental,
+                     tilt_axis_from_affine_fundamental)
 from .factorization import build_tracks, solve_tilt_series
 from .dense import DenseMatchConfig, fill_nearest, refine_heights
 from .heightmap import DenseConfig, dense_heights, grid_heights, height_outliers, profile
@@ -29,6 +32,14 @@ from .parallax import axis_vectors, heights_from_parallax
 
 log = logging.getLogger("mvrecon.sem")
 HEIGHT_SOURCES = ("dense", "joint", "merged")
+# A pair whose matches move beyond a common shift by less than this many times their matching noise shows no
+# parallax: measured 0x to 2.8x for an image and its shifted, JPEG or noisy copy, 14.7x to 58.7x for the pairs of
+# sem_tilt_small and of the Karido DSA and quartz series (docs/sem.md, "Checks on the input").
+MIN_PARALLAX_RATIO = 6.0
+# A given --axis farther than this from the matches' own estimate is warned about: that estimate (median over
+# the pairs of the affine-F axis) is within 0.2 deg of the true or jointly estimated axis on the good series
+# (single pairs within 1.8 deg); an axis 5 deg off raises sem_tilt_small's height error from 0.81 to 1.17 %.
+AXIS_TOLERANCE_DEG = 5.0
 
 
 @dataclass(frozen=True)
@@ -100,12 +111,34 @@ def resolve_images(inputs) -> list[Path]:
     return paths
 
 
+def _check_distinct_files(paths) -> None:
+    """Refuse one file given twice (also through a link): two copies of one view have no parallax, and the run
+    would turn matching noise into a height map."""
+    seen = {}
+    for p in paths:
+        st = p.stat()
+        key = (st.st_dev, st.st_ino)
+        if key in seen:
+            raise InputError(f"{p}: the same file as {seen[key]} (given twice); a tilt series needs one image per "
+                             "tilt, and one view twice has no parallax")
+        seen[key] = p
+
+
 def _load(paths, max_size):
+    """Grey images at working size and the downscale factor; two files with identical pixels are refused."""
     import cv2
 
     from ..io.images import read_image, to_gray_uint8
 
-    images = [to_gray_uint8(read_image(p)) for p in paths]
+    images, seen = [], {}
+    for p in paths:
+        image = read_image(p)
+        key = (image.shape, image.dtype.str, hashlib.blake2b(np.ascontiguousarray(image).tobytes()).digest())
+        if key in seen:
+            raise InputError(f"{p}: identical pixels to {seen[key]}; a tilt series needs one image per tilt, and "
+                             "one view twice has no parallax")
+        seen[key] = p
+        images.append(to_gray_uint8(image))
     shapes = {im.shape for im in images}
     if len(shapes) > 1:
         raise InputError(f"{paths[0].parent}: the tilt series mixes image sizes {sorted(shapes)}; "
@@ -120,7 +153,8 @@ def _load(paths, max_size):
 
 
 def _match_all(images, config: SemConfig):
-    """Keypoints (OpenCV pixel convention) per image and the affine-verified matches of every pair."""
+    """Keypoints (OpenCV pixel convention) per image and the affine-verified matches of every pair, each verified
+    pair with its affine-F axis and parallax measure (`_parallax`)."""
     from ..features.sift import extract_sift
     from ..matching.matcher import match_descriptors, prepare_descriptors
 
@@ -135,7 +169,49 @@ def _match_all(images, config: SemConfig):
         m = match_descriptors(descriptors[i], descriptors[j], config.matcher)
         F, inliers = ransac_affine_fundamental(keypoints[i][m[:, 0]], keypoints[j][m[:, 1]], config.ransac)
         pairs[(i, j)] = {"matches": int(len(m)), "verified": int(inliers.sum()), "F": F, "index": m[inliers]}
+        if F is not None:
+            idx = m[inliers]
+            spread, noise = _parallax(keypoints[i][idx[:, 0]], keypoints[j][idx[:, 1]], F)
+            pairs[(i, j)].update(axis_deg=tilt_axis_from_affine_fundamental(F), parallax_px=spread, noise_px=noise,
+                                 parallax_ratio=spread / noise if noise > 0 else (np.inf if spread > 0 else 0.0))
     return keypoints, pairs
+
+
+def _parallax(x1, x2, F) -> tuple[float, float]:
+    """(median motion beyond the pair's common shift, median distance to the affine F), px. Tilting moves points
+    by their height and position across the axis; two exposures of one view move all points alike and leave
+    only the matching noise that the second figure measures."""
+    d = x2 - x1
+    spread = float(np.median(np.linalg.norm(d - np.median(d, axis=0), axis=1)))
+    return spread, float(np.median(affine_epipolar_error(F, x1, x2)))
+
+
+def _axis_difference(a: float, b: float) -> float:
+    """Angle between two axis directions in degrees (0..90): axes are lines, 179 and 1 deg are 2 deg apart."""
+    return float(abs((a - b + 90.0) % 180.0 - 90.0))
+
+
+def _median_axis(axes, around: float) -> float:
+    """Median of axis angles (deg, modulo 180), each taken within 90 deg of `around`."""
+    return float((around + np.median([(a - around + 90.0) % 180.0 - 90.0 for a in axes])) % 180.0)
+
+
+def _check_tilts_differ(tilts_deg) -> None:
+    """Refuse given tilts that are all the same (modulo 180 deg): no image pair would have parallax."""
+    t = np.radians(np.asarray(tilts_deg, dtype=float))
+    if not (np.abs(np.sin(t[:, None] - t[None, :])) >= 1e-9).any():
+        raise InputError(f"--tilts {','.join(f'{x:g}' for x in tilts_deg)}: no two tilts differ, so the image pairs "
+                         "have no parallax (equal tilts) to give heights")
+
+
+def _new_folder(out: Path) -> Path | None:
+    """The outermost folder that creating `out` makes (None when `out` exists): removed if the run fails."""
+    if out.exists():
+        return None
+    top = out
+    while not top.parent.exists() and top.parent != top:
+        top = top.parent
+    return top
 
 
 def _reference(config: SemConfig, n: int) -> int:
@@ -174,9 +250,30 @@ def run_sem(image_paths, out_dir, config: SemConfig = SemConfig()) -> dict:
         raise InputError(f"--height-source {config.height_source}: expected one of {', '.join(HEIGHT_SOURCES)}")
     if config.tilts_deg is None and n < 3:
         raise InputError(f"{paths[0]}: estimating tilts needs at least 3 images (got {n}); give --tilts")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    if config.tilts_deg is not None:
+        _check_tilts_differ(config.tilts_deg)
+    _check_distinct_files(paths)
     ref = _reference(config, n)
+    out = Path(out_dir)
+    created = _new_folder(out)
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        return _run(paths, out, config, ref, timings, t0)
+    except BaseException:  # a failed or interrupted run leaves no folder it made (nothing in it is reused)
+        if created is not None:
+            shutil.rmtree(created, ignore_errors=True)
+        raise
+
+
+def _run(paths, out: Path, config: SemConfig, ref: int, timings: dict, t0: float) -> dict:
+    """run_sem after its argument checks, into the existing folder `out`."""
+    n = len(paths)
+    report_warnings = []
+
+    def warn(text):
+        """A result that is likely wrong says so: in the log and in report.json's "warnings"."""
+        log.warning("warning: %s", text)
+        report_warnings.append(text)
 
     images, factor = _load(paths, config.max_size)
     h, w = images[0].shape
@@ -192,6 +289,13 @@ def run_sem(image_paths, out_dir, config: SemConfig = SemConfig()) -> dict:
                          "(" + ", ".join(f"{i}-{j}: {v['matches']} raw" for (i, j), v in pairs.items()) + ")")
     log.info("verified matches per pair: %s",
              ", ".join(f"{i}-{j}: {pairs[(i, j)]['verified']}/{pairs[(i, j)]['matches']}" for i, j in pairs))
+    most = max(ranked, key=lambda p: pairs[p]["parallax_ratio"])
+    if pairs[most]["parallax_ratio"] < MIN_PARALLAX_RATIO:
+        (i, j), v = most, pairs[most]
+        raise InputError(f"{paths[i]}: the matches show no parallax: the largest, with {paths[j].name}, is "
+                         f"{v['parallax_px']:.3f} px beyond a common shift, {v['parallax_ratio']:.1f}x the matching "
+                         f"noise ({v['noise_px']:.3f} px; tilted views give {MIN_PARALLAX_RATIO:g}x or more); are "
+                         "these images of one tilt?")
 
     # joint solution of all images: tilts (given or estimated), axis, drifts, points
     t = time.perf_counter()
@@ -202,10 +306,15 @@ def run_sem(image_paths, out_dir, config: SemConfig = SemConfig()) -> dict:
                                      axis_guess_deg=axis_guess)
     except ValueError as exc:
         raise InputError(f"{paths[0].parent}: {exc}") from None
-    timings["joint_s"] = time.perf_counter() - t
     tilts, axis = solution.tilts_deg, solution.axis_deg
     log.info("tilts %s deg about the axis at %.2f deg; joint adjustment RMS %.3f px over %d observations",
              ", ".join(f"{x:.3f}" for x in tilts), axis, solution.rms_px, solution.observations_used)
+    axis_pairs = [p for p in ranked if pairs[p]["parallax_ratio"] >= MIN_PARALLAX_RATIO]
+    axis_from_pairs = _median_axis([pairs[p]["axis_deg"] for p in axis_pairs], axis_guess)
+    axis_check = None
+    if config.axis_deg is not None:
+        axis_check = _check_given_axis(config, obs, n, ref, solution, axis_from_pairs, len(axis_pairs), warn)
+    timings["joint_s"] = time.perf_counter() - t
 
     # the paper's step: per-pair point sets from parallax, merged with ICP into the joint frame
     t = time.perf_counter()
@@ -213,13 +322,12 @@ def run_sem(image_paths, out_dir, config: SemConfig = SemConfig()) -> dict:
     anchor_outliers = height_outliers(anchor)
     anchor = anchor[~anchor_outliers]
     merged, pair_reports = [anchor], []
-    for i, j in ranked[:max(1, config.pairs)]:
+    # pairs of equal tilts (a repeated exposure in a series) have no parallax to give heights: the next ones do
+    with_parallax = [(i, j) for i, j in ranked if abs(np.sin(np.radians(tilts[j] - tilts[i]))) >= 1e-9]
+    for i, j in with_parallax[:max(1, config.pairs)]:
         idx = pairs[(i, j)]["index"]
-        try:
-            cloud = heights_from_parallax(keypoints[i][idx[:, 0]], keypoints[j][idx[:, 1]], tilts[i], tilts[j],
-                                          axis, center)
-        except ValueError as exc:  # equal tilts: the pair has no parallax to give heights
-            raise InputError(f"{paths[i].name} / {paths[j].name}: {exc}") from None
+        cloud = heights_from_parallax(keypoints[i][idx[:, 0]], keypoints[j][idx[:, 1]], tilts[i], tilts[j],
+                                      axis, center)
         outliers = height_outliers(cloud)
         cloud = cloud[~outliers]
         init = np.eye(4)
@@ -273,8 +381,13 @@ def run_sem(image_paths, out_dir, config: SemConfig = SemConfig()) -> dict:
         "axis_deg": axis,
         "axis_given": config.axis_deg is not None,
         "axis_from_affine_F_deg": axis_guess,
+        "axis_from_pairs_deg": axis_from_pairs,
+        "axis_check": axis_check,
+        "warnings": report_warnings,
         "keypoints": [int(len(k)) for k in keypoints],
-        "pairs": [{"pair": [i, j], "matches": v["matches"], "verified": v["verified"]} for (i, j), v in pairs.items()],
+        "pairs": [{"pair": [i, j], "matches": v["matches"], "verified": v["verified"],
+                   **{k: v[k] for k in ("axis_deg", "parallax_px", "noise_px") if k in v}}
+                  for (i, j), v in pairs.items()],
         "joint": {"rms_px": solution.rms_px, "observations": solution.observations_used,
                   "tracks": int(obs.num_points), "points": int(len(anchor)),
                   "drift_px": solution.shifts.tolist()},
@@ -292,6 +405,34 @@ def run_sem(image_paths, out_dir, config: SemConfig = SemConfig()) -> dict:
     }
     (out / "report.json").write_text(json.dumps(report, indent=1))
     return report
+
+
+def _check_given_axis(config: SemConfig, obs, n: int, ref: int, solution, axis_from_pairs: float, pairs_used: int,
+                      warn) -> dict:
+    """Compare a given --axis with the matches' own estimate; beyond AXIS_TOLERANCE_DEG, fit the axis freely too
+    and warn with both adjustment RMS figures (an axis 90 deg off: 1.12 px against 0.13 px, heights 26 % off).
+
+    A warning, not a refusal: the estimate assumes a pure eucentric tilt, and a stage that also turns the image
+    in its plane bends it, where the user's axis may be the right one."""
+    off = _axis_difference(config.axis_deg, axis_from_pairs)
+    check = {"given_deg": config.axis_deg, "from_pairs_deg": axis_from_pairs, "pairs_used": pairs_used,
+             "difference_deg": off, "tolerance_deg": AXIS_TOLERANCE_DEG, "rms_given_px": solution.rms_px}
+    if off <= AXIS_TOLERANCE_DEG:
+        return check
+    try:
+        free = solve_tilt_series(obs, n, ref, tilts_deg=config.tilts_deg, axis_deg=None,
+                                 axis_guess_deg=axis_from_pairs)
+    except ValueError:
+        free = None
+    if free is not None:
+        check.update(rms_axis_estimated_px=free.rms_px, axis_estimated_deg=free.axis_deg)
+    fit = (f"; the joint adjustment's RMS is {solution.rms_px:.3f} px with the given axis and {free.rms_px:.3f} px "
+           f"with the axis estimated ({free.axis_deg:.1f} deg)" if free is not None else "")
+    warn(f"--axis {config.axis_deg:g} deg contradicts the matches, which put the tilt axis at "
+         f"{axis_from_pairs:.1f} deg (median of {pairs_used} image pairs), {off:.1f} deg away (more than "
+         f"{AXIS_TOLERANCE_DEG:g}){fit}: the heights are likely wrong; check --axis (y = 90, x = 0) or leave it out "
+         "to estimate it")
+    return check
 
 
 def _densify(images, ref, tilts, axis, solution, pairs, sparse_height, dense_config):
