@@ -69,7 +69,8 @@ def extract_sift(image: np.ndarray, config: SiftConfig = SiftConfig()) -> tuple[
         kps = [kps[i] for i in _capped(kps, config)]
         kps, desc = sift.compute(gray, kps) if kps else ((), None)
     else:
-        # describing the keypoints dropped below costs less than detecting first and building a second pyramid
+        # describing the keypoints dropped below costs about what detecting first and building a second pyramid
+        # for the kept ones does (docs/frontend.md, "Feature cap")
         kps, desc = sift.detectAndCompute(gray, None)
         if len(kps) > config.max_num_features:
             keep = _capped(kps, config)
