@@ -30,18 +30,31 @@ class CameraConfig:
     # focal guess without EXIF = factor * max(width, height), as COLMAP
     default_focal_factor: float = bounded(1.2, 0.0, low_open=True)
 
-    def validate(self) -> "CameraConfig":
+    def validate(self, origin: dict[str, str] | None = None) -> "CameraConfig":
+        """This config, or an InputError naming where the faulty value came from: `origin` maps "mode", "model"
+        and "params" to how the user gave each ("--camera-model PINHOLE", "cams.toml: camera: mode = 'x'"); a
+        field left out is a default, named only when no given one is at fault. Without `origin`, as flags."""
+        shown = ",".join(f"{v:g}" for v in self.params) if all(
+            isinstance(v, (int, float)) for v in self.params) else repr(list(self.params))
+        if origin is None:
+            origin = {"mode": f"--camera-mode {self.mode}", "model": f"--camera-model {self.model}",
+                      "params": f"--camera-params {shown}"}
+
+        def where(*names):
+            return " with ".join(origin[n] for n in names if n in origin) or f"camera model {self.model}"
+
         if self.mode not in CAMERA_MODES:
-            raise InputError(f"--camera-mode {self.mode}: expected one of {', '.join(CAMERA_MODES)}")
+            raise InputError(f"{where('mode')}: expected one of {', '.join(CAMERA_MODES)}")
+        if self.model not in camera_model.PARAM_NAMES:
+            raise InputError(f"{where('model')}: expected one of {', '.join(camera_model.MODELS)}")
         try:
             camera_model.check_model(self.model, self.params if self.params else
                                      camera_model.default_params(self.model, 1.0, 2, 2))
         except ValueError as exc:
-            raise InputError(f"--camera-params/--camera-model: {exc}") from None
+            raise InputError(f"{where('params', 'model') if self.params else where('model')}: {exc}") from None
         focal = [v for name, v in zip(camera_model.PARAM_NAMES[self.model], self.params) if name.startswith("f")]
         if not all(np.isfinite(self.params)) or (focal and min(focal) <= 0):
-            raise InputError(f"--camera-params {','.join(f'{v:g}' for v in self.params)}: expected finite "
-                             "numbers and a positive focal length")
+            raise InputError(f"{where('params')}: expected finite numbers and a positive focal length")
         return self
 
 

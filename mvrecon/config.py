@@ -104,6 +104,27 @@ def with_overrides(cfg, overrides: dict, *, source: str = "overrides"):
     return dataclasses.replace(cfg, **changes)
 
 
+def with_field(cfg, path: tuple[str, ...], value, *, where: str):
+    """A copy of `cfg` with the (nested) field at `path`, e.g. ("sift", "max_num_features"), set to `value`,
+    checked as `with_overrides` checks it; an InputError names `where` (the flag the user gave, say) instead of
+    the field, whose name the user may never have seen."""
+    name, rest = path[0], path[1:]
+    current = getattr(cfg, name)
+    if rest:
+        return dataclasses.replace(cfg, **{name: with_field(current, rest, value, where=where)})
+    field = next(f for f in dataclasses.fields(cfg) if f.name == name)
+    return dataclasses.replace(cfg, **{name: _checked(field, current, value, where)})
+
+
+def check_tables(tables: dict, names, *, source: str) -> None:
+    """Refuse, naming `source` and the key, a value where one of the table `names` belongs (`mapper = 3` for
+    a [mapper] table): it would otherwise reach the code that reads the table's options as a crash."""
+    for name in names:
+        if name in tables and not isinstance(tables[name], dict):
+            raise InputError(f"{source}: {name!r} must be a table ([{name}] with its options on the lines "
+                             f"below), got {tables[name]!r}")
+
+
 def load_toml(path) -> dict:
     """Read a TOML override file; a missing or malformed file is an InputError naming it."""
     path = Path(path)

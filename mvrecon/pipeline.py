@@ -8,6 +8,7 @@ loses at most the unit in progress and a rerun of the same command resumes.
 - `match(config, workspace)`: pairs -> putative matches -> verified two-view geometries.
 """
 
+import hashlib
 import logging
 import time
 from collections import OrderedDict, deque
@@ -155,30 +156,40 @@ def _too_few(folder: Path, usable: int, failed: dict[str, str]):
 
 
 def extract_features(config: FrontendConfig, image_dir, workspace, *, overwrite: bool = False,
-                     on_image: Callable[[str], None] | None = None) -> FeatureSummary:
-    """Detect SIFT in every image of `image_dir` not yet in the workspace; `on_image(name)` after each commit."""
+                     on_image: Callable[[str], None] | None = None,
+                     before_changes: Callable[[], None] | None = None) -> FeatureSummary:
+    """Detect SIFT in every image of `image_dir` not yet in the workspace; `on_image(name)` after each commit.
+    Refused settings or input raise InputError before anything in the workspace changes; `before_changes()` is
+    called just before the first change."""
     start = time.perf_counter()
     ws = _workspace(workspace)
     with WorkerPool(_workers(config)) as pool:  # started first: its start overlaps the set-up in _extract_all
-        summary = _extract_all(config, Path(image_dir), ws, overwrite, on_image, pool)
+        summary = _extract_all(config, Path(image_dir), ws, overwrite, on_image, pool, before_changes)
     summary.seconds = time.perf_counter() - start
     return summary
 
 
 def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite: bool,
-                 on_image: Callable[[str], None] | None, pool: WorkerPool) -> FeatureSummary:
+                 on_image: Callable[[str], None] | None, pool: WorkerPool,
+                 before_changes: Callable[[], None] | None = None) -> FeatureSummary:
     names, skipped = require_images(folder)
     config.camera.validate()
     failed = _unreadable(folder, skipped)
     stamps = _stamps(folder, [*names, *failed])
     record = {"images": str(folder.resolve()), "camera": to_dict(config.camera), "sift": to_dict(config.sift)}
-    if ws.begin_stage("features", record, overwrite):
-        for suffix in ("", "-wal", "-shm", "-journal"):
-            Path(f"{ws.database_path}{suffix}").unlink(missing_ok=True)
+    # Everything that can refuse the run is checked before anything in the workspace is deleted or rewritten:
+    # the stage's config, a database this workspace has no record of, the camera grouping.
+    redo = bool(ws.check_stage("features", record, overwrite))
+    if ws.database_path.exists() and not redo and ws.stage_config("features") is None:
+        if not overwrite:
+            raise InputError(f"{ws.database_path}: a database without mvrecon's record of how its features were "
+                             f"made (another tool's, say); map it with `mvrecon map -w {ws.path}`, or rerun with "
+                             "--overwrite to start over")
+        redo = True
     jobs = [(folder / n, n, config.sift) for n in names]
     # Without a database nothing is extracted yet: every image goes to the workers now, so that probing the
     # images and creating the database (which imports pycolmap) overlap SIFT instead of delaying it.
-    results = None if ws.database_path.exists() else pool.map(_extract_job, jobs)
+    results = pool.map(_extract_job, jobs) if redo or not ws.database_path.exists() else None
     metas = {}
     for name in names:
         try:
@@ -188,6 +199,11 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
             failed[name] = str(exc)
     names = [n for n in names if n in metas]
     groups = group_cameras(names, metas, config.camera)
+    if before_changes is not None:
+        before_changes()
+    if ws.begin_stage("features", record, overwrite) or redo:
+        for suffix in ("", "-wal", "-shm", "-journal"):
+            Path(f"{ws.database_path}{suffix}").unlink(missing_ok=True)
     group_of = {name: gi for gi, (_, members) in enumerate(groups) for name in members}
     extracted, colors = 0, {}
     with dbmod.open_database(ws.database_path) as db:
@@ -282,6 +298,11 @@ def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
         for a, b in select_pairs(config.pairs, sorted(by_name)):
             id1, id2 = sorted((by_name[a], by_name[b]))
             pairs.append((id1, id2))
+        if config.pairs != "exhaustive" and Path(config.pairs).is_file():
+            # a pairs file is recorded by what it selects, not only its name: an edited or another file of the
+            # same name is a different config
+            listed = "\n".join(sorted(" ".join(sorted((images[i].name, images[j].name))) for i, j in pairs))
+            record["pairs_file_sha256"] = hashlib.sha256(listed.encode()).hexdigest()
         if ws.begin_stage("matching", record, overwrite):
             dbmod.clear_matches(db)
         todo = [p for p in pairs if not dbmod.has_two_view_geometry(db, *p)]
@@ -396,6 +417,7 @@ def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resu
     """
     import shutil
 
+    from .config import diff
     from .io.colmap_model import write_models, write_points_ply
     from .sfm.incremental import map_correspondences
 
@@ -404,7 +426,19 @@ def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resu
     if not ws.database_path.is_file():
         raise InputError(f"{ws.path}: no database.db here; run `mvrecon reconstruct IMAGES -o {ws.path}` "
                          "first")
-    ws.begin_stage("mapping", to_dict(config), overwrite or not resume)
+    record, sparse, snapshot = to_dict(config), ws.path / "sparse", ws.snapshot_path
+    try:
+        stages = ws.stages()
+    except InputError:
+        if not overwrite:
+            raise
+        stages = {}
+    before = stages.get("mapping")
+    if before is not None and before["hash"] != config_hash(record) and not overwrite:
+        raise InputError(f"{ws.path}: mapped with a different mapper config "
+                         f"({'; '.join(diff(before['config'], record))}); rerun with --overwrite to map again "
+                         "(`mvrecon map -w WORKSPACE --overwrite` redoes only the mapping), or use another "
+                         "workspace")
     corr = dbmod.read_correspondences(ws.database_path)
     if not corr.pairs:
         with dbmod.open_database(ws.database_path) as db:
@@ -412,16 +446,29 @@ def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resu
         raise InputError(f"{ws.database_path}: no verified image pairs among {len(corr.images)} images; " + (
             f"run `mvrecon match -w {ws.path}` first" if not matched else
             "the images do not overlap or have too little texture (nothing to reconstruct)"))
-    snapshot = ws.path / "snapshots" / "mapper.pkl"
+    if image_dir is None and not keypoint_colors:
+        image_dir = _recorded_images(stages)
+    if overwrite:  # --overwrite starts mapping over, --resume or not
+        snapshot.unlink(missing_ok=True)
+        resume = False
+    ws.begin_stage("mapping", record, True)
     result = map_correspondences(corr, config, snapshot_path=snapshot, resume=resume)
-    sparse = ws.path / "sparse"
-    if sparse.exists():
-        shutil.rmtree(sparse)
-    recs = write_models(result.models, sparse, image_dir=image_dir, text=text, keypoint_colors=keypoint_colors)
+    # the new models go to sparse.new/ and replace sparse/ only once made: a failed re-map keeps the old model
+    new = ws.path / "sparse.new"
+    shutil.rmtree(new, ignore_errors=True)
+    recs = write_models(result.models, new, image_dir=image_dir, text=text, keypoint_colors=keypoint_colors)
     if recs:
+        old = ws.path / "sparse.old"
+        shutil.rmtree(old, ignore_errors=True)
+        if sparse.exists():
+            sparse.rename(old)
+        new.rename(sparse)
+        shutil.rmtree(old, ignore_errors=True)
         write_points_ply(recs[0], ws.path / "points.ply")
     else:
-        (ws.path / "points.ply").unlink(missing_ok=True)
+        shutil.rmtree(new, ignore_errors=True)
+        if sparse.exists():
+            log.warning("%s: no new model; the earlier model in sparse/ and points.ply is kept", ws.path)
     stats = []
     for m in result.models:
         s = m.stats()
@@ -431,9 +478,21 @@ def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resu
                       seconds=time.perf_counter() - start)
 
 
+def _recorded_images(stages: dict):
+    """The image folder the workspace's features were extracted from, for the points' colours, when it still
+    exists; else None, with a warning that the colours are not sampled."""
+    folder = ((stages.get("features") or {}).get("config") or {}).get("images")
+    if isinstance(folder, str) and Path(folder).is_dir():
+        return folder
+    log.warning("point colours are not sampled (black): no image folder %s; pass --image-dir IMAGES to colour "
+                "them", "recorded for this workspace" if folder is None else f"at the recorded {folder}")
+    return None
+
+
 def write_report(out_dir, *, config_hash: str, seed: int, summary: MapSummary, stages: dict, total: dict,
-                 counts: dict, skipped: dict | None = None) -> dict:
-    """OUT/report.json in the schema the compare and study tools read (see docs/sfm.md)."""
+                 counts: dict, skipped: dict | None = None, database: dict | None = None) -> dict:
+    """OUT/report.json in the schema the compare and study tools read (see docs/sfm.md). `database`: where
+    database.db came from ({"made_by": "mvrecon"} or another tool's)."""
     from . import __version__
 
     images = {name: dict(s) for name, s in summary.status.items()}
@@ -442,7 +501,8 @@ def write_report(out_dir, *, config_hash: str, seed: int, summary: MapSummary, s
     report = {"engine": "mvrecon", "version": __version__, "config_hash": config_hash, "seed": seed,
               "images": dict(sorted(images.items())),
               "models": [{"index": k, **s} for k, s in enumerate(summary.model_stats)],
-              "stages": stages, "total": total, "counts": counts}
+              "stages": stages, "total": total, "counts": counts,
+              "database": database or {"made_by": "mvrecon"}}
     write_json(Path(out_dir) / "report.json", report, indent=1)
     return report
 
@@ -482,14 +542,22 @@ def reconstruct(config: ReconstructConfig, image_dir, out_dir, *, text: bool = F
     finished = None if overwrite else _finished_report(out, full_hash, Path(image_dir))
     if finished is not None:
         log.info("%s: finished run with the same config and images found; not redone", out)
+        if text:
+            from .io.colmap_model import write_text_models
+
+            log.info("%s: wrote the text model of %d model(s)", out, write_text_models(out / "sparse"))
         return finished
     kept = report_path.read_bytes() if report_path.is_file() and not overwrite else None
-    report_path.unlink(missing_ok=True)  # until this run ends, the folder holds no finished run
     fresh = not out.exists()
     ws = Workspace(out).create()
     clock = StageClock()
+
+    def before_changes():  # until this run ends, the folder holds no finished run
+        report_path.unlink(missing_ok=True)
+
     try:
-        features = extract_features(config.frontend, image_dir, ws, overwrite=overwrite)
+        features = extract_features(config.frontend, image_dir, ws, overwrite=overwrite,
+                                    before_changes=before_changes)
         log.info("%s", features.text())
         clock.done("features")
         matches = match(config.frontend, ws, overwrite=overwrite)

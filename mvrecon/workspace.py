@@ -26,6 +26,11 @@ class Workspace:
     def config_path(self) -> Path:
         return self.path / "config.json"
 
+    @property
+    def snapshot_path(self) -> Path:
+        """The mapper's last snapshot (for --resume)."""
+        return self.path / "snapshots" / "mapper.pkl"
+
     def create(self) -> "Workspace":
         if self.path.exists() and not self.path.is_dir():
             raise InputError(f"{self.path}: workspace exists and is not a folder")
@@ -55,10 +60,12 @@ class Workspace:
             raise InputError(f"{self.path}: no {stage} in this workspace; {hint}")
         return found
 
-    def begin_stage(self, stage: str, config: dict, overwrite: bool = False) -> list[str]:
-        """Record `config` for `stage`. Returns the stages (this one and later ones) whose results must be cleared:
-        [] when resuming with the same config or starting fresh, and refuses a different config unless overwrite."""
-        self.create()
+    def check_stage(self, stage: str, config: dict, overwrite: bool = False) -> list[str]:
+        """What `begin_stage` would return, without writing anything: a refused config raises here, before the
+        caller deletes or rewrites any result."""
+        return self._plan(stage, config, overwrite)[1]
+
+    def _plan(self, stage: str, config: dict, overwrite: bool) -> tuple[dict, list[str]]:
         try:
             stages, dropped = self.stages(), []
         except InputError:
@@ -69,7 +76,7 @@ class Workspace:
         new_hash = cfgmod.config_hash(config)
         if stage in stages:
             if stages[stage]["hash"] == new_hash and not overwrite:
-                return []
+                return stages, []
             if not overwrite:
                 changes = cfgmod.diff(stages[stage]["config"], config)
                 raise InputError(f"{self.path}: made with a different {stage} config ({'; '.join(changes)}); "
@@ -77,7 +84,17 @@ class Workspace:
             dropped = names[names.index(stage):]
             for name in dropped:
                 del stages[name]
-        stages[stage] = {"hash": new_hash, "config": config}
+        return stages, dropped
+
+    def begin_stage(self, stage: str, config: dict, overwrite: bool = False) -> list[str]:
+        """Record `config` for `stage`. Returns the stages (this one and later ones) whose results must be cleared:
+        [] when resuming with the same config or starting fresh, and refuses a different config unless overwrite.
+        Redoing a stage before mapping also deletes the mapper's snapshot: it was mapped from the old results."""
+        self.create()
+        stages, dropped = self._plan(stage, config, overwrite)
+        if dropped and stage != "mapping":
+            self.snapshot_path.unlink(missing_ok=True)
+        stages[stage] = {"hash": cfgmod.config_hash(config), "config": config}
         self._write(stages)
         return dropped
 

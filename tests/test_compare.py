@@ -317,7 +317,7 @@ def test_bad_mvrecon_args_are_refused_before_any_engine_runs(tmp_path, capsys):
     out = tmp_path / "r"
     for extra, message in ((["--mvrecon-args=--bogus"], "--mvrecon-args: unrecognized arguments: --bogus"),
                            (["--mvrecon-args", "--bogus"], "--mvrecon-args: unrecognized arguments: --bogus"),
-                           (["--mvrecon-args", "--max-features 0"], "max_num_features: must be at least 1"),
+                           (["--mvrecon-args", "--max-features 0"], "--mvrecon-args: --max-features: must be at least 1"),
                            (["--mvrecon-args", "--seed 3"], "--seed would make mvrecon's run differ from COLMAP's"),
                            (["--mvrecon-args", "-o elsewhere"], "-o/--output is compare's to choose"),
                            (["--mvrecon-args", f"--config {tmp_path / 'none.toml'}"], "none.toml"),

@@ -148,6 +148,14 @@ def run_cli(argv, capsys):
     return code, capsys.readouterr()
 
 
+def summary_lines(caplog, start):
+    """The INFO lines of mvrecon starting with `start` ("Features:", "Matching:") logged so far; cleared after."""
+    lines = [r.getMessage() for r in caplog.records if r.name == "mvrecon" and r.levelno == logging.INFO
+             and r.getMessage().startswith(start)]
+    caplog.clear()
+    return lines
+
+
 def test_cli_bad_input_exits_2_with_one_line(tmp_path, capsys):
     code, out = run_cli(["features", str(tmp_path / "nope"), "-w", str(tmp_path / "ws")], capsys)
     assert code == 2 and out.err.strip() == f"mvrecon: error: {tmp_path / 'nope'}: no such folder"
@@ -162,8 +170,8 @@ def test_cli_bad_input_exits_2_with_one_line(tmp_path, capsys):
     (tmp_path / "w.toml").write_text("[workers]\nx = 1\n")
     (tmp_path / "a.toml").write_text('[mapper]\ninit_min_tri_angles_deg = [8.0, "x"]\n')
     for args, message in (
-            (["--max-image-size", "-1"], "command line: sift: max_image_size: must be at least 16, got -1"),
-            (["--ratio", "5"], "command line: matcher: max_ratio: must be at most 1.0, got 5.0"),
+            (["--max-image-size", "-1"], "--max-image-size: must be at least 16, got -1"),
+            (["--ratio", "5"], "--ratio: must be at most 1.0, got 5.0"),
             (["--camera-params=nan,32,24,0"], "--camera-params nan,32,24,0: expected finite numbers"),
             (["--camera-params=0,32,24,0"], "and a positive focal length"),
             (["--config", str(tmp_path / "t.toml")], "t.toml: sift: max_num_features: expected a whole number"),
@@ -190,7 +198,58 @@ def test_cli_bad_input_exits_2_with_one_line(tmp_path, capsys):
     # an output path that is a file: the path and the reason, not a NotADirectoryError trace
     (tmp_path / "file.txt").write_text("x")
     code, out = run_cli(["reconstruct", str(tmp_path / "images"), "-o", str(tmp_path / "file.txt")], capsys)
-    assert code == 2 and out.err.strip().endswith("Not a directory") and len(out.err.splitlines()) == 1
+    assert code == 2 and out.err.strip().endswith(("Not a directory", "workspace exists and is not a folder"))
+    assert len(out.err.splitlines()) == 1
+
+
+def test_errors_name_the_flag_or_the_config_file_key_the_user_wrote(tmp_path, capsys):
+    """A bad value is named as the user gave it: the flag (not the config field behind it), or the --config
+    file with its table and key (not a flag the user never typed); a value where a table belongs is refused in one
+    line, not met as a traceback. All before any work: no workspace is made."""
+    images = textured_views(tmp_path / "images", count=2, size=(40, 50))
+    files = {"m.toml": "mapper = 3\n", "s.toml": "sift = 2\n",
+             "mode.toml": '[camera]\nmode = "whatever"\n', "model.toml": '[camera]\nmodel = "FISHEYE"\n',
+             "pairs.toml": 'pairs = "sequential:0"\n', "params.toml": "[camera]\nparams = [1.0, 2.0]\n",
+             "pinhole.toml": '[camera]\nmodel = "PINHOLE"\n', "strs.toml": '[camera]\nparams = ["a", 2, 3, 4]\n'}
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+    out_dir, t = tmp_path / "run", tmp_path
+    for args, message in (
+            (["--config", f"{t}/m.toml"], f"{t}/m.toml: 'mapper' must be a table ([mapper] with its options on "
+                                          "the lines below), got 3"),
+            (["--config", f"{t}/s.toml"], f"{t}/s.toml: 'sift' must be a table ([sift] with its options on the "
+                                          "lines below), got 2"),
+            (["--config", f"{t}/mode.toml"], f"{t}/mode.toml: camera: mode = 'whatever': expected one of auto, "
+                                             "single, per-folder, per-image"),
+            (["--config", f"{t}/model.toml"], f"{t}/model.toml: camera: model = 'FISHEYE': expected one of "
+                                              "SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV"),
+            (["--config", f"{t}/pairs.toml"], f"{t}/pairs.toml: pairs = 'sequential:0': the window must be a "
+                                              "positive integer, e.g. sequential:10"),
+            (["--config", f"{t}/params.toml", "--camera-model", "PINHOLE"],
+             f"{t}/params.toml: camera: params = [1.0, 2.0] with --camera-model PINHOLE: PINHOLE takes 4 "
+             "parameters (fx, fy, cx, cy), got 2"),
+            (["--config", f"{t}/pinhole.toml", "--camera-params", "1,2,3"],
+             f"--camera-params 1,2,3 with {t}/pinhole.toml: camera: model = 'PINHOLE': PINHOLE takes 4 "
+             "parameters (fx, fy, cx, cy), got 3"),
+            (["--config", f"{t}/strs.toml"], f"{t}/strs.toml: camera: params = ['a', 2, 3, 4]: could not "
+                                             "convert string to float: 'a'"),
+            (["--camera-params", "1,2,3"], "--camera-params 1,2,3: SIMPLE_RADIAL takes 4 parameters "
+                                           "(f, cx, cy, k), got 3"),
+            (["--max-features", "0"], "--max-features: must be at least 1, got 0"),
+            (["--pairs", "sequential:0"], "--pairs sequential:0: the window must be a positive integer, "
+                                          "e.g. sequential:10")):
+        commands = [["reconstruct", str(images), "-o", str(out_dir)]]
+        if args[0] != "--pairs":  # `features` has no --pairs, but checks the whole --config file
+            commands.append(["features", str(images), "-w", str(out_dir)])
+        for command in commands:
+            code, out = run_cli(command + args, capsys)
+            assert (code, out.err) == (2, f"mvrecon: error: {message}\n"), (command, args)
+            assert not out_dir.exists()
+    # `map` reads the [mapper] table only, and refuses a value in its place the same way
+    code, out = run_cli(["map", "-w", str(out_dir), "--config", str(tmp_path / "m.toml")], capsys)
+    assert (code, out.err) == (2, f"mvrecon: error: {tmp_path / 'm.toml'}: 'mapper' must be a table ([mapper] "
+                                  "with its options on the lines below), got 3\n")
+    assert not out_dir.exists()
 
 
 def test_cli_skips_corrupt_and_non_image_files(tmp_path, capsys, caplog):
@@ -202,25 +261,33 @@ def test_cli_skips_corrupt_and_non_image_files(tmp_path, capsys, caplog):
     (images / "half.tif").write_bytes(tif[: len(tif) // 2])  # header fine, pixels cut: caught when decoding
     (images / "readme.txt").write_text("not an image")
     ws = tmp_path / "ws"
-    with caplog.at_level(logging.WARNING, logger="mvrecon"):
-        code, out = run_cli(["features", str(images), "-w", str(ws), "--max-features", "500"], capsys)
+    caplog.set_level(logging.INFO, logger="mvrecon")
+    code, out = run_cli(["features", str(images), "-w", str(ws), "--max-features", "500"], capsys)
     assert code == 0, out.err
-    assert "2 images" in out.out and "2 unreadable image(s) skipped: half.tif, truncated.png" in out.out
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    [summary] = summary_lines(caplog, "Features: 2 images")  # logged (-q hides it), not printed
+    assert "2 unreadable image(s) skipped: half.tif, truncated.png" in summary and out.out == ""
     assert any("truncated.png" in w and "truncated" in w.split("truncated.png", 1)[1].lower() for w in warnings)
     assert any("half.tif: cannot decode image" in w for w in warnings)
     assert sum("readme.txt" in w for w in warnings) == 1
     (tmp_path / "pairs.txt").write_text("view00.png nope.png\n")  # refused before the stage is recorded:
     code, out = run_cli(["match", "-w", str(ws), "--pairs", str(tmp_path / "pairs.txt")], capsys)
     assert code == 2 and "unknown image 'nope.png'" in out.err
+    # an image paired with itself was dropped silently (0 pairs, exit 0): refused as an unknown name is
+    (tmp_path / "pairs.txt").write_text("# self\nview01.png view01.png\n")
+    code, out = run_cli(["match", "-w", str(ws), "--pairs", str(tmp_path / "pairs.txt")], capsys)
+    assert (code, out.err) == (2, f"mvrecon: error: {tmp_path / 'pairs.txt'}:2: pairs image 'view01.png' with "
+                                  "itself\n")
     code, out = run_cli(["match", "-w", str(ws)], capsys)  # so the default pairs are no "different config"
-    assert code == 0 and "1 verified pairs" in out.out
+    assert code == 0 and "1 verified pairs" in summary_lines(caplog, "Matching:")[0]
     for damaged in ('{"stages": {"features": {}}}', '{"stages": []}', '{"stag'):  # one line; --overwrite redoes
         (ws / "config.json").write_text(damaged)
         code, out = run_cli(["match", "-w", str(ws)], capsys)
         assert code == 2 and "config.json: not a valid workspace config (use --overwrite" in out.err, damaged
-    code, out = run_cli(["features", str(images), "-w", str(ws), "--overwrite"], capsys)
-    assert code == 0 and "2 images" in out.out
+    code, out = run_cli(["features", str(images), "-w", str(ws), "--overwrite", "-q"], capsys)
+    assert code == 0 and summary_lines(caplog, "Features:") == [] and out.out == ""  # -q: warnings only
+    code, out = run_cli(["match", "-w", str(ws), "-q"], capsys)
+    assert code == 0 and summary_lines(caplog, "Matching:") == [] and out.out == ""
 
     (images / "view01.png").unlink()
     code, out = run_cli(["features", str(images), "-w", str(tmp_path / "ws2"), "--workers", "1"], capsys)
@@ -248,9 +315,12 @@ def test_the_command_runs_as_a_fresh_process(tmp_path):
         return done
 
     done = run("features", str(images), "-w", str(ws), "--max-features", "400", "--workers", "2", "-vv")
-    assert "3 images (3 extracted now" in done.stdout and "process pool: 2 fork workers" in done.stderr
-    done = run("match", "-w", str(ws), "--pairs", "sequential:1", "-q")
-    assert "2 pairs" in done.stdout and "2 verified pairs" in done.stdout
+    assert "Features: 3 images (3 extracted now" in done.stderr and "process pool: 2 fork workers" in done.stderr
+    done = run("match", "-w", str(ws), "--pairs", "sequential:1", "-q")  # only warnings and errors: none here
+    assert (done.stdout, done.stderr) == ("", "")
+    done = run("match", "-w", str(ws), "--pairs", "sequential:1")  # the summary, as every command's, on stderr
+    assert done.stdout == "" and done.stderr.startswith("Matching: 3 images, 2 pairs (0 matched now, 2 already")
+    assert "2 verified pairs" in done.stderr
     with dbmod.open_database(ws / "database.db") as db:
         assert sorted(i.name for i in dbmod.read_images(db).values()) == [f"view{i:02d}.png" for i in range(3)]
 

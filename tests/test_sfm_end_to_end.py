@@ -52,10 +52,10 @@ def test_demo_without_a_model_fails_with_strict_json_and_overwrite_works(tmp_pat
 
     import mvrecon.scenes.catalog as catalog
 
-    # object_orbit_small cut to two views: one verified pair, whose 2-image model is discarded (< 3 images)
+    # object_orbit_small cut to two views 1 deg apart: one verified pair, too narrow for an initial pair
     toml = (Path(catalog.CATALOG_DIR) / "object_orbit_small.toml").read_text()
     toml = toml.replace('name = "object_orbit_small"', 'name = "two_views"')
-    toml = toml.replace("count = 10", "count = 2").replace("arc_deg = 180.0", "arc_deg = 20.0")
+    toml = toml.replace("count = 10", "count = 2").replace("arc_deg = 180.0", "arc_deg = 1.0")
     (tmp_path / "two_views.toml").write_text(toml)
     out = tmp_path / "demo"
     args = ["-q", "demo", "-o", str(out), "--scene", str(tmp_path / "two_views.toml")]
@@ -267,29 +267,37 @@ def test_export_never_deletes_what_it_exports(demo, tmp_path, capsys):
     assert not (tmp_path / "e.partial").exists() and len(list((tmp_path / "e" / "images").iterdir())) == 10
 
 
-def test_a_run_without_a_model_exits_1_and_says_why(demo, tmp_path, caplog):
-    """Two images make a two-view model, which is discarded (under min_model_size 3): readable input, failed
-    run. Exit 1 (bad input is 2), one error line, no sparse/ or points.ply, and each image's reason."""
+def test_two_images_give_a_model_and_a_run_without_a_model_exits_1_and_says_why(demo, tmp_path, caplog):
+    """Two images make a two-view model, kept as COLMAP keeps it (a model needs min(min_model_size, 0.8 x the
+    images) images; it was discarded, under min_model_size 3). A run that reads its input but makes no model
+    (no pair reaches init_min_inliers) exits 1 (bad input is 2), one error line, no sparse/ or points.ply, and
+    each image's reason."""
     import shutil
 
     images = tmp_path / "images"
     images.mkdir()
     for name in sorted(p.name for p in (demo / "scene" / "images").iterdir())[:2]:
         shutil.copy(demo / "scene" / "images" / name, images / name)
-    assert main(["-q", "reconstruct", str(images), "-o", str(tmp_path / "run")]) == 1
+    assert main(["-q", "reconstruct", str(images), "-o", str(tmp_path / "two")]) == 0
+    report = json.loads((tmp_path / "two" / "report.json").read_text())
+    assert [m["registered"] for m in report["models"]] == [2] and (tmp_path / "two" / "points.ply").is_file()
+    toml = tmp_path / "strict.toml"
+    toml.write_text("[mapper]\ninit_min_inliers = 100000\n")
+    caplog.clear()
+    assert main(["-q", "reconstruct", str(images), "-o", str(tmp_path / "run"), "--config", str(toml)]) == 1
     errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
     assert len(errors) == 1 and "no model: none of the 2 images could be registered" in errors[0]
     assert not (tmp_path / "run" / "sparse").exists() and not (tmp_path / "run" / "points.ply").exists()
     report = json.loads((tmp_path / "run" / "report.json").read_text())
     assert report["models"] == []
-    assert {s["reason"] for s in report["images"].values()} == {
-        "its model stayed at 2 images, under min_model_size 3, and was discarded"}
-    assert main(["-q", "map", "-w", str(tmp_path / "run"), "--overwrite"]) == 1
-    # for compare and study that is a result (nothing registered), as a COLMAP run without a model is
+    assert all(s["reason"].startswith("no initial pair accepted: ") and "< init_min_inliers 100000" in s["reason"]
+               for s in report["images"].values())
+    assert main(["-q", "map", "-w", str(tmp_path / "run"), "--overwrite", "--config", str(toml)]) == 1
+    # for compare and study that is a result (2 registered), as a COLMAP run of two images is
     from mvrecon.eval.runners import run_mvrecon
 
     result = run_mvrecon(images, tmp_path / "runner")
-    assert result.error is None and result.models == [] and result.report["models"] == []
+    assert result.error is None and len(result.models) == 1 and len(result.report["models"]) == 1
 
 
 def test_map_without_verified_pairs_exits_2_with_a_message(tmp_path, capsys):

@@ -489,8 +489,8 @@ def test_two_view_bundle_adjustment_of_the_temple_converges_without_crawling(tmp
         shutil.copy(TEMPLE / "images" / name, tmp_path / "images")
     from mvrecon.cli import main
 
-    # the pair alone makes no model (exit 1), only the database
-    assert main(["-q", "reconstruct", str(tmp_path / "images"), "-o", str(tmp_path / "run")]) == 1
+    # the pair alone makes a 2-image model (kept as COLMAP keeps it); only its database is used here
+    assert main(["-q", "reconstruct", str(tmp_path / "images"), "-o", str(tmp_path / "run")]) == 0
     mapper = incremental.IncrementalMapper(database.read_correspondences(tmp_path / "run" / "database.db"))
 
     def seeded():
@@ -531,3 +531,16 @@ def test_reichstag_cameras_keep_their_accuracy(tmp_path):
     acc = _accuracy(models, reichstag / "calibration", reichstag / "images")
     assert acc["registered"] == 10 and len(models) == 1
     assert acc["auc@5"] >= 0.62, acc["auc@5"]  # 0.666-0.750 over recent front ends
+
+
+def test_a_set_of_two_or_three_images_keeps_its_model_as_colmap_does():
+    """COLMAP keeps a model of min(min_model_size, 0.8 x the number of images) images: two images give a
+    2-image model (it was discarded, under min_model_size 3), three images keep a 2-image model, and with four
+    or more the configured size holds (the discarded pairs of the test above)."""
+    two = map_correspondences(lined_up_views([((0.0, 12.0), (20, 40), 200)]))
+    assert len(two.models) == 1 and int(two.models[0].registered.sum()) == 2
+    assert {s["status"] for s in two.status.values()} == {"registered"}
+    mapper = incremental.IncrementalMapper(lined_up_views([((0.0, 12.0, 24.0), (20, 40), 200)]))
+    assert mapper.min_model_size() == 2
+    four = lined_up_views([((0.0, 12.0), (20, 40), 200), ((0.0, 12.0), (20, 40), 200)])
+    assert incremental.IncrementalMapper(four).min_model_size() == 3

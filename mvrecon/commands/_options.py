@@ -12,7 +12,7 @@ import dataclasses
 import math
 
 from ..cameras import CAMERA_MODES, CameraConfig, parse_camera_params
-from ..config import load_toml, with_overrides
+from ..config import check_tables, load_toml, with_field, with_overrides
 from ..errors import InputError
 from ..geometry.camera import MODELS
 
@@ -136,6 +136,11 @@ _FLAG_FIELDS = {  # argparse dest -> (config section, field)
     "min_inliers": ("verify", "min_num_inliers"),
     "workers": (None, "workers"),
 }
+_FLAG_NAMES = {"root_sift": "--no-root-sift"}  # argparse dest -> flag, where not "--" + dest with dashes
+
+
+def _flag(dest: str) -> str:
+    return _FLAG_NAMES.get(dest, "--" + dest.replace("_", "-"))
 
 
 def config_file(args: argparse.Namespace):
@@ -147,6 +152,9 @@ def config_file(args: argparse.Namespace):
     if not getattr(args, "config", None):
         return FrontendConfig(), {}
     tables = load_toml(args.config)
+    defaults = FrontendConfig()
+    check_tables(tables, [f.name for f in dataclasses.fields(defaults) if dataclasses.is_dataclass(
+        getattr(defaults, f.name))] + ["mapper"], source=args.config)
     mapper = tables.pop("mapper", {})
     known = sorted({f.name for f in dataclasses.fields(FrontendConfig)} | {"mapper"})
     for key in tables:
@@ -158,20 +166,30 @@ def config_file(args: argparse.Namespace):
 def frontend_config_from_args(args: argparse.Namespace, from_file=None):
     """FrontendConfig = defaults < --config TOML < flags given on the command line. `from_file`: what
     `config_file(args)` returned, when the caller has read the file already."""
+    from ..matching.pairs import check_spec
+
     config = (from_file or config_file(args))[0]
-    overrides: dict = {}
+    # each value checked where the user gave it: a flag is named as typed ("--max-features: must be at least
+    # 1, got 0"), a value of the --config file by the file, table and key
     for dest, (section, name) in _FLAG_FIELDS.items():
         value = getattr(args, dest, None)
-        if value is None:
-            continue
-        if section is None:
-            overrides[name] = value
-        else:
-            overrides.setdefault(section, {})[name] = value
+        if value is not None:
+            config = with_field(config, (name,) if section is None else (section, name), value, where=_flag(dest))
     if getattr(args, "camera_params", None):
-        overrides.setdefault("camera", {})["params"] = list(parse_camera_params(args.camera_params))
-    config = with_overrides(config, overrides, source="command line")
-    config.camera.validate()
+        config = with_field(config, ("camera", "params"), list(parse_camera_params(args.camera_params)),
+                            where="--camera-params")
+    origin, default = {}, CameraConfig()
+    for name, dest in (("mode", "camera_mode"), ("model", "camera_model"), ("params", "camera_params")):
+        value = getattr(config.camera, name)
+        if getattr(args, dest, None):  # a flag's params are numbers (parse_camera_params)
+            origin[name] = f"{_flag(dest)} {','.join(f'{v:g}' for v in value) if name == 'params' else value}"
+        elif value != getattr(default, name):  # not a flag, not the default: the file's
+            origin[name] = f"{args.config}: camera: {name} = {list(value) if name == 'params' else value!r}"
+    config.camera.validate(origin)
+    if getattr(args, "pairs", None) is not None:
+        check_spec(config.pairs)
+    elif config.pairs != type(config)().pairs:
+        check_spec(config.pairs, where=f"{args.config}: pairs = {config.pairs!r}")
     return config
 
 

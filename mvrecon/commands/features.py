@@ -22,10 +22,12 @@ def add_arguments(parser):
 
 
 def run(args) -> int:
+    import logging
+
     from ..pipeline import extract_features
     from ._options import frontend_config_from_args
 
     summary = extract_features(frontend_config_from_args(args), args.images, args.workspace,
                                overwrite=args.overwrite)
-    print(summary.text())
+    logging.getLogger("mvrecon").info("%s", summary.text())  # as every command's summary: -q hides it
     return 0

@@ -27,18 +27,31 @@ def run(args) -> int:
     from ..executor import StageClock
     from ..database import database_counts
     from ..errors import InputError
+    from ..io.files import read_json_object
     from ..pipeline import map_workspace, write_report
+    from ..workspace import Workspace
     from .reconstruct import mapper_config, no_model
 
     config = mapper_config(args)
     if args.image_dir is not None and not Path(args.image_dir).is_dir():
         raise InputError(f"{args.image_dir}: no such image folder (--image-dir)")
+    earlier = read_json_object(Path(args.workspace) / "report.json")  # before this run replaces it
     clock = StageClock()
     summary = map_workspace(config, args.workspace, image_dir=args.image_dir, text=args.text,
                             resume=args.resume, overwrite=args.overwrite)
     stage = clock.done("mapping")
+    counts = database_counts(f"{args.workspace}/database.db")
+    try:
+        ours = Workspace(args.workspace).stage_config("features") is not None
+    except InputError:  # an unreadable config.json that --overwrite mapped past
+        ours = False
+    stages = clock.stages
+    if ours and earlier and earlier.get("counts") == counts and isinstance(earlier.get("stages"), dict):
+        # the same database as the earlier report's: keep its front-end stages (times, memory)
+        stages = {**{k: v for k, v in earlier["stages"].items() if k != "mapping"}, **clock.stages}
     write_report(args.workspace, config_hash=config.hash(), seed=config.seed, summary=summary,
-                 stages=clock.stages, total=stage,
-                 counts=database_counts(f"{args.workspace}/database.db"))
+                 stages=stages, total=stage, counts=counts,
+                 database={"made_by": "mvrecon" if ours else "another tool (no mvrecon features record in "
+                           "config.json)"})
     logging.getLogger("mvrecon").info("%s", summary.text())
     return 0 if summary.models else no_model(args.workspace, summary.status)

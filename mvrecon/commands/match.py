@@ -20,9 +20,11 @@ def add_arguments(parser):
 
 
 def run(args) -> int:
+    import logging
+
     from ..pipeline import match
     from ._options import frontend_config_from_args
 
     summary = match(frontend_config_from_args(args), args.workspace, overwrite=args.overwrite)
-    print(summary.text())
+    logging.getLogger("mvrecon").info("%s", summary.text())  # as every command's summary: -q hides it
     return 0

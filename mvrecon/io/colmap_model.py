@@ -94,6 +94,15 @@ def write_models(models, sparse_dir, image_dir=None, text: bool = False,
     return out
 
 
+def write_text_models(sparse_dir) -> int:
+    """Add the COLMAP text files to every binary model sparse_dir/N (a finished run asked for --text again);
+    returns the number of models."""
+    dirs = [d for d in sorted(Path(sparse_dir).iterdir()) if (d / "cameras.bin").is_file()]
+    for d in dirs:
+        pycolmap.Reconstruction(str(d)).write_text(str(d))
+    return len(dirs)
+
+
 def write_points_ply(rec: pycolmap.Reconstruction, path) -> int:
     """Coloured PLY of a model's points; returns the number of points."""
     pts = list(rec.points3D.values())

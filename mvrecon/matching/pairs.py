@@ -21,7 +21,8 @@ def sequential_pairs(names: list[str], window: int) -> list[tuple[str, str]]:
 
 
 def pairs_from_file(path, names: list[str]) -> list[tuple[str, str]]:
-    """Read `name1 name2` lines; unknown names and malformed lines are InputErrors naming file and line."""
+    """Read `name1 name2` lines; unknown names, an image paired with itself and malformed lines are InputErrors
+    naming file and line."""
     path = Path(path)
     try:
         lines = path.read_text().splitlines()
@@ -39,23 +40,27 @@ def pairs_from_file(path, names: list[str]) -> list[tuple[str, str]]:
         for name in parts:
             if name not in known:
                 raise InputError(f"{path}:{number}: unknown image {name!r}")
+        if parts[0] == parts[1]:  # matching an image with itself makes no pair: a slip the user should see
+            raise InputError(f"{path}:{number}: pairs image {parts[0]!r} with itself")
         key = tuple(sorted(parts))
-        if parts[0] != parts[1] and key not in seen:
+        if key not in seen:
             seen.add(key)
             out.append((parts[0], parts[1]))
     return out
 
 
-def check_spec(spec: str) -> str:
-    """Validate a --pairs value early (before any work); returns it unchanged."""
+def check_spec(spec: str, where: str | None = None) -> str:
+    """Validate a --pairs value early (before any work); returns it unchanged. `where`: how the user gave it, for
+    the message (a --config file's key, say); the flag by default."""
+    where = where or f"--pairs {spec}"
     if spec == "exhaustive" or Path(spec).is_file():
         return spec
     if spec.startswith("sequential:"):
         value = spec.split(":", 1)[1]
         if value.isdigit() and int(value) > 0:
             return spec
-        raise InputError(f"--pairs {spec}: the window must be a positive integer, e.g. sequential:10")
-    raise InputError(f"--pairs {spec}: expected exhaustive, sequential:K or an existing pairs file")
+        raise InputError(f"{where}: the window must be a positive integer, e.g. sequential:10")
+    raise InputError(f"{where}: expected exhaustive, sequential:K or an existing pairs file")
 
 
 def select_pairs(spec: str, names: list[str]) -> list[tuple[str, str]]:

@@ -9,6 +9,7 @@ global refinement) and a new model is started from the images that are left, so 
 give several models. Every image that ends unregistered gets a reason.
 """
 
+import hashlib
 import logging
 import pickle
 from dataclasses import dataclass, field
@@ -72,8 +73,28 @@ class _Snapshot:
 
 
 def _signature(corr, config: MapperConfig) -> tuple:
-    return (config.hash(), len(corr.images), len(corr.pairs),
-            int(sum(len(p.inliers) for p in corr.pairs)), int(sum(len(k) for k in corr.keypoints.values())))
+    """What a snapshot was mapped from: the config and a hash of all the input (cameras with their model,
+    parameters and trusted flag, images, keypoints, verified pairs), so that one made before the features or
+    matches were redone, or the cameras changed, is never resumed."""
+    h = hashlib.sha256()
+
+    def add(*values):
+        h.update(repr(values).encode())
+
+    for cid in sorted(corr.cameras):
+        c = corr.cameras[cid]
+        add("camera", int(cid), c.model, int(c.width), int(c.height), bool(c.prior_trusted),
+            np.asarray(c.params, np.float64).tolist())
+    for iid in sorted(corr.images):
+        im = corr.images[iid]
+        kp = np.ascontiguousarray(corr.keypoints.get(iid, np.zeros((0, 2))), np.float64)
+        add("image", int(iid), im.name, int(im.camera_id), kp.shape)
+        h.update(kp.tobytes())
+    for p in corr.pairs:
+        inl = np.ascontiguousarray(p.inliers, np.int64)
+        add("pair", int(p.image_id1), int(p.image_id2), p.config, inl.shape)
+        h.update(inl.tobytes())
+    return (config.hash(), len(corr.images), len(corr.pairs), h.hexdigest())
 
 
 class IncrementalMapper:
@@ -479,18 +500,23 @@ class IncrementalMapper:
         # observations
         self._close_loops(m)
         self._global_refine(m, rounds=2, min_change=1e-3)
-        if int(m.registered.sum()) >= self.config.min_model_size:
+        least = self.min_model_size()
+        if int(m.registered.sum()) >= least:
             self.finished.append(m)
             log.info("model %d: %d images, %d points", len(self.finished) - 1, int(m.registered.sum()),
                      len(m.alive_points()))
         else:
             n = int(m.registered.sum())
-            log.info("discarded a model of %d images (< %d)", n, self.config.min_model_size)
+            log.info("discarded a model of %d images (< %d)", n, least)
             if self.start_key is not None:
                 self.dropped_starts.add(self.start_key)
             for i in np.flatnonzero(m.registered).tolist():
-                self.reasons[i] = (f"its model stayed at {n} images, under min_model_size "
-                                   f"{self.config.min_model_size}, and was discarded")
+                self.reasons[i] = f"its model stayed at {n} images, under min_model_size {least}, and was discarded"
+
+    def min_model_size(self) -> int:
+        """COLMAP's rule (IncrementalPipeline): a model is kept with min(min_model_size, 0.8 x the number of
+        images, rounded down) registered images, so that a set of two or three images still gives a model."""
+        return min(self.config.min_model_size, int(0.8 * len(self.image_ids)))
 
     # ----- report -----
     def _status(self) -> dict:
