@@ -7,9 +7,9 @@ printed, so a test (or a reader) can match any cell of the page to the file.
 import base64
 import csv
 import html
-import json
 from pathlib import Path
 
+from ..io.files import write_json
 from . import figures
 
 INTEGER_METRICS = {"registered", "components", "points", "verified_pairs", "alignment_inliers"}
@@ -37,7 +37,7 @@ def write_report(comparison, report_dir) -> Path:
     report_dir = Path(report_dir)
     report_dir.mkdir(parents=True, exist_ok=True)
     m = comparison.metrics
-    (report_dir / "metrics.json").write_text(json.dumps(m, indent=1, allow_nan=False))  # strict JSON: no NaN
+    write_json(report_dir / "metrics.json", m, indent=1, allow_nan=False)  # strict JSON: no NaN
     write_csv(m, report_dir / "metrics.csv")
     page = report_dir / "index.html"
     page.write_text(render_html(comparison), encoding="utf-8")

@@ -21,6 +21,17 @@ def replace_whole(dst, write) -> None:
         tmp.unlink(missing_ok=True)
 
 
+def outermost_new_folder(path) -> Path | None:
+    """The outermost folder that `Path(path).mkdir(parents=True)` would create (None when `path` exists): what a
+    run that fails must remove to leave nothing behind."""
+    top = Path(path)
+    if top.exists():
+        return None
+    while not top.parent.exists() and top.parent != top:
+        top = top.parent
+    return top
+
+
 def write_json(path, data, **dumps) -> None:
     """`data` as JSON text (json.dumps options in `dumps`) in `path`, whole or not at all."""
     replace_whole(path, lambda tmp: tmp.write_text(json.dumps(data, **dumps) + "\n"))

@@ -13,7 +13,7 @@ import tomllib
 from pathlib import Path
 
 from ..errors import InputError
-from ..io.files import read_json_object, write_json
+from ..io.files import outermost_new_folder, read_json_object, write_json
 
 CATALOG_DIR = Path(__file__).resolve().parent / "catalog"
 GENERATOR_VERSION = "4"  # bump when a scene's files change, so cached scenes are rebuilt (4: calib.txt in mm)
@@ -99,9 +99,7 @@ def make_scene(name: str, out_dir) -> Path:
             shutil.rmtree(target)
         elif target.exists():
             target.unlink()
-    created = None if out.exists() else out
-    while created is not None and not created.parent.exists() and created.parent != created:
-        created = created.parent
+    created = outermost_new_folder(out)
     out.mkdir(parents=True, exist_ok=True)
     scene_name = entry.get("name", path.stem)
     meta = {

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..features.sift import SiftConfig
+from ..io.files import outermost_new_folder
 from ..matching.matcher import MatcherConfig
 from ..progress import progress
 from .affine import (AffineRansacConfig, affine_epipolar_error, ransac_affine_fundamental,
@@ -204,16 +205,6 @@ def _check_tilts_differ(tilts_deg) -> None:
                          "have no parallax (equal tilts) to give heights")
 
 
-def _new_folder(out: Path) -> Path | None:
-    """The outermost folder that creating `out` makes (None when `out` exists): removed if the run fails."""
-    if out.exists():
-        return None
-    top = out
-    while not top.parent.exists() and top.parent != top:
-        top = top.parent
-    return top
-
-
 def _reference(config: SemConfig, n: int) -> int:
     if config.reference is not None:
         if not 0 <= config.reference < n:
@@ -255,7 +246,7 @@ def run_sem(image_paths, out_dir, config: SemConfig = SemConfig()) -> dict:
     _check_distinct_files(paths)
     ref = _reference(config, n)
     out = Path(out_dir)
-    created = _new_folder(out)
+    created = outermost_new_folder(out)  # removed if the run fails
     out.mkdir(parents=True, exist_ok=True)
     try:
         return _run(paths, out, config, ref, timings, t0)

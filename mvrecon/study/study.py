@@ -18,7 +18,6 @@ the clean images (so the clean cell scores itself perfectly and the degraded cel
 """
 
 import csv
-import json
 import logging
 import math
 import os
@@ -123,8 +122,9 @@ def prepare_images(study_dir: Path, config: StudyConfig, cells: list[Cell], name
     for cell in progress(todo, desc="degrade cells", unit="cell"):
         deg = cell.degradation(config.base)
         degrade_folder(config.images, folders[cell.key], deg, seed=config.seed, progress_desc=cell.key, names=names)
-        (study_dir / "images" / f"{cell.key}.json").write_text(json.dumps(
-            {"degradation": deg.to_dict(), "order": deg.active(), "seed": config.seed, "images": names}, indent=1))
+        write_json(study_dir / "images" / f"{cell.key}.json",  # whole: a cut-off marker would claim the cell
+                   {"degradation": deg.to_dict(), "order": deg.active(), "seed": config.seed, "images": names},
+                   indent=1)
     return folders
 
 
