@@ -6,6 +6,7 @@ import csv
 import json
 import math
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -165,6 +166,61 @@ def test_colmap_runner_report_and_cache(runs):
     with pytest.raises(InputError, match=r"holds a run of colmap made with other settings "
                                          r"\(options.camera_mode: single -> per-image\)"):
         run_colmap(images, colmap.out_dir, RunOptions(camera_mode="per-image"))
+
+
+def test_other_mvrecon_args_reuse_colmaps_run_and_refuse_mvrecons(runs, tmp_path):
+    import dataclasses
+
+    images, gt, colmap, same = runs
+    upright = dataclasses.replace(OPTS, mvrecon_args=("--upright",))
+    # COLMAP never sees mvrecon's flags: its finished run is read back, not refused (refused before)
+    again = run_colmap(images, colmap.out_dir, upright)
+    assert again.error is None and again.wall_s == colmap.wall_s and again.report == colmap.report
+    # a run recorded with mvrecon's flags among its options (as every run was before) is reused too
+    old = tmp_path / "old-colmap"
+    shutil.copytree(colmap.out_dir, old)
+    meta = json.loads((old / "runner.json").read_text())
+    meta["options"]["mvrecon_args"] = ["--max-features", "2000"]
+    (old / "runner.json").write_text(json.dumps(meta))
+    assert run_colmap(images, old, upright).wall_s == colmap.wall_s
+    # what COLMAP does see still counts; the run on mvrecon's database depends on mvrecon's flags
+    with pytest.raises(InputError, match=r"options.seed: 0 -> 1"):
+        run_colmap(images, old, dataclasses.replace(upright, seed=1))
+    with pytest.raises(InputError, match=r"holds a run of colmap-same-matches made with other settings "
+                                         r"\(options.mvrecon_args: \[\] -> \['--upright'\]\)"):
+        run_colmap_on_database(colmap.out_dir / "database.db", same.out_dir, images, upright)
+
+
+def test_compare_again_with_other_mvrecon_args(tmp_path, capsys):
+    """The runs time out at once (no time spent on them); a timed-out run is a finished run, reused as such."""
+    images, _ = synthetic_scene(tmp_path / "scene")
+    out = tmp_path / "r"
+    args = ["-q", "compare", str(images), "-o", str(out), "--timeout", "0.01"]
+    assert main(args + ["--no-same-matches"]) == 1
+    capsys.readouterr()
+    colmap_meta = (out / "runs" / "colmap" / "runner.json").read_text()
+    # mvrecon's run was made with other flags: refused, as any run with other settings
+    assert main(args + ["--no-same-matches", "--mvrecon-args", "--upright"]) == 2
+    err = capsys.readouterr().err
+    assert f"{out / 'runs' / 'mvrecon'}: holds a run of mvrecon made with other settings" in err, err
+    shutil.rmtree(out / "runs" / "mvrecon")
+    assert main(args + ["--no-same-matches", "--mvrecon-args", "--upright"]) == 1  # 2 before: colmap refused
+    assert "holds a run" not in capsys.readouterr().err
+    assert (out / "runs" / "colmap" / "runner.json").read_text() == colmap_meta  # reused, not rerun
+    meta = json.loads((out / "runs" / "mvrecon" / "runner.json").read_text())
+    assert meta["command"][-1] == "--upright"
+    # every run folder is checked before any engine starts: a stale same-matches run stops mvrecon's rerun
+    same = out / "runs" / "colmap-same-matches"
+    same.mkdir()
+    (same / "runner.json").write_text(json.dumps({
+        "engine": "colmap-same-matches", "source": str((out / "runs" / "mvrecon" / "database.db").resolve()),
+        "options": OPTS.to_dict() | {"camera_mode": "auto"}, "finished": True}))
+    shutil.rmtree(out / "runs" / "mvrecon")
+    assert main(args + ["--mvrecon-args", "--max-features 2000"]) == 2
+    err = capsys.readouterr().err
+    assert f"{same}: holds a run of colmap-same-matches made with other settings (options.mvrecon_args: [] -> " \
+           f"['--max-features', '2000'])" in err and len(err.splitlines()) == 1, err
+    assert not (out / "runs" / "mvrecon").exists()
 
 
 def test_failed_run_is_reported_not_raised(tmp_path):
@@ -341,8 +397,6 @@ def test_models_refuse_the_options_of_runs(runs, tmp_path, capsys):
 
 
 def test_skipped_images_are_in_the_report_and_warned_once(tmp_path, caplog):
-    import shutil
-
     from mvrecon.io.images import image_problem
 
     images, _ = synthetic_scene(tmp_path / "scene")
@@ -416,8 +470,6 @@ def test_cumulative_plot_fits_the_data_and_is_quiet_when_an_engine_failed(monkey
 
 
 def test_cli_models_with_damaged_files_are_one_line(runs, tmp_path, capsys):
-    import shutil
-
     colmap = runs[2]
     broken_report, broken_model = tmp_path / "a", tmp_path / "b"
     shutil.copytree(colmap.out_dir, broken_report)

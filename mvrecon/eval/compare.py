@@ -22,7 +22,8 @@ import numpy as np
 from ..errors import InputError
 from ..io.images import IMAGE_EXTENSIONS, list_images
 from . import metrics as M
-from .runners import RunOptions, RunResult, load_run, run_colmap, run_colmap_on_database, run_mvrecon
+from .runners import (RunOptions, RunResult, load_run, refuse_other_settings, run_colmap, run_colmap_on_database,
+                      run_mvrecon)
 
 log = logging.getLogger("mvrecon.eval.compare")
 
@@ -105,6 +106,10 @@ def compare_images(image_dir, report_dir, gt=None, config: CompareConfig = Compa
     runs_dir = report_dir / "runs"
     steps = ["mvrecon", "colmap"] + (["colmap-global"] if config.colmap_global else []) \
         + (["colmap-same-matches"] if config.same_matches else [])
+    mvrecon_db = runs_dir / "mvrecon" / "database.db"  # what the same-matches run maps
+    for step in steps:  # a folder of a run with other settings is refused before any engine spends time
+        refuse_other_settings(step, mvrecon_db if step == "colmap-same-matches" else image_dir, runs_dir / step,
+                              config.options)
     runs = []
     bar = progress(total=len(steps), desc="compare", unit="run")
     for step in steps:
@@ -117,9 +122,8 @@ def compare_images(image_dir, report_dir, gt=None, config: CompareConfig = Compa
         elif step == "colmap-global":
             runs.append(run_colmap(image_dir, runs_dir / step, opts, True, timeout))
         else:
-            db = runs_dir / "mvrecon" / "database.db"
-            if db.is_file():
-                runs.append(run_colmap_on_database(db, runs_dir / step, image_dir, opts, timeout))
+            if mvrecon_db.is_file():
+                runs.append(run_colmap_on_database(mvrecon_db, runs_dir / step, image_dir, opts, timeout))
             else:
                 runs.append(RunResult(engine=step, out_dir=runs_dir / step,
                                       error="mvrecon wrote no database.db, so there were no matches to map"))

@@ -9,8 +9,9 @@
 Each run happens in a subprocess so its wall time and peak memory are its own and a crash cannot take the caller
 down. A finished OUT (its `runner.json` says so, with the same options) is read back instead of rerun, and so is a
 run that timed out (rerunning would only time out again); a run that failed otherwise is retried next time. OUT
-with a run made with other options is refused, so numbers from different settings never mix. Delete OUT to rerun
-after changing an engine.
+with a run made with other options is refused, so numbers from different settings never mix; the options that
+count are those the engine's result depends on (`RunOptions.identity`: COLMAP's own runs ignore `mvrecon_args`).
+Delete OUT to rerun after changing an engine.
 """
 
 import argparse
@@ -35,6 +36,7 @@ from ..io.files import read_json_object
 log = logging.getLogger("mvrecon.eval.runners")
 
 CAMERA_MODES = ("auto", "single", "per-folder", "per-image")
+COLMAP_ENGINES = ("colmap", "colmap-global")  # COLMAP end to end: never sees mvrecon's extra flags
 
 
 @dataclass(frozen=True)
@@ -54,6 +56,15 @@ class RunOptions:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["camera_params"], d["mvrecon_args"] = list(self.camera_params), list(self.mvrecon_args)
+        return d
+
+    def identity(self, engine: str) -> dict:
+        """The options `engine`'s result depends on, which a finished run must have been made with to be reused.
+        COLMAP's own runs never see mvrecon's extra flags, so other flags for mvrecon must not make them stale;
+        the same-matches run maps mvrecon's database, which those flags shaped, so it keeps them."""
+        d = self.to_dict()
+        if engine in COLMAP_ENGINES:
+            del d["mvrecon_args"]
         return d
 
 
@@ -100,7 +111,7 @@ def run_colmap(image_dir, out_dir, options: RunOptions = RunOptions(), global_ma
     """pycolmap end to end on the CPU: extract_features, match_exhaustive, incremental (or global) mapping."""
     engine = "colmap-global" if global_mapper else "colmap"
     cmd = [sys.executable, "-m", "mvrecon.eval.runners", "colmap", str(image_dir), str(out_dir),
-           "--options", json.dumps(options.to_dict())] + (["--global-mapper"] if global_mapper else [])
+           "--options", json.dumps(options.identity(engine))] + (["--global-mapper"] if global_mapper else [])
     return _run(engine, cmd, Path(image_dir), Path(out_dir), options, timeout)
 
 
@@ -114,7 +125,8 @@ def run_colmap_on_database(database_path, out_dir, image_dir=None, options: RunO
     if not database_path.is_file():
         raise InputError(f"{database_path}: no such database")
     cmd = [sys.executable, "-m", "mvrecon.eval.runners", "colmap-db", str(database_path), str(out_dir),
-           "--options", json.dumps(options.to_dict())] + (["--image-dir", str(image_dir)] if image_dir else [])
+           "--options", json.dumps(options.identity("colmap-same-matches"))] \
+        + (["--image-dir", str(image_dir)] if image_dir else [])
     return _run("colmap-same-matches", cmd, database_path, Path(out_dir), options, timeout)
 
 
@@ -157,19 +169,35 @@ def _read_json(path) -> dict:
     return read_json_object(path) or {}
 
 
-def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout) -> RunResult:
-    if not source.exists():
-        raise InputError(f"{source}: not found")
-    identity = {"engine": engine, "source": str(source.resolve()), "options": options.to_dict()}
-    meta_path = out_dir / "runner.json"
-    meta = _read_json(meta_path)
+def refuse_other_settings(engine: str, source, out_dir, options: RunOptions) -> dict:
+    """The runner.json of OUT_DIR ({} when none), after refusing a run in it made with settings other than what
+    `engine` on `source` with `options` would run: a caller running several engines checks every folder this way
+    before the first one starts. Options an earlier run recorded that no longer count for `engine` are ignored."""
+    identity = _identity(engine, Path(source), options)
+    meta = _read_json(Path(out_dir) / "runner.json")
     if meta:
-        differing = diff({k: meta.get(k) for k in identity}, identity)
+        old = {k: meta.get(k) for k in identity}
+        if isinstance(old["options"], dict):
+            old["options"] = {k: v for k, v in old["options"].items() if k in identity["options"]}
+        differing = diff(old, identity)
         if differing:
             raise InputError(f"{out_dir}: holds a run of {meta.get('engine')} made with other settings "
                              f"({'; '.join(differing)}); use another folder or delete it")
-        if meta.get("finished"):
-            return _result(engine, out_dir, meta)
+    return meta
+
+
+def _identity(engine: str, source: Path, options: RunOptions) -> dict:
+    return {"engine": engine, "source": str(source.resolve()), "options": options.identity(engine)}
+
+
+def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout) -> RunResult:
+    if not source.exists():
+        raise InputError(f"{source}: not found")
+    identity = _identity(engine, source, options)
+    meta_path = out_dir / "runner.json"
+    meta = refuse_other_settings(engine, source, out_dir, options)
+    if meta.get("finished"):
+        return _result(engine, out_dir, meta)
     out_dir.mkdir(parents=True, exist_ok=True)
     meta_path.write_text(json.dumps({**identity, "finished": False}, indent=1))
     _cache_bytecode()
