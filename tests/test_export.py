@@ -1,7 +1,8 @@
 """`mvrecon export --undistort` of photos with an EXIF orientation, and of 16-bit images: mvrecon's cameras are
 upright (EXIF applied when reading) while COLMAP's undistorter reads pixels as stored (it aborted the process on
 90 deg images and wrote 180 deg ones upside down), and it kept 16 bits (14-bit data came out dark). A model
-mapped from a database COLMAP made is in the stored frame, and is exported so."""
+mapped from a database COLMAP made is in the stored frame, and is exported so; so is a bare model folder whose
+cameras have the photos' stored size, or whose sizes cannot tell (COLMAP's convention, with a warning)."""
 
 import subprocess
 import sys
@@ -28,13 +29,17 @@ def views():
                        interpolation=cv2.INTER_CUBIC) for _ in range(4)]
 
 
-def _model(path, names):
-    """A model as mvrecon makes it: one upright SIMPLE_RADIAL camera (with distortion, so pixels are resampled)."""
-    rec = pycolmap.Reconstruction()
-    rec.add_camera_with_trivial_rig(pycolmap.Camera(model="SIMPLE_RADIAL", width=W, height=H,
-                                                    params=[180.0, W / 2, H / 2, -0.15], camera_id=1))
-    for image_id, name in enumerate(names, start=1):
-        rec.add_image_with_trivial_frame(pycolmap.Image(name=name, camera_id=1, image_id=image_id),
+def _model(path, names, sizes=None):
+    """A bare model folder: a SIMPLE_RADIAL camera (with distortion, so pixels are resampled) per image size,
+    `sizes` (width, height) per image, else W x H for all (mvrecon's upright frame for the views)."""
+    rec, cameras = pycolmap.Reconstruction(), {}
+    for image_id, (name, (w, h)) in enumerate(zip(names, sizes or [(W, H)] * len(names)), start=1):
+        if (w, h) not in cameras:
+            cameras[w, h] = len(cameras) + 1
+            rec.add_camera_with_trivial_rig(pycolmap.Camera(model="SIMPLE_RADIAL", width=w, height=h,
+                                                            params=[180.0, w / 2, h / 2, -0.15],
+                                                            camera_id=cameras[w, h]))
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=name, camera_id=cameras[w, h], image_id=image_id),
                                          pycolmap.Rigid3d(pycolmap.Rotation3d(), [0.1 * image_id, 0, 0]))
     path.mkdir(parents=True)
     rec.write(str(path))
@@ -68,6 +73,7 @@ def test_export_of_exif_rotated_photos_is_upright(views, tmp_path):
     assert _export(model, plain, tmp_path / "reference").returncode == 0
     done = _export(model, turned, tmp_path / "out")
     assert done.returncode == 0, done.stderr  # 134 (SIGABRT) before, on the 90 deg images
+    assert done.stderr == ""  # the 180 deg one is upright as the 90 deg ones are: nothing to warn about
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["images", "sparse"]
     rec = pycolmap.Reconstruction(str(tmp_path / "out" / "sparse" / "0"))
     for im in rec.images.values():
@@ -78,6 +84,60 @@ def test_export_of_exif_rotated_photos_is_upright(views, tmp_path):
             assert pil.getexif().get(ORIENTATION, 1) == 1
         # upright: 2.2 grey levels (one more JPEG generation); upside down (orientation 3 before) 66
         assert np.abs(image.astype(float) - reference).mean() < 4, im.name
+
+
+def _photos_as_stored(views, folder, orientations, sizes):
+    """Photos whose stored pixels are the views (cut to `sizes`), tagged with EXIF orientations, and the same
+    pixels without the tag in folder/plain: what COLMAP's features (it ignores the tag) were taken from."""
+    plain, tagged = folder / "plain", folder / "tagged"
+    plain.mkdir(parents=True), tagged.mkdir()
+    names = [f"v{k}.jpg" for k in range(len(orientations))]
+    for name, view, orientation, (w, h) in zip(names, views, orientations, sizes):
+        exif = Image.Exif()
+        exif[ORIENTATION] = orientation
+        Image.fromarray(view[:h, :w]).save(plain / name, quality=95)
+        Image.fromarray(view[:h, :w]).save(tagged / name, quality=95, exif=exif)
+    return names, plain, tagged
+
+
+def _assert_as_stored(out, reference):
+    """Each exported image is its camera's size, untagged, and shows the photo's pixels as stored: within 2-3 grey
+    levels of the export of the untagged copies (one JPEG generation), against ~65 turned by 180 deg."""
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    for im in rec.images.values():
+        cam, path = rec.cameras[im.camera_id], out / "images" / im.name
+        image, expected = _read(path), _read(reference / "images" / im.name)
+        assert image.shape == expected.shape == (cam.height, cam.width, 3), im.name
+        with Image.open(path) as pil:
+            assert pil.getexif().get(ORIENTATION, 1) == 1, im.name
+        assert np.abs(image.astype(float) - expected).mean() < 4, im.name
+
+
+def test_export_of_a_bare_colmap_model_of_exif_rotated_photos_is_as_stored(views, tmp_path):
+    """A bare COLMAP model (no database.db) of photos tagged 90/270 deg: its camera has their stored size, not
+    their upright one, so it is in COLMAP's frame; the 180 deg photo, whose size says nothing, goes with them.
+    Refused before ("is 150x200 upright (EXIF orientation 6) but its camera 1 in the model is 200x150")."""
+    names, plain, tagged = _photos_as_stored(views, tmp_path, (1, 3, 6, 8), [(W, H)] * 4)
+    model = _model(tmp_path / "model", names)  # COLMAP's camera: the stored size of every photo
+    assert _export(model, plain, tmp_path / "reference").returncode == 0
+    done = _export(model, tagged, tmp_path / "out")
+    assert done.returncode == 0 and done.stderr == "", done.stderr
+    _assert_as_stored(tmp_path / "out", tmp_path / "reference")
+
+
+def test_export_of_a_bare_model_whose_size_cannot_tell_is_as_stored_with_a_warning(views, tmp_path):
+    """A 180 deg photo and a square one turned by 90 deg have the same size upright and as stored, and no other
+    photo of the model tells its frame: exported as stored (COLMAP's convention), with one warning line naming
+    them. Before, both were exported upright without a word (the 180 deg one upside down for COLMAP's model)."""
+    sizes = [(W, H), (W, H), (H, H), (H, H)]
+    names, plain, tagged = _photos_as_stored(views, tmp_path, (1, 3, 6, 1), sizes)
+    model = _model(tmp_path / "model", names, sizes)
+    assert _export(model, plain, tmp_path / "reference").returncode == 0
+    done = _export(model, tagged, tmp_path / "out")
+    assert done.returncode == 0, done.stderr
+    assert done.stderr == (f"{model}: cannot tell the frame of v1.jpg, v2.jpg in the model (no database says, and the "
+                           f"size is the same upright and as stored): exported as stored, as COLMAP reads images\n")
+    _assert_as_stored(tmp_path / "out", tmp_path / "reference")
 
 
 def test_export_of_16_bit_images_is_8_bit_and_as_bright(views, tmp_path):

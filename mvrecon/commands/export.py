@@ -45,7 +45,8 @@ def run(args) -> int:
         if not features or "images" not in features:
             raise InputError(f"{run_dir}: cannot tell where its images are; pass --image-dir")
         image_dir = features["images"]
-    # the database the model was mapped from tells the frame of EXIF-rotated images (COLMAP's are as stored)
+    # the database the model was mapped from tells the frame of EXIF-rotated images (COLMAP's are as stored);
+    # without one (a bare model folder) the model's camera sizes do
     target = export_undistorted(model, image_dir, args.output, max_image_size=args.max_image_size,
                                 text=args.text, database=run_dir / "database.db")
     logging.getLogger("mvrecon").info("%s: undistorted images in %s, PINHOLE model in %s", args.output,

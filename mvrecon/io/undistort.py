@@ -11,7 +11,7 @@ COLMAP's own undistorter does the resampling (`pycolmap.undistort_images`), so t
 as stored, so images with an EXIF orientation and 16-bit ones (trainers read 8 bits) are given to it as 8-bit
 copies without the tag in DIR.partial/input/, the others as links. The copies are in the frame the model was made
 in: upright when mvrecon extracted the image's features (its reader applies the orientation), as stored when
-COLMAP did (a COLMAP database mapped with `mvrecon map -w`); see `stored_frame_images`.
+COLMAP did (a COLMAP database mapped with `mvrecon map -w`, or a bare COLMAP model); see `_stored_frame`.
 """
 
 import logging
@@ -48,23 +48,7 @@ def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -
         if problem:
             raise InputError(f"{path}: {problem}")
         metas[im.name] = image_metadata(path)
-    turned = [n for n, m in metas.items() if m.orientation != 1]
-    stored = stored_frame_images(database, turned) if turned else set()
-    if stored:
-        logging.getLogger(__name__).info("%s: COLMAP extracted the features of %d of the %d image(s) with an EXIF "
-                                         "orientation: exported as stored (not turned), without the tag, as the "
-                                         "model sees them", database, len(stored), len(turned))
-    for im in rec.images.values():
-        path, cam, m = image_dir / im.name, rec.cameras[im.camera_id], metas[im.name]
-        size = (m.width, m.height)
-        if im.name in stored and m.orientation in TRANSPOSED:
-            size = (m.height, m.width)
-        if size != (cam.width, cam.height):  # pycolmap would abort the whole process (SIGABRT)
-            frame = "" if m.orientation == 1 else (f" as stored (EXIF orientation {m.orientation} not applied)"
-                                                   if im.name in stored else
-                                                   f" upright (EXIF orientation {m.orientation})")
-            raise InputError(f"{path}: is {size[0]}x{size[1]}{frame} but its camera {cam.camera_id} in the model is "
-                             f"{cam.width}x{cam.height}: not the image the model was made from; pass --image-dir")
+    stored = _stored_frame(rec, image_dir, metas, database, model_dir)
     out = out_dir.resolve()
     for source in (model_dir, image_dir):  # replacing the output must never delete what is being exported
         if out == source.resolve() or out in source.resolve().parents:
@@ -125,21 +109,93 @@ def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -
     return final / "sparse" / "0"
 
 
-def stored_frame_images(database, names) -> set[str]:
-    """The images among `names` whose model is in the stored pixel frame, because COLMAP extracted their features.
+def _stored_frame(rec, image_dir: Path, metas: dict, database, model_dir: Path) -> set[str]:
+    """The model's images in the stored pixel frame (the others are upright), each checked against its camera's
+    size first: pycolmap aborts the whole process (SIGABRT) on an image of another size.
 
-    Told by the keypoints table of the database the model was mapped from: COLMAP writes 6 columns per keypoint
-    (x, y and the affine shape a11 a12 a21 a22), mvrecon 4 (x, y, scale, orientation; `database.write_features`).
-    This travels with the features themselves, image by image: it still holds when a COLMAP database was copied
-    into a workspace of ours, or the two were mixed, where config.json (our features stage) or images.json would
-    speak for the folder, and report.json is written by `map` for either. Images without keypoints there (or no
-    database: a bare model folder) are taken as mvrecon's, upright; so are those of a COLMAP from before its
-    affine keypoints (about 2018), which wrote 4 columns too."""
+    Only images with an EXIF orientation can be either. The database the model was mapped from tells, image by
+    image (`database_frames`); where it does not (a bare model folder), the model does: a camera of the image's
+    stored size is COLMAP's frame, one of its upright size mvrecon's. When both sizes are the same (a 180 deg
+    turn, a mirror, a square image) the image is in the frame the model's other EXIF-rotated images agree on;
+    with none to go by it is taken as stored, as COLMAP reads pixels, and a warning names it."""
+    log = logging.getLogger(__name__)
+    cameras = {im.name: rec.cameras[im.camera_id] for im in rec.images.values()}
+    turned = {n: m for n, m in metas.items() if m.orientation != 1}
+    told = database_frames(database, turned) if turned else {}  # name -> True when as stored
+    by_size = {n: frame for n, m in turned.items() if n not in told
+               and (frame := _frame_from_size(m, cameras[n])) is not None}
+    untold = sorted(n for n in turned if n not in told and n not in by_size)
+    agreed = set(told.values()) | set(by_size.values())
+    guess = next(iter(agreed)) if len(agreed) == 1 else True
+    frames = {**told, **by_size, **dict.fromkeys(untold, guess)}
+    _check_sizes(image_dir, metas, cameras, frames, told)
+    if any(told.values()):
+        log.info("%s: COLMAP extracted the features of %d of the %d image(s) with an EXIF orientation: exported as "
+                 "stored (not turned), without the tag, as the model sees them", database, sum(told.values()),
+                 len(turned))
+    if any(by_size.values()):
+        log.info("%s: the cameras of %d of the %d image(s) with an EXIF orientation have their stored size "
+                 "(COLMAP's frame: it ignores the tag): exported as stored, without the tag", model_dir,
+                 sum(by_size.values()), len(turned))
+    if untold and len(agreed) == 1:
+        log.info("%s: %s (the same size upright and as stored) taken %s, as the model's other image(s) with an "
+                 "EXIF orientation are", model_dir, _some(untold), "as stored" if guess else "upright")
+    elif untold:
+        log.warning("%s: cannot tell the frame of %s in the model (no database says, and the size is the same "
+                    "upright and as stored): exported as stored, as COLMAP reads images", model_dir, _some(untold))
+    return {n for n, stored in frames.items() if stored}
+
+
+def _check_sizes(image_dir: Path, metas: dict, cameras: dict, frames: dict, told: dict) -> None:
+    """Refuse an image whose size in its frame (`frames`: True when as stored) is not its camera's."""
+    for name, m in metas.items():
+        path, cam, stored = image_dir / name, cameras[name], frames.get(name, False)
+        size = (m.height, m.width) if stored and m.orientation in TRANSPOSED else (m.width, m.height)
+        if size == (cam.width, cam.height):
+            continue
+        what = f"{size[0]}x{size[1]}"
+        if name in told:
+            what += (f" as stored (EXIF orientation {m.orientation} not applied)" if stored else
+                     f" upright (EXIF orientation {m.orientation})")
+        elif m.orientation in TRANSPOSED:  # the camera has neither of the image's sizes
+            what = f"{m.width}x{m.height} upright (EXIF orientation {m.orientation}), {m.height}x{m.width} as stored"
+        elif m.orientation != 1:
+            what += f" (EXIF orientation {m.orientation})"
+        raise InputError(f"{path}: is {what} but its camera {cam.camera_id} in the model is {cam.width}x{cam.height}: "
+                         f"not the image the model was made from; pass --image-dir")
+
+
+def _frame_from_size(meta, cam) -> bool | None:
+    """True when the camera has the image's stored size and not its upright one, False for the reverse, None when
+    the size cannot tell (the two are the same: a 180 deg turn, a mirror, a square image) or is neither."""
+    upright = (meta.width, meta.height)
+    stored = upright[::-1] if meta.orientation in TRANSPOSED else upright
+    size = (cam.width, cam.height)
+    if upright == stored or size not in (upright, stored):
+        return None
+    return size == stored
+
+
+def _some(names: list[str], shown: int = 5) -> str:
+    return ", ".join(names[:shown]) + (f" and {len(names) - shown} more" if len(names) > shown else "")
+
+
+def database_frames(database, names) -> dict[str, bool]:
+    """Which frame the database the model was mapped from says each of `names` is in: True (stored pixel frame)
+    where COLMAP extracted its features, False (upright) where mvrecon did; names it has no keypoints of are left
+    out (as all are without a database: a bare model folder).
+
+    Told by the keypoints table: COLMAP writes 6 columns per keypoint (x, y and the affine shape a11 a12 a21 a22),
+    mvrecon 4 (x, y, scale, orientation; `database.write_features`). This travels with the features themselves,
+    image by image: it still holds when a COLMAP database was copied into a workspace of ours, or the two were
+    mixed, where config.json (our features stage) or images.json would speak for the folder, and report.json is
+    written by `map` for either. A COLMAP from before its affine keypoints (about 2018) wrote 4 columns too: its
+    images are taken as mvrecon's, upright."""
     import sqlite3
     from contextlib import closing
 
     if database is None or not Path(database).is_file():
-        return set()
+        return {}
     uri = Path(database).resolve().as_uri() + "?mode=ro"
     try:
         with closing(sqlite3.connect(uri, uri=True)) as con:
@@ -149,7 +205,7 @@ def stored_frame_images(database, names) -> set[str]:
         raise InputError(f"{database}: cannot read it to tell which frame the model's EXIF-rotated images are in "
                          f"({exc})") from None
     wanted = set(names)
-    return {name for name, cols in rows if name in wanted and cols == 6}
+    return {name: cols == 6 for name, cols in rows if name in wanted}
 
 
 def _8bit_in_model_frame(image_dir: Path, metas: dict, stored: set, folder: Path) -> Path:
