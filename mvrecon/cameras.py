@@ -33,15 +33,22 @@ class CameraConfig:
     def validate(self, origin: dict[str, str] | None = None) -> "CameraConfig":
         """This config, or an InputError naming where the faulty value came from: `origin` maps "mode", "model"
         and "params" to how the user gave each ("--camera-model PINHOLE", "cams.toml: camera: mode = 'x'"); a
-        field left out is a default, named only when no given one is at fault. Without `origin`, as flags."""
+        field left out was not written by the user, so it is named only when no given one is at fault, and then
+        as the default it is ("the default camera model SIMPLE_RADIAL"), not as a flag nobody typed. Without
+        `origin`, the fields that differ from the defaults are named as flags."""
         shown = ",".join(f"{v:g}" for v in self.params) if all(
             isinstance(v, (int, float)) for v in self.params) else repr(list(self.params))
         if origin is None:
-            origin = {"mode": f"--camera-mode {self.mode}", "model": f"--camera-model {self.model}",
-                      "params": f"--camera-params {shown}"}
+            flags = {"mode": f"--camera-mode {self.mode}", "model": f"--camera-model {self.model}",
+                     "params": f"--camera-params {shown}"}
+            origin = {n: flag for n, flag in flags.items() if getattr(self, n) != getattr(CameraConfig, n)}
+
+        def unwritten(name):  # a value set in code, or the default
+            default = "the default " if getattr(self, name) == getattr(CameraConfig, name) else ""
+            return f"{default}camera {name} {shown if name == 'params' else getattr(self, name)}"
 
         def where(*names):
-            return " with ".join(origin[n] for n in names if n in origin) or f"camera model {self.model}"
+            return " with ".join(origin[n] for n in names if n in origin) or " with ".join(map(unwritten, names))
 
         if self.mode not in CAMERA_MODES:
             raise InputError(f"{where('mode')}: expected one of {', '.join(CAMERA_MODES)}")

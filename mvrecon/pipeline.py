@@ -417,7 +417,6 @@ def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resu
     """
     import shutil
 
-    from .config import diff
     from .io.colmap_model import write_models, write_points_ply
     from .sfm.incremental import map_correspondences
 
@@ -427,18 +426,12 @@ def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resu
         raise InputError(f"{ws.path}: no database.db here; run `mvrecon reconstruct IMAGES -o {ws.path}` "
                          "first")
     record, sparse, snapshot = to_dict(config), ws.path / "sparse", ws.snapshot_path
+    ws.check_stage("mapping", record, overwrite, hint=f"rerun with --overwrite to map again (`mvrecon map -w "
+                   f"{ws.path} --overwrite` redoes only the mapping), or use another workspace")
     try:
         stages = ws.stages()
-    except InputError:
-        if not overwrite:
-            raise
+    except InputError:  # an unreadable config.json, which check_stage lets --overwrite map past
         stages = {}
-    before = stages.get("mapping")
-    if before is not None and before["hash"] != config_hash(record) and not overwrite:
-        raise InputError(f"{ws.path}: mapped with a different mapper config "
-                         f"({'; '.join(diff(before['config'], record))}); rerun with --overwrite to map again "
-                         "(`mvrecon map -w WORKSPACE --overwrite` redoes only the mapping), or use another "
-                         "workspace")
     corr = dbmod.read_correspondences(ws.database_path)
     if not corr.pairs:
         with dbmod.open_database(ws.database_path) as db:
@@ -451,7 +444,7 @@ def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resu
     if overwrite:  # --overwrite starts mapping over, --resume or not
         snapshot.unlink(missing_ok=True)
         resume = False
-    ws.begin_stage("mapping", record, True)
+    ws.begin_stage("mapping", record, overwrite)
     result = map_correspondences(corr, config, snapshot_path=snapshot, resume=resume)
     # the new models go to sparse.new/ and replace sparse/ only once made: a failed re-map keeps the old model
     new = ws.path / "sparse.new"

@@ -13,6 +13,8 @@ from . import config as cfgmod
 from .errors import InputError
 from .io.files import read_json_object, write_json
 
+REDO = "rerun with --overwrite to recompute, or use another workspace"  # what a refused stage config advises
+
 
 class Workspace:
     def __init__(self, path):
@@ -60,12 +62,13 @@ class Workspace:
             raise InputError(f"{self.path}: no {stage} in this workspace; {hint}")
         return found
 
-    def check_stage(self, stage: str, config: dict, overwrite: bool = False) -> list[str]:
+    def check_stage(self, stage: str, config: dict, overwrite: bool = False, *, hint: str = REDO) -> list[str]:
         """What `begin_stage` would return, without writing anything: a refused config raises here, before the
-        caller deletes or rewrites any result."""
-        return self._plan(stage, config, overwrite)[1]
+        caller deletes or rewrites any result, with `hint` after the differences (the command that redoes only
+        this stage, say)."""
+        return self._plan(stage, config, overwrite, hint)[1]
 
-    def _plan(self, stage: str, config: dict, overwrite: bool) -> tuple[dict, list[str]]:
+    def _plan(self, stage: str, config: dict, overwrite: bool, hint: str = REDO) -> tuple[dict, list[str]]:
         try:
             stages, dropped = self.stages(), []
         except InputError:
@@ -80,7 +83,7 @@ class Workspace:
             if not overwrite:
                 changes = cfgmod.diff(stages[stage]["config"], config)
                 raise InputError(f"{self.path}: made with a different {stage} config ({'; '.join(changes)}); "
-                                 "rerun with --overwrite to recompute, or use another workspace")
+                                 f"{hint}")
             dropped = names[names.index(stage):]
             for name in dropped:
                 del stages[name]

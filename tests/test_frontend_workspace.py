@@ -7,6 +7,7 @@ import pytest
 from PIL import Image
 
 from mvrecon import database as dbmod
+from mvrecon.cameras import CameraConfig
 from mvrecon.cli import main
 from mvrecon.errors import InputError
 from mvrecon.features.sift import SiftConfig
@@ -245,6 +246,22 @@ def test_errors_name_the_flag_or_the_config_file_key_the_user_wrote(tmp_path, ca
             code, out = run_cli(command + args, capsys)
             assert (code, out.err) == (2, f"mvrecon: error: {message}\n"), (command, args)
             assert not out_dir.exists()
+    # `compare` checks its camera flags without an origin: the default model it fills in is not a flag the
+    # user typed, so only --camera-params is named (the error itself says which model it holds for)
+    code, out = run_cli(["compare", str(images), "-o", str(out_dir), "--camera-params", "1,2,3"], capsys)
+    assert (code, out.err) == (2, "mvrecon: error: --camera-params 1,2,3: SIMPLE_RADIAL takes 4 parameters "
+                                  "(f, cx, cy, k), got 3\n")
+    assert not out_dir.exists()
+    # values nobody wrote (a config made in code, an origin without them) are named as values, a default as one
+    for camera, origin, message in (
+            (CameraConfig(model="PINHOLE", params=(1.0, 2.0)), None,
+             "--camera-params 1,2 with --camera-model PINHOLE: PINHOLE takes 4 parameters"),
+            (CameraConfig(params=(1.0, 2.0, 3.0)), {}, "camera params 1,2,3 with the default camera model "
+                                                       "SIMPLE_RADIAL: SIMPLE_RADIAL takes 4 parameters"),
+            (CameraConfig(mode="whatever"), {}, "camera mode whatever: expected one of auto")):
+        with pytest.raises(InputError) as refused:
+            camera.validate(origin)
+        assert str(refused.value).startswith(message), str(refused.value)
     # `map` reads the [mapper] table only, and refuses a value in its place the same way
     code, out = run_cli(["map", "-w", str(out_dir), "--config", str(tmp_path / "m.toml")], capsys)
     assert (code, out.err) == (2, f"mvrecon: error: {tmp_path / 'm.toml'}: 'mapper' must be a table ([mapper] "

@@ -376,10 +376,11 @@ def test_images_left_when_no_later_model_can_start_say_what_their_best_pair_miss
 
 def test_a_discarded_pair_is_not_built_again_and_the_bar_counts_each_image_once(monkeypatch):
     """Two separate pairs, each with a median angle over 16 deg, so each passes every angle threshold; each
-    makes a 2-image model, which is discarded (min_model_size 3). Each pair used to be built again at every
-    lower threshold (4 times: the same model, discarded again), and the progress bar counted every build's
-    images: 16 of 4. With nothing changed since its model was discarded (no model finished in between, the
-    same cameras), a pair is not built again, and the bar counts the images registered now (0 at the end)."""
+    makes a 2-image model: the first is kept (COLMAP keeps the first model at any size), the second is
+    discarded (min_model_size 3). The second pair used to be built again at every lower threshold (4 times:
+    the same model, discarded again), and the progress bar counted every build's images. With nothing changed
+    since its model was discarded (no model finished in between, the same cameras), a pair is not built again,
+    and the bar counts the images registered now (the first pair's 2 at the end)."""
     from mvrecon.progress import Bar
 
     seeded, shown = [], []
@@ -398,11 +399,34 @@ def test_a_discarded_pair_is_not_built_again_and_the_bar_counts_each_image_once(
     monkeypatch.setattr(incremental.IncrementalMapper, "_seed_model", seed)
     monkeypatch.setattr(incremental, "progress", lambda **kw: Recorded(**kw, disable=True))
     result = map_correspondences(lined_up_views([((0.0, 12.0), (20, 40), 200), ((0.0, 12.0), (20, 40), 200)]))
-    assert result.models == []
+    assert [int(m.registered.sum()) for m in result.models] == [2]
     assert sorted(seeded) == [(0, 1), (2, 3)]
-    assert {s["reason"] for s in result.status.values()} == {
-        "its model stayed at 2 images, under min_model_size 3, and was discarded"}
-    assert max(shown) == 2 and shown[-1] == 0
+    assert {name: s["reason"] for name, s in result.status.items()} == {
+        "g0_0.png": None, "g0_1.png": None,
+        "g1_0.png": "its model stayed at 2 images, under min_model_size 3, and was discarded",
+        "g1_1.png": "its model stayed at 2 images, under min_model_size 3, and was discarded"}
+    assert max(shown) == 4 and shown[-1] == 2
+
+
+def test_the_first_model_is_kept_whatever_its_size_as_colmap_does(caplog):
+    """One pair that makes a 2-image model, among four images that share nothing with any other (six images:
+    min_model_size 3 holds). COLMAP keeps the first model at any size; ours discarded it, and the set gave no
+    model at all (every image unregistered, exit 1). The pair's model is kept, the other images say why they
+    are not in it."""
+    import logging
+
+    single = ((0.0,), (20, 40), 200)
+    corr = lined_up_views([((0.0, 12.0), (20, 40), 200), single, single, single, single])
+    mapper = incremental.IncrementalMapper(corr)
+    assert mapper.min_model_size() == 3
+    with caplog.at_level(logging.INFO, logger="mvrecon.sfm"):
+        result = mapper.run()
+    assert [int(m.registered.sum()) for m in result.models] == [2]
+    assert "model 0: 2 images" in caplog.text and "(kept under min_model_size 3: the first model)" in caplog.text
+    assert {name: (s["status"], s["model"], s["reason"]) for name, s in result.status.items()} == {
+        "g0_0.png": ("registered", 0, None), "g0_1.png": ("registered", 0, None),
+        **{f"g{g}_0.png": ("unregistered", None, "no verified pairs with any other image") for g in range(1, 5)}}
+    assert mapper.dropped_starts == set()
 
 
 def test_the_bar_ends_at_the_registered_images(monkeypatch):

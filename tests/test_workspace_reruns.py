@@ -88,15 +88,20 @@ def test_a_refused_camera_setup_changes_nothing(base, tmp_path, capsys):
 def test_changed_mapper_settings_are_refused_and_a_failed_remap_keeps_the_model(base, tmp_path, capsys):
     images, ws = copy_run(base, tmp_path)
     model = (ws / "sparse" / "0" / "images.bin").read_bytes()
-    # --seed 1 silently replaced the seed-0 model
+    # --seed 1 silently replaced the seed-0 model. The workspace's stage check refuses it (the one check of
+    # every stage), with the hint of the command that redoes only the mapping.
+    hint = (f"rerun with --overwrite to map again (`mvrecon map -w {ws} --overwrite` redoes only the mapping), "
+            "or use another workspace")
     assert main(["-q", "reconstruct", str(images), "-o", str(ws), "--seed", "1"]) == 2
-    err = capsys.readouterr().err
-    assert "different mapper config (seed: 0 -> 1)" in err and "--overwrite" in err
+    assert capsys.readouterr().err == (f"mvrecon: error: {ws}: made with a different mapping config "
+                                       f"(seed: 0 -> 1); {hint}\n")
     assert (ws / "sparse" / "0" / "images.bin").read_bytes() == model
     assert json.loads((ws / "report.json").read_text())["seed"] == 0
     toml = tmp_path / "hi.toml"
     toml.write_text("[mapper]\ninit_min_inliers = 5000\n")
     assert main(["-q", "map", "-w", str(ws), "--config", str(toml)]) == 2
+    assert capsys.readouterr().err == (f"mvrecon: error: {ws}: made with a different mapping config "
+                                       f"(init_min_inliers: 100 -> 5000); {hint}\n")
     # with --overwrite the re-map runs and makes no model: the earlier model was deleted before that was known
     assert main(["-q", "map", "-w", str(ws), "--config", str(toml), "--overwrite"]) == 1
     assert (ws / "sparse" / "0" / "images.bin").read_bytes() == model and (ws / "points.ply").is_file()

@@ -6,7 +6,8 @@ and its most connected neighbours, filter; whenever the model has grown by 10% r
 intrinsics,
 retriangulate and filter, and write a snapshot. When no image can be added, the model is finished (a last
 global refinement) and a new model is started from the images that are left, so scenes that do not connect
-give several models. Every image that ends unregistered gets a reason.
+give several models; as in COLMAP, the first model is kept whatever its size, a later one from
+`min_model_size()` images. Every image that ends unregistered gets a reason.
 """
 
 import hashlib
@@ -31,7 +32,7 @@ from .triangulate import (continue_points, refine_existing_points, retriangulate
                           triangulate_tracks)
 
 log = logging.getLogger("mvrecon.sfm")
-SNAPSHOT_VERSION = 1
+SNAPSHOT_VERSION = 2  # 2: the first model is kept at any size (a state of 1 may hold it discarded)
 _FOCAL_SCALES = (1.0, 0.25, 0.35, 0.5, 0.7, 1.4, 2.0, 3.0)  # of a guessed focal, tried at initialisation
 
 
@@ -66,7 +67,10 @@ class _Snapshot:
         except Exception as exc:  # cut off or overwritten: what it held is lost either way, so map afresh
             log.warning("%s: unreadable snapshot (%s: %s); starting over", self.path, type(exc).__name__, exc)
             return None
-        if data.get("version") != SNAPSHOT_VERSION or data.get("signature") != self.signature:
+        if data.get("version") != SNAPSHOT_VERSION:
+            log.warning("%s: snapshot from another version of the mapper; starting over", self.path)
+            return None
+        if data.get("signature") != self.signature:
             log.warning("%s: snapshot from a different config or database; starting over", self.path)
             return None
         return data["state"]
@@ -500,22 +504,27 @@ class IncrementalMapper:
         # observations
         self._close_loops(m)
         self._global_refine(m, rounds=2, min_change=1e-3)
-        least = self.min_model_size()
-        if int(m.registered.sum()) >= least:
+        n, least = int(m.registered.sum()), self.min_model_size()
+        if self._keeps(n):
             self.finished.append(m)
-            log.info("model %d: %d images, %d points", len(self.finished) - 1, int(m.registered.sum()),
-                     len(m.alive_points()))
+            log.info("model %d: %d images, %d points%s", len(self.finished) - 1, n, len(m.alive_points()),
+                     f" (kept under min_model_size {least}: the first model)" if n < least else "")
         else:
-            n = int(m.registered.sum())
             log.info("discarded a model of %d images (< %d)", n, least)
             if self.start_key is not None:
                 self.dropped_starts.add(self.start_key)
             for i in np.flatnonzero(m.registered).tolist():
                 self.reasons[i] = f"its model stayed at {n} images, under min_model_size {least}, and was discarded"
 
+    def _keeps(self, n: int) -> bool:
+        """COLMAP's rule (IncrementalPipeline, "always keep the first reconstruction, independent of size"): a
+        finished model of `n` images is kept when it is the first one kept and holds any image, a later one
+        with `min_model_size()` images; a set where only a small model can be built still gives that model."""
+        return n > 0 and (not self.finished or n >= self.min_model_size())
+
     def min_model_size(self) -> int:
-        """COLMAP's rule (IncrementalPipeline): a model is kept with min(min_model_size, 0.8 x the number of
-        images, rounded down) registered images, so that a set of two or three images still gives a model."""
+        """The images a model after the first needs, as COLMAP's IncrementalPipeline: min(min_model_size, 0.8 x
+        the number of images, rounded down)."""
         return min(self.config.min_model_size, int(0.8 * len(self.image_ids)))
 
     # ----- report -----
