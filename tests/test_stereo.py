@@ -448,6 +448,84 @@ def test_a_swapped_or_misaligned_pair_is_flagged(tmp_path, caplog):
                                "apart vertically")
 
 
+def small_camera(path, t=(-1, 0, 0), right_cx: float = 120.0) -> Path:
+    """A rig file for `small_pair`'s 240x160 images: two equal pinhole cameras side by side (R = I, t along x), so
+    the calibrated rectification keeps the images as they are; `right_cx` moves the right principal point."""
+    text = CAMERA_TOML.replace("width = 640", "width = 240").replace("height = 512", "height = 160")
+    text = text.replace("320.0, 256.0", "120.0, 80.0", 1).replace("320.0, 256.0", f"{right_cx}, 80.0", 1)
+    Path(path).write_text(text.replace("t = [-1, 0, 0]", f"t = {list(t)}"))
+    return Path(path)
+
+
+def test_camera_file_warnings(tmp_path, caplog):
+    """--camera: the warnings of `judge_matches` for a rig file, in the log and in report.json. The pair in the rig's
+    order gets none; swapped, its sign is judged on d + doffs; a file of a rig with a vertical baseline, or rows 5 px
+    apart, give rows that do not line up (with the camera file's hint); a search range beside the matches is named."""
+    import logging
+
+    import cv2
+
+    left, right = small_pair(tmp_path)
+    rig = small_camera(tmp_path / "rig.toml")
+    cv2.imwrite(str(tmp_path / "low.png"), np.roll(cv2.imread(str(right)), -5, axis=0))  # rows 5 px apart
+
+    def warnings(name, first, second, camera, *extra):
+        caplog.clear()
+        caplog.set_level(logging.WARNING, logger="mvrecon")
+        assert main(["stereo", str(first), str(second), "-o", str(tmp_path / name), "-q", "--method", "sgbm",
+                     "--camera", str(camera), *extra]) == 0
+        report = json.loads((tmp_path / name / "report.json").read_text())
+        assert report["rectification"] == "calibrated (camera file)"
+        assert [f"warning: {w}" for w in report["warnings"]] == [r.getMessage() for r in caplog.records]
+        return report
+
+    report = warnings("ok", left, right, rig)
+    assert report["warnings"] == [] and report["geometry"]["doffs"] == 0.0
+    assert report["match_disparities_px"]["median"] == pytest.approx(6.0, abs=0.1)
+    assert warnings("swap", right, left, rig)["warnings"] == [
+        "100 % of the inlier matches have a negative disparity (x_left - x_right + doffs, median -6.0 px): the left "
+        "and right images are probably swapped; give them the other way round"]
+    # principal points 10 px apart: d = -6 px is d + doffs = 4 px, a point in front of the rig (Z = f B / 4)
+    converging = warnings("doffs", right, left, small_camera(tmp_path / "doffs.toml", right_cx=130.0))
+    assert converging["warnings"] == [] and converging["geometry"]["doffs"] == 10.0
+    rows = ("rows do not line up after rectification (the inlier matches lie a median {} px apart vertically, under "
+            "2 px expected): the camera file may be another rig's, or LEFT and RIGHT swapped; the disparity map is "
+            "likely wrong")
+    assert warnings("low", left, tmp_path / "low.png", rig)["warnings"] == [rows.format("5.0")]
+    vertical = small_camera(tmp_path / "vertical.toml", t=(0, -1, 0))  # a rig with one camera above the other
+    assert warnings("vertical", left, right, vertical)["warnings"] == [rows.format("6.0")]
+    assert warnings("range", left, right, rig, "--min-disparity", "20", "--num-disparities", "16")["warnings"] == [
+        "100 % of the inlier matches' disparities (1-99 %: 6.0 to 6.0 px) lie outside the search range [20, 36]: "
+        "those surfaces come out as holes or wrong; give --min-disparity and --num-disparities"]
+
+
+def test_a_run_refused_after_the_matches_leaves_no_folder_it_made(tmp_path, capsys):
+    """The parallax check needs the matches, so it ran after OUT (and OUT/.stages) had been made: a refused run
+    left them behind. Now removed when this run made them; a folder the user made, or an earlier run's, stays."""
+    import cv2
+
+    left, right = small_pair(tmp_path)
+    moved = tmp_path / "moved.png"  # the left image moved by 0.3 px: no parallax
+    cv2.imwrite(str(moved), cv2.warpAffine(cv2.imread(str(left)), np.float32([[1, 0, 0.3], [0, 1, 0]]), (240, 160),
+                                           borderMode=cv2.BORDER_REFLECT))
+
+    def refused(out):
+        capsys.readouterr()
+        assert main(["stereo", str(left), str(moved), "-o", str(out), "-q", "--method", "sgbm"]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and err.startswith(f"mvrecon: error: {left}, {moved}: no parallax: "), err
+
+    refused(tmp_path / "new" / "out")
+    assert not (tmp_path / "new").exists()
+    (tmp_path / "mine").mkdir()
+    refused(tmp_path / "mine")
+    assert list((tmp_path / "mine").iterdir()) == []
+    assert main(["stereo", str(left), str(right), "-o", str(tmp_path / "done"), "-q", "--method", "sgbm"]) == 0
+    before = sorted(p.relative_to(tmp_path / "done") for p in (tmp_path / "done").rglob("*"))
+    refused(tmp_path / "done")
+    assert sorted(p.relative_to(tmp_path / "done") for p in (tmp_path / "done").rglob("*")) == before
+
+
 def test_mask_without_gt_is_refused(tmp_path, capsys):
     left, right = small_pair(tmp_path)
     assert main(["stereo", str(left), str(right), "-o", str(tmp_path / "out"), "--mask", str(left), "-q"]) == 2

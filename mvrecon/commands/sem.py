@@ -9,7 +9,8 @@ reference image and increase along that order (parallel projection cannot tell a
 Outputs in OUT: height.tif (32-bit float), height.png, profile.png, points.ply (merged points),
 surface.ply (height map as points), report.json (tilts, axis, scale, matches, point counts, ICP, timings,
 warnings). A given --axis more than 5 deg from the matches' own estimate is warned about; one view given twice
-(the same file, identical pixels, or matches without parallax) is refused.
+(the same file, identical pixels, or matches without parallax, also as one pair inside a longer series) and a
+tilt of 90 deg or more either way are refused.
 """
 
 ORDER = 70

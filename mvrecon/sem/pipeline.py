@@ -37,6 +37,14 @@ HEIGHT_SOURCES = ("dense", "joint", "merged")
 # parallax: measured 0x to 2.8x for an image and its shifted, JPEG or noisy copy, 14.7x to 58.7x for the pairs of
 # sem_tilt_small and of the Karido DSA and quartz series (docs/sem.md, "Checks on the input").
 MIN_PARALLAX_RATIO = 6.0
+# A pair below that ratio inside a series with parallax is one view twice (a copy under another name, re-encoded
+# or noisy) unless its matches move with their neighbours: tilting moves nearby points alike (their heights are
+# alike), two exposures of one view move each point by its own matching noise. Correlation of a match's motion
+# across the axis with its 4 nearest neighbours' mean, measured: -0.06 to 0.06 for noisy, JPEG and shifted copies
+# of sem_tilt_small and Karido images, 0.27 to 0.61 for rendered pairs 1 deg apart (ratio 2.5 to 4.9), 0.92 or more
+# for the pairs of sem_tilt_small and of the Karido series (docs/sem.md, "Checks on the input").
+MIN_MOTION_COHERENCE = 0.15
+MIN_COHERENCE_MATCHES = 50  # fewer matches: the correlation's own noise (1 / sqrt(matches)) is too large to judge
 # A given --axis farther than this from the matches' own estimate is warned about: that estimate (median over
 # the pairs of the affine-F axis) is within 0.2 deg of the true or jointly estimated axis on the good series
 # (single pairs within 1.8 deg); an axis 5 deg off raises sem_tilt_small's height error from 0.81 to 1.17 %.
@@ -187,6 +195,55 @@ def _parallax(x1, x2, F) -> tuple[float, float]:
     return spread, float(np.median(affine_epipolar_error(F, x1, x2)))
 
 
+def _motion_coherence(x1, x2, axis_deg: float, neighbours: int = 4, min_distance: float = 2.0) -> float:
+    """Correlation of each match's motion across the tilt axis (beyond the common shift) with the mean motion of
+    its `neighbours` nearest matches at least `min_distance` px away in the first image: nearer ones are the same
+    keypoint at another orientation, with the same localisation error. Motions beyond 4 sigma (wrong matches) are
+    clipped; a pair that moves all alike (a shifted copy) gives 0."""
+    from scipy.spatial import cKDTree
+
+    _, nvec = axis_vectors(axis_deg)
+    r = (x2 - x1) @ nvec
+    r = r - np.median(r)
+    sigma = 1.4826 * np.median(np.abs(r))
+    r = np.clip(r, -4 * sigma, 4 * sigma)
+    dist, index = cKDTree(x1).query(x1, k=min(len(x1), neighbours + 8))
+    use = (dist >= min_distance) & (np.cumsum(dist >= min_distance, axis=1) <= neighbours)
+    full = use.sum(axis=1) == neighbours
+    around = np.where(use, r[index], 0.0).sum(axis=1)[full] / neighbours
+    norm = np.sqrt(np.sum(r[full] ** 2) * np.sum(around ** 2))
+    return float(np.sum(r[full] * around) / norm) if norm > 0 else 0.0
+
+
+def _check_pairs_have_parallax(paths, keypoints, pairs, tilts_deg) -> None:
+    """Refuse a pair without parallax inside a series whose other pairs have it: one view saved twice (under two
+    names, re-encoded or noisy). Given tilts then put one view at two tilts and bend the joint adjustment (RMS
+    0.135 -> 0.247 px on sem_tilt_small); estimated ones rest on one view fewer than the user thinks (two, in a
+    series of three: the tilt step and the height scale cannot be told apart). A pair given equal tilts is a
+    repeated exposure the user declared, and passes (the pair step skips it)."""
+    tilted = [p for p, v in pairs.items() if v.get("parallax_ratio", 0.0) >= MIN_PARALLAX_RATIO]
+    axis = _median_axis([pairs[p]["axis_deg"] for p in tilted], pairs[tilted[0]]["axis_deg"])
+    for (i, j), v in pairs.items():
+        if v.get("parallax_ratio", np.inf) >= MIN_PARALLAX_RATIO or len(v["index"]) < MIN_COHERENCE_MATCHES:
+            continue
+        if tilts_deg is not None and abs(np.sin(np.radians(tilts_deg[j] - tilts_deg[i]))) < 1e-9:
+            continue
+        idx = v["index"]
+        v["coherence"] = _motion_coherence(keypoints[i][idx[:, 0]], keypoints[j][idx[:, 1]], axis)
+        if v["coherence"] >= MIN_MOTION_COHERENCE:
+            continue  # a small tilt step: little parallax, but it follows the relief
+        if tilts_deg is None:
+            given, remedy = ", although the series' other pairs show it", "remove one"
+        else:
+            given = f" although --tilts puts them {abs(tilts_deg[j] - tilts_deg[i]):g} deg apart"
+            remedy = "remove one, or give a repeated exposure the same tilt twice"
+        coherence = round(v["coherence"], 2) + 0.0  # no "-0.00"
+        raise InputError(f"{paths[j]}: no parallax against {paths[i]}{given}: their matches move "
+                         f"{v['parallax_px']:.3f} px beyond a common shift ({v['parallax_ratio']:.1f}x the matching "
+                         f"noise), each on its own (coherence {coherence:.2f} with its neighbours; tilted views give "
+                         f"{MIN_MOTION_COHERENCE:g} or more); the same view twice? {remedy}")
+
+
 def _axis_difference(a: float, b: float) -> float:
     """Angle between two axis directions in degrees (0..90): axes are lines, 179 and 1 deg are 2 deg apart."""
     return float(abs((a - b + 90.0) % 180.0 - 90.0))
@@ -195,6 +252,17 @@ def _axis_difference(a: float, b: float) -> float:
 def _median_axis(axes, around: float) -> float:
     """Median of axis angles (deg, modulo 180), each taken within 90 deg of `around`."""
     return float((around + np.median([(a - around + 90.0) % 180.0 - 90.0 for a in axes])) % 180.0)
+
+
+def _check_tilts_in_range(tilts_deg) -> None:
+    """Refuse a given tilt of 90 deg or more either way: the specimen's surface is then edge-on or faces away from
+    the detector, and under parallel projection tilts t and t + 180 deg give one view mirrored, with no parallax
+    between them (`--tilts=-5,175,5` ran as three tilts)."""
+    for x in tilts_deg:
+        if not -90.0 < x < 90.0:
+            raise InputError(f"--tilts {','.join(f'{t:g}' for t in tilts_deg)}: {x:g} deg is not between -90 and 90 "
+                             "(at 90 the surface is edge-on, beyond it faces away; tilts 180 deg apart give one view "
+                             "mirrored, without parallax); give each image's stage tilt")
 
 
 def _check_tilts_differ(tilts_deg) -> None:
@@ -242,6 +310,7 @@ def run_sem(image_paths, out_dir, config: SemConfig = SemConfig()) -> dict:
     if config.tilts_deg is None and n < 3:
         raise InputError(f"{paths[0]}: estimating tilts needs at least 3 images (got {n}); give --tilts")
     if config.tilts_deg is not None:
+        _check_tilts_in_range(config.tilts_deg)
         _check_tilts_differ(config.tilts_deg)
     _check_distinct_files(paths)
     ref = _reference(config, n)
@@ -287,6 +356,7 @@ def _run(paths, out: Path, config: SemConfig, ref: int, timings: dict, t0: float
                          f"{v['parallax_px']:.3f} px beyond a common shift, {v['parallax_ratio']:.1f}x the matching "
                          f"noise ({v['noise_px']:.3f} px; tilted views give {MIN_PARALLAX_RATIO:g}x or more); are "
                          "these images of one tilt?")
+    _check_pairs_have_parallax(paths, keypoints, pairs, config.tilts_deg)
 
     # joint solution of all images: tilts (given or estimated), axis, drifts, points
     t = time.perf_counter()
@@ -377,7 +447,7 @@ def _run(paths, out: Path, config: SemConfig, ref: int, timings: dict, t0: float
         "warnings": report_warnings,
         "keypoints": [int(len(k)) for k in keypoints],
         "pairs": [{"pair": [i, j], "matches": v["matches"], "verified": v["verified"],
-                   **{k: v[k] for k in ("axis_deg", "parallax_px", "noise_px") if k in v}}
+                   **{k: v[k] for k in ("axis_deg", "parallax_px", "noise_px", "coherence") if k in v}}
                   for (i, j), v in pairs.items()],
         "joint": {"rms_px": solution.rms_px, "observations": solution.observations_used,
                   "tracks": int(obs.num_points), "points": int(len(anchor)),

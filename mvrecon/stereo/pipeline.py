@@ -6,6 +6,7 @@ dict it also writes to `out_dir/report.json`. A rerun into the same folder reuse
 """
 
 import logging
+import shutil
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -13,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..io.files import replace_whole, write_json
+from ..io.files import outermost_new_folder, replace_whole, write_json
 from ..geometry.fundamental import RansacConfig, ransac_fundamental, sampson_distance
 from ..geometry.rectification import apply_homography, calibrated_rectification, fit_to_canvas, hartley_rectification
 from ..io.pfm import read_pfm, write_pfm
@@ -268,13 +269,8 @@ def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=
 
     rectified=True takes the pair as already rectified without a calib.txt (disparity only, no metric depth).
     Input that cannot give a right answer (a calibration for another image size, the same image twice) is an
-    InputError before any work; a result that is likely wrong (`judge_matches`) is listed in report["warnings"]."""
-    import cv2
-
-    from . import figures
-    from .depth import disparity_to_depth, write_point_cloud
-    from .evaluate import error_map, evaluate
-
+    InputError before any work (the parallax check after the matches: a refused run removes the folder it made); a
+    result that is likely wrong (`judge_matches`) is listed in report["warnings"]."""
     if calib_path is not None and camera_path is not None:
         raise InputError("give either --calib or --camera, not both")
     if mask_path is not None and gt_path is None:  # it would be read and never used
@@ -314,7 +310,25 @@ def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=
                              f"{left.shape[1]}x{left.shape[0]}")
     if config.method not in METHODS:
         raise InputError(f"unknown stereo method {config.method!r}; expected one of {', '.join(METHODS)}")
+    created = outermost_new_folder(out / ".stages")  # OUT when new, else the stage folder when new
     out.mkdir(parents=True, exist_ok=True)
+    try:
+        return _run(config, left_path, right_path, out, left, right, calib, camera, gt, mask, rectified)
+    except InputError:  # refused after the matches (no parallax, too few): leave no folder of ours behind
+        if created is not None:
+            shutil.rmtree(created, ignore_errors=True)
+        raise
+
+
+def _run(config: StereoConfig, left_path, right_path, out: Path, left, right, calib, camera, gt, mask,
+         rectified: bool) -> dict:
+    """run_stereo after its checks, into the existing folder `out` (an interrupted run keeps its stages there)."""
+    import cv2
+
+    from . import figures
+    from .depth import disparity_to_depth, write_point_cloud
+    from .evaluate import error_map, evaluate
+
     stages = Stages(out)
     stages.path.parent.mkdir(parents=True, exist_ok=True)  # the matches and disparities are kept there too
     report: dict = {"left": str(left_path), "right": str(right_path), "method": config.method, "warnings": []}
