@@ -191,6 +191,25 @@ def test_other_mvrecon_args_reuse_colmaps_run_and_refuse_mvrecons(runs, tmp_path
         run_colmap_on_database(colmap.out_dir / "database.db", same.out_dir, images, upright)
 
 
+def test_a_run_on_a_database_that_changed_since_is_redone(runs, tmp_path):
+    """The same-matches run is named by its database's path: a database made again at that path (mvrecon's run
+    redone) must not be answered with the model of the old one."""
+    import sqlite3
+
+    images, _, colmap, _ = runs
+    db, out = tmp_path / "database.db", tmp_path / "same"
+    shutil.copyfile(colmap.out_dir / "database.db", db)
+    first = run_colmap_on_database(db, out, images, OPTS)
+    assert run_colmap_on_database(db, out, images, OPTS).wall_s == first.wall_s  # unchanged: read back
+    with sqlite3.connect(db) as con:  # the database made again, with one verified pair fewer
+        pair = con.execute("SELECT pair_id FROM two_view_geometries WHERE rows > 0 LIMIT 1").fetchone()[0]
+        con.execute("DELETE FROM two_view_geometries WHERE pair_id = ?", (pair,))
+    con.close()
+    again = run_colmap_on_database(db, out, images, OPTS)
+    assert again.error is None and again.wall_s != first.wall_s  # mapped again, not read back (it was before)
+    assert again.report["counts"]["verified_pairs"] == first.report["counts"]["verified_pairs"] - 1
+
+
 def test_compare_again_with_other_mvrecon_args(tmp_path, capsys):
     """The runs time out at once (no time spent on them); a timed-out run is a finished run, reused as such."""
     images, _ = synthetic_scene(tmp_path / "scene")

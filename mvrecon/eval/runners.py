@@ -121,13 +121,30 @@ def run_colmap_on_database(database_path, out_dir, image_dir=None, options: RunO
 
     `image_dir` only serves to colour the points.
     """
-    database_path = Path(database_path)
+    database_path, out_dir = Path(database_path), Path(out_dir)
     if not database_path.is_file():
         raise InputError(f"{database_path}: no such database")
+    content = _drop_if_database_changed(database_path, out_dir, options)
     cmd = [sys.executable, "-m", "mvrecon.eval.runners", "colmap-db", str(database_path), str(out_dir),
            "--options", json.dumps(options.identity("colmap-same-matches"))] \
         + (["--image-dir", str(image_dir)] if image_dir else [])
-    return _run("colmap-same-matches", cmd, database_path, Path(out_dir), options, timeout)
+    return _run("colmap-same-matches", cmd, database_path, out_dir, options, timeout, {"database_sha256": content})
+
+
+def _drop_if_database_changed(database_path: Path, out_dir: Path, options: RunOptions) -> str:
+    """The database's sha256, after deleting a finished run of COLMAP on an earlier content of it (mvrecon's run
+    redone after its folder was deleted, say): the run's identity holds the database's path, so its runner.json
+    keeps the content's hash too (the copy it mapped is no witness: COLMAP writes to it). A run with other options
+    is refused first, as always; one from before the hash was kept cannot be judged and is kept."""
+    import hashlib
+
+    meta = refuse_other_settings("colmap-same-matches", database_path, out_dir, options)
+    with open(database_path, "rb") as fh:
+        content = hashlib.file_digest(fh, "sha256").hexdigest()
+    if meta.get("finished") and meta.get("database_sha256", content) != content:
+        log.info("%s: %s changed since this run mapped it; mapping it again", out_dir, database_path)
+        shutil.rmtree(out_dir)
+    return content
 
 
 def load_run(out_dir, engine: str | None = None) -> RunResult:
@@ -190,7 +207,9 @@ def _identity(engine: str, source: Path, options: RunOptions) -> dict:
     return {"engine": engine, "source": str(source.resolve()), "options": options.identity(engine)}
 
 
-def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout) -> RunResult:
+def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout, record: dict | None = None
+         ) -> RunResult:
+    """Run `cmd` into OUT_DIR unless a finished run is there; `record` is kept in runner.json beside the identity."""
     if not source.exists():
         raise InputError(f"{source}: not found")
     identity = _identity(engine, source, options)
@@ -199,7 +218,7 @@ def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout)
     if meta.get("finished"):
         return _result(engine, out_dir, meta)
     out_dir.mkdir(parents=True, exist_ok=True)
-    meta_path.write_text(json.dumps({**identity, "finished": False}, indent=1))
+    meta_path.write_text(json.dumps({**identity, **(record or {}), "finished": False}, indent=1))
     _cache_bytecode()
     log.debug("running %s on %s -> %s", engine, source, out_dir)
     start = time.perf_counter()
@@ -220,8 +239,8 @@ def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout)
             proc.wait()
             raise
     timed_out = error is not None and error.startswith("timed out")
-    meta = {**identity, "finished": error is None or timed_out, "wall_s": time.perf_counter() - start,
-            "peak_tree_mem_mb": peak_mb, "error": error, "command": cmd}
+    meta = {**identity, **(record or {}), "finished": error is None or timed_out,
+            "wall_s": time.perf_counter() - start, "peak_tree_mem_mb": peak_mb, "error": error, "command": cmd}
     meta_path.write_text(json.dumps(meta, indent=1))
     return _result(engine, out_dir, meta)
 
