@@ -376,11 +376,11 @@ def test_images_left_when_no_later_model_can_start_say_what_their_best_pair_miss
 
 def test_a_discarded_pair_is_not_built_again_and_the_bar_counts_each_image_once(monkeypatch):
     """Two separate pairs, each with a median angle over 16 deg, so each passes every angle threshold; each
-    makes a 2-image model: the first is kept (COLMAP keeps the first model at any size), the second is
-    discarded (min_model_size 3). The second pair used to be built again at every lower threshold (4 times:
-    the same model, discarded again), and the progress bar counted every build's images. With nothing changed
-    since its model was discarded (no model finished in between, the same cameras), a pair is not built again,
-    and the bar counts the images registered now (the first pair's 2 at the end)."""
+    makes a 2-image model, under min_model_size 3: as no model reaches it, the first of the two is kept at the
+    end. The second pair used to be built again at every lower threshold (4 times: the same model, discarded
+    again), and the progress bar counted every build's images. With nothing changed since its model was
+    discarded (no model finished in between, the same cameras), a pair is not built again, and the bar counts
+    the images registered now (a discarded model's no longer; the kept pair's 2 at the end)."""
     from mvrecon.progress import Bar
 
     seeded, shown = [], []
@@ -405,13 +405,13 @@ def test_a_discarded_pair_is_not_built_again_and_the_bar_counts_each_image_once(
         "g0_0.png": None, "g0_1.png": None,
         "g1_0.png": "its model stayed at 2 images, under min_model_size 3, and was discarded",
         "g1_1.png": "its model stayed at 2 images, under min_model_size 3, and was discarded"}
-    assert max(shown) == 4 and shown[-1] == 2
+    assert max(shown) == 2 and shown[-1] == 2
 
 
-def test_the_first_model_is_kept_whatever_its_size_as_colmap_does(caplog):
+def test_a_small_model_is_kept_when_no_model_reaches_min_model_size(caplog):
     """One pair that makes a 2-image model, among four images that share nothing with any other (six images:
-    min_model_size 3 holds). COLMAP keeps the first model at any size; ours discarded it, and the set gave no
-    model at all (every image unregistered, exit 1). The pair's model is kept, the other images say why they
+    min_model_size 3 holds). Ours discarded it, and the set gave no model at all (every image unregistered,
+    exit 1). As no model reaches min_model_size, the pair's model is kept, and the other images say why they
     are not in it."""
     import logging
 
@@ -422,11 +422,26 @@ def test_the_first_model_is_kept_whatever_its_size_as_colmap_does(caplog):
     with caplog.at_level(logging.INFO, logger="mvrecon.sfm"):
         result = mapper.run()
     assert [int(m.registered.sum()) for m in result.models] == [2]
-    assert "model 0: 2 images" in caplog.text and "(kept under min_model_size 3: the first model)" in caplog.text
+    assert "model 0: 2 images" in caplog.text and "(kept under min_model_size 3: no model reached it)" in caplog.text
     assert {name: (s["status"], s["model"], s["reason"]) for name, s in result.status.items()} == {
         "g0_0.png": ("registered", 0, None), "g0_1.png": ("registered", 0, None),
         **{f"g{g}_0.png": ("unregistered", None, "no verified pairs with any other image") for g in range(1, 5)}}
-    assert mapper.dropped_starts == set()
+
+
+def test_a_small_model_built_first_is_dropped_when_another_reaches_min_model_size(caplog):
+    """A pair with twice the matches of any other is the first start and makes a 2-image model; a group of four
+    views makes a model of 4. COLMAP would keep both (its first model at any size), and hold the pair's images
+    there; ours keeps a small model only when no model reaches min_model_size."""
+    import logging
+
+    corr = lined_up_views([((0.0, 12.0), (20, 40), 400), ((0.0, 4.0, 8.0, 12.0), (20, 40), 200)])
+    with caplog.at_level(logging.INFO, logger="mvrecon.sfm"):
+        result = map_correspondences(corr)
+    assert caplog.text.index("discarded a model of 2 images") < caplog.text.index("model 0: 4 images")
+    assert [int(m.registered.sum()) for m in result.models] == [4]
+    assert {name: s["reason"] for name, s in result.status.items() if s["status"] != "registered"} == {
+        "g0_0.png": "its model stayed at 2 images, under min_model_size 3, and was discarded",
+        "g0_1.png": "its model stayed at 2 images, under min_model_size 3, and was discarded"}
 
 
 def test_the_bar_ends_at_the_registered_images(monkeypatch):

@@ -6,8 +6,9 @@ and its most connected neighbours, filter; whenever the model has grown by 10% r
 intrinsics,
 retriangulate and filter, and write a snapshot. When no image can be added, the model is finished (a last
 global refinement) and a new model is started from the images that are left, so scenes that do not connect
-give several models; as in COLMAP, the first model is kept whatever its size, a later one from
-`min_model_size()` images. Every image that ends unregistered gets a reason.
+give several models. A model needs `min_model_size()` images; when none reaches it, the largest smaller one is
+kept (COLMAP keeps its first model whatever its size, which locks a first pair that did not grow away from the
+model its images belong in). Every image that ends unregistered gets a reason.
 """
 
 import hashlib
@@ -32,7 +33,7 @@ from .triangulate import (continue_points, refine_existing_points, retriangulate
                           triangulate_tracks)
 
 log = logging.getLogger("mvrecon.sfm")
-SNAPSHOT_VERSION = 2  # 2: the first model is kept at any size (a state of 1 may hold it discarded)
+SNAPSHOT_VERSION = 2  # 2: small models are kept as candidates (a state of 1 dropped them)
 _FOCAL_SCALES = (1.0, 0.25, 0.35, 0.5, 0.7, 1.4, 2.0, 3.0)  # of a guessed focal, tried at initialisation
 
 
@@ -122,6 +123,7 @@ class IncrementalMapper:
         self.tracks = build_tracks(self.image_ids, [len(k) for k in self.keypoints], corr.pairs)
         self.snapshot = _Snapshot(snapshot_path, _signature(corr, config))
         self.finished: list[Reconstruction] = []
+        self.small: list[Reconstruction] = []  # finished under min_model_size: kept only if no model reaches it
         self.tried_init: set = set()
         # what a model was started from (`_start_key`) when the model was discarded: starting it again from
         # the same pair and state would only build the same model again
@@ -193,6 +195,7 @@ class IncrementalMapper:
 
     def _save(self) -> None:
         self.snapshot.save({"finished": [m.state() for m in self.finished],
+                            "small": [m.state() for m in self.small],
                             "current": self.current.state() if self.current is not None else None,
                             "tried_init": set(self.tried_init), "reasons": dict(self.reasons),
                             "last_global": self.last_global, "attempts": dict(self.attempts),
@@ -200,6 +203,7 @@ class IncrementalMapper:
 
     def _restore(self, s: dict) -> None:
         self.finished = [Reconstruction.from_state(m, self.keypoints) for m in s["finished"]]
+        self.small = [Reconstruction.from_state(m, self.keypoints) for m in s.get("small", [])]
         self.current = Reconstruction.from_state(s["current"], self.keypoints) if s["current"] else None
         self.tried_init, self.reasons = s["tried_init"], s["reasons"]
         self.last_global, self.attempts = s["last_global"], s["attempts"]
@@ -223,6 +227,8 @@ class IncrementalMapper:
             self.current = None
             self._show_progress(bar)
             self._save()
+        self._keep_a_small_model()
+        self._show_progress(bar)
         bar.close()
         self.finished.sort(key=lambda m: -int(m.registered.sum()))
         return MappingResult(self.finished, self._status(),
@@ -505,26 +511,32 @@ class IncrementalMapper:
         self._close_loops(m)
         self._global_refine(m, rounds=2, min_change=1e-3)
         n, least = int(m.registered.sum()), self.min_model_size()
-        if self._keeps(n):
+        if n >= least:
             self.finished.append(m)
-            log.info("model %d: %d images, %d points%s", len(self.finished) - 1, n, len(m.alive_points()),
-                     f" (kept under min_model_size {least}: the first model)" if n < least else "")
-        else:
-            log.info("discarded a model of %d images (< %d)", n, least)
-            if self.start_key is not None:
-                self.dropped_starts.add(self.start_key)
-            for i in np.flatnonzero(m.registered).tolist():
-                self.reasons[i] = f"its model stayed at {n} images, under min_model_size {least}, and was discarded"
+            log.info("model %d: %d images, %d points", len(self.finished) - 1, n, len(m.alive_points()))
+            return
+        log.info("discarded a model of %d images (< %d)", n, least)
+        if self.start_key is not None:
+            self.dropped_starts.add(self.start_key)
+        if n > 0:
+            self.small.append(m)
+        for i in np.flatnonzero(m.registered).tolist():
+            self.reasons[i] = f"its model stayed at {n} images, under min_model_size {least}, and was discarded"
 
-    def _keeps(self, n: int) -> bool:
-        """COLMAP's rule (IncrementalPipeline, "always keep the first reconstruction, independent of size"): a
-        finished model of `n` images is kept when it is the first one kept and holds any image, a later one
-        with `min_model_size()` images; a set where only a small model can be built still gives that model."""
-        return n > 0 and (not self.finished or n >= self.min_model_size())
+    def _keep_a_small_model(self) -> None:
+        """When no model reached min_model_size, the largest smaller one (the first of equals) is kept: a set where
+        only a small model can be built still gives it. Until then its images stay free for later models, where
+        COLMAP's keeping of its first model at any size would hold them in a pair that did not grow."""
+        if self.finished or not self.small:
+            return
+        m = max(self.small, key=lambda f: int(f.registered.sum()))
+        self.finished.append(m)
+        log.info("model 0: %d images, %d points (kept under min_model_size %d: no model reached it)",
+                 int(m.registered.sum()), len(m.alive_points()), self.min_model_size())
 
     def min_model_size(self) -> int:
-        """The images a model after the first needs, as COLMAP's IncrementalPipeline: min(min_model_size, 0.8 x
-        the number of images, rounded down)."""
+        """The images a model needs, as COLMAP's IncrementalPipeline: min(min_model_size, 0.8 x the number of
+        images, rounded down)."""
         return min(self.config.min_model_size, int(0.8 * len(self.image_ids)))
 
     # ----- report -----
