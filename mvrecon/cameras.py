@@ -24,7 +24,7 @@ CAMERA_MODES = ("auto", "single", "per-folder", "per-image")
 
 @dataclass(frozen=True)
 class CameraConfig:
-    model: str = "SIMPLE_RADIAL"  # SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL or OPENCV
+    model: str = "SIMPLE_RADIAL"  # SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV or OPENCV_FISHEYE
     mode: str = "auto"  # auto: same size + EXIF make/model/focal share a camera; single; per-folder; per-image
     params: tuple[float, ...] = ()  # known intrinsics in the model's COLMAP order; trusted; empty = from EXIF
     # focal guess without EXIF = factor * max(width, height), as COLMAP

@@ -140,14 +140,20 @@ def read_images(db) -> dict[int, ImageInfo]:
             for i in db.read_all_images()}
 
 
-def read_correspondences(path, min_inliers: int = 0) -> Correspondences:
-    """Load cameras, images, keypoint positions and verified pairs (with at least `min_inliers` inliers)."""
+def read_correspondences(path, min_inliers: int = 0, *, mapped: bool = True) -> Correspondences:
+    """Load cameras, images, keypoint positions and verified pairs (with at least `min_inliers` inliers).
+
+    `mapped`: the correspondences are for mvrecon's mapper, so a camera of a model it does not model is an
+    InputError here, before any work (COLMAP has more models: FULL_OPENCV, FOV, the radial fisheyes...);
+    False reads any COLMAP database (the counts of a report)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such database")
     out = Correspondences()
     with open_database(path) as db:
         out.cameras = read_cameras(db)
+        if mapped:
+            _check_camera_models(path, out.cameras)
         out.images = read_images(db)
         for image_id in out.images:
             kp = np.asarray(db.read_keypoints(image_id), dtype=float)
@@ -162,6 +168,15 @@ def read_correspondences(path, min_inliers: int = 0) -> Correspondences:
                 image_id1=int(id1), image_id2=int(id2), config=_config_name(int(g.config)),
                 inliers=inliers, F=_matrix_or_none(g.F), E=_matrix_or_none(g.E), H=_matrix_or_none(g.H)))
     return out
+
+
+def _check_camera_models(path: Path, cameras: dict[int, CameraInfo]) -> None:
+    from .geometry.camera import MODELS
+
+    for camera_id, cam in sorted(cameras.items()):
+        if cam.model not in MODELS:
+            raise InputError(f"{path}: camera {camera_id} is {cam.model}, which mvrecon's mapper does not model; "
+                             f"supported: {', '.join(MODELS)}")
 
 
 def _check_sqlite(path: Path) -> None:
@@ -236,7 +251,7 @@ def database_counts(path) -> dict:
     One definition for every engine's report: a pair is verified when its two-view geometry is neither
     undefined, degenerate nor a watermark and keeps inlier matches.
     """
-    corr = read_correspondences(path)
+    corr = read_correspondences(path, mapped=False)
     pairs = [p for p in corr.pairs if p.config not in ("UNDEFINED", "DEGENERATE", "WATERMARK")]
     n_kp = [len(corr.keypoints.get(i, ())) for i in corr.images]
     return {"images": len(corr.images), "keypoints_per_image": float(sum(n_kp) / max(len(n_kp), 1)),

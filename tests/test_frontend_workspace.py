@@ -223,7 +223,7 @@ def test_errors_name_the_flag_or_the_config_file_key_the_user_wrote(tmp_path, ca
             (["--config", f"{t}/mode.toml"], f"{t}/mode.toml: camera: mode = 'whatever': expected one of auto, "
                                              "single, per-folder, per-image"),
             (["--config", f"{t}/model.toml"], f"{t}/model.toml: camera: model = 'FISHEYE': expected one of "
-                                              "SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV"),
+                                              "SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, OPENCV_FISHEYE"),
             (["--config", f"{t}/pairs.toml"], f"{t}/pairs.toml: pairs = 'sequential:0': the window must be a "
                                               "positive integer, e.g. sequential:10"),
             (["--config", f"{t}/params.toml", "--camera-model", "PINHOLE"],

@@ -11,6 +11,7 @@ and SEM tilt series have their own commands, `mvrecon stereo` and `mvrecon sem`.
 Example:
   mvrecon demo -o out/demo
   mvrecon demo -o out/demo_wide --scene wide_orbit_small
+  mvrecon demo -o out/demo_fisheye --scene fisheye_orbit_small --camera-model OPENCV_FISHEYE
 """
 
 ORDER = 1
@@ -24,12 +25,17 @@ OTHER_COMMANDS = {"stereo": "mvrecon stereo", "sem_tilt": "mvrecon sem"}  # the 
 
 
 def add_arguments(parser) -> None:
+    from ..cameras import CameraConfig
+    from ..geometry.camera import MODELS
     from ._options import non_negative_int
 
     parser.add_argument("-o", "--output", default="out/demo", help="output folder (default: out/demo)")
     parser.add_argument("--scene", default=SCENE,
                         help=f"catalog scene to use, a perspective one (`mvrecon scene list`; default: {SCENE})")
-    parser.add_argument("--seed", type=non_negative_int, default=0, help="mapper seed")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="mapper seed (default 0)")
+    parser.add_argument("--camera-model", choices=MODELS, default=CameraConfig.model,
+                        help=f"camera model to reconstruct with (default {CameraConfig.model}; e.g. OPENCV for "
+                             "wide_orbit_small, OPENCV_FISHEYE for fisheye_orbit_small)")
     parser.add_argument("--overwrite", action="store_true",
                         help="reconstruct OUT/run again from the start, e.g. with another --seed (the scene is "
                              "kept: it is the same for the same --scene)")
@@ -59,7 +65,8 @@ def run(args) -> int:
     from ..eval.metrics import accuracy_summary
     from ..eval.models import model_stats, poses, sparse_models
     from ..io.files import write_json
-    from ..pipeline import ReconstructConfig, reconstruct
+    from ..cameras import CameraConfig
+    from ..pipeline import FrontendConfig, ReconstructConfig, reconstruct
     from ..scenes import make_scene
     from ..sfm.config import MapperConfig
     from .reconstruct import no_model
@@ -70,8 +77,9 @@ def run(args) -> int:
     log.info("rendering scene %s into %s ...", args.scene, out / "scene")
     scene = make_scene(args.scene, out / "scene")
     run_dir = out / "run"
-    report = reconstruct(ReconstructConfig(mapper=MapperConfig(seed=args.seed)), scene / "images", run_dir,
-                         resume=True, overwrite=args.overwrite)
+    config = ReconstructConfig(frontend=FrontendConfig(camera=CameraConfig(model=args.camera_model)),
+                               mapper=MapperConfig(seed=args.seed))
+    report = reconstruct(config, scene / "images", run_dir, resume=True, overwrite=args.overwrite)
     models = sparse_models(run_dir / "sparse")
     gt = load_ground_truth(scene / "gt" / "sparse")
     summary = accuracy_summary([poses(m) for m in models], gt)

@@ -403,7 +403,7 @@ def _write_outputs(out_dir: Path, engine: str, options: dict, models: list, db: 
         rec.write(str(sparse / str(k)))
     if models:
         models[0].export_PLY(str(out_dir / "points.ply"))
-    corr = read_correspondences(db)
+    corr = read_correspondences(db, mapped=False)  # COLMAP's own run: any of its camera models
     model_of = {}
     for k, rec in enumerate(models):
         for im in rec.images.values():

@@ -1,5 +1,10 @@
 """COLMAP camera models in numpy: parameter layout, intrinsic matrix, projection with distortion, unprojection.
 
+OPENCV_FISHEYE is the equidistant (Kannala-Brandt) lens of COLMAP and OpenCV's cv2.fisheye: the angle theta of a
+ray from the axis maps to the image radius theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)
+in normalised units, so the normalised point (x, y) = tan(theta) (cos phi, sin phi) lands at theta_d (cos phi,
+sin phi). As in COLMAP, the projection divides by z first: rays at 90 deg or more from the axis have no pixel.
+
 Pixel coordinates follow COLMAP: the centre of the top-left pixel is (0.5, 0.5), so a centred principal point
 is (w/2, h/2). OpenCV puts that pixel centre at (0, 0): add 0.5 when moving OpenCV keypoints into COLMAP.
 """
@@ -12,6 +17,7 @@ PARAM_NAMES = {
     "SIMPLE_RADIAL": ("f", "cx", "cy", "k"),
     "RADIAL": ("f", "cx", "cy", "k1", "k2"),
     "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
+    "OPENCV_FISHEYE": ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4"),
 }
 MODELS = tuple(PARAM_NAMES)
 
@@ -38,6 +44,7 @@ def default_params(model: str, focal: float, width: int, height: int) -> np.ndar
         "SIMPLE_RADIAL": [focal, cx, cy, 0.0],
         "RADIAL": [focal, cx, cy, 0.0, 0.0],
         "OPENCV": [focal, focal, cx, cy, 0.0, 0.0, 0.0, 0.0],
+        "OPENCV_FISHEYE": [focal, focal, cx, cy, 0.0, 0.0, 0.0, 0.0],
     }[model], dtype=float)
 
 
@@ -50,7 +57,7 @@ def split(model: str, params):
         dist = {"k1": p[3] if len(p) > 3 else 0.0, "k2": p[4] if len(p) > 4 else 0.0}
     else:
         fx, fy, cx, cy = p[:4]
-        dist = {"k1": 0.0, "k2": 0.0} if model == "PINHOLE" else dict(zip(("k1", "k2", "p1", "p2"), p[4:]))
+        dist = dict(zip(PARAM_NAMES[model][4:], p[4:])) if len(p) > 4 else {"k1": 0.0, "k2": 0.0}
     return fx, fy, cx, cy, dist
 
 
@@ -61,13 +68,17 @@ def calibration_matrix(model: str, params) -> np.ndarray:
 
 
 def distortion_coefficients(model: str, params) -> np.ndarray:
-    """OpenCV's (k1, k2, p1, p2) for the model; zeros for pinhole models."""
+    """OpenCV's distortion vector for the model: (k1, k2, p1, p2) as cv2.projectPoints takes it (zeros for
+    pinhole models), and for OPENCV_FISHEYE (k1, k2, k3, k4) as cv2.fisheye takes it."""
     _, _, _, _, d = split(model, params)
-    return np.array([d.get("k1", 0.0), d.get("k2", 0.0), d.get("p1", 0.0), d.get("p2", 0.0)])
+    names = PARAM_NAMES[model][4:] if model == "OPENCV_FISHEYE" else ("k1", "k2", "p1", "p2")
+    return np.array([d.get(name, 0.0) for name in names])
 
 
 def distort(model: str, params, xy) -> np.ndarray:
     """Normalised undistorted image coordinates (N,2) -> normalised distorted coordinates."""
+    if model == "OPENCV_FISHEYE":
+        return _distort_fisheye(np.asarray(xy, dtype=float), distortion_coefficients(model, params))
     k1, k2, p1, p2 = distortion_coefficients(model, params)
     xy = np.asarray(xy, dtype=float)
     u, v = xy[..., 0], xy[..., 1]
@@ -82,6 +93,9 @@ def undistort_normalized(model: str, params, xy_distorted, iterations: int = 30)
     """Invert `distort` by Newton's method with the analytic Jacobian, vectorised over points; only points
     not yet converged are iterated (past the fold of a strong barrel distortion some never converge)."""
     xd = np.asarray(xy_distorted, dtype=float)
+    if model == "OPENCV_FISHEYE":  # not an identity even with k = 0: the equidistant lens itself
+        flat = xd.reshape(-1, 2)
+        return _undistort_fisheye(flat, distortion_coefficients(model, params), iterations).reshape(xd.shape)
     k1, k2, p1, p2 = distortion_coefficients(model, params)
     if not any((k1, k2, p1, p2)):
         return xd.copy()
@@ -127,6 +141,45 @@ def _undistort_radial(xd, k1: float, k2: float, iterations: int) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         scale = np.where(rd > 0, r / rd, 1.0)
     return xd * scale[:, None]
+
+
+def _fisheye_theta_d(theta, k) -> np.ndarray:
+    t2 = theta * theta
+    return theta * (1 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3]))))
+
+
+def _distort_fisheye(xy, k) -> np.ndarray:
+    """COLMAP's OpenCVFisheyeCameraModel::Distortion: the point moves along its ray from the centre to radius
+    theta_d(atan(r)); at r = 0 (below machine epsilon, as COLMAP) it stays."""
+    r = np.sqrt(xy[..., 0] ** 2 + xy[..., 1] ** 2)
+    eps = np.finfo(float).eps
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(r > eps, _fisheye_theta_d(np.arctan(r), k) / r, 1.0)
+    return xy * scale[..., None]
+
+
+def _undistort_fisheye(xd, k, iterations: int) -> np.ndarray:
+    """Invert `_distort_fisheye`: Newton on theta for theta_d(theta) = |xd|, started at theta = theta_d, then
+    r = tan(theta). The ratio tan(theta) / theta_d is taken only for theta_d > 0 (it tends to 1 at the centre,
+    where the point stays); a theta of 90 deg or more, or one where the lens model folds over (d theta_d /
+    d theta <= 0, so Newton cannot converge), has no ray in front of the camera: NaN."""
+    rd = np.sqrt(xd[:, 0] ** 2 + xd[:, 1] ** 2)
+    theta = rd.copy()
+    active = np.flatnonzero(rd > 0)
+    for _ in range(iterations):
+        t = theta[active]
+        f = _fisheye_theta_d(t, k) - rd[active]
+        t2 = t * t
+        df = 1 + t2 * (3 * k[0] + t2 * (5 * k[1] + t2 * (7 * k[2] + t2 * 9 * k[3])))
+        theta[active] = t - f / np.where(np.abs(df) < 1e-12, 1e-12, df)
+        active = active[np.abs(f) >= 1e-14]
+        if len(active) == 0:
+            break
+    converged = np.abs(_fisheye_theta_d(theta, k) - rd) <= 1e-9 * np.maximum(rd, 1.0)
+    ok = converged & (theta >= 0) & (theta < np.pi / 2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(rd > 0, np.tan(theta) / rd, 1.0)
+    return xd * np.where(ok, scale, np.nan)[:, None]
 
 
 def project(model: str, params, points_cam) -> np.ndarray:

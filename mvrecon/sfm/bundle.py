@@ -2,10 +2,11 @@
 
 Variables: X(i) = world_from_camera Pose3 of each optimised image, L(p) = Point3, K(c) = calibration of
 camera c (COLMAP model -> GTSAM: SIMPLE_PINHOLE/SIMPLE_RADIAL/RADIAL -> Cal3Bundler, PINHOLE -> Cal3_S2, OPENCV ->
-Cal3DS2). A view of an optimised image is a GeneralSFMFactor2 (pose, point, calibration); a view of a constant
-image (outside a local window) is a TriangulationFactor on the point alone, so constant cameras add no
-variables. Calibration entries COLMAP keeps fixed (principal point, skew, the k2 of SIMPLE_RADIAL) or that
-are not refined are pinned by a tight prior on the calibration.
+Cal3DS2, OPENCV_FISHEYE -> Cal3Fisheye, the same equidistant lens with k1..k4 as its distortion). A view of an
+optimised image is a GeneralSFMFactor2 (pose, point, calibration); a view of a constant image (outside a local
+window) is a TriangulationFactor on the point alone, so constant cameras add no variables. Calibration entries
+COLMAP keeps fixed (principal point, skew, the k2 of SIMPLE_RADIAL) or that are not refined (the distortion, k1..k4
+of OPENCV and OPENCV_FISHEYE, in the focal-only stages) are pinned by a tight prior on the calibration.
 
 Gauge: 7 degrees of freedom (similarity) are free in SfM. With two or more constant images the window is
 anchored. Otherwise the first registered image is pinned by a tight pose prior and the scale by a prior on one
@@ -44,7 +45,8 @@ class BundleResult:
     num_observations: int
 
 
-_FOCAL_ENTRIES = {"Cal3Bundler": [0], "Cal3_S2": [0, 1], "Cal3DS2": [0, 1]}
+_FOCAL_ENTRIES = {"Cal3Bundler": [0], "Cal3_S2": [0, 1], "Cal3DS2": [0, 1], "Cal3Fisheye": [0, 1]}
+_KINDS = tuple(_FOCAL_ENTRIES)
 
 
 def _calibration_layout(model: str, params):
@@ -58,11 +60,11 @@ def _calibration_layout(model: str, params):
         return "Cal3Bundler", [p[0], p[3], p[4], p[1], p[2]], [True, True, True]
     if model == "PINHOLE":
         return "Cal3_S2", [p[0], p[1], 0.0, p[2], p[3]], [True, True, False, False, False]
-    if model == "OPENCV":
-        return "Cal3DS2", [p[0], p[1], 0.0, p[2], p[3], *p[4:8]], [True, True, False, False, False,
-                                                                    True, True, True, True]
+    if model in ("OPENCV", "OPENCV_FISHEYE"):  # both: fx, fy, s, u0, v0, then the four distortion terms
+        return "Cal3DS2" if model == "OPENCV" else "Cal3Fisheye", [p[0], p[1], 0.0, p[2], p[3], *p[4:8]], [
+            True, True, False, False, False, True, True, True, True]
     raise ValueError(f"camera model {model} is not supported by bundle adjustment (use one of "
-                     "SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL, PINHOLE, OPENCV)")
+                     "SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL, PINHOLE, OPENCV, OPENCV_FISHEYE)")
 
 
 def _make_calibration(gtsam, kind, v):
@@ -78,6 +80,8 @@ def _params_from_calibration(model: str, cal) -> np.ndarray:
         return np.array([cal.fx(), cal.px(), cal.py(), cal.k1(), cal.k2()])
     if model == "PINHOLE":
         return np.array([cal.fx(), cal.fy(), cal.px(), cal.py()])
+    if model == "OPENCV_FISHEYE":
+        return np.array([cal.fx(), cal.fy(), cal.px(), cal.py(), cal.k1(), cal.k2(), cal.k3(), cal.k4()])
     k = cal.k()
     return np.array([cal.fx(), cal.fy(), cal.px(), cal.py(), k[0], k[1], k[2], k[3]])
 
@@ -166,7 +170,7 @@ def bundle_adjust(model, variable_images, config: MapperConfig, *, point_ids=Non
     factors = [cache.get(o) for o in obs.tolist()]
     var_obs = variable[obs_img].tolist()
     make = {c: getattr(gtsam, f"GeneralSFMFactor2{kind}") for c, kind in cal_kind.items()}
-    tri = {kind: getattr(gtsam, f"TriangulationFactor{kind}") for kind in ("Cal3Bundler", "Cal3_S2", "Cal3DS2")}
+    tri = {kind: getattr(gtsam, f"TriangulationFactor{kind}") for kind in _KINDS}
     for row in [k for k, (f, var) in enumerate(zip(factors, var_obs)) if f is None or not var]:
         i, p = int(obs_img[row]), int(obs_pt[row])
         if var_obs[row]:

@@ -36,7 +36,7 @@ class Camera:
     def set_focal(self, focal: float) -> None:
         """Scale fx and fy (or set f) so the mean focal length becomes `focal`."""
         p = self.params.copy()
-        if self.model in ("PINHOLE", "OPENCV"):
+        if cammodel.PARAM_NAMES[self.model][:2] == ("fx", "fy"):
             p[:2] *= focal / self.focal()
         else:
             p[0] = focal
