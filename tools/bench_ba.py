@@ -57,7 +57,9 @@ def perturbed(model: Reconstruction, mapper: IncrementalMapper, seed: int = 0) -
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--database", default=None)
+    ap.add_argument("--database", default=None,
+                    help="a COLMAP database.db with verified matches, e.g. a run's (default: a synthetic "
+                         "scene)")
     ap.add_argument("--synthetic", type=int, default=15, help="images of the synthetic scene (no --database)")
     args = ap.parse_args(argv)
     db = Path(args.database) if args.database else Path(tempfile.mkdtemp()) / "database.db"

@@ -30,12 +30,16 @@ def surface_points(n: int, seed: int) -> np.ndarray:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sizes", default="1000,10000,30000,100000")
-    parser.add_argument("--max-iterations", type=int, default=30)
+    parser.add_argument("--sizes", default="1000,10000,30000,100000",
+                        help="comma-separated point counts, two table rows each (default "
+                             "1000,10000,30000,100000)")
+    parser.add_argument("--max-iterations", type=int, default=30,
+                        help="ICP iteration cap of both variants (default 30)")
     parser.add_argument("--brute-cap", type=int, default=None,
                         help="above this many points brute force runs only --brute-iterations iterations (compare "
                              "the s / iteration column there); default: no cap, every run goes to convergence")
-    parser.add_argument("--brute-iterations", type=int, default=2)
+    parser.add_argument("--brute-iterations", type=int, default=2,
+                        help="iterations of brute force above --brute-cap (default 2)")
     args = parser.parse_args(argv)
     config = IcpConfig(max_iterations=args.max_iterations, tolerance=1e-6)
     axis = np.array([0.2, -0.4, 0.9]) / np.linalg.norm([0.2, -0.4, 0.9])

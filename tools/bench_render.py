@@ -39,8 +39,9 @@ def main() -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--scene", default="object_orbit")
-    parser.add_argument("--frames", type=int, default=5)
+    parser.add_argument("--scene", default="object_orbit",
+                        help="catalog scene to render (`mvrecon scene list`; default object_orbit)")
+    parser.add_argument("--frames", type=int, default=5, help="frames of the scene to render (default 5)")
     args = parser.parse_args()
 
     entry, _, path = load_entry(args.scene)

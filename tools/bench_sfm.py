@@ -73,9 +73,12 @@ def main(argv=None) -> int:
     ap.add_argument("--gt", default=None,
                     help="ground truth (COLMAP model, *_par.txt, gt_dense_cameras/, ...)")
     ap.add_argument("--work", default=None, help="keep the runs here (a finished run is reused)")
-    ap.add_argument("--camera-mode", default="auto")
-    ap.add_argument("--camera-model", default="SIMPLE_RADIAL")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--camera-mode", default="auto",
+                    help="which images share intrinsics, for both engines: auto (default), single, "
+                         "per-folder, per-image")
+    ap.add_argument("--camera-model", default="SIMPLE_RADIAL",
+                    help="COLMAP camera model for both engines (default SIMPLE_RADIAL)")
+    ap.add_argument("--seed", type=int, default=0, help="random seed of both engines (default 0)")
     ap.add_argument("--json", default=None, help="also write the figures to this JSON file")
     ap.add_argument("--mvrecon-args", default="", help="extra flags for `mvrecon reconstruct`, in one string")
     ap.add_argument("--repeat", type=int, default=1,

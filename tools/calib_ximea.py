@@ -1,6 +1,10 @@
 """Calibrate the ximea stereo chessboard set with `mvrecon.stereo.calibrate` and print it next to the author's
-OpenCV result (intrinsics.yml / extrinsics.yml). Run by hand: .venv/bin/python tools/calib_ximea.py"""
+OpenCV result (intrinsics.yml / extrinsics.yml). Run by hand: .venv/bin/python tools/calib_ximea.py
 
+The principal points are printed in OpenCV pixels (top-left pixel centre at (0, 0)), as the author's files
+hold them; the camera.toml of `mvrecon calibrate` is in COLMAP pixels, 0.5 px more in cx and cy."""
+
+import argparse
 import sys
 from pathlib import Path
 
@@ -10,7 +14,10 @@ ROOT = Path(__file__).resolve().parents[1]
 XIMEA = ROOT.parent / "shared" / "data" / "calib_stereo_chessboard_ximea"
 
 
-def main() -> int:
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n")[1],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.parse_args(argv)  # no options: --help must not start the calibration
     import cv2
 
     from mvrecon.geometry.rotation import rotation_error_deg, vector_angle_deg

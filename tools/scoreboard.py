@@ -139,8 +139,10 @@ mvrecon / COLMAP (below 1: mvrecon is faster). The per-scene HTML reports (`mvre
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
-    parser.add_argument("--work", type=Path, default=REPO / "out" / "scoreboard", help="where runs and reports go")
-    parser.add_argument("--out", type=Path, default=REPO / "docs" / "scoreboard.md")
+    parser.add_argument("--work", type=Path, default=REPO / "out" / "scoreboard",
+                        help="where scenes, runs, reports and scoreboard.json go (default: out/scoreboard)")
+    parser.add_argument("--out", type=Path, default=REPO / "docs" / "scoreboard.md",
+                        help="the markdown table to rewrite (default: the repository's docs/scoreboard.md)")
     parser.add_argument("--only", nargs="+", help="only these scenes / data sets")
     parser.add_argument("--skip", nargs="+", default=[], help="leave these out")
     parser.add_argument("--max-pixels", type=float, help="skip sets whose images have more pixels than this")

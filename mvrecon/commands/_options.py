@@ -70,13 +70,13 @@ def check_output_file(path, inputs) -> None:
 def add_camera_options(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("cameras")
     g.add_argument("--camera-model", choices=MODELS, default=None,
-                   help=f"camera model (default {CameraConfig.model})")
+                   help=f"camera model (default {CameraConfig.model}; OPENCV_FISHEYE for fisheye lenses)")
     g.add_argument("--camera-mode", choices=CAMERA_MODES, default=None,
                    help="which images share intrinsics: auto = same size and EXIF make/model/focal (default), "
                         "single, per-folder, per-image")
     g.add_argument("--camera-params", default=None, metavar="P1,P2,...",
-                   help="known intrinsics in the model's COLMAP order, e.g. 'f,cx,cy,k' for SIMPLE_RADIAL "
-                        "(trusted)")
+                   help="known intrinsics in the model's COLMAP order, e.g. 'f,cx,cy,k' for SIMPLE_RADIAL, "
+                        "'fx,fy,cx,cy,k1,k2,k3,k4' for OPENCV_FISHEYE (trusted)")
 
 
 def add_feature_options(parser: argparse.ArgumentParser) -> None:
@@ -105,11 +105,15 @@ def add_matching_options(parser: argparse.ArgumentParser) -> None:
                    help="inliers for a pair to count as verified (default 15)")
 
 
-def add_run_options(parser: argparse.ArgumentParser) -> None:
+# --config help of commands that read every table (reconstruct); features and match name their own
+RUN_CONFIG_HELP = "e.g. [sift] max_num_features = 4096 or [mapper] init_min_inliers = 50"
+
+
+def add_run_options(parser: argparse.ArgumentParser, *, config_help: str = RUN_CONFIG_HELP) -> None:
+    """`config_help`: which --config tables the command reads, with an example (features ignores [mapper])."""
     g = parser.add_argument_group("run")
     g.add_argument("--config", default=None, metavar="TOML",
-                   help="config overrides, e.g. [sift] max_num_features = 4096 or [mapper] init_min_inliers = 50 "
-                        "(flags win over the file)")
+                   help=f"config overrides, {config_help} (flags win over the file)")
     g.add_argument("--workers", type=int, default=None, help="parallel processes (default: all cores)")
     g.add_argument("--overwrite", action="store_true",
                    help="recompute instead of refusing when the workspace was made with other settings")

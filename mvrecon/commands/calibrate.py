@@ -24,10 +24,11 @@ def add_arguments(parser) -> None:
 
     parser.add_argument("images", help="folder with the chessboard images")
     parser.add_argument("-o", "--output", required=True, help="camera file to write (TOML)")
-    parser.add_argument("--pattern", choices=("chessboard",), default="chessboard", help="calibration target")
+    parser.add_argument("--pattern", choices=("chessboard",), default="chessboard",
+                        help="calibration target (default and only choice: chessboard)")
     parser.add_argument("--size", default="auto", help="inner corners CxR, e.g. 9x6, or 'auto' (default)")
     parser.add_argument("--square", type=positive_float, default=1.0,
-                        help="square size (sets the unit of the baseline)")
+                        help="square size (sets the unit of the baseline; default 1)")
     parser.add_argument("--stereo", action="store_true", help="stereo rig: pair images named left*/right*")
 
 

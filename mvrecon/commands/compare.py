@@ -25,7 +25,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("-o", "--output", required=True, help="report folder (index.html, metrics.json/.csv, runs/)")
     parser.add_argument("--gt", help="ground truth: COLMAP model folder, *_par.txt, gt_dense_cameras/, calibration/")
     parser.add_argument("--models", nargs="+", metavar="MODEL", help="compare these existing models instead")
-    parser.add_argument("--labels", nargs="+", help="names for --models in the report (default: folder names)")
+    parser.add_argument("--labels", nargs="+",
+                        help="names for --models in the report (default: a run folder's engine from its "
+                             "report.json, e.g. mvrecon; another folder's name, without sparse/ and model "
+                             "numbers; a repeated name gets a ' added)")
     # the options of runs on IMAGES default to None, so that --models can tell one given and refuse it
     parser.add_argument("--colmap-global", action="store_true", help="also run pycolmap's global mapper")
     parser.add_argument("--no-same-matches", action="store_true",
@@ -39,7 +42,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--mvrecon-args", metavar="FLAGS",
                         help='extra flags for `mvrecon reconstruct` only, as one quoted string, e.g. '
                              '--mvrecon-args "--upright --max-features 4000"')
-    parser.add_argument("--timeout", type=positive_float, help="seconds per run; a run over time is reported as failed")
+    parser.add_argument("--timeout", type=positive_float,
+                        help="seconds per run (default: no limit); a run over time is reported as failed")
     parser.add_argument("--retry-failed", action="store_true",
                         help="run again the engines whose run in OUTPUT failed (otherwise a failure is kept)")
 

@@ -24,9 +24,12 @@ def add_arguments(parser) -> None:
     parser.add_argument("inputs", nargs="+", help="image files and/or folders of images")
     parser.add_argument("-o", "--output", required=True, help="markdown table to write (a .csv is written too)")
     parser.add_argument("--pairs", action="store_true", help="consecutive images form pairs (A, B)")
-    parser.add_argument("--detectors", default="SIFT,SURF,FAST,ORB,AKAZE,BRISK", help="comma-separated list")
-    parser.add_argument("--angle", type=finite_float, default=20.0, help="rotation of the repeatability warp (degrees)")
-    parser.add_argument("--scale", type=positive_float, default=0.8, help="zoom of the repeatability warp")
+    parser.add_argument("--detectors", default="SIFT,SURF,FAST,ORB,AKAZE,BRISK",
+                        help="comma-separated list (default: SIFT,SURF,FAST,ORB,AKAZE,BRISK)")
+    parser.add_argument("--angle", type=finite_float, default=20.0,
+                        help="rotation of the repeatability warp in degrees (default 20)")
+    parser.add_argument("--scale", type=positive_float, default=0.8,
+                        help="zoom of the repeatability warp (default 0.8)")
 
 
 def _collect(inputs):

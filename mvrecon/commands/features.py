@@ -18,7 +18,8 @@ def add_arguments(parser):
     parser.add_argument("-w", "--workspace", required=True, help="workspace folder (created if missing)")
     add_camera_options(parser)
     add_feature_options(parser)
-    add_run_options(parser)
+    add_run_options(parser, config_help="in the [camera] and [sift] tables, e.g. [sift] "
+                                        "max_num_features = 4096")
 
 
 def run(args) -> int:

@@ -14,7 +14,9 @@ ON_INTERRUPT = "rerun the same command with --resume to continue mapping from it
 
 def add_arguments(parser) -> None:
     parser.add_argument("-w", "--workspace", required=True, help="folder holding database.db")
-    parser.add_argument("--image-dir", default=None, help="images, only used to colour the points")
+    parser.add_argument("--image-dir", default=None,
+                        help="images, only used to colour the points (default: the image folder recorded in "
+                             "config.json, if it still exists; else the points stay black, with a warning)")
     from .reconstruct import add_mapper_options
 
     add_mapper_options(parser)

@@ -16,7 +16,8 @@ def add_arguments(parser):
 
     parser.add_argument("-w", "--workspace", required=True, help="workspace folder made by `mvrecon features`")
     add_matching_options(parser)
-    add_run_options(parser)
+    add_run_options(parser, config_help='pairs = "sequential:5" and the [matcher] and [verify] tables, e.g. '
+                                        "[verify] max_error = 2.0")
 
 
 def run(args) -> int:

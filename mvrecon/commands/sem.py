@@ -22,7 +22,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("images", nargs="+", help="tilt-series images (files in tilt order, or a folder)")
     parser.add_argument("-o", "--output", required=True, help="output folder")
     tilts = parser.add_mutually_exclusive_group(required=True)
-    tilts.add_argument("--tilts", help="known tilt angles in degrees, one per image, e.g. 0,5,10")
+    tilts.add_argument("--tilts", help="known tilt angles in degrees, one per image, e.g. 0,5,10; a list "
+                                       "starting with a negative number needs '=': --tilts=-10,0,10")
     tilts.add_argument("--estimate-tilts", action="store_true",
                        help="estimate the tilts by affine factorisation (3 or more images)")
     parser.add_argument("--axis", help="tilt axis in the image: y (vertical), x, or degrees from +x towards +y "
@@ -31,7 +32,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--pixel-size", help="size of an input pixel, e.g. 0.05um or 50nm (default: heights "
                                              "in pixels)")
     parser.add_argument("--max-size", type=positive_int,
-                        help="shrink images so their long side is at most this many px")
+                        help="shrink images so their long side is at most this many px (default: not shrunk)")
     parser.add_argument("--reference", type=int, help="index of the image whose grid the height map uses "
                                                       "(default: tilt closest to 0, or the middle image)")
     parser.add_argument("--pairs", type=positive_int, default=2, help="best-matched pairs merged by ICP (default 2, as "

@@ -32,12 +32,14 @@ def add_arguments(parser) -> None:
                         help="gee: the paper's global error energy minimisation; sgbm: OpenCV; best: census SGM "
                              "with left-right check, sub-pixel, hole filling, weighted median (default)")
     parser.add_argument("--gt", help="ground-truth disparity (.pfm inf=unknown, .npz, .tif 0=unknown, .png)")
-    parser.add_argument("--gt-scale", type=positive_float, default=1.0, help="divide the ground truth by this (4 for "
-                                                                        "Middlebury 2003 PNGs); with --gt")
+    parser.add_argument("--gt-scale", type=positive_float, default=1.0,
+                        help="divide the ground truth by this (default 1; 4 for Middlebury 2003 PNGs); "
+                             "with --gt")
     parser.add_argument("--mask", help="non-occlusion mask (brightest value = non-occluded); with --gt")
     parser.add_argument("--min-disparity", type=int, help="search range start (default: calib/matches)")
     parser.add_argument("--num-disparities", type=positive_int, help="search range length (default: calib/matches)")
-    parser.add_argument("--ransac-threshold", type=positive_float, default=1.0, help="Sampson inlier threshold, px")
+    parser.add_argument("--ransac-threshold", type=positive_float, default=1.0,
+                        help="Sampson inlier threshold, px (default 1)")
     parser.add_argument("--gee-window", type=positive_int, help="gee: error-energy window n=m in px (default 9)")
     parser.add_argument("--gee-iterations", type=positive_int, help="gee: averaging-filter iterations (default 16)")
     parser.add_argument("--gee-alpha", type=positive_float,

@@ -44,7 +44,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--camera-model", default="SIMPLE_RADIAL", choices=MODELS,
                         help="COLMAP camera model (default SIMPLE_RADIAL)")
     parser.add_argument("--timeout", type=positive_float, default=None, metavar="S",
-                        help="seconds per engine run; a run past it counts as failed")
+                        help="seconds per engine run (default: no limit); a run past it counts as failed")
     parser.add_argument("--retry-failed", action="store_true",
                         help="rerun cells whose engine run failed or timed out before (else failures are kept)")
 
