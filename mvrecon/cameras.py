@@ -30,12 +30,15 @@ class CameraConfig:
     # focal guess without EXIF = factor * max(width, height), as COLMAP
     default_focal_factor: float = bounded(1.2, 0.0, low_open=True)
 
-    def validate(self, origin: dict[str, str] | None = None) -> "CameraConfig":
+    def validate(self, origin: dict[str, str] | None = None,
+                 size: tuple[int, int] | None = None) -> "CameraConfig":
         """This config, or an InputError naming where the faulty value came from: `origin` maps "mode", "model"
         and "params" to how the user gave each ("--camera-model PINHOLE", "cams.toml: camera: mode = 'x'"); a
         field left out was not written by the user, so it is named only when no given one is at fault, and then
         as the default it is ("the default camera model SIMPLE_RADIAL"), not as a flag nobody typed. Without
-        `origin`, the fields that differ from the defaults are named as flags."""
+        `origin`, the fields that differ from the defaults are named as flags. `size` (width, height) of the
+        images the params are for places the farthest corner for the fold check; without it, the corner at
+        (0, 0) does (the farthest one for a centred principal point)."""
         shown = ",".join(f"{v:g}" for v in self.params) if all(
             isinstance(v, (int, float)) for v in self.params) else repr(list(self.params))
         if origin is None:
@@ -62,7 +65,39 @@ class CameraConfig:
         focal = [v for name, v in zip(camera_model.PARAM_NAMES[self.model], self.params) if name.startswith("f")]
         if not all(np.isfinite(self.params)) or (focal and min(focal) <= 0):
             raise InputError(f"{where('params')}: expected finite numbers and a positive focal length")
+        if self.params:
+            _refuse_fold(self.model, self.params, size, where('params'))
         return self
+
+
+def _refuse_fold(model: str, params, size: tuple[int, int] | None, where: str) -> None:
+    """InputError when trusted params make the lens fold over inside the image: past the radius where the
+    distorted radius stops growing with the ray's angle, two rays share a pixel and the image farther out has
+    no ray, so a run with them failed late with no reason given (OPENCV_FISHEYE 285,285,320,240,-2,0,0,0 folds 78 px out)."""
+    fx, fy, cx, cy, _ = camera_model.split(model, params)
+    w, h = size if size is not None else (0.0, 0.0)
+    corner = max(np.hypot((u - cx) / fx, (v - cy) / fy) for u in (0.0, w) for v in (0.0, h))
+    fold = fold_radius(model, params, corner)
+    if fold is not None:
+        focal = camera_model.focal_length(model, params)
+        raise InputError(f"{where}: the {model} lens model folds over {fold * focal:.0f} px from the principal "
+                         f"point, inside the image (its farthest corner is {corner * focal:.0f} px out), so the "
+                         "image past that radius has no ray; check the distortion coefficients")
+
+
+def fold_radius(model: str, params, corner: float, samples: int = 20000) -> float | None:
+    """The distorted radius (normalised image units) where the model's distortion stops growing with the ray's
+    angle from the axis, when that is short of `corner` (normalised too), else None. Rays are sampled by angle up
+    to 90 deg, which covers every ray of a pinhole model and every one a fisheye projects, toward the axes and
+    the diagonals (OPENCV's tangential terms move a point off its ray, so one direction would not do)."""
+    r = np.tan(np.linspace(0.0, np.pi / 2, samples, endpoint=False))
+    folds = []
+    for phi in np.arange(8) * np.pi / 4:
+        rd = np.linalg.norm(camera_model.distort(model, params, r[:, None] * [np.cos(phi), np.sin(phi)]), axis=1)
+        drop = np.flatnonzero(np.diff(rd) <= 0)
+        if drop.size and rd[drop[0]] < corner:
+            folds.append(float(rd[drop[0]]))
+    return min(folds, default=None)
 
 
 def focal_prior(meta: ImageMeta, default_factor: float = 1.2) -> tuple[float, bool]:
@@ -78,7 +113,7 @@ def focal_prior(meta: ImageMeta, default_factor: float = 1.2) -> tuple[float, bo
 def group_cameras(names: list[str], metas: dict[str, ImageMeta],
                   config: CameraConfig) -> list[tuple[CameraInfo, list[str]]]:
     """Cameras (camera_id unset) and the images of each, in the order of `names`."""
-    config.validate()
+    config.validate(size=(metas[names[0]].width, metas[names[0]].height) if config.params and names else None)
     groups: dict[tuple, list[str]] = {}
     for name in names:
         m = metas[name]

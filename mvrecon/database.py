@@ -35,6 +35,31 @@ def _config_name(value: int) -> str:
     return next((name for name, v in _configs().items() if v == value), "UNDEFINED")
 
 
+COLMAP_FISHEYE_NOTE = "COLMAP verifies no pair of a fisheye camera without a known focal length"
+
+
+def colmap_needs_focal(model: str) -> bool:
+    """Whether COLMAP marks every pair of a `model` camera without a focal-length prior DEGENERATE (pycolmap 4.2
+    does so for its fisheye models, whose focal length a fundamental matrix cannot give, when it matches and again
+    when its mapper loads a database), so that its runs register no image of such a camera."""
+    pycolmap = _pycolmap()
+    if model not in pycolmap.CameraModelId.__members__:
+        return False
+    return bool(pycolmap.Camera(model=model, width=1, height=1).is_perspective_fisheye())
+
+
+def pair_configurations(path) -> dict[str, int]:
+    """Matched pairs per two-view configuration in the database, most first; read with SQL, as pycolmap's
+    reader skips the pairs without inliers, which are the ones that tell why none is verified."""
+    import sqlite3
+    from contextlib import closing
+
+    with closing(sqlite3.connect(Path(path).resolve().as_uri() + "?mode=ro", uri=True)) as con:
+        rows = con.execute("SELECT config, COUNT(*) FROM two_view_geometries GROUP BY config "
+                           "ORDER BY COUNT(*) DESC").fetchall()
+    return {_config_name(int(c)): int(n) for c, n in rows}
+
+
 @dataclass(kw_only=True)
 class CameraInfo:
     camera_id: int = -1

@@ -388,7 +388,7 @@ class ReconstructConfig:
 class MapSummary:
     models: list  # sfm.model.Reconstruction, largest first
     status: dict  # image name -> {"status", "model", "reason"}
-    model_stats: list  # per model: registered, points, mean_track_length, mean_reprojection_error_px
+    model_stats: list  # per model: registered, points, mean_track_length, mean_reprojection_error_px, cameras
     seconds: float = 0.0
 
     def text(self) -> str:
@@ -434,11 +434,7 @@ def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resu
         stages = {}
     corr = dbmod.read_correspondences(ws.database_path)
     if not corr.pairs:
-        with dbmod.open_database(ws.database_path) as db:
-            matched = db.num_matched_image_pairs()
-        raise InputError(f"{ws.database_path}: no verified image pairs among {len(corr.images)} images; " + (
-            f"run `mvrecon match -w {ws.path}` first" if not matched else
-            "the images do not overlap or have too little texture (nothing to reconstruct)"))
+        raise InputError(_no_verified_pairs(ws, corr, matched_by_mvrecon="matching" in stages))
     if image_dir is None and not keypoint_colors:
         image_dir = _recorded_images(stages)
     if overwrite:  # --overwrite starts mapping over, --resume or not
@@ -465,10 +461,48 @@ def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resu
     stats = []
     for m in result.models:
         s = m.stats()
-        stats.append({k: s[k] for k in ("registered", "points", "mean_track_length",
-                                         "mean_reprojection_error_px")})
+        stats.append({**{k: s[k] for k in ("registered", "points", "mean_track_length",
+                                           "mean_reprojection_error_px")}, "cameras": camera_entries(m)})
     return MapSummary(models=result.models, status=result.status, model_stats=stats,
                       seconds=time.perf_counter() - start)
+
+
+def camera_entries(model) -> list[dict]:
+    """The cameras of a model's registered images with their final parameters (COLMAP's order), as report.json
+    lists them: the refined intrinsics were only in sparse/N/cameras.bin."""
+    entries = []
+    for cid in np.unique(model.camera_of[model.registered]):
+        cam = model.cameras[int(cid)]
+        entries.append({"camera_id": int(cid), "model": cam.model, "width": int(cam.width),
+                        "height": int(cam.height), "params": [float(v) for v in cam.params]})
+    return entries
+
+
+def _no_verified_pairs(ws: Workspace, corr, *, matched_by_mvrecon: bool) -> str:
+    """Why a database gives the mapper no pair: none matched yet, or what the database marked the matched pairs,
+    with COLMAP's fisheye rule when that is the likely cause (COLMAP matched a fisheye camera without a focal
+    prior: it marks every such pair DEGENERATE, which looked like images without overlap)."""
+    head = f"{ws.database_path}: no verified image pairs among {len(corr.images)} images; "
+    configs = dbmod.pair_configurations(ws.database_path)
+    if not configs:
+        with dbmod.open_database(ws.database_path) as db:
+            matched = db.num_matched_image_pairs()
+        return head + (f"run `mvrecon match -w {ws.path}` first" if not matched else
+                       "the images do not overlap or have too little texture (nothing to reconstruct)")
+    total = sum(configs.values())
+    head += (f"its one matched pair is {next(iter(configs))}" if total == 1 else
+             f"all {total} matched pairs are {next(iter(configs))}" if len(configs) == 1 else
+             f"the {total} matched pairs are " + ", ".join(f"{n} {name}" for name, n in configs.items())) \
+        + " in the database"
+    blind = [(cid, cam.model) for cid, cam in sorted(corr.cameras.items())
+             if not cam.prior_trusted and dbmod.colmap_needs_focal(cam.model)]
+    if blind and not matched_by_mvrecon:
+        cid, model = blind[0]
+        return head + (f"; likely cause: {dbmod.COLMAP_FISHEYE_NOTE} and marks its pairs DEGENERATE (camera {cid} is "
+                       f"{model} without one): give it a focal prior when extracting (COLMAP's camera_params) and "
+                       f"match again, or run `mvrecon reconstruct IMAGES -o OUT --camera-model {model}`, whose "
+                       "verifier needs none")
+    return head + ": the images do not overlap or have too little texture (nothing to reconstruct)"
 
 
 def _recorded_images(stages: dict):

@@ -5,8 +5,9 @@
       --colmap-global adds global_mapping) and COLMAP's incremental mapper on mvrecon's database ("same matches"),
       with the same camera settings; the runs go to REPORT/runs/ and a finished run is reused, not redone.
       --mvrecon-args "--upright" (one string) gives mvrecon's run more flags, checked before anything runs.
-  mvrecon compare --models A B [C ...] [--labels ...] [--gt GT] -o REPORT
-      compares models that exist: run folders (report.json + sparse/), sparse/ folders or COLMAP model folders.
+  mvrecon compare --models A [B ...] [--labels ...] [--gt GT] -o REPORT
+      compares models that exist: run folders (report.json + sparse/), sparse/ folders or COLMAP model folders;
+      one model is scored against --gt, without it two or more are needed.
 
 Each model is aligned to the reference (GT when given, else COLMAP's model; with --models, the last one) by a
 robust Sim3 of camera centres. GT: a COLMAP model folder, a Middlebury *_par.txt, a Strecha gt_dense_cameras/
@@ -24,7 +25,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("images", nargs="?", help="folder of images (omit with --models)")
     parser.add_argument("-o", "--output", required=True, help="report folder (index.html, metrics.json/.csv, runs/)")
     parser.add_argument("--gt", help="ground truth: COLMAP model folder, *_par.txt, gt_dense_cameras/, calibration/")
-    parser.add_argument("--models", nargs="+", metavar="MODEL", help="compare these existing models instead")
+    parser.add_argument("--models", nargs="+", metavar="MODEL",
+                        help="compare these existing models instead (one is enough with --gt)")
     parser.add_argument("--labels", nargs="+",
                         help="names for --models in the report (default: a run folder's engine from its "
                              "report.json, e.g. mvrecon; another folder's name, without sparse/ and model "
@@ -99,6 +101,7 @@ def check_mvrecon_args(options) -> None:
 
 
 def run(args) -> int:
+    import logging
     import shlex
     import sys
     from pathlib import Path
@@ -107,7 +110,7 @@ def run(args) -> int:
     from ..errors import InputError
     from ..eval.compare import CompareConfig, compare_images, compare_models
     from ..eval.report import format_value, write_report
-    from ..eval.runners import RunOptions, forget_if_failed
+    from ..eval.runners import RunOptions, colmap_fisheye_warning, forget_if_failed
 
     if bool(args.images) == bool(args.models):
         raise InputError("give either IMAGES or --models A B (not both, not neither)")
@@ -135,6 +138,9 @@ def run(args) -> int:
 
         check_mvrecon_args(options)
         listing = require_images(args.images)  # listed once: its warnings are printed once
+        warning = colmap_fisheye_warning(options, args.images, listing[0])
+        if warning:
+            logging.getLogger("mvrecon").warning("%s", warning)
     if args.retry_failed:
         for run_dir in sorted((Path(args.output) / "runs").glob("*")):
             if forget_if_failed(run_dir):

@@ -43,6 +43,10 @@ def add_arguments(parser) -> None:
                         help="camera sharing for both engines (default auto)")
     parser.add_argument("--camera-model", default="SIMPLE_RADIAL", choices=MODELS,
                         help="COLMAP camera model (default SIMPLE_RADIAL)")
+    parser.add_argument("--camera-params", metavar="PARAMS",
+                        help="known intrinsics of the clean images in the model's order, trusted and held fixed "
+                             "in both engines, e.g. 285,285,320,240,0,0,0,0 for OPENCV_FISHEYE (which COLMAP "
+                             "needs to verify any pair of it; default: estimated)")
     parser.add_argument("--timeout", type=positive_float, default=None, metavar="S",
                         help="seconds per engine run (default: no limit); a run past it counts as failed")
     parser.add_argument("--retry-failed", action="store_true",
@@ -55,7 +59,8 @@ def run(args) -> int:
     import sys
     from pathlib import Path
 
-    from mvrecon.eval.runners import RunOptions
+    from mvrecon.cameras import CameraConfig, parse_camera_params
+    from mvrecon.eval.runners import COLMAP_ENGINES, RunOptions, colmap_fisheye_warning
     from mvrecon.study.degrade import Degradation
     from mvrecon.study.grid import AXES, Grid, parse_levels
     from mvrecon.study.study import StudyConfig, breaking_points, run_study
@@ -69,15 +74,24 @@ def run(args) -> int:
         raise InputError(f"{args.output}: inside the image folder {args.images}; choose an output folder outside it")
     levels = {name: parse_levels(name, getattr(args, name)) for name in AXES if getattr(args, name) is not None}
     grid = Grid(levels)
+    params = parse_camera_params(args.camera_params)
+    CameraConfig(model=args.camera_model, params=params).validate()
+    if params and "downscale" in grid.levels and grid.degraded_levels("downscale"):
+        raise InputError(f"--camera-params with --downscale {args.downscale}: the params hold for the clean "
+                         "images' size, not for the smaller copies; study the downscale without --camera-params")
     config = StudyConfig(images=Path(args.images), gt=Path(args.gt) if args.gt else None,
                          engines=tuple(e.strip() for e in args.engines.split(",") if e.strip()), seed=args.seed,
                          base=Degradation(motion_angle=args.motion_angle),
                          run_options=RunOptions(camera_mode=args.camera_mode, camera_model=args.camera_model,
-                                                seed=args.seed),
+                                                camera_params=params, seed=args.seed),
                          jobs=args.jobs, timeout_s=args.timeout)
+    log = logging.getLogger("mvrecon")
+    if set(config.engines) & set(COLMAP_ENGINES):
+        warning = colmap_fisheye_warning(config.run_options, args.images, listing[0])
+        if warning:
+            log.warning("%s", warning)
     command = "mvrecon " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     rows = run_study(config, grid, args.output, command=command, retry_failed=args.retry_failed, listing=listing)
-    log = logging.getLogger("mvrecon")
     for (engine, axis), verdict in breaking_points(rows).items():
         where = ("holds at every level" if verdict["level"] is None and verdict["metric"] is None else
                  verdict["metric"] if verdict["level"] is None else

@@ -139,15 +139,16 @@ def compare_images(image_dir, report_dir, gt=None, config: CompareConfig = Compa
 def compare_models(paths, gt=None, labels=None, config: CompareConfig = CompareConfig()) -> Comparison:
     """Compare models that already exist: run folders (report.json + sparse/), sparse/ folders or model folders.
 
-    Without ground truth the LAST model is the reference. The images counted are those any model or report
-    lists (an image no model holds and no report names cannot be known).
+    Without ground truth the LAST model is the reference, so two are needed; with it one model is scored
+    against it. The images counted are those any model or report lists (an image no model holds and no report
+    names cannot be known).
     """
     from .ground_truth import load_ground_truth_for
     from .models import load_reconstruction, sparse_models
 
     paths = [Path(p) for p in paths]
-    if len(paths) < 2:
-        raise InputError("--models: give at least two models to compare")
+    if len(paths) < 2 and gt is None:
+        raise InputError("--models: give at least two models to compare, or one with --gt")
     if labels and len(labels) != len(paths):
         raise InputError(f"--labels: {len(labels)} labels for {len(paths)} models")
     runs, used = [], set()

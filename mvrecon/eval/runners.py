@@ -88,6 +88,22 @@ class RunResult:
         return [poses(m) for m in self.models]
 
 
+def colmap_fisheye_warning(options: RunOptions, image_dir, names) -> str | None:
+    """The line saying that COLMAP's runs will register no image, said before any run: COLMAP marks every pair
+    of a fisheye camera without a focal-length prior DEGENERATE, and gets a prior only from --camera-params or an
+    image's EXIF focal length; None when it has one for every image, or the model is not one of its fisheyes."""
+    from ..cameras import focal_prior
+    from ..database import COLMAP_FISHEYE_NOTE, colmap_needs_focal
+    from ..io.images import image_metadata
+
+    if options.camera_params or not colmap_needs_focal(options.camera_model):
+        return None
+    if all(focal_prior(image_metadata(Path(image_dir) / name))[1] for name in names):
+        return None
+    return (f"--camera-model {options.camera_model} without --camera-params: {COLMAP_FISHEYE_NOTE}, so COLMAP's "
+            "runs will register no image; give --camera-params to compare with it")
+
+
 def run_mvrecon(image_dir, out_dir, options: RunOptions = RunOptions(), timeout: float | None = None) -> RunResult:
     """`mvrecon reconstruct IMAGE_DIR -o OUT_DIR` with the options' camera settings and seed.
 
@@ -410,6 +426,7 @@ def _write_outputs(out_dir: Path, engine: str, options: dict, models: list, db: 
             if im.has_pose:
                 model_of.setdefault(im.name, k)
     paired = {i for p in corr.pairs for i in (p.image_id1, p.image_id2)}
+    blind = _fisheye_without_focal(corr.cameras)
     images = {}
     for image_id, info in sorted(corr.images.items(), key=lambda kv: kv[1].name):
         if info.name in model_of:
@@ -417,6 +434,8 @@ def _write_outputs(out_dir: Path, engine: str, options: dict, models: list, db: 
             continue
         if len(corr.keypoints.get(image_id, ())) == 0:
             reason = "no keypoints"
+        elif info.camera_id in blind:
+            reason = blind[info.camera_id]
         elif image_id not in paired:
             reason = "no verified pairs"
         else:
@@ -425,10 +444,30 @@ def _write_outputs(out_dir: Path, engine: str, options: dict, models: list, db: 
     report = {
         "engine": engine, "version": f"pycolmap {_pycolmap_version()} via mvrecon {__version__}",
         "config_hash": "", "seed": int(options["seed"]), "images": images,
-        "models": [{"index": k, **model_stats(rec)} for k, rec in enumerate(models)],
+        "models": [{"index": k, **model_stats(rec), "cameras": _cameras(rec)} for k, rec in enumerate(models)],
         "stages": stages.stages, "total": stages.total(), "counts": database_counts(db),
     }
     (out_dir / "report.json").write_text(json.dumps(report, indent=1))
+
+
+def _fisheye_without_focal(cameras: dict) -> dict[int, str]:
+    """camera_id -> the reason none of its images registers, for the cameras COLMAP verifies no pair of."""
+    from ..database import COLMAP_FISHEYE_NOTE, colmap_needs_focal
+
+    return {cid: f"{COLMAP_FISHEYE_NOTE} (camera {cid} is {cam.model} without one); give --camera-params to "
+                 "compare with it"
+            for cid, cam in cameras.items() if not cam.prior_trusted and colmap_needs_focal(cam.model)}
+
+
+def _cameras(rec) -> list[dict]:
+    """The cameras of a pycolmap model's registered images, as mvrecon's report.json lists them
+    (`pipeline.camera_entries`)."""
+    entries = []
+    for cid in sorted({im.camera_id for im in rec.images.values() if im.has_pose}):
+        cam = rec.cameras[cid]
+        entries.append({"camera_id": int(cid), "model": cam.model.name, "width": int(cam.width),
+                        "height": int(cam.height), "params": [float(v) for v in cam.params]})
+    return entries
 
 
 def _pycolmap_version() -> str:

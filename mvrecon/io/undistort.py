@@ -34,6 +34,7 @@ def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -
 
     model_dir, image_dir, out_dir = Path(model_dir), Path(image_dir), Path(out_dir)
     rec = load_reconstruction(model_dir)
+    lenses = sorted({cam.model.name for cam in rec.cameras.values()})
     names = [im.name for im in rec.images.values()]
     if not image_dir.is_dir():
         raise InputError(f"{image_dir}: image folder not found (pass --image-dir)")
@@ -74,8 +75,8 @@ def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -
     if not logging.getLogger("mvrecon").isEnabledFor(logging.DEBUG):
         pycolmap.logging.minloglevel = pycolmap.logging.WARNING
     try:
-        pycolmap.undistort_images(str(out_dir), str(model_dir), str(source), output_type="COLMAP",
-                                  undistort_options=options)
+        pycolmap.undistort_images(str(out_dir), str(_resampled_fisheyes(rec, model_dir, out_dir / "model")),
+                                  str(source), output_type="COLMAP", undistort_options=options)
     finally:
         pycolmap.logging.minloglevel = saved
     flat = out_dir / "sparse"
@@ -84,7 +85,7 @@ def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -
     for f in list(flat.iterdir()):
         if f.is_file():
             shutil.move(str(f), str(target / f.name))
-    for extra in ("input", "stereo", "run-colmap-geometric.sh", "run-colmap-photometric.sh"):
+    for extra in ("input", "model", "stereo", "run-colmap-geometric.sh", "run-colmap-photometric.sh"):
         p = out_dir / extra
         if p.is_dir():
             shutil.rmtree(p)
@@ -106,7 +107,53 @@ def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -
     if final.exists():
         shutil.rmtree(final)  # the earlier export checked above
     out_dir.replace(final)
+    outside, total = observations_outside(rec)
+    if outside > OUTSIDE_WARNING * total:
+        logging.getLogger(__name__).warning(
+            "%s: %.0f%% of the model's observations (%d of %d) fall outside the undistorted images: COLMAP's "
+            "undistorter keeps of the %s view only what a PINHOLE image can hold", final, 100 * outside / total,
+            outside, total, "/".join(lenses))
     return final / "sparse" / "0"
+
+
+OUTSIDE_WARNING = 0.01  # share of observations outside the undistorted images that is worth a warning
+
+
+def observations_outside(rec) -> tuple[int, int]:
+    """(observations of a 3D point outside their undistorted image, all such observations) of an exported model.
+    COLMAP's undistorter keeps every observation but crops each image to what a PINHOLE camera can hold: a lens
+    wider than that (past 180 deg it cannot hold it all) lost half of a wide fisheye's observations silently."""
+    outside = total = 0
+    for im in rec.images.values():
+        cam = rec.cameras[im.camera_id]
+        xy = np.array([p.xy for p in im.points2D if p.has_point3D()], dtype=float).reshape(-1, 2)
+        inside = np.isfinite(xy).all(axis=1) & (xy >= 0).all(axis=1) & (xy[:, 0] <= cam.width) \
+            & (xy[:, 1] <= cam.height)
+        outside += int((~inside).sum())
+        total += len(xy)
+    return outside, total
+
+
+FISHEYE_NUDGE = 1e-7  # k1 of a fisheye without distortion terms for the export: over COLMAP's 1e-8, 1e-4 px
+
+
+def _resampled_fisheyes(rec, model_dir: Path, folder: Path) -> Path:
+    """`model_dir`, or a copy in `folder` whose fisheye cameras without distortion terms have k1 = FISHEYE_NUDGE.
+    COLMAP takes a camera whose extra parameters are all zero for undistorted, a fisheye one too, and copies its
+    images, which were then exported as PINHOLE with the fisheye's focal: an equidistant view labelled perspective.
+    The nudge moves no pixel by more than 1e-4 px (k1 theta^3 f at 90 deg, f = 300 px) and makes COLMAP
+    resample."""
+    flat = [cam for cam in rec.cameras.values()
+            if cam.is_perspective_fisheye() and cam.extra_params_idxs() and cam.is_undistorted()]
+    if not flat:
+        return model_dir
+    for cam in flat:
+        params = list(cam.params)
+        params[cam.extra_params_idxs()[0]] = FISHEYE_NUDGE
+        cam.params = params
+    folder.mkdir()
+    rec.write(str(folder))
+    return folder
 
 
 def _stored_frame(rec, image_dir: Path, metas: dict, database, model_dir: Path) -> set[str]:
