@@ -43,7 +43,7 @@ class FrontendConfig:
 
     camera: CameraConfig = CameraConfig()
     sift: SiftConfig = SiftConfig()
-    pairs: str = "exhaustive"  # exhaustive | sequential:K | path of a pairs file
+    pairs: str = "exhaustive"  # exhaustive | sequential:K | retrieval:K | path of a pairs file
     matcher: MatcherConfig = MatcherConfig()
     verify: VerifyConfig = VerifyConfig()
     workers: int = bounded(0, 0, hash=False)  # processes/threads; 0 = all cores
@@ -295,7 +295,8 @@ def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
         by_name = {i.name: i.image_id for i in images.values()}
         pairs = []
         # the pairs first: a pairs file naming an unknown image is refused before the stage is recorded
-        for a, b in select_pairs(config.pairs, sorted(by_name)):
+        for a, b in select_pairs(config.pairs, sorted(by_name),
+                                 descriptors=lambda name: dbmod.read_features(db, by_name[name])[1]):
             id1, id2 = sorted((by_name[a], by_name[b]))
             pairs.append((id1, id2))
         if config.pairs != "exhaustive" and Path(config.pairs).is_file():

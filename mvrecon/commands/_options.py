@@ -96,8 +96,8 @@ def add_feature_options(parser: argparse.ArgumentParser) -> None:
 def add_matching_options(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("matching")
     g.add_argument("--pairs", default=None, metavar="SPEC",
-                   help="exhaustive (default), sequential:K (each image with the next K), or a file of "
-                        "'name1 name2' lines")
+                   help="exhaustive (default), sequential:K (each image with the next K), retrieval:K (each "
+                        "image with the K most similar: unordered photo sets), or a file of 'name1 name2' lines")
     g.add_argument("--ratio", type=float, default=None, help="Lowe's ratio test threshold (default 0.8)")
     g.add_argument("--max-error", type=float, default=None,
                    help="RANSAC inlier threshold in pixels (default 4)")

@@ -1,7 +1,7 @@
 """Match and geometrically verify image pairs of a workspace (after `mvrecon features`).
 
-Selects pairs (exhaustive, sequential:K or a pairs file), matches SIFT descriptors (ratio test, mutual check),
-verifies each pair with F/E/H (USAC MAGSAC++) and stores raw matches and verified two-view geometries in
+Selects pairs (exhaustive, sequential:K, retrieval:K or a pairs file), matches SIFT descriptors (ratio test,
+mutual check), verifies each pair with F/E/H (USAC MAGSAC++) and stores raw matches and verified two-view geometries in
 WORKSPACE/database.db, ready for a mapper (ours or COLMAP's). A rerun skips pairs already done.
 
 example:  mvrecon match -w work/ --pairs sequential:10

@@ -1,13 +1,25 @@
-"""Which image pairs to match: all of them, a sliding window over the sorted names (video), or a pairs file.
+"""Which image pairs to match: all of them, a sliding window over the sorted names (video), the most similar
+images (unordered photo sets), or a pairs file.
 
 A spec string selects the strategy: `exhaustive`, `sequential:K` (each image with the next K images in name
-order) or the path of a text file with one `name1 name2` pair per line (COLMAP's match-list format; `#` starts a
-comment). Pairs come back as (name1, name2) in a stable order with no duplicates and no self-pairs.
+order), `retrieval:K` (each image with the K images nearest by a global descriptor, see `retrieval`) or the path
+of a text file with one `name1 name2` pair per line (COLMAP's match-list format; `#` starts a comment). Pairs
+come back as (name1, name2) in a stable order with no duplicates and no self-pairs.
 """
 
+import logging
+from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import InputError
+from .retrieval import retrieval_pairs
+
+log = logging.getLogger(__name__)
+
+# strategies with a count, and how the count is named in a refusal
+_COUNTED = {"sequential": "the window", "retrieval": "the number of nearest images"}
 
 
 def exhaustive_pairs(names: list[str]) -> list[tuple[str, str]]:
@@ -55,19 +67,31 @@ def check_spec(spec: str, where: str | None = None) -> str:
     where = where or f"--pairs {spec}"
     if spec == "exhaustive" or Path(spec).is_file():
         return spec
-    if spec.startswith("sequential:"):
-        value = spec.split(":", 1)[1]
-        if value.isdigit() and int(value) > 0:
+    kind, colon, value = spec.partition(":")
+    if kind in _COUNTED and colon:
+        if value.isascii() and value.isdigit() and int(value) > 0:
             return spec
-        raise InputError(f"{where}: the window must be a positive integer, e.g. sequential:10")
-    raise InputError(f"{where}: expected exhaustive, sequential:K or an existing pairs file")
+        raise InputError(f"{where}: {_COUNTED[kind]} must be a positive integer, e.g. {kind}:10")
+    raise InputError(f"{where}: expected exhaustive, sequential:K, retrieval:K or an existing pairs file")
 
 
-def select_pairs(spec: str, names: list[str]) -> list[tuple[str, str]]:
-    """Pairs for a spec string (see module doc)."""
+def select_pairs(spec: str, names: list[str],
+                 descriptors: Callable[[str], np.ndarray] | None = None) -> list[tuple[str, str]]:
+    """Pairs for a spec string (see module doc). `descriptors(name)`: an image's (n,d) descriptors, which
+    `retrieval:K` needs (it reads each image's twice)."""
     check_spec(spec)
     if spec == "exhaustive":
         return exhaustive_pairs(sorted(names))
-    if spec.startswith("sequential:") and not Path(spec).is_file():
-        return sequential_pairs(names, int(spec.split(":", 1)[1]))
-    return pairs_from_file(spec, names)
+    if Path(spec).is_file():
+        return pairs_from_file(spec, names)
+    kind, _, value = spec.partition(":")
+    if kind == "sequential":
+        return sequential_pairs(names, int(value))
+    k = int(value)
+    if len(names) <= k + 1:  # every image's k nearest are all the others: no descriptor need be read
+        log.info("%s on %d images: each has at most %d others, so all %d pairs are matched", spec, len(names),
+                 max(len(names) - 1, 0), len(names) * (len(names) - 1) // 2)
+        return exhaustive_pairs(sorted(names))
+    if descriptors is None:
+        raise ValueError(f"{spec}: selecting pairs by retrieval needs the images' descriptors")
+    return retrieval_pairs(names, descriptors, k)

@@ -1,0 +1,143 @@
+"""`--pairs retrieval:K`: each image matched with the K images nearest by a VLAD vector of its own SIFT
+descriptors. Refusals, determinism, the fallbacks, the ranking of true neighbours, and on a ground-truth scene
+fewer pairs with every image registered and the accuracy of exhaustive matching."""
+
+import logging
+
+import numpy as np
+import pytest
+
+from mvrecon import database as dbmod
+from mvrecon.cli import main
+from mvrecon.errors import InputError
+from mvrecon.eval.ground_truth import load_ground_truth
+from mvrecon.eval.metrics import accuracy_summary
+from mvrecon.eval.models import poses, sparse_models
+from mvrecon.matching.pairs import check_spec, select_pairs
+from mvrecon.pipeline import FrontendConfig, match
+
+
+def orbit_descriptors(views=16, points=4000, seen=900, noise=8.0, seed=1) -> dict[str, np.ndarray]:
+    """Views on a closed orbit around `points` scene points, each seeing an arc of `seen` consecutive ones, as
+    RootSIFT-like uint8 descriptors with noise: view i shares 650 points with i +- 1, 400 with i +- 2, 150 with
+    i +- 3 and none with the rest."""
+    rng = np.random.default_rng(seed)
+    scene = rng.gamma(0.5, 1.0, (points, 128))  # sparse and non-negative, as SIFT histograms
+    scene = np.sqrt(scene / scene.sum(axis=1, keepdims=True))
+    out = {}
+    for i in range(views):
+        rows = (np.arange(seen) + i * points // views) % points
+        noisy = scene[rows] * 512 + rng.normal(0.0, noise, (seen, 128))
+        out[f"v{i:02d}.png"] = np.clip(np.round(noisy), 0, 255).astype(np.uint8)
+    return out
+
+
+@pytest.mark.parametrize("spec,reason", [
+    ("retrieval:0", "the number of nearest images must be a positive integer, e.g. retrieval:10"),
+    ("retrieval:x", "the number of nearest images must be a positive integer, e.g. retrieval:10"),
+    ("retrieval:-3", "the number of nearest images must be a positive integer, e.g. retrieval:10"),
+    ("retrieval:", "the number of nearest images must be a positive integer, e.g. retrieval:10"),
+    ("retrieval:²", "the number of nearest images must be a positive integer, e.g. retrieval:10"),
+    ("retrieval", "expected exhaustive, sequential:K, retrieval:K or an existing pairs file"),
+])
+def test_bad_retrieval_specs_are_refused_in_one_line(spec, reason, tmp_path, capsys):
+    with pytest.raises(InputError) as err:
+        check_spec(spec)
+    assert str(err.value) == f"--pairs {spec}: {reason}"
+    assert main(["match", "-w", str(tmp_path / "ws"), "--pairs", spec]) == 2
+    assert capsys.readouterr().err == f"mvrecon: error: --pairs {spec}: {reason}\n"
+    assert not (tmp_path / "ws").exists()
+
+
+def test_retrieval_spec_is_accepted_from_flag_and_config_file(tmp_path, capsys):
+    assert check_spec("retrieval:10") == "retrieval:10"
+    toml = tmp_path / "c.toml"
+    toml.write_text('pairs = "retrieval:0"\n')
+    assert main(["match", "-w", str(tmp_path / "ws"), "--config", str(toml)]) == 2
+    assert f"{toml}: pairs = 'retrieval:0': the number of nearest images" in capsys.readouterr().err
+
+
+def test_retrieval_pairs_each_view_with_its_orbit_neighbours_deterministically(caplog):
+    views = orbit_descriptors()
+    names = sorted(views)
+    reads = []
+
+    def read(name):
+        reads.append(name)
+        return views[name]
+
+    with caplog.at_level(logging.INFO, logger="mvrecon"):
+        pairs = select_pairs("retrieval:2", names, descriptors=read)
+    # each view's 2 nearest are its 2 orbit neighbours: the union is the ring, 16 of the 120 pairs
+    ring = {tuple(sorted((names[i], names[(i + 1) % 16]))) for i in range(16)}
+    assert set(pairs) == ring and len(pairs) == 16
+    assert all(a < b for a, b in pairs) and pairs == sorted(pairs)
+    assert "retrieval:2: 16 of the 120 pairs of 16 images selected in" in caplog.text
+    assert sorted(reads) == sorted(names * 2)  # every image read twice: sample, then encode
+    assert select_pairs("retrieval:2", list(reversed(names)), descriptors=views.__getitem__) == pairs
+    # K = 4 reaches i +- 2 (400 shared points) before anything sharing less
+    wider = select_pairs("retrieval:4", names, descriptors=views.__getitem__)
+    assert {(a, b) for a, b in wider} >= ring and len(wider) < 120
+    assert all(min(abs(int(a[1:3]) - int(b[1:3])), 16 - abs(int(a[1:3]) - int(b[1:3]))) <= 3 for a, b in wider)
+
+
+def test_few_images_or_images_without_descriptors_fall_back_to_exhaustive(caplog):
+    views = orbit_descriptors(views=6)
+    names = sorted(views)
+
+    def never(name):
+        raise AssertionError(f"read {name}: with N <= K + 1 no descriptor is needed")
+
+    with caplog.at_level(logging.INFO, logger="mvrecon"):
+        assert select_pairs("retrieval:5", names, descriptors=never) == select_pairs("exhaustive", names)
+    assert "retrieval:5 on 6 images: each has at most 5 others, so all 15 pairs are matched" in caplog.text
+    caplog.clear()
+    views["v02.png"] = np.zeros((0, 128), np.uint8)
+    with caplog.at_level(logging.INFO, logger="mvrecon"):
+        pairs = select_pairs("retrieval:1", names, descriptors=views.__getitem__)
+    with_empty = [p for p in pairs if "v02.png" in p]
+    assert len(with_empty) == 5  # paired with every other image
+    assert "retrieval:1: 1 image(s) without descriptors (v02.png) are paired with every other image" in caplog.text
+    assert len(pairs) < 15
+
+
+@pytest.fixture(scope="module")
+def orbit_runs(tmp_path_factory):
+    from mvrecon.scenes import make_scene
+
+    root = tmp_path_factory.mktemp("retrieval")
+    scene = make_scene("object_orbit_small", root / "scene")
+    runs = {}
+    for spec in ("exhaustive", "retrieval:3"):
+        out = root / spec.replace(":", "")
+        assert main(["-q", "reconstruct", str(scene / "images"), "-o", str(out), "--pairs", spec]) == 0
+        runs[spec] = out
+    return scene, runs
+
+
+def test_retrieval_on_an_orbit_matches_fewer_pairs_with_the_accuracy_of_exhaustive(orbit_runs):
+    scene, runs = orbit_runs
+    gt = load_ground_truth(scene / "gt" / "sparse")
+    acc = {spec: accuracy_summary([poses(m) for m in sparse_models(out / "sparse")], gt)
+           for spec, out in runs.items()}
+    # a rerun of the matching stage selects the same pairs and finds them all done (the same database gives
+    # the same pairs)
+    selected = {spec: match(FrontendConfig(pairs=spec), out) for spec, out in runs.items()}
+    assert all(summary.num_matched == 0 for summary in selected.values())
+    assert selected["exhaustive"].num_pairs == 45
+    assert 10 <= selected["retrieval:3"].num_pairs <= 30  # the union of 10 lists of 3
+    assert acc["retrieval:3"]["registered"] == acc["exhaustive"]["registered"] == 10
+    assert acc["retrieval:3"]["auc@5"] >= acc["exhaustive"]["auc@5"] - 0.02
+
+
+def test_retrieval_ranks_the_orbit_neighbours_first_and_another_k_is_another_config(orbit_runs):
+    _, runs = orbit_runs
+    ws = runs["retrieval:3"]
+    with dbmod.open_database(ws / "database.db") as db:
+        ids = {i.name: i.image_id for i in dbmod.read_images(db).values()}
+        pairs = select_pairs("retrieval:1", sorted(ids),
+                             descriptors=lambda name: dbmod.read_features(db, ids[name])[1])
+    # 10 views 20 deg apart on a half orbit (names in orbit order): each one's nearest is a next view
+    assert pairs and all(abs(int(a[:4]) - int(b[:4])) == 1 for a, b in pairs)
+    with pytest.raises(InputError, match=r"different matching config \(pairs: retrieval:3 -> retrieval:4\)"):
+        match(FrontendConfig(pairs="retrieval:4"), ws)
