@@ -129,7 +129,7 @@ def write_image(db, name: str, camera_id: int) -> int:
 def write_features(db, image_id: int, keypoints: np.ndarray, descriptors: np.ndarray) -> None:
     """Keypoints (N,4): x, y (COLMAP convention), scale, orientation in radians; descriptors (N,128) uint8."""
     kp = np.ascontiguousarray(keypoints, dtype=np.float32).reshape(-1, 4)
-    desc = np.ascontiguousarray(descriptors, dtype=np.uint8).reshape(len(kp), -1)
+    desc = np.ascontiguousarray(descriptors, dtype=np.uint8).reshape(len(kp), -1 if len(kp) else 128)
     db.write_keypoints(int(image_id), kp)
     pycolmap = _pycolmap()
     db.write_descriptors(int(image_id), pycolmap.FeatureDescriptors(type=pycolmap.FeatureExtractorType.SIFT,
@@ -245,6 +245,8 @@ def read_features(db, image_id: int) -> tuple[np.ndarray, np.ndarray]:
     """(N,4+) float keypoints (x, y in COLMAP pixels first) and (N,128) uint8 descriptors of one image."""
     kp = np.asarray(db.read_keypoints(int(image_id)), dtype=float)
     desc = np.asarray(db.read_descriptors(int(image_id)).data, dtype=np.uint8)
+    if len(kp) == 0:  # a featureless image (a blank frame, sky): reshape(0, -1) would raise
+        return kp.reshape(0, 4), desc.reshape(0, 128)
     return kp.reshape(len(kp), -1), desc.reshape(len(kp), -1)
 
 

@@ -186,6 +186,23 @@ def test_cut_off_jpegs_are_skipped_as_truncated(tmp_path, kind, caplog):
     assert any(r.getMessage() == f"skipping {tmp_path / 'cut.jpg'}: {TRUNCATED}" for r in caplog.records)
 
 
+def test_a_featureless_image_is_reported_not_a_crash(tmp_path):
+    """A blank frame has no SIFT keypoint: writing its empty features raised (reshape of 0 rows), so the whole
+    run ended in a traceback. It is now kept with no keypoints, and its report says so."""
+    import json
+
+    from mvrecon.cli import main
+
+    for k in range(3):
+        Image.fromarray(_texture(seed=k % 2)).save(tmp_path / f"tex{k}.png")  # tex0 and tex2 alike: a pair
+    Image.fromarray(np.full((240, 320, 3), 128, np.uint8)).save(tmp_path / "blank.png")
+    out = tmp_path / "out"
+    code = main(["-q", "reconstruct", str(tmp_path), "-o", str(out)])
+    report = json.loads((out / "report.json").read_text())
+    assert code in (0, 1) and report["images"]["blank.png"] == {
+        "status": "unregistered", "model": None, "reason": "no keypoints: a featureless image (blank, or out of focus)"}
+
+
 def test_jpegs_with_a_thumbnail_or_data_after_their_end_are_whole(tmp_path):
     """An EXIF thumbnail holds an EOI marker of its own, and phone Motion Photos append a video after the EOI
     (MPO files more pictures): neither may count as truncated, nor hide a cut in the main image."""

@@ -554,7 +554,9 @@ class IncrementalMapper:
             if i in model_of:
                 out[name] = {"status": "registered", "model": model_of[i], "reason": None}
                 continue
-            if not paired[i]:
+            if len(self.keypoints[i]) == 0:
+                reason = "no keypoints: a featureless image (blank, or out of focus)"
+            elif not paired[i]:
                 reason = "no verified pairs with any other image"
             elif not in_tracks[i]:
                 reason = "no consistent feature tracks (all its matches conflict)"
