@@ -3,7 +3,7 @@
 import numpy as np
 
 from mvrecon.database import PairGeometry
-from mvrecon.geometry.absolute_pose import pnp_ransac, refine_pose_and_focal
+from mvrecon.geometry.absolute_pose import pnp_ransac, refine_pose_and_focal, rival_poses
 from mvrecon.geometry.rotation import angle_axis_to_rotmat, rotation_error_deg, vector_angle_deg
 from mvrecon.geometry.triangulation import (max_triangulation_angle_deg, reaches_triangulation_angle, refine_points,
                                            triangulate_dlt, two_view_midpoints)
@@ -132,6 +132,29 @@ def test_pnp_ransac_and_focal_refinement():
     K_wrong[0, 0] = K_wrong[1, 1] = 630.0
     R2, t2, f = refine_pose_and_focal(X[20:], uv[20:], K_wrong, R_est, t_est)
     assert abs(f - 700.0) < 0.01 and rotation_error_deg(R2, R) < 1e-3
+
+
+def test_rival_pose_of_repeated_structure():
+    """A view of a ground that repeats every 6 m, whose keypoints are matched partly to the points they see
+    (150) and partly to the copies one period away (120, as the false pairs of fisheye_orbit_small through a
+    184 deg lens give), plus 30 wrong matches: the best pose is the true one, and the rival is the same
+    rotation with the centre one period off, fitting exactly the copies."""
+    rng = np.random.default_rng(3)
+    R = angle_axis_to_rotmat([0.1, -0.2, 0.05])
+    C = np.array([0.5, -0.3, -5.0])
+    t = -R @ C
+    period = np.array([6.0, 0.0, 0.0])
+    X = rng.uniform([-4, -3, 0], [4, 3, 3], size=(300, 3))
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    uv = _project(R, t, X) * 500.0 + [320, 240]
+    X[150:270] -= period  # matched to the copy of the point it sees
+    X[270:] = rng.uniform([-4, -3, 0], [4, 3, 3], size=(30, 3))
+    R1, t1, inl = pnp_ransac(X, uv, K, threshold_px=4.0, seed=0)
+    assert np.linalg.norm(-R1.T @ t1 - C) < 1e-6 and inl[:150].all() and not inl[150:].any()
+    (R2, t2, inl2), = rival_poses(X, uv, K, inl, 4.0, min_inliers=30, seed=0)
+    assert rotation_error_deg(R2, R) < 1e-6 and np.linalg.norm(-R2.T @ t2 - (C - period)) < 1e-6
+    assert inl2[150:270].all() and not inl2[:150].any() and not inl2[270:].any()
+    assert rival_poses(X, uv, K, inl, 4.0, min_inliers=121, seed=0) == []
 
 
 def test_focal_from_fundamental_bougnoux():

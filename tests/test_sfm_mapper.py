@@ -444,6 +444,32 @@ def test_a_small_model_built_first_is_dropped_when_another_reaches_min_model_siz
         "g0_1.png": "its model stayed at 2 images, under min_model_size 3, and was discarded"}
 
 
+def test_images_of_a_camera_that_ends_non_square_are_deregistered(monkeypatch):
+    """An untrusted PINHOLE camera whose fx / fy a bundle adjustment pulled 2x apart was fitted to wrong matches
+    (fisheye_orbit_small per image once left fx / fy 1597 / 461 in a model with a 29 deg rotation error): at the
+    model's end its images are deregistered, with the reason, and a model left without images is dropped."""
+    import dataclasses
+
+    corr = lined_up_views([((0.0, 4.0, 8.0, 12.0), (20, 40), 200)])
+    cam = corr.cameras[1]
+    f, cx, cy = cam.params[0], cam.params[1], cam.params[2]
+    corr.cameras[1] = dataclasses.replace(cam, model="PINHOLE", params=np.array([f, f, cx, cy]), prior_trusted=False)
+    real = incremental.IncrementalMapper._global_refine
+
+    def stretched(self, m, *args, **kwargs):  # what a BA on wrong matches did: fx twice fy, in the final refinement
+        real(self, m, *args, **kwargs)
+        if kwargs.get("rounds") == 2:
+            m.cameras[1].params[0] = 2 * m.cameras[1].params[1]
+
+    monkeypatch.setattr(incremental.IncrementalMapper, "_global_refine", stretched)
+    result = map_correspondences(corr)
+    assert result.models == []
+    reasons = {s["reason"] for s in result.status.values()}
+    assert len(reasons) == 1 and re.fullmatch(r"deregistered: its camera's fx / fy ended at \d+ / \d+, more than "
+                                              r"1\.5x apart \(a bundle adjustment fitted to wrong matches, not a "
+                                              r"lens\)", next(iter(reasons))), reasons
+
+
 def test_the_bar_ends_at_the_registered_images(monkeypatch):
     """A model of 4 images, and a pair whose 2-image model is discarded: the bar ends at 4 of 6 (it ended at
     12 of 6: the pair was built 4 times, and each build's 2 images counted)."""

@@ -31,7 +31,10 @@ def pnp_ransac(X, uv, K, threshold_px: float, seed: int = 0, confidence: float =
     mask = np.zeros(len(X), bool)
     mask[inliers.ravel()] = True
     candidates = [(rvec, tvec)]
-    ok, rvec_s, tvec_s = cv2.solvePnP(X[mask], uv[mask], K, None, flags=cv2.SOLVEPNP_SQPNP)
+    try:
+        ok, rvec_s, tvec_s = cv2.solvePnP(X[mask], uv[mask], K, None, flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error:  # SQPnP asserts on inliers with (almost) no spread: keep RANSAC's pose
+        ok = False
     if ok:
         candidates.append((rvec_s, tvec_s))
         candidates.append(cv2.solvePnPRefineLM(X[mask], uv[mask], K, None, rvec_s.copy(), tvec_s.copy()))
@@ -42,6 +45,30 @@ def pnp_ransac(X, uv, K, threshold_px: float, seed: int = 0, confidence: float =
         if best is None or inl.sum() > best[2].sum():
             best = (R, t, inl)
     return best
+
+
+def rival_poses(X, uv, K, inliers, threshold_px: float, min_inliers: float, count: int = 2, seed: int = 0):
+    """Other poses that fit many of the matches the best pose leaves out (`inliers` is its mask): a list of
+    (R, t, inlier mask over all matches), each from P3P RANSAC on the matches no pose before it fits; the
+    search ends at the first that fits fewer than `min_inliers` of those.
+
+    Repeated structure makes the matches of a view support a second pose one period away (a tiled floor seen
+    through a wide lens: the same rotation, 6 m off, and as many inliers as the true pose), so the pose with
+    the most inliers is then a choice rather than a measurement (sfm/register.py decides it).
+    """
+    rest = ~np.asarray(inliers, bool)
+    out = []
+    for _ in range(count):
+        idx = np.flatnonzero(rest)
+        if len(idx) < max(min_inliers, 4):
+            break
+        est = pnp_ransac(X[idx], uv[idx], K, threshold_px, seed=seed)
+        if est is None or est[2].sum() < min_inliers:
+            break
+        inl = reprojection_errors(X, uv, K, est[0], est[1]) < threshold_px
+        out.append((est[0], est[1], inl))
+        rest &= ~inl
+    return out
 
 
 def reprojection_errors(X, uv, K, R, t) -> np.ndarray:

@@ -35,8 +35,9 @@ def filter_small_angle_points(model, config: MapperConfig, point_ids=None) -> in
 
 def degenerate_cameras(model, max_focal_ratio: float = 10.0, max_distortion: float = 1.0) -> list[int]:
     """Cameras whose refined parameters are implausible (COLMAP's bogus-camera check): a focal length more
-    than
-    `max_focal_ratio` away from the prior, or a distortion coefficient beyond `max_distortion`."""
+    than `max_focal_ratio` away from the prior, or a distortion coefficient beyond `max_distortion`. The mapper
+    undoes a BA that leaves one, so only what no growing model passes through belongs here: fx / fy is tested at
+    a model's end (`non_square_cameras`), as growing fisheye_orbit_small per image passes 520 / 1025."""
     from ..geometry import camera as cammodel
 
     bad = []
@@ -46,5 +47,31 @@ def degenerate_cameras(model, max_focal_ratio: float = 10.0, max_distortion: flo
         dist = np.abs(cammodel.distortion_coefficients(cam.model, cam.params))
         if not np.isfinite(f) or f <= 0 or ratio > max_focal_ratio or ratio < 1 / max_focal_ratio \
                 or np.any(dist > max_distortion):
+            bad.append(int(cid))
+    return bad
+
+
+def non_square_cameras(model, max_aspect_ratio: float = 1.5) -> list[int]:
+    """Cameras of registered images, without a trusted prior, whose fx and fy are more than
+    `max_aspect_ratio` apart: a finished model holding one was fitted to wrong matches.
+
+    COLMAP's bogus-camera test bounds each focal by the image size (0.1 to 10 x max(w, h)) and |extra
+    params| by 1, never fx against fy, and its mapper applies it only from 20 registered images on, because
+    a growing model's calibration still moves a lot. An untrusted camera starts from a guess with fx = fy,
+    and pixels are square on nearly every camera (a 10:11 or 1.33 video pixel aspect stays inside 1.5),
+    so fx / fy beyond 1.5 is not a lens: fisheye_orbit_small per image left a three-image model with fx / fy
+    1597 / 461, 603 / 1137 and 499 / 857 and a 29 deg rotation error. A trusted calibration may be
+    anamorphic; it is not second-guessed.
+    """
+    from ..geometry import camera as cammodel
+
+    used = np.unique(model.camera_of[model.registered])
+    bad = []
+    for cid in used.tolist():
+        cam = model.cameras[int(cid)]
+        fx, fy, *_ = cammodel.split(cam.model, cam.params)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            aspect = fx / fy
+        if not cam.prior_trusted and not 1 / max_aspect_ratio <= aspect <= max_aspect_ratio:
             bad.append(int(cid))
     return bad

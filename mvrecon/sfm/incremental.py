@@ -510,6 +510,7 @@ class IncrementalMapper:
         # observations
         self._close_loops(m)
         self._global_refine(m, rounds=2, min_change=1e-3)
+        self._drop_non_square_cameras(m)
         n, least = int(m.registered.sum()), self.min_model_size()
         if n >= least:
             self.finished.append(m)
@@ -522,6 +523,24 @@ class IncrementalMapper:
             self.small.append(m)
         for i in np.flatnonzero(m.registered).tolist():
             self.reasons[i] = f"its model stayed at {n} images, under min_model_size {least}, and was discarded"
+
+    def _drop_non_square_cameras(self, m: Reconstruction) -> None:
+        """Deregister the images of cameras whose fx / fy ended more than 1.5x apart (`non_square_cameras`: wrong
+        matches, not a lens), then refine what is left once more; COLMAP deregisters the images of bogus cameras
+        the same way (from 20 registered images on)."""
+        bogus = filtering.non_square_cameras(m)
+        if not bogus:
+            return
+        aspects = ", ".join(f"{m.cameras[c].params[0]:.0f} / {m.cameras[c].params[1]:.0f}" for c in bogus)
+        m.remove_observations(m.observations_of_images(
+            [i for i in m.registered_images().tolist() if int(m.camera_of[i]) in bogus]))
+        dropped = m.deregister_empty_images()
+        log.info("deregistered %d image(s): camera(s) %s ended with fx / fy %s", len(dropped), bogus, aspects)
+        for i in dropped:
+            self.reasons[i] = (f"deregistered: its camera's fx / fy ended at {aspects}, more than 1.5x apart (a "
+                               "bundle adjustment fitted to wrong matches, not a lens)")
+        if m.registered.sum() >= 2:
+            self._global_refine(m)
 
     def _keep_a_small_model(self) -> None:
         """When no model reached min_model_size, the largest smaller one (the first of equals) is kept: a set where
