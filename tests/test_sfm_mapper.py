@@ -470,6 +470,26 @@ def test_images_of_a_camera_that_ends_non_square_are_deregistered(monkeypatch):
                                               r"lens\)", next(iter(reasons))), reasons
 
 
+def test_an_image_whose_pose_waits_keeps_its_registration_trials(monkeypatch):
+    """An image with an ambiguous pose (repeated structure, sfm/register.py) waits for its neighbours; waiting
+    used up one of its max_register_trials (3), so an image that had to wait three times was given up."""
+    from mvrecon.sfm.register import Registration
+
+    corr = lined_up_views([((0.0, 2.0, 4.0, 6.0, 8.0, 10.0, 12.0), (20, 40), 200)])
+    real, waited = incremental.register_image, []
+
+    def register(m, tracks, i, config, seed=0):  # the middle view "waits" until the six others are registered
+        if i == 3 and m.registered.sum() < 6:
+            waited.append(int(m.registered.sum()))
+            return Registration(False, "ambiguous pose (test)", 0, 0, wait=True)
+        return real(m, tracks, i, config, seed)
+
+    monkeypatch.setattr(incremental, "register_image", register)
+    result = map_correspondences(corr, MapperConfig(max_register_trials=2))
+    assert len(waited) >= 2  # it waited at least as many times as it may fail
+    assert [int(m.registered.sum()) for m in result.models] == [7]
+
+
 def test_the_bar_ends_at_the_registered_images(monkeypatch):
     """A model of 4 images, and a pair whose 2-image model is discarded: the bar ends at 4 of 6 (it ended at
     12 of 6: the pair was built 4 times, and each build's 2 images counted)."""

@@ -401,6 +401,8 @@ class IncrementalMapper:
                 self.attempts[i] = (count + 1, num_reg)
                 reg = register_image(m, self.tracks, i, cfg, seed=cfg.seed + i)
                 if not reg.ok:
+                    if reg.wait:  # an ambiguous pose waits for the model to grow without using up a trial
+                        self.attempts[i] = (count, num_reg)
                     self.reasons[i] = reg.reason
                     log.debug("%s: %s", self.names[i], reg.reason)
                     continue

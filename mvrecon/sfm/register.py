@@ -72,6 +72,7 @@ class Registration:
     reason: str | None
     inliers: int = 0
     matches: int = 0
+    wait: bool = False  # not a failure of the image: its pose waits for its neighbours (`choose_pose`)
 
 
 def register_image(model, tracks, image: int, config: MapperConfig, seed: int = 0) -> Registration:
@@ -104,7 +105,7 @@ def register_image(model, tracks, image: int, config: MapperConfig, seed: int = 
     if rivals:
         chosen = choose_pose(model, tracks, image, pids, [(R, t, inl), *rivals])
         if isinstance(chosen, str):
-            return Registration(False, chosen, int(inl.sum()), len(kps))
+            return Registration(False, chosen, int(inl.sum()), len(kps), wait=True)
         R, t, inl = chosen
     if estimate_focal:
         R, t, f = refine_pose_and_focal(X[inl], uvh[inl], Kh, R, t)
