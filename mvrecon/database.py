@@ -48,13 +48,24 @@ def colmap_needs_focal(model: str) -> bool:
     return bool(pycolmap.Camera(model=model, width=1, height=1).is_perspective_fisheye())
 
 
+def colmap_blind_cameras(cameras: dict) -> list[int]:
+    """The ids of the cameras (id -> CameraInfo) whose pairs COLMAP verifies none of: fisheyes without a trusted
+    focal length (`colmap_needs_focal`)."""
+    return [cid for cid, cam in sorted(cameras.items()) if not cam.prior_trusted and colmap_needs_focal(cam.model)]
+
+
+def connect_readonly(path):
+    """A read-only sqlite3 connection to the database file `path`, closed on leaving the `with` block; the
+    plain-SQL reads below need what pycolmap's reader skips or refuses."""
+    import sqlite3
+
+    return closing(sqlite3.connect(Path(path).resolve().as_uri() + "?mode=ro", uri=True))
+
+
 def pair_configurations(path) -> dict[str, int]:
     """Matched pairs per two-view configuration in the database, most first; read with SQL, as pycolmap's
     reader skips the pairs without inliers, which are the ones that tell why none is verified."""
-    import sqlite3
-    from contextlib import closing
-
-    with closing(sqlite3.connect(Path(path).resolve().as_uri() + "?mode=ro", uri=True)) as con:
+    with connect_readonly(path) as con:
         rows = con.execute("SELECT config, COUNT(*) FROM two_view_geometries GROUP BY config "
                            "ORDER BY COUNT(*) DESC").fetchall()
     return {_config_name(int(c)): int(n) for c, n in rows}
@@ -210,7 +221,7 @@ def _check_sqlite(path: Path) -> None:
     import sqlite3
 
     try:
-        with closing(sqlite3.connect(f"file:{path}?mode=ro", uri=True)) as con:
+        with connect_readonly(path) as con:
             # the schema and one row of every table: cheap, and what a cut-off or foreign file fails on
             for (table,) in con.execute("SELECT name FROM sqlite_master WHERE type = 'table'").fetchall():
                 con.execute(f'SELECT * FROM "{table}" LIMIT 1').fetchall()
@@ -244,10 +255,15 @@ def num_keypoints(db, image_id: int) -> int:
 def read_features(db, image_id: int) -> tuple[np.ndarray, np.ndarray]:
     """(N,4+) float keypoints (x, y in COLMAP pixels first) and (N,128) uint8 descriptors of one image."""
     kp = np.asarray(db.read_keypoints(int(image_id)), dtype=float)
-    desc = np.asarray(db.read_descriptors(int(image_id)).data, dtype=np.uint8)
     if len(kp) == 0:  # a featureless image (a blank frame, sky): reshape(0, -1) would raise
-        return kp.reshape(0, 4), desc.reshape(0, 128)
-    return kp.reshape(len(kp), -1), desc.reshape(len(kp), -1)
+        return kp.reshape(0, 4), read_descriptors(db, image_id)
+    return kp.reshape(len(kp), -1), read_descriptors(db, image_id)
+
+
+def read_descriptors(db, image_id: int) -> np.ndarray:
+    """(N,128) uint8 descriptors of one image, without its keypoints (retrieval needs only these)."""
+    desc = np.asarray(db.read_descriptors(int(image_id)).data, dtype=np.uint8)
+    return desc if desc.ndim == 2 and desc.shape[1] else desc.reshape(-1, 128)
 
 
 def has_two_view_geometry(db, image_id1: int, image_id2: int) -> bool:

@@ -296,7 +296,7 @@ def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
         pairs = []
         # the pairs first: a pairs file naming an unknown image is refused before the stage is recorded
         for a, b in select_pairs(config.pairs, sorted(by_name),
-                                 descriptors=lambda name: dbmod.read_features(db, by_name[name])[1]):
+                                 descriptors=lambda name: dbmod.read_descriptors(db, by_name[name])):
             id1, id2 = sorted((by_name[a], by_name[b]))
             pairs.append((id1, id2))
         if config.pairs != "exhaustive" and Path(config.pairs).is_file():
@@ -495,10 +495,9 @@ def _no_verified_pairs(ws: Workspace, corr, *, matched_by_mvrecon: bool) -> str:
              f"all {total} matched pairs are {next(iter(configs))}" if len(configs) == 1 else
              f"the {total} matched pairs are " + ", ".join(f"{n} {name}" for name, n in configs.items())) \
         + " in the database"
-    blind = [(cid, cam.model) for cid, cam in sorted(corr.cameras.items())
-             if not cam.prior_trusted and dbmod.colmap_needs_focal(cam.model)]
+    blind = dbmod.colmap_blind_cameras(corr.cameras)
     if blind and not matched_by_mvrecon:
-        cid, model = blind[0]
+        cid, model = blind[0], corr.cameras[blind[0]].model
         return head + (f"; likely cause: {dbmod.COLMAP_FISHEYE_NOTE} and marks its pairs DEGENERATE (camera {cid} is "
                        f"{model} without one): give it a focal prior when extracting (COLMAP's camera_params) and "
                        f"match again, or run `mvrecon reconstruct IMAGES -o OUT --camera-model {model}`, whose "

@@ -158,11 +158,11 @@ def test_detectors_command_resumes_after_ctrl_c(tmp_path, cones, monkeypatch, ca
     measured, verified = [], []  # (image, detector) measured; pairs verified
     warp_repeatability, verified_inliers = detectors.warp_repeatability, detectors.verified_inliers
 
-    def counted(name, image, H):  # once per image and detector
+    def counted(name, image, H, **kwargs):  # once per image and detector
         measured.append((which[image.tobytes()], name))
         if len(measured) == stop_at:
             raise KeyboardInterrupt
-        return warp_repeatability(name, image, H)
+        return warp_repeatability(name, image, H, **kwargs)
 
     monkeypatch.setattr(detectors, "warp_repeatability", counted)
     monkeypatch.setattr(detectors, "verified_inliers", lambda *a, **k: verified.append(1) or verified_inliers(*a, **k))

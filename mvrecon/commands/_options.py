@@ -143,7 +143,8 @@ _FLAG_FIELDS = {  # argparse dest -> (config section, field)
 _FLAG_NAMES = {"root_sift": "--no-root-sift"}  # argparse dest -> flag, where not "--" + dest with dashes
 
 
-def _flag(dest: str) -> str:
+def flag_name(dest: str) -> str:
+    """The command-line flag of an argparse dest (`camera_model` -> `--camera-model`)."""
     return _FLAG_NAMES.get(dest, "--" + dest.replace("_", "-"))
 
 
@@ -178,7 +179,7 @@ def frontend_config_from_args(args: argparse.Namespace, from_file=None):
     for dest, (section, name) in _FLAG_FIELDS.items():
         value = getattr(args, dest, None)
         if value is not None:
-            config = with_field(config, (name,) if section is None else (section, name), value, where=_flag(dest))
+            config = with_field(config, (name,) if section is None else (section, name), value, where=flag_name(dest))
     if getattr(args, "camera_params", None):
         config = with_field(config, ("camera", "params"), list(parse_camera_params(args.camera_params)),
                             where="--camera-params")
@@ -186,7 +187,7 @@ def frontend_config_from_args(args: argparse.Namespace, from_file=None):
     for name, dest in (("mode", "camera_mode"), ("model", "camera_model"), ("params", "camera_params")):
         value = getattr(config.camera, name)
         if getattr(args, dest, None):  # a flag's params are numbers (parse_camera_params)
-            origin[name] = f"{_flag(dest)} {','.join(f'{v:g}' for v in value) if name == 'params' else value}"
+            origin[name] = f"{flag_name(dest)} {','.join(f'{v:g}' for v in value) if name == 'params' else value}"
         elif value != getattr(default, name):  # not a flag, not the default: the file's
             origin[name] = f"{args.config}: camera: {name} = {list(value) if name == 'params' else value!r}"
     config.camera.validate(origin)

@@ -19,6 +19,7 @@ ON_INTERRUPT = "finished runs are kept; rerun the same command to continue"
 
 
 def add_arguments(parser) -> None:
+    from ..cameras import CAMERA_MODES
     from ..geometry.camera import MODELS
     from ._options import non_negative_int, positive_float
 
@@ -35,7 +36,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--colmap-global", action="store_true", help="also run pycolmap's global mapper")
     parser.add_argument("--no-same-matches", action="store_true",
                         help="skip COLMAP's mapper on mvrecon's database")
-    parser.add_argument("--camera-mode", choices=("auto", "single", "per-folder", "per-image"),
+    parser.add_argument("--camera-mode", choices=CAMERA_MODES,
                         help="which images share intrinsics, for both engines (default: auto)")
     parser.add_argument("--camera-model", choices=MODELS,
                         help="COLMAP camera model for both engines (default: SIMPLE_RADIAL)")
@@ -50,10 +51,8 @@ def add_arguments(parser) -> None:
                         help="run again the engines whose run in OUTPUT failed (otherwise a failure is kept)")
 
 
-RUN_ONLY = {"colmap_global": "--colmap-global", "no_same_matches": "--no-same-matches",
-            "camera_mode": "--camera-mode", "camera_model": "--camera-model", "camera_params": "--camera-params",
-            "seed": "--seed", "mvrecon_args": "--mvrecon-args", "timeout": "--timeout",
-            "retry_failed": "--retry-failed"}  # dest -> flag: what only a run on IMAGES uses
+RUN_ONLY = ("colmap_global", "no_same_matches", "camera_mode", "camera_model", "camera_params", "seed",
+            "mvrecon_args", "timeout", "retry_failed")  # the dests only a run on IMAGES uses
 
 
 def check_mvrecon_args(options) -> None:
@@ -68,7 +67,7 @@ def check_mvrecon_args(options) -> None:
     from ..errors import InputError
     from ..eval.runners import reconstruct_args
     from . import reconstruct
-    from ._options import config_file, frontend_config_from_args
+    from ._options import config_file, flag_name, frontend_config_from_args
 
     if not options.mvrecon_args:
         return
@@ -86,7 +85,7 @@ def check_mvrecon_args(options) -> None:
     if given.output != plain.output:
         raise InputError("--mvrecon-args: -o/--output is compare's to choose (mvrecon's run goes to "
                          "OUTPUT/runs/mvrecon); leave it out")
-    own = [RUN_ONLY[dest] for dest in ("seed", "camera_mode", "camera_model", "camera_params")
+    own = [flag_name(dest) for dest in ("seed", "camera_mode", "camera_model", "camera_params")
            if getattr(given, dest) != getattr(plain, dest)]
     if own:
         raise InputError(f"--mvrecon-args: {', '.join(own)} would make mvrecon's run differ from COLMAP's; give "
@@ -111,26 +110,27 @@ def run(args) -> int:
     from ..eval.compare import CompareConfig, compare_images, compare_models
     from ..eval.report import format_value, write_report
     from ..eval.runners import RunOptions, colmap_fisheye_warning, forget_if_failed
+    from ._options import flag_name
 
     if bool(args.images) == bool(args.models):
         raise InputError("give either IMAGES or --models A B (not both, not neither)")
     if args.labels and not args.models:
         raise InputError("--labels goes with --models")
     if args.models:
-        given = [flag for dest, flag in RUN_ONLY.items() if getattr(args, dest) is not None
+        given = [flag_name(dest) for dest in RUN_ONLY if getattr(args, dest) is not None
                  and getattr(args, dest) is not False]  # `--seed 0` is given too (0 == False)
         if given:
             raise InputError(f"{', '.join(given)}: only for runs on IMAGES; --models compares models that exist, "
                              f"so {'it' if len(given) == 1 else 'they'} would have no effect")
     params = parse_camera_params(args.camera_params)
-    camera_model = args.camera_model or "SIMPLE_RADIAL"
-    CameraConfig(model=camera_model, params=params).validate()
+    chosen = {dest: getattr(args, dest) for dest in ("camera_mode", "camera_model", "seed")
+              if getattr(args, dest) is not None}  # the others keep RunOptions' defaults
+    CameraConfig(model=chosen.get("camera_model", RunOptions.camera_model), params=params).validate()
     try:
         extra = tuple(shlex.split(args.mvrecon_args or ""))
     except ValueError as exc:  # an unclosed quote
         raise InputError(f"--mvrecon-args: {exc}") from None
-    options = RunOptions(camera_mode=args.camera_mode or "auto", camera_model=camera_model, camera_params=params,
-                         seed=0 if args.seed is None else args.seed, mvrecon_args=extra)
+    options = RunOptions(**chosen, camera_params=params, mvrecon_args=extra)
     config = CompareConfig(options=options, colmap_global=args.colmap_global,
                            same_matches=not args.no_same_matches, timeout_s=args.timeout)
     if args.images:

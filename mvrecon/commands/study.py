@@ -18,6 +18,7 @@ ON_INTERRUPT = "finished cells are kept; rerun the same command to continue"
 def add_arguments(parser) -> None:
     from mvrecon.study.grid import AXES
 
+    from ..cameras import CAMERA_MODES
     from ..geometry.camera import MODELS
     from ._options import non_negative_int, positive_float
 
@@ -39,7 +40,7 @@ def add_arguments(parser) -> None:
                         help="cells run at the same time (default: CPU cores)")
     parser.add_argument("--seed", type=non_negative_int, default=0,
                         help="seed of the noise and of both engines (default 0)")
-    parser.add_argument("--camera-mode", default="auto", choices=("auto", "single", "per-folder", "per-image"),
+    parser.add_argument("--camera-mode", default="auto", choices=CAMERA_MODES,
                         help="camera sharing for both engines (default auto)")
     parser.add_argument("--camera-model", default="SIMPLE_RADIAL", choices=MODELS,
                         help="COLMAP camera model (default SIMPLE_RADIAL)")

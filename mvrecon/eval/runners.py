@@ -452,11 +452,10 @@ def _write_outputs(out_dir: Path, engine: str, options: dict, models: list, db: 
 
 def _fisheye_without_focal(cameras: dict) -> dict[int, str]:
     """camera_id -> the reason none of its images registers, for the cameras COLMAP verifies no pair of."""
-    from ..database import COLMAP_FISHEYE_NOTE, colmap_needs_focal
+    from ..database import COLMAP_FISHEYE_NOTE, colmap_blind_cameras
 
-    return {cid: f"{COLMAP_FISHEYE_NOTE} (camera {cid} is {cam.model} without one); give --camera-params to "
-                 "compare with it"
-            for cid, cam in cameras.items() if not cam.prior_trusted and colmap_needs_focal(cam.model)}
+    return {cid: f"{COLMAP_FISHEYE_NOTE} (camera {cid} is {cameras[cid].model} without one); give --camera-params "
+                 "to compare with it" for cid in colmap_blind_cameras(cameras)}
 
 
 def _cameras(rec) -> list[dict]:

@@ -6,6 +6,8 @@ scene.json, record or degraded image would be taken for a finished one by the ne
 
 import json
 import os
+import shutil
+from contextlib import contextmanager
 from pathlib import Path
 
 
@@ -30,6 +32,22 @@ def outermost_new_folder(path) -> Path | None:
     while not top.parent.exists() and top.parent != top:
         top = top.parent
     return top
+
+
+@contextmanager
+def made_folder(path, removed_on=BaseException, within=None):
+    """Create folder `path` (with its parents) for the block; when the block raises one of `removed_on`, remove
+    what this run created, so a refused or failed run leaves no folder behind, and an existing folder (the user's,
+    or an earlier run's) stays. `within`: the path whose new folders count (default `path`; a run that keeps
+    resumable work in OUT/.stages removes only that when OUT already existed)."""
+    created = outermost_new_folder(path if within is None else within)
+    Path(path).mkdir(parents=True, exist_ok=True)
+    try:
+        yield Path(path)
+    except removed_on:
+        if created is not None:
+            shutil.rmtree(created, ignore_errors=True)
+        raise
 
 
 def write_json(path, data, **dumps) -> None:

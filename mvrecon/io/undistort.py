@@ -239,13 +239,13 @@ def database_frames(database, names) -> dict[str, bool]:
     written by `map` for either. A COLMAP from before its affine keypoints (about 2018) wrote 4 columns too: its
     images are taken as mvrecon's, upright."""
     import sqlite3
-    from contextlib import closing
+
+    from ..database import connect_readonly
 
     if database is None or not Path(database).is_file():
         return {}
-    uri = Path(database).resolve().as_uri() + "?mode=ro"
     try:
-        with closing(sqlite3.connect(uri, uri=True)) as con:
+        with connect_readonly(database) as con:
             rows = con.execute("SELECT images.name, keypoints.cols FROM images JOIN keypoints "
                                "ON images.image_id = keypoints.image_id").fetchall()
     except sqlite3.Error as exc:

@@ -97,9 +97,8 @@ def nearest(vectors: np.ndarray, k: int) -> np.ndarray:
     """(n, min(k, n-1)) indices of each row's k most similar other rows, best first (cosine; ties to the lower
     index)."""
     sim = vectors.astype(np.float64) @ vectors.T.astype(np.float64)
-    np.fill_diagonal(sim, -np.inf)
-    order = np.argsort(-sim, axis=1, kind="stable")
-    return np.stack([row[row != i][:k] for i, row in enumerate(order)])
+    np.fill_diagonal(sim, -np.inf)  # each row's own index sorts last, past the n - 1 others
+    return np.argsort(-sim, axis=1, kind="stable")[:, :min(k, len(sim) - 1)]
 
 
 def expand_queries(vectors: np.ndarray, n: int = EXPANSION) -> np.ndarray:

@@ -13,7 +13,7 @@ import tomllib
 from pathlib import Path
 
 from ..errors import InputError
-from ..io.files import outermost_new_folder, read_json_object, write_json
+from ..io.files import made_folder, read_json_object, write_json
 
 CATALOG_DIR = Path(__file__).resolve().parent / "catalog"
 GENERATOR_VERSION = "4"  # bump when a scene's files change, so cached scenes are rebuilt (4: calib.txt in mm)
@@ -99,8 +99,6 @@ def make_scene(name: str, out_dir) -> Path:
             shutil.rmtree(target)
         elif target.exists():
             target.unlink()
-    created = outermost_new_folder(out)
-    out.mkdir(parents=True, exist_ok=True)
     scene_name = entry.get("name", path.stem)
     meta = {
         "name": scene_name,
@@ -111,14 +109,14 @@ def make_scene(name: str, out_dir) -> Path:
         "seed": int(entry.get("seed", 0)),
         "complete": False,
     }
-    # only this version marks a folder resumable: an older one may have left a cut-off image
-    _write_json(out / "scene.json", {**meta, "resumable": True})
     start = time.perf_counter()
-    try:
-        details = KINDS[kind](entry, path.parent, out)
-    except (ValueError, KeyError, TypeError) as exc:
-        if created is not None:  # a folder this call made holds nothing a rerun of a corrected TOML reuses
-            shutil.rmtree(created, ignore_errors=True)
+    bad_entry = (ValueError, KeyError, TypeError)
+    try:  # a folder this call made holds nothing a rerun of a corrected TOML reuses
+        with made_folder(out, removed_on=bad_entry):
+            # only this version marks a folder resumable: an older one may have left a cut-off image
+            _write_json(out / "scene.json", {**meta, "resumable": True})
+            details = KINDS[kind](entry, path.parent, out)
+    except bad_entry as exc:
         raise InputError(f"{path}: {type(exc).__name__}: {exc}") from None
     meta.update(details)
     meta["complete"] = True

@@ -7,11 +7,9 @@ ICP. Unknown tilts (common on real microscopes) come from the joint solution of 
 which also supplies the frame the pair sets are merged into.
 """
 
-import hashlib
 import json
 import logging
 import re
-import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -20,7 +18,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..features.sift import SiftConfig
-from ..io.files import outermost_new_folder
+from ..io.files import made_folder
 from ..matching.matcher import MatcherConfig
 from ..progress import progress
 from .affine import (AffineRansacConfig, affine_epipolar_error, ransac_affine_fundamental,
@@ -138,11 +136,12 @@ def _load(paths, max_size):
     import cv2
 
     from ..io.images import read_image, to_gray_uint8
+    from ..io.stage_cache import digest
 
     images, seen = [], {}
     for p in paths:
         image = read_image(p)
-        key = (image.shape, image.dtype.str, hashlib.blake2b(np.ascontiguousarray(image).tobytes()).digest())
+        key = digest(image)
         if key in seen:
             raise InputError(f"{p}: identical pixels to {seen[key]}; a tilt series needs one image per tilt, and "
                              "one view twice has no parallax")
@@ -314,15 +313,9 @@ def run_sem(image_paths, out_dir, config: SemConfig = SemConfig()) -> dict:
         _check_tilts_differ(config.tilts_deg)
     _check_distinct_files(paths)
     ref = _reference(config, n)
-    out = Path(out_dir)
-    created = outermost_new_folder(out)  # removed if the run fails
-    out.mkdir(parents=True, exist_ok=True)
-    try:
+    # a failed or interrupted run leaves no folder it made (nothing in it is reused)
+    with made_folder(out_dir) as out:
         return _run(paths, out, config, ref, timings, t0)
-    except BaseException:  # a failed or interrupted run leaves no folder it made (nothing in it is reused)
-        if created is not None:
-            shutil.rmtree(created, ignore_errors=True)
-        raise
 
 
 def _run(paths, out: Path, config: SemConfig, ref: int, timings: dict, t0: float) -> dict:

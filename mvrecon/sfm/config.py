@@ -55,8 +55,9 @@ class MapperConfig:
         by construction), "sfm" for gtsam.SfmLevenbergMarquardtOptimizer; LM measured about 30% faster at equal
         tolerance on templeRing and lund_door with the same models (tools/bench_ba.py).
 
-    Models: the first model is kept at any size, a later one with min_model_size images or more (COLMAP's
-        rule); max_models bounds how many are started.
+    Models: a model needs min(min_model_size, 0.8 x the number of images) registered images (COLMAP's
+        threshold); when none reaches it, the largest smaller one is kept. max_models bounds how many are
+        started.
     seed: every random choice (RANSAC) is seeded from it, so equal inputs give equal models.
     """
 

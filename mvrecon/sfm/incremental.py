@@ -33,7 +33,7 @@ from .triangulate import (continue_points, refine_existing_points, retriangulate
                           triangulate_tracks)
 
 log = logging.getLogger("mvrecon.sfm")
-SNAPSHOT_VERSION = 2  # 2: small models are kept as candidates (a state of 1 dropped them)
+SNAPSHOT_VERSION = 3  # 2: small models kept as candidates (1 dropped them); 3: only the largest of them
 _FOCAL_SCALES = (1.0, 0.25, 0.35, 0.5, 0.7, 1.4, 2.0, 3.0)  # of a guessed focal, tried at initialisation
 
 
@@ -123,7 +123,8 @@ class IncrementalMapper:
         self.tracks = build_tracks(self.image_ids, [len(k) for k in self.keypoints], corr.pairs)
         self.snapshot = _Snapshot(snapshot_path, _signature(corr, config))
         self.finished: list[Reconstruction] = []
-        self.small: list[Reconstruction] = []  # finished under min_model_size: kept only if no model reaches it
+        # the largest model finished under min_model_size (the first of equals), kept only if no model reaches it
+        self.small: Reconstruction | None = None
         self.tried_init: set = set()
         # what a model was started from (`_start_key`) when the model was discarded: starting it again from
         # the same pair and state would only build the same model again
@@ -195,7 +196,7 @@ class IncrementalMapper:
 
     def _save(self) -> None:
         self.snapshot.save({"finished": [m.state() for m in self.finished],
-                            "small": [m.state() for m in self.small],
+                            "small": self.small.state() if self.small is not None else None,
                             "current": self.current.state() if self.current is not None else None,
                             "tried_init": set(self.tried_init), "reasons": dict(self.reasons),
                             "last_global": self.last_global, "attempts": dict(self.attempts),
@@ -203,7 +204,7 @@ class IncrementalMapper:
 
     def _restore(self, s: dict) -> None:
         self.finished = [Reconstruction.from_state(m, self.keypoints) for m in s["finished"]]
-        self.small = [Reconstruction.from_state(m, self.keypoints) for m in s.get("small", [])]
+        self.small = Reconstruction.from_state(s["small"], self.keypoints) if s.get("small") else None
         self.current = Reconstruction.from_state(s["current"], self.keypoints) if s["current"] else None
         self.tried_init, self.reasons = s["tried_init"], s["reasons"]
         self.last_global, self.attempts = s["last_global"], s["attempts"]
@@ -397,12 +398,10 @@ class IncrementalMapper:
             ranked = [r for r in rank_candidates(m, self.tracks, pool) if r[1] > 0]
             added = False
             for _, n_matches, i in ranked[:cfg.candidates_per_round]:
-                count = self.attempts.get(i, (0, -1))[0]
-                self.attempts[i] = (count + 1, num_reg)
                 reg = register_image(m, self.tracks, i, cfg, seed=cfg.seed + i)
+                # a pose that waits for the model to grow (ambiguous) does not use up a trial
+                self.attempts[i] = (self.attempts.get(i, (0, -1))[0] + (not reg.wait), num_reg)
                 if not reg.ok:
-                    if reg.wait:  # an ambiguous pose waits for the model to grow without using up a trial
-                        self.attempts[i] = (count, num_reg)
                     self.reasons[i] = reg.reason
                     log.debug("%s: %s", self.names[i], reg.reason)
                     continue
@@ -516,13 +515,14 @@ class IncrementalMapper:
         n, least = int(m.registered.sum()), self.min_model_size()
         if n >= least:
             self.finished.append(m)
+            self.small = None  # a model reached min_model_size: no small one will be kept
             log.info("model %d: %d images, %d points", len(self.finished) - 1, n, len(m.alive_points()))
             return
         log.info("discarded a model of %d images (< %d)", n, least)
         if self.start_key is not None:
             self.dropped_starts.add(self.start_key)
-        if n > 0:
-            self.small.append(m)
+        if not self.finished and n > (int(self.small.registered.sum()) if self.small is not None else 0):
+            self.small = m
         for i in np.flatnonzero(m.registered).tolist():
             self.reasons[i] = f"its model stayed at {n} images, under min_model_size {least}, and was discarded"
 
@@ -548,9 +548,9 @@ class IncrementalMapper:
         """When no model reached min_model_size, the largest smaller one (the first of equals) is kept: a set where
         only a small model can be built still gives it. Until then its images stay free for later models, where
         COLMAP's keeping of its first model at any size would hold them in a pair that did not grow."""
-        if self.finished or not self.small:
+        if self.finished or self.small is None:
             return
-        m = max(self.small, key=lambda f: int(f.registered.sum()))
+        m = self.small
         self.finished.append(m)
         log.info("model 0: %d images, %d points (kept under min_model_size %d: no model reached it)",
                  int(m.registered.sum()), len(m.alive_points()), self.min_model_size())

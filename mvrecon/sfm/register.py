@@ -94,12 +94,11 @@ def register_image(model, tracks, image: int, config: MapperConfig, seed: int = 
     for scale in (_FOCAL_HYPOTHESES if estimate_focal else (1.0,)):
         Kh, uvh = _at_focal_scale(K, uv, scale)
         est = pnp_ransac(X, uvh, Kh, config.abs_pose_max_error_px, seed=seed)
-        if est is not None and (best is None or est[2].sum() > best[3].sum()):
-            best = (scale, est[0], est[1], est[2])
+        if est is not None and (best is None or est[2].sum() > best[4].sum()):
+            best = (Kh, uvh, *est)
     if best is None:
         return Registration(False, "absolute pose (P3P RANSAC) found no solution", 0, len(kps))
-    scale, R, t, inl = best
-    Kh, uvh = _at_focal_scale(K, uv, scale)
+    Kh, uvh, R, t, inl = best
     rivals = rival_poses(X, uvh, Kh, inl, config.abs_pose_max_error_px,
                          max(config.abs_pose_min_inliers, _RIVAL_SHARE * inl.sum()), seed=seed)
     if rivals:

@@ -6,7 +6,6 @@ dict it also writes to `out_dir/report.json`. A rerun into the same folder reuse
 """
 
 import logging
-import shutil
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -14,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..io.files import outermost_new_folder, replace_whole, write_json
+from ..io.files import made_folder, replace_whole, write_json
 from ..geometry.fundamental import RansacConfig, ransac_fundamental, sampson_distance
 from ..geometry.rectification import apply_homography, calibrated_rectification, fit_to_canvas, hartley_rectification
 from ..io.pfm import read_pfm, write_pfm
@@ -310,14 +309,10 @@ def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=
                              f"{left.shape[1]}x{left.shape[0]}")
     if config.method not in METHODS:
         raise InputError(f"unknown stereo method {config.method!r}; expected one of {', '.join(METHODS)}")
-    created = outermost_new_folder(out / ".stages")  # OUT when new, else the stage folder when new
-    out.mkdir(parents=True, exist_ok=True)
-    try:
+    # refused after the matches (no parallax, too few): leave no folder of ours behind (OUT when new, else the
+    # stage folder when new); an interrupted run keeps its stages
+    with made_folder(out, removed_on=InputError, within=out / ".stages"):
         return _run(config, left_path, right_path, out, left, right, calib, camera, gt, mask, rectified)
-    except InputError:  # refused after the matches (no parallax, too few): leave no folder of ours behind
-        if created is not None:
-            shutil.rmtree(created, ignore_errors=True)
-        raise
 
 
 def _run(config: StereoConfig, left_path, right_path, out: Path, left, right, calib, camera, gt, mask,
