@@ -178,14 +178,8 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
     stamps = _stamps(folder, [*names, *failed])
     record = {"images": str(folder.resolve()), "camera": to_dict(config.camera), "sift": to_dict(config.sift)}
     # Everything that can refuse the run is checked before anything in the workspace is deleted or rewritten:
-    # the stage's config, a database this workspace has no record of, the camera grouping.
+    # the stage's config, a database this workspace has no record of (Workspace.check_stage), the cameras.
     redo = bool(ws.check_stage("features", record, overwrite))
-    if ws.database_path.exists() and not redo and ws.stage_config("features") is None:
-        if not overwrite:
-            raise InputError(f"{ws.database_path}: a database without mvrecon's record of how its features were "
-                             f"made (another tool's, say); map it with `mvrecon map -w {ws.path}`, or rerun with "
-                             "--overwrite to start over")
-        redo = True
     jobs = [(folder / n, n, config.sift) for n in names]
     # Without a database nothing is extracted yet: every image goes to the workers now, so that probing the
     # images and creating the database (which imports pycolmap) overlap SIFT instead of delaying it.
@@ -201,7 +195,7 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
     groups = group_cameras(names, metas, config.camera)
     if before_changes is not None:
         before_changes()
-    if ws.begin_stage("features", record, overwrite) or redo:
+    if ws.begin_stage("features", record, overwrite):
         for suffix in ("", "-wal", "-shm", "-journal"):
             Path(f"{ws.database_path}{suffix}").unlink(missing_ok=True)
     group_of = {name: gi for gi, (_, members) in enumerate(groups) for name in members}

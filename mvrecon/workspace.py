@@ -75,6 +75,14 @@ class Workspace:
             if not overwrite:
                 raise
             stages, dropped = {}, [stage]  # no record of what the results were made with: --overwrite redoes them
+        if stage == "features" and stage not in stages and self.database_path.exists():
+            # features in a database this workspace has no record of (another tool's): what is recorded after
+            # them (a `map -w` of that database) was made from it, so --overwrite redoes it all
+            if not overwrite:
+                raise InputError(f"{self.database_path}: a database without mvrecon's record of how its features "
+                                 f"were made (another tool's, say); map it with `mvrecon map -w {self.path}`, or "
+                                 "rerun with --overwrite to start over")
+            return {}, [stage, *stages]
         names = list(stages)
         new_hash = cfgmod.config_hash(config)
         if stage in stages:

@@ -118,6 +118,14 @@ def test_a_database_without_our_record_is_refused(base, tmp_path, capsys):
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and "without mvrecon's record" in err and "mvrecon map -w" in err
     assert (ws / "database.db").read_bytes() == database and not (ws / "config.json").exists()
+    # mapped as advised, then started over: the mapping record of the foreign database is not kept (it stayed,
+    # ahead of the new features, and refused a later `map` with other settings for a config never mapped)
+    assert main(["-q", "map", "-w", str(ws)]) == 0
+    assert list(json.loads((ws / "config.json").read_text())["stages"]) == ["mapping"]
+    assert main(["-q", "reconstruct", str(images), "-o", str(ws), "--overwrite"]) == 0
+    assert list(json.loads((ws / "config.json").read_text())["stages"]) == ["features", "matching", "mapping"]
+    assert main(["-q", "map", "-w", str(ws), "--seed", "1"]) == 2  # refused against this run's own mapping
+    assert "(seed: 0 -> 1)" in capsys.readouterr().err
 
 
 def test_an_edited_pairs_file_is_a_different_matching_config(base, tmp_path, capsys):
