@@ -3,6 +3,7 @@ and the clear failure when a database has no verified pairs."""
 
 import json
 import logging
+import re
 
 import numpy as np
 import pycolmap
@@ -412,3 +413,27 @@ def test_wide_angle_lens_with_its_own_camera_model(wide_scene, tmp_path):
     assert summary["median_rotation_error_deg"] < 0.1
     assert summary["auc@1"] >= 0.9 and summary["auc@5"] >= 0.95
     assert abs(params[0] - 269.0) < 0.01 * 269.0 and abs(params[4] + 0.22) < 0.005
+
+
+def test_a_panorama_is_refused_not_reconstructed(tmp_path, caplog):
+    """panorama_small: a camera turning in place (10 views from one point, 36 deg apart). No baseline, so no
+    depth. With the focal guessed (768 px for 400) the essential matrix of a rotation fits a baseline to the
+    focal error: the mapper used to build a 3-image model with cameras 2.2 m apart (COLMAP's pipeline: 3 images
+    10 units apart). Now every pair a homography explains as a rotation, at a focal length the camera may
+    have, is refused as the initial pair, the run makes no model, and the reason says why."""
+    from mvrecon.scenes import make_scene
+
+    scene = make_scene("panorama_small", tmp_path / "scene")
+    out = tmp_path / "run"
+    with caplog.at_level(logging.ERROR):
+        assert main(["-q", "reconstruct", str(scene / "images"), "-o", str(out)]) == 1
+    assert "a rotation about the camera centre explains its matches" in caplog.text
+    report = json.loads((out / "report.json").read_text())
+    assert report["models"] == [] and not (out / "sparse").exists()
+    reasons = [s["reason"] for s in report["images"].values()]
+    assert len(reasons) == 10
+    for reason in reasons:  # the fitted focal is the true one (400 px; 407-416 measured, the lens has k -0.02)
+        found = re.search(r"has no baseline: a rotation .* \(homography \|t\|/d (0\.\d+) < 0\.026 at a focal of "
+                          r"(\d+) px\)", reason)
+        assert found, reason
+        assert float(found[1]) < 0.015 and abs(int(found[2]) - 400) < 25

@@ -82,3 +82,13 @@ def focal_from_fundamental(F, principal_point1, principal_point2) -> tuple[float
         return float(np.sqrt(f2)) if f2 > 0 else float("nan")
 
     return one(F, p1, p2), one(F.T, p2, p1)
+
+
+def homography_translation(H, K1, K2):
+    """|t|/d of the calibrated homography Hn = K2^-1 H K1 ~ R + t n^T/d, from the spread of its singular values:
+    a pure rotation has three equal singular values; a translation along or towards the plane (distance d)
+    spreads them by about |t|/d, the parallax angle at the plane in radians. K1, K2 may be stacks (n,3,3) of
+    calibrations to try: the result is then one value per calibration."""
+    s = np.linalg.svd(np.linalg.inv(K2) @ np.asarray(H, float) @ K1, compute_uv=False)
+    spread = (s[..., 0] - s[..., 2]) / s[..., 1]
+    return float(spread) if np.ndim(spread) == 0 else spread

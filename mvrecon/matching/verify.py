@@ -22,6 +22,7 @@ import numpy as np
 from ..config import bounded
 from ..database import CameraInfo
 from ..geometry import camera as camera_model
+from ..geometry.two_view import homography_translation
 
 
 @dataclass(frozen=True)
@@ -126,17 +127,8 @@ def verify_pair(points1: np.ndarray, points2: np.ndarray, matches: np.ndarray, c
     if mask.sum() < m or mask.sum() / len(matches) < config.min_inlier_ratio:
         return TwoViewResult(config="DEGENERATE", inliers=empty.inliers, num_inliers=counts)
     if kind == "PLANAR_OR_PANORAMIC" and calibrated and H is not None:
-        kind = "PANORAMIC" if homography_translation(H, camera1, camera2) < config.panoramic_max_translation \
-            else "PLANAR"
+        K1 = camera_model.calibration_matrix(camera1.model, camera1.params)
+        K2 = camera_model.calibration_matrix(camera2.model, camera2.params)
+        kind = "PANORAMIC" if homography_translation(H, K1, K2) < config.panoramic_max_translation else "PLANAR"
     return TwoViewResult(config=kind, inliers=matches[mask], F=F, E=E if calibrated else None, H=H,
                          num_inliers=counts)
-
-
-def homography_translation(H: np.ndarray, camera1: CameraInfo, camera2: CameraInfo) -> float:
-    """|t|/d of the calibrated homography Hn = K2^-1 H K1 ~ R + t n^T/d, from the spread of its singular values:
-    a pure rotation has three equal singular values; a translation towards/along the plane spreads them."""
-    K1 = camera_model.calibration_matrix(camera1.model, camera1.params)
-    K2 = camera_model.calibration_matrix(camera2.model, camera2.params)
-    s = np.linalg.svd(np.linalg.inv(K2) @ H @ K1, compute_uv=False)
-    return float((s[0] - s[2]) / s[1])
-

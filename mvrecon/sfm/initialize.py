@@ -5,9 +5,12 @@ the relative pose comes from the essential matrix (with the camera's focal prior
 accepted when enough points triangulate with a median angle above the threshold. Each pair is estimated once
 (from at most 1000 of its matches); the mapper then triangulates all the tracks the two images share.
 Thresholds are relaxed in turn (16 deg, then 8, 4, 2) so scenes without a wide baseline still start, as COLMAP
-relaxes its own. Pure rotation and planar-with-no-baseline pairs fail the angle check; that is how they are
-rejected. When no pair is accepted, `initial_pair_rejections` says what each pair missed (the mapper gives the
-nearest miss as the reason of the images that stay unregistered).
+relaxes its own. A pair that a homography explains and that is a rotation about the camera centre for a focal
+length the camera may have (`_rotation_fit`) is rejected first: with a guessed focal, the essential matrix of a
+camera turning in place fits a baseline to the focal error, and COLMAP's pipeline and our mapper used to build
+a model with cameras metres apart from a panorama. Other planar-with-no-baseline pairs fail the angle check.
+When no pair is accepted, `initial_pair_rejections` says what each pair missed (the mapper gives the nearest
+miss as the reason of the images that stay unregistered).
 """
 
 from dataclasses import dataclass
@@ -15,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry.triangulation import refine_points, residuals, triangulation_angle_deg, two_view_midpoints
-from ..geometry.two_view import focal_from_fundamental, relative_pose
+from ..geometry.two_view import focal_from_fundamental, homography_translation, relative_pose
 from .config import MapperConfig
 
 
@@ -42,7 +45,7 @@ class PairRejection:
 
 
 # how far a rejected pair got, from the least to the most promising
-_FEW_MATCHES, _NOT_TRIED, _NO_POSE, _FEW_POSE_INLIERS, _FEW_POINTS, _SMALL_ANGLE, _DISCARDED = range(7)
+_FEW_MATCHES, _NOT_TRIED, _ROTATION, _NO_POSE, _FEW_POSE_INLIERS, _FEW_POINTS, _SMALL_ANGLE, _DISCARDED = range(8)
 
 
 _DECISION_MATCHES = 1000  # a pose and a median angle from this many matches decide as well as from all
@@ -76,6 +79,14 @@ def evaluate_pair(model, pair, i1: int, i2: int, config: MapperConfig,
 def assess_pair(model, pair, i1: int, i2: int, config: MapperConfig,
                 focal_from_pair: bool = True) -> InitialPair | PairRejection:
     """`evaluate_pair`, with a PairRejection saying which criterion failed instead of None."""
+    rotation = _rotation_fit(model, pair, i1, i2)
+    limit = np.radians(config.min_tri_angle_deg)
+    if rotation is not None and rotation[0] < limit:
+        spread, focal = rotation
+        return PairRejection(i1, i2, (_ROTATION, spread),
+                             f"no baseline: a rotation about the camera centre explains its matches (homography "
+                             f"|t|/d {spread:.3f} < {limit:.3f} at a focal of {focal:.0f} px): a camera turning in "
+                             f"place (a panorama), or the same view twice")
     k1, k2 = pair.inliers[:, 0], pair.inliers[:, 1]
     if len(k1) > _DECISION_MATCHES:
         pick = np.sort(np.random.default_rng(config.seed).choice(len(k1), _DECISION_MATCHES, replace=False))
@@ -110,6 +121,27 @@ def assess_pair(model, pair, i1: int, i2: int, config: MapperConfig,
 
 
 _FOCAL_RANGE = (0.5, 2.0)
+_H_DOMINANT = ("PLANAR_OR_PANORAMIC", "PANORAMIC", "PLANAR")  # pairs a homography explains (matching/verify.py)
+
+
+def _rotation_fit(model, pair, i1: int, i2: int) -> tuple[float, float] | None:
+    """(|t|/d, focal of image1) where the pair's homography is closest to a rotation about the camera centre,
+    over the focal lengths the cameras may have: a trusted one as it is, a guessed one from 0.5 to 2 times its
+    prior (the range `_focal_from_pair` accepts). None when no homography explains the pair. The homography is
+    in distorted pixels: guessed cameras have no distortion yet, and a trusted lens that bends lines enough to
+    matter leaves no pair that a homography explains."""
+    if pair.config not in _H_DOMINANT or pair.H is None:
+        return None
+    scales = np.geomspace(*_FOCAL_RANGE, 241)  # steps of 0.6%
+    Ks = []
+    for cam in (model.camera(i1), model.camera(i2)):
+        K = np.broadcast_to(cam.K(), (len(scales), 3, 3)).copy()
+        if not cam.prior_trusted:
+            K[:, :2, :2] *= (cam.prior_focal / cam.focal() * scales)[:, None, None]
+        Ks.append(K)
+    spread = homography_translation(pair.H, Ks[0], Ks[1])
+    best = int(np.argmin(spread))
+    return float(spread[best]), float(np.mean(np.diag(Ks[0][best])[:2]))
 
 
 def _focal_from_pair(model, i1: int, i2: int, k1, k2) -> None:
