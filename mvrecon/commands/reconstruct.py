@@ -97,8 +97,18 @@ def no_model(out, status: dict) -> int:
     import logging
     from collections import Counter
 
-    reason, count = Counter(s["reason"] for s in status.values()).most_common(1)[0]
-    logging.getLogger("mvrecon").error("%s: no model: none of the %d images could be registered (%d of them: %s); "
+    reasons = [s["reason"] for s in status.values()]
+    kind, count = Counter(map(_reason_kind, reasons)).most_common(1)[0]
+    reason, exact = Counter(r for r in reasons if _reason_kind(r) == kind).most_common(1)[0]
+    logging.getLogger("mvrecon").error("%s: no model: none of the %d images could be registered (%d of them: %s%s); "
                                        "wrote only report.json, with the reason for each image", out, len(status),
-                                       count, reason)
+                                       count, "" if exact == count else "for example ", reason)
     return 1
+
+
+def _reason_kind(reason: str) -> str:
+    """A reason without its image pair and figures, so that reasons are counted by kind: each image of a
+    panorama names its own best pair and figures, and as whole strings the most common covered 2 of 10."""
+    import re
+
+    return re.sub(r"\d+(\.\d+)?", "#", re.sub(r"\([^()]* / [^()]*\)", "(...)", reason))
