@@ -254,10 +254,15 @@ def num_keypoints(db, image_id: int) -> int:
 
 def read_features(db, image_id: int) -> tuple[np.ndarray, np.ndarray]:
     """(N,4+) float keypoints (x, y in COLMAP pixels first) and (N,128) uint8 descriptors of one image."""
+    return read_keypoints(db, image_id), read_descriptors(db, image_id)
+
+
+def read_keypoints(db, image_id: int) -> np.ndarray:
+    """(N,4+) float keypoints of one image, x, y in COLMAP pixels first."""
     kp = np.asarray(db.read_keypoints(int(image_id)), dtype=float)
     if len(kp) == 0:  # a featureless image (a blank frame, sky): reshape(0, -1) would raise
-        return kp.reshape(0, 4), read_descriptors(db, image_id)
-    return kp.reshape(len(kp), -1), read_descriptors(db, image_id)
+        return kp.reshape(0, 4)
+    return kp.reshape(len(kp), -1)
 
 
 def read_descriptors(db, image_id: int) -> np.ndarray:

@@ -28,6 +28,7 @@ from .features.sift import SiftConfig
 from .io.files import read_json_object, write_json
 from .io.images import IMAGE_EXTENSIONS, image_metadata, list_images, visible_files
 from .matching.matcher import MatcherConfig, match_descriptors, prepare_descriptors
+from .matching.overlay import drop_static, fixed_keypoints
 from .matching.pairs import check_spec, select_pairs
 from .matching.verify import VerifyConfig, verify_pair
 from .progress import progress
@@ -252,6 +253,7 @@ class MatchSummary:
     inliers: dict[tuple[str, str], int]  # verified pairs -> inlier count
     configs: dict[str, int]  # configuration name -> number of pairs
     seconds: float = 0.0
+    fixed_dropped: int = 0  # matches left out in this run as features printed on the images (matching/overlay.py)
 
     @property
     def num_verified(self) -> int:
@@ -262,13 +264,17 @@ class MatchSummary:
         return (f"Matching: {self.num_images} images, {self.num_pairs} pairs ({self.num_matched} matched now, "
                 f"{self.num_pairs - self.num_matched} already done) in {self.seconds:.1f} s; "
                 f"{self.num_verified} verified pairs ({kinds or 'none'}); "
-                f"inliers per verified pair: {_stats(list(self.inliers.values()))}.")
+                f"inliers per verified pair: {_stats(list(self.inliers.values()))}."
+                + (f" {self.fixed_dropped} matches that stay on one pixel of three or more images were left out "
+                   "(a logo or timestamp printed on the images, or a camera that did not move)."
+                   if self.fixed_dropped else ""))
 
 
 def _match_one(task):
-    (kp1, d1, cam1), (kp2, d2, cam2), config = task
-    matches = match_descriptors(d1, d2, config.matcher)
-    return matches, verify_pair(kp1, kp2, matches, cam1, cam2, config.verify)
+    (kp1, d1, cam1, fixed1), (kp2, d2, cam2, fixed2), config = task
+    putative = match_descriptors(d1, d2, config.matcher)
+    matches = drop_static(putative, kp1, kp2, fixed1, fixed2)
+    return matches, verify_pair(kp1, kp2, matches, cam1, cam2, config.verify), len(putative) - len(matches)
 
 
 def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
@@ -305,14 +311,22 @@ def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
         for p in todo:
             for i in p:
                 remaining[i] = remaining.get(i, 0) + 1
-        cache = OrderedDict()  # image -> (keypoints, prepared descriptors, camera), least recently used first
+        # features printed on the images (a logo, a timestamp), found among all the images' keypoints (not only
+        # those of the pairs left), so that a resumed run decides as an uninterrupted one
+        every = sorted(images) if todo else []
+        fixed = fixed_keypoints({i: dbmod.read_keypoints(db, i) for i in every},
+                                {i: (cameras[images[i].camera_id].width, cameras[images[i].camera_id].height)
+                                 for i in every})
+        dropped = 0
+        cache = OrderedDict()  # image -> (keypoints, prepared descriptors, camera, fixed), least recently used first
 
         def features(image_id):
             if image_id in cache:
                 cache.move_to_end(image_id)
             else:
                 kp, desc = dbmod.read_features(db, image_id)
-                cache[image_id] = (kp, prepare_descriptors(desc), cameras[images[image_id].camera_id])
+                cache[image_id] = (kp, prepare_descriptors(desc), cameras[images[image_id].camera_id],
+                                   fixed[image_id])
                 while len(cache) > max_cached_images:  # bounded memory: ~2 MB per 8192-feature image
                     cache.popitem(last=False)
             return cache[image_id]
@@ -339,7 +353,8 @@ def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
                         batch.append((pair, future.result()))
                         submit(pool)
                     with dbmod.transaction(db):
-                        for (i, j), (matches, geometry) in batch:
+                        for (i, j), (matches, geometry, left_out) in batch:
+                            dropped += left_out
                             dbmod.write_matches(db, i, j, matches)
                             dbmod.write_two_view_geometry(db, dbmod.PairGeometry(
                                 image_id1=i, image_id2=j, config=geometry.config, inliers=geometry.inliers,
@@ -365,7 +380,7 @@ def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
                 verified[(images[id1].name, images[id2].name)] = n
                 configs[kind] = configs.get(kind, 0) + 1
     return MatchSummary(num_images=len(images), num_pairs=len(pairs), num_matched=len(todo), inliers=verified,
-                        configs=configs, seconds=time.perf_counter() - start)
+                        configs=configs, seconds=time.perf_counter() - start, fixed_dropped=dropped)
 
 
 # ---------------------------------------------------------------- mapping (the SfM engine)

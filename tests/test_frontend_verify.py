@@ -183,3 +183,38 @@ def test_the_feature_cap_keeps_the_coarsest_scales_as_colmap():
     # under the cap nothing changes
     k_same, d_same = extract_sift(image, SiftConfig(max_num_features=len(k_all)))
     assert np.array_equal(k_same, k_all) and np.array_equal(d_same, d_all)
+
+
+def test_features_printed_on_three_images_of_one_size_are_fixed_and_their_still_matches_dropped():
+    """matching/overlay.py: a position is fixed when half the images of one size, and at least three, have a
+    keypoint there; two copies of one view (a duplicate) are not enough, and images of another size do not
+    count."""
+    from mvrecon.matching.overlay import drop_static, fixed_keypoints
+
+    rng = np.random.default_rng(0)
+    logo = rng.uniform(20, 620, (40, 2))  # printed on images 1-3
+    pair = rng.uniform(20, 620, (40, 2))  # only in images 1 and 2: a duplicated view
+
+    def image(*parts):
+        return np.concatenate([p + rng.normal(0, 0.2, p.shape) for p in parts] + [rng.uniform(0, 640, (200, 2))])
+
+    positions = {1: image(logo, pair), 2: image(logo, pair), 3: image(logo, rng.uniform(0, 640, (40, 2))),
+                 4: image(logo, pair)}
+    sizes = {1: (640, 480), 2: (640, 480), 3: (640, 480), 4: (800, 600)}
+    fixed = fixed_keypoints(positions, sizes)
+    assert fixed[1][:40].all() and fixed[3][:40].all()
+    assert not fixed[1][40:80].any()  # the duplicated view's own features: two images, and image 4 is larger
+    assert not fixed[4].any()  # the only image of its size
+    assert fixed[1][80:].mean() < 0.05  # chance neighbours among 200 random points
+
+    # images 1 and 2 matched on all their shared features and on 10 that move: only the logo's are dropped
+    idx = np.arange(80)
+    moving = np.c_[np.arange(80, 90), np.arange(90, 100)]
+    matches = np.r_[np.c_[idx, idx], moving]
+    kept = drop_static(matches, positions[1], positions[2], fixed[1], fixed[2])
+    assert sorted(map(tuple, kept)) == sorted(map(tuple, matches[40:]))
+
+    # among eight images of that size, three are not half: chance neighbours in big sets are not printed features
+    positions.update({k: image() for k in range(5, 10)})
+    sizes.update({k: (640, 480) for k in range(5, 10)})
+    assert fixed_keypoints(positions, sizes)[1][:40].mean() < 0.2  # all 40 before; chance neighbours remain

@@ -439,3 +439,28 @@ def test_a_panorama_is_refused_not_reconstructed(tmp_path, caplog):
                           r"(\d+) px\)", reason)
         assert found, reason
         assert float(found[1]) < 0.015 and abs(int(found[2]) - 400) < 25
+
+
+def test_a_logo_and_a_timestamp_printed_on_every_view_do_not_spoil_the_model(demo, tmp_path):
+    """The demo scene with a photo logo and a timestamp drawn at the same pixels of every view, as a camera or
+    a video burns them in. Their matches do not move, which every pure-translation F explains, so pairs the
+    scene does not connect were verified on them: AUC@5 0.10 and a median rotation error of 53 deg (COLMAP's
+    pipeline: 0.22, 4.1 deg). Matches of features fixed on three or more images are now left out."""
+    import cv2
+    from skimage import data
+
+    images = tmp_path / "images"
+    images.mkdir()
+    logo = cv2.resize(data.astronaut()[:, :, ::-1], (160, 160))
+    for k, path in enumerate(sorted((demo / "scene" / "images").glob("*.png"))):
+        im = cv2.imread(str(path))
+        im[10:170, 470:630] = logo
+        cv2.putText(im, f"CAM-07  2026-11-25 12:00:{k:02d}", (10, 465), cv2.FONT_HERSHEY_SIMPLEX, 0.6,
+                    (255, 255, 255), 2)
+        cv2.imwrite(str(images / path.name), im)
+    out = tmp_path / "run"
+    assert main(["-q", "reconstruct", str(images), "-o", str(out)]) == 0
+    models = sparse_models(out / "sparse")
+    summary = accuracy_summary([poses(m) for m in models], load_ground_truth(demo / "scene" / "gt" / "sparse"))
+    assert summary["registered"] == 10 and summary["components"] == 1
+    assert summary["auc@1"] >= 0.9 and summary["median_rotation_error_deg"] < 0.1  # 0.963, 0.016 measured
