@@ -427,7 +427,7 @@ def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resu
     """
     import shutil
 
-    from .io.colmap_model import write_models, write_points_ply
+    from .io.colmap_model import warn_text_names, write_models, write_points_ply
     from .sfm.incremental import map_correspondences
 
     start = time.perf_counter()
@@ -464,6 +464,8 @@ def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resu
         new.rename(sparse)
         shutil.rmtree(old, ignore_errors=True)
         write_points_ply(recs[0], ws.path / "points.ply")
+        if text:
+            warn_text_names(recs, sparse)
     else:
         shutil.rmtree(new, ignore_errors=True)
         if sparse.exists():

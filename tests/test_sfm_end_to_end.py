@@ -464,3 +464,25 @@ def test_a_logo_and_a_timestamp_printed_on_every_view_do_not_spoil_the_model(dem
     summary = accuracy_summary([poses(m) for m in models], load_ground_truth(demo / "scene" / "gt" / "sparse"))
     assert summary["registered"] == 10 and summary["components"] == 1
     assert summary["auc@1"] >= 0.9 and summary["median_rotation_error_deg"] < 0.1  # 0.963, 0.016 measured
+
+
+def test_text_models_warn_about_image_names_with_spaces(demo, tmp_path, caplog):
+    """COLMAP's images.txt ends a name at its first space: pycolmap reads 'photo 1.png' back as 'photo', and so
+    does nerfstudio's parser. The binary model keeps the names whole; --text now says which names it loses."""
+    import shutil
+
+    images = tmp_path / "my photos"
+    images.mkdir()
+    for path in sorted((demo / "scene" / "images").glob("*.png")):
+        shutil.copy(path, images / f"photo {path.name}")
+    out = tmp_path / "run"
+    with caplog.at_level(logging.WARNING):
+        assert main(["-q", "reconstruct", str(images), "-o", str(out), "--text"]) == 0
+    warned = [r.getMessage() for r in caplog.records if "images.txt" in r.getMessage()]
+    assert len(warned) == 1 and f"{out / 'sparse' / '0' / 'images.txt'}: image names with spaces ('photo 0000.png' " \
+        "and 9 more)" in warned[0]
+    binary = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    assert sorted(im.name for im in binary.images.values()) == sorted(p.name for p in images.iterdir())
+    text = pycolmap.Reconstruction()
+    text.read_text(str(out / "sparse" / "0"))
+    assert {im.name for im in text.images.values()} == {"photo"}  # the premise: the text format loses them
