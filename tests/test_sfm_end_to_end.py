@@ -180,6 +180,43 @@ def test_export_undistorted_pinhole_model(demo, tmp_path, capfd):
     # grey levels of 255: 1.6 measured; the images shifted by 1 px give 4.5, not undistorted 8.7
     assert len(diffs) > 500 and np.median(diffs) < 2.5
 
+    # the trainers do not use pycolmap: Gaussian splatting's colmap_loader.py and nerfstudio's
+    # colmap_parsing_utils.py unpack the files with struct, in COLMAP's layout of before rigs and frames
+    # (pycolmap 4 also writes rigs.bin and frames.bin, which they ignore)
+    cameras, images = _read_like_the_trainers(out / "sparse" / "0")
+    assert {m for m, *_ in cameras.values()} == {1}  # PINHOLE
+    for image_id, (qvec, tvec, camera_id, name) in images.items():
+        pose = rec.images[image_id].cam_from_world()
+        np.testing.assert_allclose(np.r_[qvec[1:], qvec[0]], pose.rotation.quat, atol=1e-12)  # w first there
+        np.testing.assert_allclose(tvec, pose.translation, atol=1e-12)
+        assert name == rec.images[image_id].name and cameras[camera_id][1:3] == (rec.cameras[camera_id].width,
+                                                                                 rec.cameras[camera_id].height)
+
+
+def _read_like_the_trainers(folder):
+    """cameras.bin and images.bin unpacked as those trainers do; every byte must be used."""
+    import struct
+
+    cameras, images = {}, {}
+    data = (folder / "cameras.bin").read_bytes()
+    (n,), at = struct.unpack_from("<Q", data), 8
+    for _ in range(n):
+        camera_id, model, width, height = struct.unpack_from("<iiQQ", data, at)
+        at += 24 + 8 * {0: 3, 1: 4, 2: 4, 3: 5, 4: 8, 5: 8}[model]  # the models the trainers read
+        cameras[camera_id] = (model, width, height)
+    assert at == len(data)
+    data = (folder / "images.bin").read_bytes()
+    (n,), at = struct.unpack_from("<Q", data), 8
+    for _ in range(n):
+        image_id, *pose, camera_id = struct.unpack_from("<idddddddi", data, at)
+        end = data.index(b"\x00", at + 64)
+        name = data[at + 64:end].decode()
+        (num_points,) = struct.unpack_from("<Q", data, end + 1)
+        at = end + 9 + 24 * num_points
+        images[image_id] = (np.array(pose[:4]), np.array(pose[4:]), camera_id, name)
+    assert at == len(data)
+    return cameras, images
+
 
 def _project(camera, image, xyz):
     """COLMAP pixel coordinates of world points in `image`."""
