@@ -27,6 +27,7 @@ from .executor import StageClock, WorkerPool, blas_threads, default_workers
 from .features.sift import SiftConfig
 from .io.files import read_json_object, write_json
 from .io.images import IMAGE_EXTENSIONS, image_metadata, list_images, visible_files
+from .io.masks import check_masks, find_masks, mask_path
 from .matching.matcher import MatcherConfig, match_descriptors, prepare_descriptors
 from .matching.overlay import drop_static, fixed_keypoints
 from .matching.pairs import check_spec, select_pairs
@@ -48,6 +49,9 @@ class FrontendConfig:
     matcher: MatcherConfig = MatcherConfig()
     verify: VerifyConfig = VerifyConfig()
     workers: int = bounded(0, 0, hash=False)  # processes/threads; 0 = all cores
+    # folder of masks (io/masks.py); out of the hash, so that runs without masks keep their records, and
+    # recorded by the features stage and reconstruct's hash when given
+    masks: str = field(default="", metadata={"hash": False})
 
 
 def _workers(config: FrontendConfig) -> int:
@@ -93,15 +97,20 @@ class FeatureSummary:
 
 
 def _extract_job(job):
-    """Worker: (path, name, sift config) -> (name, (keypoints, descriptors, keypoint colours)) or (name, error
-    message)."""
+    """Worker: (path, name, sift config, mask path or None) -> (name, (keypoints, descriptors, keypoint colours))
+    or (name, error message)."""
     from .features.sift import extract_sift
     from .io.images import colors_at, read_image
 
-    path, name, sift_config = job
+    path, name, sift_config, mask = job
     try:
         image = read_image(path)
         keypoints, descriptors = extract_sift(image, sift_config)
+        if mask is not None:
+            from .io.masks import keypoints_outside_mask
+
+            keep = keypoints_outside_mask(mask, path, keypoints, image.shape)
+            keypoints, descriptors = keypoints[keep], descriptors[keep]
         return name, (keypoints, descriptors, colors_at(image, keypoints[:, :2]))
     except InputError as exc:
         return name, str(exc)
@@ -138,17 +147,35 @@ def _stamps(folder: Path, names) -> dict[str, list[int]]:
     return out
 
 
-def _check_unchanged(folder: Path, ws: Workspace, extracted, now: dict[str, list[int]]) -> None:
-    """Refuse a workspace whose images were replaced or removed since their features were extracted: their
-    keypoints would stand for pixels that are no longer there, and the model for images that are gone."""
+def _check_unchanged(folder: Path, ws: Workspace, extracted, now: dict[str, list[int]], masked=False) -> None:
+    """Refuse a workspace whose images (or masks) were replaced or removed since their features were extracted:
+    their keypoints would stand for pixels that are no longer there, and the model for images that are gone."""
     before = read_json_object(ws.path / STAMPS) or {}
     for name in sorted(extracted):
         if name not in now:
             raise InputError(f"{folder / name}: in the workspace {ws.path} but no longer in the folder; rerun "
                              "with --overwrite to start over without it")
         if name in before and before[name] != now[name]:
-            raise InputError(f"{folder / name}: changed since its features were extracted (size or time); rerun "
+            what = "the image or its mask" if masked else "size or time"
+            raise InputError(f"{folder / name}: changed since its features were extracted ({what}); rerun "
                              "with --overwrite to start over")
+
+
+def _masks(config: FrontendConfig, names, stamps: dict) -> dict:
+    """name -> mask file of the images that have one in `config.masks` (io/masks.py), each mask's size and time
+    added to its image's stamp; a warning names the images without one."""
+    if not config.masks:
+        return {}
+    masks, missing = find_masks(config.masks, names)
+    for name, path in masks.items():
+        st = path.stat()
+        stamps[name] = stamps.get(name, []) + [st.st_size, st.st_mtime_ns]
+    if missing:
+        more = f" and {len(missing) - 1} more" if len(missing) > 1 else ""
+        log.warning("%s: no mask for %d of %d images (%s%s, looked for %s): their features are taken everywhere",
+                    config.masks, len(missing), len(names), missing[0], more,
+                    mask_path(config.masks, missing[0]))
+    return masks
 
 
 def _too_few(folder: Path, usable: int, failed: dict[str, str]):
@@ -178,10 +205,13 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
     failed = _unreadable(folder, skipped)
     stamps = _stamps(folder, [*names, *failed])
     record = {"images": str(folder.resolve()), "camera": to_dict(config.camera), "sift": to_dict(config.sift)}
+    masks = _masks(config, names, stamps)
+    if config.masks:
+        record["masks"] = str(Path(config.masks).resolve())
     # Everything that can refuse the run is checked before anything in the workspace is deleted or rewritten:
     # the stage's config, a database this workspace has no record of (Workspace.check_stage), the cameras.
     redo = bool(ws.check_stage("features", record, overwrite))
-    jobs = [(folder / n, n, config.sift) for n in names]
+    jobs = [(folder / n, n, config.sift, masks.get(n)) for n in names]
     # Without a database nothing is extracted yet: every image goes to the workers now, so that probing the
     # images and creating the database (which imports pycolmap) overlap SIFT instead of delaying it.
     results = pool.map(_extract_job, jobs) if redo or not ws.database_path.exists() else None
@@ -193,6 +223,7 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
             log.warning("skipping %s", exc)
             failed[name] = str(exc)
     names = [n for n in names if n in metas]
+    check_masks(masks, folder, metas)
     groups = group_cameras(names, metas, config.camera)
     if before_changes is not None:
         before_changes()
@@ -204,7 +235,7 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
     with dbmod.open_database(ws.database_path) as db:
         existing = {info.name: info for info in dbmod.read_images(db).values()}
         _check_unchanged(folder, ws, [n for n, info in existing.items() if dbmod.has_features(db, info.image_id)],
-                         stamps)
+                         stamps, masked=bool(masks))
         camera_ids: dict[int, int] = {}
         for name, info in existing.items():
             if name in group_of:
@@ -575,7 +606,10 @@ def reconstruct(config: ReconstructConfig, image_dir, out_dir, *, text: bool = F
     """
     out = Path(out_dir)
     mapper = config.mapper
-    full_hash = config_hash({"frontend": to_dict(config.frontend), "mapper": to_dict(mapper)})
+    full = {"frontend": to_dict(config.frontend), "mapper": to_dict(mapper)}
+    if config.frontend.masks:
+        full["masks"] = str(Path(config.frontend.masks).resolve())
+    full_hash = config_hash(full)
     report_path = out / "report.json"
     finished = None if overwrite else _finished_report(out, full_hash, Path(image_dir))
     if finished is not None:

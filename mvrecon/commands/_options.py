@@ -91,6 +91,9 @@ def add_feature_options(parser: argparse.ArgumentParser) -> None:
                    help="no orientation (cameras that never roll)")
     g.add_argument("--no-root-sift", dest="root_sift", action="store_false", default=None,
                    help="plain L2-normalised SIFT instead of RootSIFT")
+    g.add_argument("--masks", default=None, metavar="DIR",
+                   help="no features where a mask is black, in COLMAP's layout: the mask of IMAGES/sub/a.jpg is "
+                        "DIR/sub/a.jpg.png, in the image's stored frame or upright (people, sky, a lens hood)")
 
 
 def add_matching_options(parser: argparse.ArgumentParser) -> None:
@@ -138,6 +141,7 @@ _FLAG_FIELDS = {  # argparse dest -> (config section, field)
     "ratio": ("matcher", "max_ratio"),
     "max_error": ("verify", "max_error"),
     "min_inliers": ("verify", "min_num_inliers"),
+    "masks": (None, "masks"),
     "workers": (None, "workers"),
 }
 _FLAG_NAMES = {"root_sift": "--no-root-sift"}  # argparse dest -> flag, where not "--" + dest with dashes

@@ -42,6 +42,9 @@ def add_arguments(parser) -> None:
                         help="COLMAP camera model for both engines (default: SIMPLE_RADIAL)")
     parser.add_argument("--camera-params", help="known intrinsics in the model's order, e.g. 1520,320,240,0")
     parser.add_argument("--seed", type=non_negative_int, help="random seed of both engines (default: 0)")
+    parser.add_argument("--masks", metavar="DIR",
+                        help="image masks for both engines, in COLMAP's layout (the mask of IMAGES/a.jpg is "
+                             "DIR/a.jpg.png; no features where it is black)")
     parser.add_argument("--mvrecon-args", metavar="FLAGS",
                         help='extra flags for `mvrecon reconstruct` only, as one quoted string, e.g. '
                              '--mvrecon-args "--upright --max-features 4000"')
@@ -51,7 +54,7 @@ def add_arguments(parser) -> None:
                         help="run again the engines whose run in OUTPUT failed (otherwise a failure is kept)")
 
 
-RUN_ONLY = ("colmap_global", "no_same_matches", "camera_mode", "camera_model", "camera_params", "seed",
+RUN_ONLY = ("colmap_global", "no_same_matches", "camera_mode", "camera_model", "camera_params", "seed", "masks",
             "mvrecon_args", "timeout", "retry_failed")  # the dests only a run on IMAGES uses
 
 
@@ -85,7 +88,7 @@ def check_mvrecon_args(options) -> None:
     if given.output != plain.output:
         raise InputError("--mvrecon-args: -o/--output is compare's to choose (mvrecon's run goes to "
                          "OUTPUT/runs/mvrecon); leave it out")
-    own = [flag_name(dest) for dest in ("seed", "camera_mode", "camera_model", "camera_params")
+    own = [flag_name(dest) for dest in ("seed", "camera_mode", "camera_model", "camera_params", "masks")
            if getattr(given, dest) != getattr(plain, dest)]
     if own:
         raise InputError(f"--mvrecon-args: {', '.join(own)} would make mvrecon's run differ from COLMAP's; give "
@@ -130,7 +133,8 @@ def run(args) -> int:
         extra = tuple(shlex.split(args.mvrecon_args or ""))
     except ValueError as exc:  # an unclosed quote
         raise InputError(f"--mvrecon-args: {exc}") from None
-    options = RunOptions(**chosen, camera_params=params, mvrecon_args=extra)
+    options = RunOptions(**chosen, camera_params=params, mvrecon_args=extra,
+                         masks=str(Path(args.masks).resolve()) if args.masks else "")
     config = CompareConfig(options=options, colmap_global=args.colmap_global,
                            same_matches=not args.no_same_matches, timeout_s=args.timeout)
     if args.images:
@@ -138,6 +142,17 @@ def run(args) -> int:
 
         check_mvrecon_args(options)
         listing = require_images(args.images)  # listed once: its warnings are printed once
+        if options.masks:  # a mask that does not fit is refused before either engine runs
+            from ..io.images import image_metadata
+            from ..io.masks import check_masks, find_masks
+
+            masks, missing = find_masks(options.masks, listing[0])
+            check_masks(masks, Path(args.images), {n: image_metadata(Path(args.images) / n) for n in masks})
+            if missing:  # pycolmap 4.2 leaves such an image out; mvrecon takes its features everywhere
+                logging.getLogger("mvrecon").warning(
+                    "%s: no mask for %d image(s) (%s%s): COLMAP leaves them out of its runs, mvrecon takes their "
+                    "features everywhere", options.masks, len(missing), missing[0],
+                    f" and {len(missing) - 1} more" if len(missing) > 1 else "")
         warning = colmap_fisheye_warning(options, args.images, listing[0])
         if warning:
             logging.getLogger("mvrecon").warning("%s", warning)

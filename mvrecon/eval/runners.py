@@ -48,6 +48,7 @@ class RunOptions:
     camera_params: tuple[float, ...] = ()  # known intrinsics in camera_model's layout (trusted); empty: estimate
     seed: int = 0  # random seed of both engines (COLMAP's RANSAC and mapper, mvrecon's --seed)
     mvrecon_args: tuple[str, ...] = ()  # extra flags for `mvrecon reconstruct` only (e.g. matcher settings)
+    masks: str = ""  # folder of image masks for both engines (io/masks.py, COLMAP's mask_path); "" = none
 
     def __post_init__(self):
         if self.camera_mode not in CAMERA_MODES:
@@ -56,6 +57,8 @@ class RunOptions:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["camera_params"], d["mvrecon_args"] = list(self.camera_params), list(self.mvrecon_args)
+        if not self.masks:  # runs made before masks existed keep their identity
+            del d["masks"]
         return d
 
     def identity(self, engine: str) -> dict:
@@ -119,6 +122,8 @@ def reconstruct_args(image_dir, out_dir, options: RunOptions) -> list[str]:
             "--camera-mode", options.camera_mode, "--camera-model", options.camera_model]
     if options.camera_params:  # known intrinsics stay fixed, in both engines
         args += ["--camera-params", ",".join(f"{p:.17g}" for p in options.camera_params), "--fix-intrinsics"]
+    if options.masks:
+        args += ["--masks", options.masks]
     return args + list(options.mvrecon_args)
 
 
@@ -336,6 +341,8 @@ def _colmap_main(image_dir: Path, out_dir: Path, options: dict, global_mapper: b
     reader.camera_model = options["camera_model"]
     if options["camera_params"]:
         reader.camera_params = ",".join(f"{p:.17g}" for p in options["camera_params"])
+    if options.get("masks"):
+        reader.mask_path = options["masks"]
     mode = {"auto": pycolmap.CameraMode.AUTO, "single": pycolmap.CameraMode.SINGLE,
             "per-folder": pycolmap.CameraMode.PER_FOLDER, "per-image": pycolmap.CameraMode.PER_IMAGE}
     extraction = pycolmap.FeatureExtractionOptions()
