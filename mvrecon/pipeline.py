@@ -544,7 +544,18 @@ def _no_verified_pairs(ws: Workspace, corr, *, matched_by_mvrecon: bool) -> str:
                        f"{model} without one): give it a focal prior when extracting (COLMAP's camera_params) and "
                        f"match again, or run `mvrecon reconstruct IMAGES -o OUT --camera-model {model}`, whose "
                        "verifier needs none")
+    if matched_by_mvrecon and _mostly_fixed(corr):
+        return head + (": most features stay on the same pixels of every image, whose matches are left out "
+                       "(matching/overlay.py): the camera did not move between the images (nothing to reconstruct)")
     return head + ": the images do not overlap or have too little texture (nothing to reconstruct)"
+
+
+def _mostly_fixed(corr) -> bool:
+    """Whether most keypoints sit where half the images of their size have one: a camera that never moved."""
+    sizes = {i: (corr.cameras[info.camera_id].width, corr.cameras[info.camera_id].height)
+             for i, info in corr.images.items()}
+    fixed = fixed_keypoints(corr.keypoints, sizes)
+    return sum(int(m.sum()) for m in fixed.values()) > 0.5 * sum(len(m) for m in fixed.values())
 
 
 def _recorded_images(stages: dict):

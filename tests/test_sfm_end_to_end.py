@@ -523,3 +523,19 @@ def test_text_models_warn_about_image_names_with_spaces(demo, tmp_path, caplog):
     text = pycolmap.Reconstruction()
     text.read_text(str(out / "sparse" / "0"))
     assert {im.name for im in text.images.values()} == {"photo"}  # the premise: the text format loses them
+
+
+def test_copies_of_one_view_say_that_the_camera_did_not_move(demo, tmp_path, capsys):
+    """Four copies of one view (a camera on a tripod, a time-lapse of a still scene): every match stays on its
+    pixel and is left out as printed on the images, so no pair verifies. The error line used to say that the
+    images do not overlap or lack texture."""
+    import shutil
+
+    images = tmp_path / "still"
+    images.mkdir()
+    for k in range(4):
+        shutil.copy(demo / "scene" / "images" / "0003.png", images / f"{k}.png")
+    assert main(["-q", "reconstruct", str(images), "-o", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no verified image pairs among 4 images" in err
+    assert "the camera did not move between the images" in err
