@@ -296,8 +296,8 @@ class MatchSummary:
                 f"{self.num_pairs - self.num_matched} already done) in {self.seconds:.1f} s; "
                 f"{self.num_verified} verified pairs ({kinds or 'none'}); "
                 f"inliers per verified pair: {_stats(list(self.inliers.values()))}."
-                + (f" {self.fixed_dropped} matches that stay on one pixel of three or more images were left out "
-                   "(a logo or timestamp printed on the images, or a camera that did not move)."
+                + (f" {self.fixed_dropped} matches that stay on a pixel where half the images have a feature were "
+                   "left out (a logo or timestamp printed on the images, or a camera that did not move)."
                    if self.fixed_dropped else ""))
 
 
