@@ -353,3 +353,23 @@ def test_the_command_line_and_pipeline_load_without_pycolmap():
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "[]"
+
+
+def test_a_config_file_the_command_reads_nothing_of_is_named_in_a_warning(tmp_path, caplog):
+    """A file holding only [mapper] settings, given to `features` or `match`, was taken without a word, as if
+    its settings had been applied; a file that holds a table the command reads is not mentioned."""
+    images = textured_views(tmp_path / "images", count=3)
+    mapper_only, both = tmp_path / "mapper.toml", tmp_path / "both.toml"
+    mapper_only.write_text("[mapper]\ninit_min_inliers = 50\n")
+    both.write_text("[sift]\nmax_num_features = 800\n[mapper]\nseed = 1\n")
+    ws = tmp_path / "ws"
+    with caplog.at_level(logging.WARNING):
+        assert main(["-q", "features", str(images), "-w", str(ws), "--config", str(mapper_only)]) == 0
+        assert main(["-q", "match", "-w", str(ws), "--config", str(mapper_only)]) == 0
+    warned = [r.getMessage() for r in caplog.records if "reads none of this file's [mapper]" in r.getMessage()]
+    assert [w.split("`")[1] for w in warned] == ["mvrecon features", "mvrecon match"]
+    assert all(w.startswith(f"{mapper_only}: ") for w in warned)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        assert main(["-q", "features", str(images), "-w", str(tmp_path / "ws2"), "--config", str(both)]) == 0
+    assert "reads none" not in caplog.text

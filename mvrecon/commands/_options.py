@@ -172,6 +172,23 @@ def config_file(args: argparse.Namespace):
     return with_overrides(FrontendConfig(), tables, source=args.config), mapper
 
 
+def warn_if_config_unread(args: argparse.Namespace, command: str, reads: tuple[str, ...]) -> None:
+    """A warning when the --config file holds none of the tables or keys `command` reads (`reads`): a file of
+    [mapper] settings given to `features` was taken without a word, as if its settings had been applied."""
+    import logging
+
+    if not getattr(args, "config", None):
+        return
+    def shown(key):  # a table as the file writes it, a plain key as itself
+        return f"[{key}]" if key in ("camera", "sift", "matcher", "verify", "mapper") else key
+
+    keys = set(load_toml(args.config))
+    if keys and not keys & set(reads):
+        logging.getLogger("mvrecon").warning(
+            "%s: `mvrecon %s` reads none of this file's %s (it reads %s); they take effect in the commands that "
+            "read them", args.config, command, ", ".join(map(shown, sorted(keys))), ", ".join(map(shown, reads)))
+
+
 def frontend_config_from_args(args: argparse.Namespace, from_file=None):
     """FrontendConfig = defaults < --config TOML < flags given on the command line. `from_file`: what
     `config_file(args)` returned, when the caller has read the file already."""

@@ -26,8 +26,9 @@ def run(args) -> int:
     import logging
 
     from ..pipeline import extract_features
-    from ._options import frontend_config_from_args
+    from ._options import frontend_config_from_args, warn_if_config_unread
 
+    warn_if_config_unread(args, "features", ("camera", "sift", "workers"))
     summary = extract_features(frontend_config_from_args(args), args.images, args.workspace,
                                overwrite=args.overwrite)
     logging.getLogger("mvrecon").info("%s", summary.text())  # as every command's summary: -q hides it

@@ -24,8 +24,9 @@ def run(args) -> int:
     import logging
 
     from ..pipeline import match
-    from ._options import frontend_config_from_args
+    from ._options import frontend_config_from_args, warn_if_config_unread
 
+    warn_if_config_unread(args, "match", ("pairs", "matcher", "verify", "workers"))
     summary = match(frontend_config_from_args(args), args.workspace, overwrite=args.overwrite)
     logging.getLogger("mvrecon").info("%s", summary.text())  # as every command's summary: -q hides it
     return 0
