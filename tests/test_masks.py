@@ -99,3 +99,16 @@ def test_compare_gives_the_masks_to_colmap_too(photos, tmp_path):
     # runs made without masks keep their identity (no "masks" key), so they are not redone
     assert "masks" not in RunOptions().identity("colmap")
     assert json.loads(json.dumps(RunOptions(masks="m").identity("colmap")))["masks"] == "m"
+
+
+def test_study_gives_the_masks_to_every_cell_but_not_to_smaller_copies(photos, tmp_path, capsys):
+    images, masks = photos
+    out = tmp_path / "study"
+    assert main(["-q", "study", str(images), "-o", str(out), "--noise", "0,5", "--engines", "mvrecon",
+                 "--masks", str(masks)]) == 0
+    for cell in ("clean", "noise-5"):
+        kp = _keypoints(out / "runs" / "mvrecon" / cell)
+        assert len(kp) == 3 and all(len(k) > 50 and k[:, 0].min() >= CUT for k in kp.values())
+    assert main(["-q", "study", str(images), "-o", str(tmp_path / "s2"), "--downscale", "1,2",
+                 "--masks", str(masks)]) == 2
+    assert "--masks with --downscale 1,2: the masks fit the clean images' size" in capsys.readouterr().err

@@ -112,7 +112,7 @@ def run(args) -> int:
     from ..errors import InputError
     from ..eval.compare import CompareConfig, compare_images, compare_models
     from ..eval.report import format_value, write_report
-    from ..eval.runners import RunOptions, colmap_fisheye_warning, forget_if_failed
+    from ..eval.runners import RunOptions, check_run_masks, colmap_fisheye_warning, forget_if_failed
     from ._options import flag_name
 
     if bool(args.images) == bool(args.models):
@@ -142,20 +142,10 @@ def run(args) -> int:
 
         check_mvrecon_args(options)
         listing = require_images(args.images)  # listed once: its warnings are printed once
-        if options.masks:  # a mask that does not fit is refused before either engine runs
-            from ..io.images import image_metadata
-            from ..io.masks import check_masks, find_masks
-
-            masks, missing = find_masks(options.masks, listing[0])
-            check_masks(masks, Path(args.images), {n: image_metadata(Path(args.images) / n) for n in masks})
-            if missing:  # pycolmap 4.2 leaves such an image out; mvrecon takes its features everywhere
-                logging.getLogger("mvrecon").warning(
-                    "%s: no mask for %d image(s) (%s%s): COLMAP leaves them out of its runs, mvrecon takes their "
-                    "features everywhere", options.masks, len(missing), missing[0],
-                    f" and {len(missing) - 1} more" if len(missing) > 1 else "")
-        warning = colmap_fisheye_warning(options, args.images, listing[0])
-        if warning:
-            logging.getLogger("mvrecon").warning("%s", warning)
+        for warning in (check_run_masks(options, args.images, listing[0]),
+                        colmap_fisheye_warning(options, args.images, listing[0])):
+            if warning:
+                logging.getLogger("mvrecon").warning("%s", warning)
     if args.retry_failed:
         for run_dir in sorted((Path(args.output) / "runs").glob("*")):
             if forget_if_failed(run_dir):

@@ -48,6 +48,9 @@ def add_arguments(parser) -> None:
                         help="known intrinsics of the clean images in the model's order, trusted and held fixed "
                              "in both engines, e.g. 285,285,320,240,0,0,0,0 for OPENCV_FISHEYE (which COLMAP "
                              "needs to verify any pair of it; default: estimated)")
+    parser.add_argument("--masks", metavar="DIR",
+                        help="image masks for both engines, in COLMAP's layout (the mask of IMAGES/a.jpg is "
+                             "DIR/a.jpg.png; no features where it is black); not with --downscale")
     parser.add_argument("--timeout", type=positive_float, default=None, metavar="S",
                         help="seconds per engine run (default: no limit); a run past it counts as failed")
     parser.add_argument("--retry-failed", action="store_true",
@@ -61,7 +64,7 @@ def run(args) -> int:
     from pathlib import Path
 
     from mvrecon.cameras import CameraConfig, parse_camera_params
-    from mvrecon.eval.runners import COLMAP_ENGINES, RunOptions, colmap_fisheye_warning
+    from mvrecon.eval.runners import COLMAP_ENGINES, RunOptions, check_run_masks, colmap_fisheye_warning
     from mvrecon.study.degrade import Degradation
     from mvrecon.study.grid import AXES, Grid, parse_levels
     from mvrecon.study.study import StudyConfig, breaking_points, run_study
@@ -80,13 +83,20 @@ def run(args) -> int:
     if params and "downscale" in grid.levels and grid.degraded_levels("downscale"):
         raise InputError(f"--camera-params with --downscale {args.downscale}: the params hold for the clean "
                          "images' size, not for the smaller copies; study the downscale without --camera-params")
+    if args.masks and "downscale" in grid.levels and grid.degraded_levels("downscale"):
+        raise InputError(f"--masks with --downscale {args.downscale}: the masks fit the clean images' size, not "
+                         "the smaller copies; study the downscale without --masks")
     config = StudyConfig(images=Path(args.images), gt=Path(args.gt) if args.gt else None,
                          engines=tuple(e.strip() for e in args.engines.split(",") if e.strip()), seed=args.seed,
                          base=Degradation(motion_angle=args.motion_angle),
                          run_options=RunOptions(camera_mode=args.camera_mode, camera_model=args.camera_model,
-                                                camera_params=params, seed=args.seed),
+                                                camera_params=params, seed=args.seed,
+                                                masks=str(Path(args.masks).resolve()) if args.masks else ""),
                          jobs=args.jobs, timeout_s=args.timeout)
     log = logging.getLogger("mvrecon")
+    warning = check_run_masks(config.run_options, args.images, listing[0])  # a mask that does not fit: refused
+    if warning and set(config.engines) & set(COLMAP_ENGINES):
+        log.warning("%s", warning)
     if set(config.engines) & set(COLMAP_ENGINES):
         warning = colmap_fisheye_warning(config.run_options, args.images, listing[0])
         if warning:

@@ -91,6 +91,24 @@ class RunResult:
         return [poses(m) for m in self.models]
 
 
+def check_run_masks(options: RunOptions, image_dir, names) -> str | None:
+    """Refuse, before any run, a mask that does not fit its image (io/masks.py); the line saying which images have
+    no mask, or None: pycolmap 4.2 leaves such an image out of its runs, where mvrecon takes its features
+    everywhere."""
+    if not options.masks:
+        return None
+    from ..io.images import image_metadata
+    from ..io.masks import check_masks, find_masks
+
+    masks, missing = find_masks(options.masks, names)
+    check_masks(masks, Path(image_dir), {n: image_metadata(Path(image_dir) / n) for n in masks})
+    if not missing:
+        return None
+    more = f" and {len(missing) - 1} more" if len(missing) > 1 else ""
+    return (f"{options.masks}: no mask for {len(missing)} image(s) ({missing[0]}{more}): COLMAP leaves them out of "
+            "its runs, mvrecon takes their features everywhere")
+
+
 def colmap_fisheye_warning(options: RunOptions, image_dir, names) -> str | None:
     """The line saying that COLMAP's runs will register no image, said before any run: COLMAP marks every pair
     of a fisheye camera without a focal-length prior DEGENERATE, and gets a prior only from --camera-params or an
