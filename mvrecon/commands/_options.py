@@ -179,6 +179,7 @@ def warn_if_config_unread(args: argparse.Namespace, command: str, reads: tuple[s
 
     if not getattr(args, "config", None):
         return
+
     def shown(key):  # a table as the file writes it, a plain key as itself
         return f"[{key}]" if key in ("camera", "sift", "matcher", "verify", "mapper") else key
 

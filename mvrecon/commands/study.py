@@ -94,13 +94,11 @@ def run(args) -> int:
                                                 masks=str(Path(args.masks).resolve()) if args.masks else ""),
                          jobs=args.jobs, timeout_s=args.timeout)
     log = logging.getLogger("mvrecon")
-    warning = check_run_masks(config.run_options, args.images, listing[0])  # a mask that does not fit: refused
-    if warning and set(config.engines) & set(COLMAP_ENGINES):
-        log.warning("%s", warning)
+    masks_warning = check_run_masks(config.run_options, args.images, listing[0])  # raises on a mask that misfits
     if set(config.engines) & set(COLMAP_ENGINES):
-        warning = colmap_fisheye_warning(config.run_options, args.images, listing[0])
-        if warning:
-            log.warning("%s", warning)
+        for warning in (masks_warning, colmap_fisheye_warning(config.run_options, args.images, listing[0])):
+            if warning:
+                log.warning("%s", warning)
     command = "mvrecon " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     rows = run_study(config, grid, args.output, command=command, retry_failed=args.retry_failed, listing=listing)
     for (engine, axis), verdict in breaking_points(rows).items():
