@@ -350,6 +350,11 @@ def test_winner_rules():
     assert rows["points"]["winners"] == ["b"] and rows["wall_s"]["winners"] == ["a"]
     assert rows["registered"]["winners"] == []  # a tie among competitors; the diagnostic run does not compete
     assert rows["keypoints_per_image"]["winners"] == []
+    # images in a model without points are no reconstruction: COLMAP's 3 of a panorama did not win over none
+    engines = {"mvrecon": engine("engine", registered=0, registered_pct=0.0, points=None),
+               "colmap": engine("engine", registered=3, registered_pct=30.0, points=0)}
+    rows = {r["metric"]: r for r in summary_rows(engines)}
+    assert rows["registered"]["winners"] == [] and rows["registered_pct"]["winners"] == []
 
 
 def test_cli_errors(tmp_path, capsys):

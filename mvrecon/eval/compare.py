@@ -358,13 +358,17 @@ def _reference_geometry(gt, config: CompareConfig) -> Geometry:
 def summary_rows(engines: dict) -> list[dict]:
     """The summary table: one row per metric, the value of each engine, and the winner(s) among the engines.
 
-    Diagnostic runs and the reference do not compete; when every competitor ties there is no winner.
+    Diagnostic runs and the reference do not compete; when every competitor ties there is no winner. Images
+    registered in a model without a single point do not compete either: COLMAP's pipeline returns such a model
+    for a camera turning in place (3 images 10 units apart, the catalog's panorama_small), and the star said it
+    had registered the most.
     """
     rows = []
     for key, label, unit, better in ROWS:
         values = {name: e["summary"].get(key) for name, e in engines.items()}
         winners = []
-        competing = {n: v for n, v in values.items() if engines[n]["role"] == "engine" and _finite(v)}
+        competing = {n: v for n, v in values.items() if engines[n]["role"] == "engine" and _finite(v)
+                     and not (key.startswith("registered") and not engines[n]["summary"].get("points"))}
         if better and len(competing) >= 2:
             best = (max if better == "higher" else min)(competing.values())
             winners = [n for n, v in competing.items() if math.isclose(v, best, rel_tol=1e-9, abs_tol=1e-12)]
