@@ -192,8 +192,7 @@ def read_correspondences(path, min_inliers: int = 0, *, mapped: bool = True) -> 
             _check_camera_models(path, out.cameras)
         out.images = read_images(db)
         for image_id in out.images:
-            kp = np.asarray(db.read_keypoints(image_id), dtype=float)
-            out.keypoints[image_id] = kp[:, :2].copy() if kp.size else np.zeros((0, 2))
+            out.keypoints[image_id] = read_keypoints(db, image_id)[:, :2].copy()
         pair_ids, geometries = db.read_two_view_geometries()
         for pair_id, g in zip(pair_ids, geometries):
             inliers = np.asarray(g.inlier_matches, dtype=np.int64).reshape(-1, 2)

@@ -178,6 +178,12 @@ def _masks(config: FrontendConfig, names, stamps: dict) -> dict:
     return masks
 
 
+def _masks_folder(config: FrontendConfig) -> str:
+    """The masks folder as recorded (the features stage's record, reconstruct's hash): `masks` is out of the
+    config's hash, so that runs without masks keep their records."""
+    return str(Path(config.masks).resolve())
+
+
 def _too_few(folder: Path, usable: int, failed: dict[str, str]):
     why = f" (skipped {'; '.join(failed.values())})" if failed else ""
     raise InputError(f"{folder}: only {usable} usable image(s), need at least 2{why}")
@@ -207,7 +213,7 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
     record = {"images": str(folder.resolve()), "camera": to_dict(config.camera), "sift": to_dict(config.sift)}
     masks = _masks(config, names, stamps)
     if config.masks:
-        record["masks"] = str(Path(config.masks).resolve())
+        record["masks"] = _masks_folder(config)
     # Everything that can refuse the run is checked before anything in the workspace is deleted or rewritten:
     # the stage's config, a database this workspace has no record of (Workspace.check_stage), the cameras.
     redo = bool(ws.check_stage("features", record, overwrite))
@@ -342,12 +348,13 @@ def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
         for p in todo:
             for i in p:
                 remaining[i] = remaining.get(i, 0) + 1
-        # features printed on the images (a logo, a timestamp), found among all the images' keypoints (not only
-        # those of the pairs left), so that a resumed run decides as an uninterrupted one
+        # Every image's keypoint positions are read once, as float32 (COLMAP stores them so: exact, and 64 KB for
+        # 8192 keypoints): features printed on the images (a logo, a timestamp) are found among all of them, not
+        # only those of the pairs left, so that a resumed run decides as an uninterrupted one.
         every = sorted(images) if todo else []
-        fixed = fixed_keypoints({i: dbmod.read_keypoints(db, i) for i in every},
-                                {i: (cameras[images[i].camera_id].width, cameras[images[i].camera_id].height)
-                                 for i in every})
+        positions = {i: dbmod.read_keypoints(db, i)[:, :2].astype(np.float32) for i in every}
+        fixed = fixed_keypoints(positions, {i: (cameras[images[i].camera_id].width,
+                                                cameras[images[i].camera_id].height) for i in every})
         dropped = 0
         cache = OrderedDict()  # image -> (keypoints, prepared descriptors, camera, fixed), least recently used first
 
@@ -355,9 +362,9 @@ def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
             if image_id in cache:
                 cache.move_to_end(image_id)
             else:
-                kp, desc = dbmod.read_features(db, image_id)
-                cache[image_id] = (kp, prepare_descriptors(desc), cameras[images[image_id].camera_id],
-                                   fixed[image_id])
+                cache[image_id] = (positions[image_id].astype(np.float64),
+                                   prepare_descriptors(dbmod.read_descriptors(db, image_id)),
+                                   cameras[images[image_id].camera_id], fixed[image_id])
                 while len(cache) > max_cached_images:  # bounded memory: ~2 MB per 8192-feature image
                     cache.popitem(last=False)
             return cache[image_id]
@@ -619,7 +626,7 @@ def reconstruct(config: ReconstructConfig, image_dir, out_dir, *, text: bool = F
     mapper = config.mapper
     full = {"frontend": to_dict(config.frontend), "mapper": to_dict(mapper)}
     if config.frontend.masks:
-        full["masks"] = str(Path(config.frontend.masks).resolve())
+        full["masks"] = _masks_folder(config.frontend)
     full_hash = config_hash(full)
     report_path = out / "report.json"
     finished = None if overwrite else _finished_report(out, full_hash, Path(image_dir))

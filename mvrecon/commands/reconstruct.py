@@ -98,8 +98,9 @@ def no_model(out, status: dict) -> int:
     from collections import Counter
 
     reasons = [s["reason"] for s in status.values()]
-    kind, count = Counter(map(_reason_kind, reasons)).most_common(1)[0]
-    reason, exact = Counter(r for r in reasons if _reason_kind(r) == kind).most_common(1)[0]
+    kinds = [_reason_kind(r) for r in reasons]
+    kind, count = Counter(kinds).most_common(1)[0]
+    reason, exact = Counter(r for r, k in zip(reasons, kinds) if k == kind).most_common(1)[0]
     logging.getLogger("mvrecon").error("%s: no model: none of the %d images could be registered (%d of them: %s%s); "
                                        "wrote only report.json, with the reason for each image", out, len(status),
                                        count, "" if exact == count else "for example ", reason)

@@ -109,12 +109,13 @@ def warn_text_names(recs, sparse_dir) -> None:
     """Warn when an image name of the text models sparse_dir/N holds white space: the text format ends a name at
     its first space, so COLMAP's reader (pycolmap read 'photo 2.png' back as 'photo') and nerfstudio's lose
     those names; the binary files next to them keep them whole."""
-    spaced = sorted({im.name for rec in recs for im in rec.images.values() if any(c.isspace() for c in im.name)})
-    if spaced:
-        more = f" and {len(spaced) - 1} more" if len(spaced) > 1 else ""
-        log.warning("%s: image names with spaces (%r%s) cannot be read back from images.txt, which ends a name "
-                    "at its first space; read the binary model in the same folder, or rename the images",
-                    Path(sparse_dir) / "0" / "images.txt", spaced[0], more)
+    for k, rec in enumerate(recs):
+        spaced = sorted(im.name for im in rec.images.values() if any(c.isspace() for c in im.name))
+        if spaced:
+            more = f" and {len(spaced) - 1} more" if len(spaced) > 1 else ""
+            log.warning("%s: image names with spaces (%r%s) cannot be read back from images.txt, which ends a "
+                        "name at its first space; read the binary model in the same folder, or rename the images",
+                        Path(sparse_dir) / str(k) / "images.txt", spaced[0], more)
 
 
 def write_points_ply(rec: pycolmap.Reconstruction, path) -> int:

@@ -14,6 +14,7 @@ import numpy as np
 from PIL import Image
 
 from ..errors import InputError
+from .images import TRANSPOSED, _orientation, apply_orientation, read_image
 
 
 def mask_path(masks_dir, name: str) -> Path:
@@ -46,7 +47,7 @@ def check_mask(path: Path, image: Path, upright_size: tuple[int, int], orientati
             size = im.size
     except Exception as exc:  # Pillow raises many types for a broken file; its message is what the user needs
         raise InputError(f"{path}: cannot read the mask ({type(exc).__name__}: {exc})") from None
-    stored = upright_size[::-1] if orientation in (5, 6, 7, 8) else upright_size
+    stored = upright_size[::-1] if orientation in TRANSPOSED else upright_size
     if size not in (tuple(upright_size), tuple(stored)):
         raise InputError(f"{path}: the mask is {size[0]}x{size[1]} but {image} is {upright_size[0]}x"
                          f"{upright_size[1]}; a mask must have its image's size")
@@ -54,13 +55,11 @@ def check_mask(path: Path, image: Path, upright_size: tuple[int, int], orientati
 
 def keypoints_outside_mask(path: Path, image_path: Path, keypoints: np.ndarray, upright_shape) -> np.ndarray:
     """Bool per keypoint (x, y in COLMAP pixels, the upright frame): True where the mask keeps it."""
-    from .images import _orientation, apply_orientation, read_image
-
     mask = read_image(path, upright=False)
     if mask.ndim == 3:
         mask = mask.max(axis=2)
     orientation = _orientation(image_path)
-    drawn_upright = orientation in (5, 6, 7, 8) and mask.shape[0] != mask.shape[1] \
+    drawn_upright = orientation in TRANSPOSED and mask.shape[0] != mask.shape[1] \
         and mask.shape[:2] == tuple(upright_shape[:2])
     if not drawn_upright:
         mask = apply_orientation(mask, orientation)
