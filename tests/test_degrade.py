@@ -257,7 +257,7 @@ def test_bad_input_is_one_line_and_exit_code_2(tmp_path, capsys, caplog):
     src = tmp_path / "src"
     src.mkdir()
     assert main(["degrade", "-q", str(src), "-o", str(tmp_path / "o")]) == 2
-    assert "no readable JPEG, PNG or TIFF images found" in capsys.readouterr().err
+    assert "no readable JPEG, PNG, TIFF, BMP or PNM images found" in capsys.readouterr().err
     write_png(src / "x.png", texture())
     assert main(["degrade", "-q", str(src), "-o", str(tmp_path / "o"), "--jpeg", "150"]) == 2
     assert "JPEG quality must be 1..100" in capsys.readouterr().err
@@ -276,7 +276,7 @@ def test_bad_input_is_one_line_and_exit_code_2(tmp_path, capsys, caplog):
     assert sorted(p.name for p in (tmp_path / "o").iterdir() if p.name != RECORD) == ["x.png"]
     (src / "x.png").unlink()
     assert main(["degrade", "-q", str(src), "-o", str(tmp_path / "o2"), "--noise", "3"]) == 2
-    assert "no readable JPEG, PNG or TIFF images found (2 file(s) skipped)" in capsys.readouterr().err
+    assert "no readable JPEG, PNG, TIFF, BMP or PNM images found (2 file(s) skipped)" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("options, message", [

@@ -120,10 +120,31 @@ def test_listing_is_recursive_and_reports_non_images_and_corrupt_files(tmp_path,
     assert list_images(tmp_path)[0] == ["b.jpg", "scene/images/c.png", "sub/deeper/a.PNG"]
 
 
+def test_bmp_and_pnm_are_read_and_cut_off_ones_skipped(tmp_path, caplog):
+    """BMP and PGM/PPM, which COLMAP reads too: whole files are listed and decode as the PNG does; files cut off
+    before their last row are skipped by name (OpenCV decodes a short BMP without an error)."""
+    import cv2
+
+    rgb = pattern()
+    cv2.imwrite(str(tmp_path / "a.bmp"), rgb[:, :, ::-1])
+    cv2.imwrite(str(tmp_path / "b.ppm"), rgb[:, :, ::-1])
+    grey16 = pattern()[:, :, 2].astype(np.uint16) * 257
+    cv2.imwrite(str(tmp_path / "c.pgm"), grey16)
+    for name in ("a.bmp", "c.pgm"):
+        data = (tmp_path / name).read_bytes()
+        (tmp_path / f"cut_{name}").write_bytes(data[:len(data) * 2 // 3])
+    with caplog.at_level(logging.WARNING):
+        names, skipped = list_images(tmp_path)
+    assert names == ["a.bmp", "b.ppm", "c.pgm"]
+    assert set(skipped) == {"cut_a.bmp", "cut_c.pgm"} and all("truncated" in r for r in skipped.values())
+    assert np.array_equal(read_image(tmp_path / "a.bmp"), rgb) and np.array_equal(read_image(tmp_path / "b.ppm"), rgb)
+    assert read_image(tmp_path / "c.pgm").dtype == np.uint16 and np.array_equal(read_image(tmp_path / "c.pgm"), grey16)
+
+
 def test_bad_folders_raise_input_errors(tmp_path):
     with pytest.raises(InputError, match="no such folder"):
         list_images(tmp_path / "missing")
-    with pytest.raises(InputError, match="no readable JPEG, PNG or TIFF"):
+    with pytest.raises(InputError, match="no readable JPEG, PNG, TIFF, BMP or PNM"):
         list_images(tmp_path)
     (tmp_path / "x.png").write_bytes(b"\x89PNG\r\n\x1a\n garbage")
     with pytest.raises(InputError, match="cannot decode image"):

@@ -162,7 +162,7 @@ def test_cli_bad_input_exits_2_with_one_line(tmp_path, capsys):
     assert code == 2 and out.err.strip() == f"mvrecon: error: {tmp_path / 'nope'}: no such folder"
     (tmp_path / "empty").mkdir()
     code, out = run_cli(["features", str(tmp_path / "empty"), "-w", str(tmp_path / "ws")], capsys)
-    assert code == 2 and "no readable JPEG, PNG or TIFF images" in out.err and len(out.err.splitlines()) == 1
+    assert code == 2 and "no readable JPEG, PNG, TIFF, BMP or PNM images" in out.err and len(out.err.splitlines()) == 1
     code, out = run_cli(["match", "-w", str(tmp_path / "ws"), "--pairs", "sequential:0"], capsys)
     assert code == 2 and "positive integer" in out.err
     textured_views(tmp_path / "images", count=2)

@@ -539,3 +539,34 @@ def test_copies_of_one_view_say_that_the_camera_did_not_move(demo, tmp_path, cap
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "no verified image pairs among 4 images" in err
     assert "the camera did not move between the images" in err
+
+
+def test_bmp_and_pnm_images_are_read_and_heic_ones_named(demo, tmp_path, caplog):
+    """COLMAP reads BMP and PGM/PPM; mvrecon said "no readable JPEG, PNG or TIFF images" on such a folder. A HEIC
+    file from a phone is named in a warning that says to convert it, not listed as "not an image"."""
+    import cv2
+
+    images = tmp_path / "images"
+    images.mkdir()
+    for k, path in enumerate(sorted((demo / "scene" / "images").glob("*.png"))):
+        im = cv2.imread(str(path))
+        if k % 2:
+            cv2.imwrite(str(images / f"{path.stem}.pgm"), cv2.cvtColor(im, cv2.COLOR_BGR2GRAY))
+        else:
+            cv2.imwrite(str(images / f"{path.stem}.bmp"), im)
+    (images / "IMG_0001.HEIC").write_bytes(b"\0\0\0\x18ftypheic" + bytes(64))
+    out = tmp_path / "run"
+    with caplog.at_level(logging.WARNING):
+        assert main(["-q", "reconstruct", str(images), "-o", str(out)]) == 0
+    assert any("1 HEIC image(s)" in r.getMessage() and "convert them to JPEG, PNG, TIFF, BMP or PNM"
+               in r.getMessage() for r in caplog.records)
+    model = sparse_models(out / "sparse")[0]
+    assert {im.name[-4:] for im in model.images.values()} == {".bmp", ".pgm"}
+    found = {name[:-4] + ".png": pose for name, pose in poses(model).items()}
+    summary = accuracy_summary([found], load_ground_truth(demo / "scene" / "gt" / "sparse"))
+    assert summary["registered"] == 10 and summary["auc@1"] >= 0.9
+    # the premise: COLMAP reads the same files, so compare runs both engines on them
+    db = tmp_path / "colmap.db"
+    pycolmap.extract_features(db, images)
+    with pycolmap.Database.open(db) as colmap_db:
+        assert colmap_db.num_images() == 10

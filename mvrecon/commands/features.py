@@ -1,6 +1,6 @@
 """Detect SIFT features in a folder of images into a workspace database.
 
-Finds every JPEG/PNG/TIFF under IMAGES (recursively), groups them into cameras, and writes cameras, images,
+Finds every JPEG/PNG/TIFF/BMP/PNM under IMAGES (recursively), groups them into cameras, and writes cameras, images,
 keypoints and descriptors to WORKSPACE/database.db (COLMAP's schema). A rerun skips images already done; a
 different config is refused unless --overwrite.
 

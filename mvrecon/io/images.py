@@ -2,9 +2,10 @@
 
 The two functions other modules need:
 
-- `list_images(folder) -> (names, skipped)`: every JPEG/PNG/TIFF under `folder` (recursively), as POSIX paths
-  relative to it, sorted. Non-image files are listed in ONE warning; image files whose header cannot be read, or
-  that are cut off (`image_problem`: a PNG or JPEG ending early), are warned about one by one, with the reason.
+- `list_images(folder) -> (names, skipped)`: every JPEG/PNG/TIFF/BMP/PNM under `folder` (recursively), the
+  formats COLMAP reads too, as POSIX paths relative to it, sorted. Other files are listed in ONE warning (photo
+  formats we do not decode, HEIC or WebP, in one of their own that says to convert them); image files whose header
+  cannot be read, or that are cut off (`image_problem`: a file ending early), are warned about one by one.
   Both land in `skipped` (name -> reason). A missing path, a file instead of a folder, or a folder with no
   readable image raises `InputError`.
 - `read_image(path) -> np.ndarray`: HxW (grey) or HxWx3 (RGB) in the file's own depth (uint8 or uint16), with the
@@ -29,7 +30,14 @@ from ..errors import InputError
 
 log = logging.getLogger(__name__)
 
-IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".pgm", ".ppm", ".pbm", ".pnm")
+FORMATS = "JPEG, PNG, TIFF, BMP or PNM"
+# photo formats a user may hold that we do not decode (pycolmap's reader here skips WebP and JPEG 2000 too):
+# named in the warning, so that the fix (convert them) is in the message rather than "not an image"
+_UNREAD_PHOTOS = {".heic": "HEIC", ".heif": "HEIF", ".avif": "AVIF", ".webp": "WebP", ".jp2": "JPEG 2000",
+                  ".gif": "GIF", ".dng": "raw", ".cr2": "raw", ".cr3": "raw", ".nef": "raw", ".arw": "raw",
+                  ".raf": "raw", ".orf": "raw", ".rw2": "raw", ".exr": "OpenEXR"}
+_UNCOMPRESSED = ("BMP", "DIB", "PPM")  # Pillow's names; decoding them is a copy, so it checks their length
 _ORIENTATION = 0x0112
 # Orientations 5-8 swap width and height.
 TRANSPOSED = {5, 6, 7, 8}
@@ -77,12 +85,18 @@ def list_images(folder) -> tuple[list[str], dict[str, str]]:
         raise InputError(f"{folder}: no such folder")
     if not folder.is_dir():
         raise InputError(f"{folder}: not a folder (give the folder that holds the images)")
-    names, non_images, skipped = [], [], {}
+    names, non_images, skipped, photos = [], [], {}, {}
     for name in visible_files(folder):
         path = folder / name
-        if path.suffix.lower() not in IMAGE_EXTENSIONS:
-            non_images.append(name)
-            skipped[name] = "not a JPEG, PNG or TIFF file"
+        suffix = path.suffix.lower()
+        if suffix not in IMAGE_EXTENSIONS:
+            kind = _UNREAD_PHOTOS.get(suffix)
+            if kind:
+                photos.setdefault(kind, []).append(name)
+                skipped[name] = f"a {kind} image: not read; convert it to {FORMATS}"
+            else:
+                non_images.append(name)
+                skipped[name] = f"not a {FORMATS} file"
             continue
         reason = image_problem(path)
         if reason:
@@ -94,9 +108,14 @@ def list_images(folder) -> tuple[list[str], dict[str, str]]:
         more = f" and {len(non_images) - 10} more" if len(non_images) > 10 else ""
         shown = ", ".join(non_images[:10]) + more
         log.warning("skipping %d non-image file(s) in %s: %s", len(non_images), folder, shown)
+    for kind, found in photos.items():
+        more = f" and {len(found) - 1} more" if len(found) > 1 else ""
+        log.warning("skipping %d %s image(s) in %s (%s%s): mvrecon does not read them; convert them to %s",
+                    len(found), kind, folder, found[0], more, FORMATS)
     if not names:
-        raise InputError(f"{folder}: no readable JPEG, PNG or TIFF images found"
-                         + (f" ({len(skipped)} file(s) skipped)" if skipped else ""))
+        advice = f"; convert the {' and '.join(photos)} images to {FORMATS}" if photos else ""
+        raise InputError(f"{folder}: no readable {FORMATS} images found"
+                         + (f" ({len(skipped)} file(s) skipped{advice})" if skipped else ""))
     return names, skipped
 
 
@@ -122,6 +141,8 @@ def image_problem(path: Path) -> str | None:
         try:
             if im.format == "PNG":
                 im.verify()  # reads every chunk to the end and checks its CRC, without inflating the pixels
+            elif im.format in _UNCOMPRESSED:
+                im.load()  # raises when the file ends before its last row
             else:
                 im.getexif()  # walks the file's metadata blocks: catches most truncated files without decoding
         except Exception as exc:  # the header was read: what follows it is missing or damaged

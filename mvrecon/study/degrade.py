@@ -35,7 +35,7 @@ from PIL import Image
 
 from ..errors import InputError
 from ..io.files import read_json_object, replace_whole, write_json
-from ..io.images import IMAGE_EXTENSIONS, image_problem, list_images
+from ..io.images import FORMATS, IMAGE_EXTENSIONS, image_problem, list_images
 
 log = logging.getLogger(__name__)
 
@@ -338,7 +338,7 @@ def image_sources(images) -> tuple[Path, list[str]]:
     if not path.exists():
         raise InputError(f"{path}: no such file or folder")
     if path.is_file():
-        problem = image_problem(path) if path.suffix.lower() in IMAGE_EXTENSIONS else "not a JPEG, PNG or TIFF file"
+        problem = image_problem(path) if path.suffix.lower() in IMAGE_EXTENSIONS else f"not a {FORMATS} file"
         if problem:
             raise InputError(f"{path}: {problem}")
         return path.parent, [path.name]
