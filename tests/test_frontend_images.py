@@ -141,6 +141,24 @@ def test_bmp_and_pnm_are_read_and_cut_off_ones_skipped(tmp_path, caplog):
     assert read_image(tmp_path / "c.pgm").dtype == np.uint16 and np.array_equal(read_image(tmp_path / "c.pgm"), grey16)
 
 
+def test_links_are_followed_but_a_loop_of_links_is_read_once(tmp_path, caplog):
+    """A link back up the tree (`ln -s .. up`) made the listing walk the loop until the path grew too long:
+    `features` ran for over a minute on 4 images. Each folder is now read once, by its first path."""
+    (tmp_path / "photos" / "day1").mkdir(parents=True)
+    (tmp_path / "elsewhere").mkdir()
+    Image.fromarray(pattern()).save(tmp_path / "photos" / "day1" / "a.png")
+    Image.fromarray(pattern()).save(tmp_path / "elsewhere" / "b.png")
+    (tmp_path / "photos" / "day1" / "up").symlink_to("..")
+    (tmp_path / "photos" / "again").symlink_to("day1")
+    (tmp_path / "photos" / "day2").symlink_to(tmp_path / "elsewhere")  # an ordinary link: followed
+    with caplog.at_level(logging.WARNING):
+        names, _ = list_images(tmp_path / "photos")
+    assert names == ["day1/a.png", "day2/b.png"]
+    warned = sorted(r.getMessage() for r in caplog.records if "read already" in r.getMessage())
+    assert len(warned) == 2 and "photos/again: the same folder as" in warned[0] and "photos/day1/up: the same " \
+        "folder as" in warned[1]
+
+
 def test_bad_folders_raise_input_errors(tmp_path):
     with pytest.raises(InputError, match="no such folder"):
         list_images(tmp_path / "missing")

@@ -67,15 +67,35 @@ def visible_files(folder) -> list[str]:
     inside the image folder must not come back as input images on the next run."""
     folder = Path(folder)
     names = []
+    seen = {}  # (device, inode) -> the folder's first path: links are followed, but each folder is read once
     for root, dirs, files in os.walk(folder, followlinks=True):
         here = Path(root)
         skip = [d for d in dirs if not d.startswith(".") and any((here / d / m).exists() for m in OUTPUT_MARKS)]
         for d in skip:
             log.info("skipping %s: it holds the outputs of a run", here / d)
-        dirs[:] = [d for d in dirs if not d.startswith(".") and d not in skip]
+        seen.setdefault(_identity(here), here)
+        kept = []
+        # real folders before links, so that a folder is named by its own path where it has one
+        for d in sorted(dirs, key=lambda d: ((here / d).is_symlink(), d)):
+            if d.startswith(".") or d in skip:
+                continue
+            first = seen.setdefault(_identity(here / d), here / d)
+            if first != here / d:  # a link back up the tree (os.walk would loop until the path is too long)
+                log.warning("skipping %s: the same folder as %s, which is read already (a link)", here / d, first)
+                continue
+            kept.append(d)
+        dirs[:] = kept
         names += [(here / f).relative_to(folder).as_posix() for f in files
                   if not f.startswith(".") and (here / f).is_file()]
     return sorted(names, key=lambda n: PurePosixPath(n).parts)
+
+
+def _identity(path: Path):
+    try:
+        st = path.stat()
+        return st.st_dev, st.st_ino
+    except OSError:  # a broken link: its own path stands for it
+        return str(path)
 
 
 def list_images(folder) -> tuple[list[str], dict[str, str]]:
