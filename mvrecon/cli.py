@@ -6,6 +6,7 @@ place in `--help`), `add_arguments(parser)` and `run(args) -> int`; the module's
 """
 
 import argparse
+import errno
 import gc
 import importlib
 import logging
@@ -112,7 +113,12 @@ def _run(argv) -> int:
         print(f"mvrecon: error: {exc}", file=sys.stderr)
         return exc.exit_code
     except OSError as exc:
-        if not exc.filename:  # not about a path the user gave (a full disk, say): a bug report needs the trace
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            clear_line()
+            print(f"mvrecon: error: {exc.filename or 'writing the outputs'}: no space left on the disk; free some "
+                  "space and run the command again: what it did so far is kept", file=sys.stderr)
+            return InputError.exit_code
+        if not exc.filename:  # not about a path the user gave: a bug report needs the trace
             raise
         # an output path that is a file, an input that is a folder, a folder that cannot be written
         clear_line()

@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .interrupts import ctrl_c_deferred
+from .io.files import require_room
 
 
 def _pycolmap():
@@ -237,9 +239,13 @@ def _matrix_or_none(m):
 # --- resumable stages (features, matching): what is done, one transaction per unit of work ---
 
 @contextmanager
-def transaction(db):
-    """All writes in the block land together or not at all (a Ctrl-C loses only the unit in progress)."""
-    with _pycolmap().DatabaseTransaction(db):
+def transaction(db, path, nbytes: int):
+    """One unit of work (an image's features, a batch of pairs) written at once. pycolmap's transaction commits
+    whatever the block wrote however it ends, so Ctrl-C is held back until the block's end; and a commit that
+    fails (a full disk) aborts the process from inside pycolmap, so the disk must have room for twice the block's
+    `nbytes` (the WAL, then the database) first, or the run stops with one line, its earlier units kept."""
+    require_room(path, 2 * nbytes)
+    with ctrl_c_deferred(), _pycolmap().DatabaseTransaction(db):
         yield db
 
 

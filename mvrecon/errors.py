@@ -8,3 +8,7 @@ class InputError(Exception):
     """Bad input from the user (a wrong path, a corrupt image, too few images, a mismatched config)."""
 
     exit_code = 2
+
+
+class DiskFull(InputError):
+    """No room left to write on: the run stops, and what it wrote so far is kept for the rerun."""

@@ -22,7 +22,7 @@ import numpy as np
 from . import database as dbmod
 from .cameras import CameraConfig, group_cameras
 from .config import bounded, config_hash, to_dict
-from .errors import InputError
+from .errors import DiskFull, InputError
 from .executor import StageClock, WorkerPool, blas_threads, default_workers
 from .features.sift import SiftConfig
 from .io.files import read_json_object, write_json
@@ -260,7 +260,7 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
                 continue
             keypoints, descriptors, colors[name] = result
             gi = group_of[name]
-            with dbmod.transaction(db):
+            with dbmod.transaction(db, ws.database_path, keypoints.nbytes + descriptors.nbytes):
                 if gi not in camera_ids:
                     camera_ids[gi] = dbmod.write_camera(db, groups[gi][0])
                 image_id = existing[name].image_id if name in existing else \
@@ -390,7 +390,8 @@ def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
                         pair, future = in_flight.popleft()
                         batch.append((pair, future.result()))
                         submit(pool)
-                    with dbmod.transaction(db):
+                    size = sum(m.nbytes + g.inliers.nbytes for _, (m, g, _) in batch)
+                    with dbmod.transaction(db, ws.database_path, size):
                         for (i, j), (matches, geometry, left_out) in batch:
                             dropped += left_out
                             dbmod.write_matches(db, i, j, matches)
@@ -655,6 +656,8 @@ def reconstruct(config: ReconstructConfig, image_dir, out_dir, *, text: bool = F
         clock.done("matching")
         summary = map_workspace(mapper, ws, image_dir=image_dir, text=text, resume=resume, overwrite=overwrite,
                                 keypoint_colors=features.keypoint_colors)
+    except DiskFull:  # the features and matches written so far are kept for the rerun
+        raise
     except InputError:  # rejected input (no verified pairs, say), or refused settings
         if fresh:  # a folder this call made holds nothing worth keeping
             import shutil

@@ -71,6 +71,70 @@ def test_interrupted_features_and_matching_resume_without_recomputing(tmp_path, 
     assert match(config, ws).num_matched == 0
 
 
+def test_a_full_disk_stops_the_run_in_one_line_and_keeps_its_work(tmp_path, monkeypatch, capsys):
+    """On a full disk pycolmap's database commit aborted the process (SIGABRT, a C++ stack dump and a Python
+    traceback). The free space is now checked before each unit is written: one line naming the database, exit
+    2, and the images done so far are kept, so the run goes on from them once there is room."""
+    import os
+    from types import SimpleNamespace
+
+    from mvrecon.io import files
+
+    images = textured_views(tmp_path / "images")
+    out = tmp_path / "run"
+    real, checks = os.statvfs, []
+
+    def filling(path):  # room for three images' features, then none
+        checks.append(path)
+        return SimpleNamespace(f_bavail=0 if len(checks) > 3 else real(path).f_bavail, f_frsize=real(path).f_frsize)
+
+    monkeypatch.setattr(files.os, "statvfs", filling)
+    assert main(["-q", "reconstruct", str(images), "-o", str(out), "--workers", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{out / 'database.db'}: the disk is full (0.0 MB free" in err
+    with dbmod.open_database(out / "database.db") as db:
+        assert sorted(i.name for i in dbmod.read_images(db).values()) == ["view00.png", "view01.png", "view02.png"]
+    monkeypatch.setattr(files.os, "statvfs", real)
+    summary = extract_features(FrontendConfig(workers=1), images, out)
+    assert summary.num_extracted == 3 and summary.num_images == 6
+
+
+def test_a_full_disk_met_by_python_writes_is_one_line_too(tmp_path, monkeypatch, capsys):
+    """A write that Python makes (a snapshot, the report) fails with ENOSPC and no file name; it printed a
+    traceback. It is one line, exit 2, and the run's folder stays for the rerun."""
+    import errno
+
+    from mvrecon import pipeline
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(pipeline, "write_report", full)
+    out = tmp_path / "run"
+    assert main(["-q", "reconstruct", str(textured_views(tmp_path / "images")), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err == "mvrecon: error: writing the outputs: no space left on the disk; free some space and run the " \
+        "command again: what it did so far is kept\n"
+    assert (out / "database.db").is_file()
+
+
+def test_ctrl_c_inside_a_database_unit_waits_for_its_end(tmp_path):
+    """pycolmap's transaction commits what its block wrote however the block ends: a Ctrl-C between an image's
+    row and its features left the image without features. Ctrl-C now waits for the unit to be written whole."""
+    import signal
+
+    path = tmp_path / "database.db"
+    with dbmod.open_database(path) as db:
+        camera = dbmod.write_camera(db, dbmod.CameraInfo(model="SIMPLE_RADIAL", width=64, height=48,
+                                                         params=np.array([60.0, 32, 24, 0])))
+        with pytest.raises(KeyboardInterrupt):
+            with dbmod.transaction(db, path, 0):
+                image_id = dbmod.write_image(db, "a.png", camera)
+                signal.raise_signal(signal.SIGINT)
+                dbmod.write_features(db, image_id, np.zeros((5, 4)), np.zeros((5, 128), np.uint8))
+        assert dbmod.has_features(db, image_id) and dbmod.num_keypoints(db, image_id) == 5
+
+
 def test_parallel_extraction_numbers_images_in_name_order(tmp_path):
     """Image ids (and so the mapper's order and its models) must not depend on which worker finishes first:
     the first image is made much larger, so it finishes last."""

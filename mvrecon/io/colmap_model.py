@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from .files import require_room
 from .ply import write_ply
 
 log = logging.getLogger("mvrecon.io")
@@ -86,6 +87,7 @@ def write_models(models, sparse_dir, image_dir=None, text: bool = False,
         if colors is None and image_dir is not None:
             rec.extract_colors_for_all_images(str(image_dir))
         d = sparse_dir / str(k)
+        require_room(d, model_bytes(rec) * (4 if text else 1))
         d.mkdir(parents=True, exist_ok=True)
         rec.write_binary(str(d))
         if text:
@@ -94,11 +96,20 @@ def write_models(models, sparse_dir, image_dir=None, text: bool = False,
     return out
 
 
+def model_bytes(rec: pycolmap.Reconstruction) -> int:
+    """About the size of a binary model's files (the text ones take up to three times as much): pycolmap writes
+    models without reporting a failed write (on a full disk it left points3D.bin empty), so room is checked
+    first. Every keypoint of an image is a 2D point of 24 bytes, a 3D point 51 bytes and 8 per observation."""
+    num_points2d = sum(im.num_points2D() for im in rec.images.values())
+    return 24 * num_points2d + 256 * rec.num_images() + 64 * rec.num_points3D() + 8 * rec.compute_num_observations()
+
+
 def write_text_models(sparse_dir) -> int:
     """Add the COLMAP text files to every binary model sparse_dir/N (a finished run asked for --text again);
     returns the number of models."""
     dirs = [d for d in sorted(Path(sparse_dir).iterdir()) if (d / "cameras.bin").is_file()]
     recs = [pycolmap.Reconstruction(str(d)) for d in dirs]
+    require_room(sparse_dir, 3 * sum(model_bytes(rec) for rec in recs))
     for rec, d in zip(recs, dirs):
         rec.write_text(str(d))
     warn_text_names(recs, sparse_dir)

@@ -10,6 +10,8 @@ import shutil
 from contextlib import contextmanager
 from pathlib import Path
 
+from ..errors import DiskFull
+
 
 def replace_whole(dst, write) -> None:
     """`write(tmp)` to a hidden name next to `dst` (the same suffix: image writers choose the format by it), then
@@ -21,6 +23,20 @@ def replace_whole(dst, write) -> None:
         os.replace(tmp, dst)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def require_room(path, nbytes: int, spare: int = 32 << 20) -> None:
+    """Refuse, naming `path`, to write `nbytes` where the disk has less than that and `spare` free. For writers
+    that cannot report a full disk themselves: pycolmap aborts the process when a database commit or an image
+    of its undistorter fails to be written."""
+    folder = Path(path)
+    while not folder.is_dir() and folder != folder.parent:  # the nearest folder that exists
+        folder = folder.parent
+    stat = os.statvfs(folder)
+    free, wanted = stat.f_bavail * stat.f_frsize, int(nbytes) + spare
+    if free < wanted:
+        raise DiskFull(f"{path}: the disk is full ({free / 2**20:.1f} MB free, {wanted / 2**20:.0f} MB wanted to "
+                         "write on); free some space and run the command again: what it did so far is kept")
 
 
 def outermost_new_folder(path) -> Path | None:

@@ -23,6 +23,8 @@ from PIL import Image
 
 from ..errors import InputError
 from ..eval.models import load_reconstruction
+from .colmap_model import model_bytes
+from .files import require_room
 from .images import TRANSPOSED, image_metadata, image_problem, read_image
 
 
@@ -63,6 +65,9 @@ def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -
     final, out_dir = out_dir, out_dir.with_name(out_dir.name + ".partial")
     if out_dir.exists():
         shutil.rmtree(out_dir)
+    # COLMAP's undistorter aborts the process when an image cannot be written; its images can outgrow their
+    # sources (JPEG at a higher quality, a larger size), and EXIF-turned or 16-bit ones are copied first
+    require_room(final, 3 * sum((image_dir / n).stat().st_size for n in names) + model_bytes(rec))
     out_dir.mkdir(parents=True)
     try:
         source = _8bit_in_model_frame(image_dir, metas, stored, out_dir / "input")
