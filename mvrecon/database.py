@@ -59,9 +59,20 @@ def colmap_blind_cameras(cameras: dict) -> list[int]:
 def connect_readonly(path):
     """A read-only sqlite3 connection to the database file `path`, closed on leaving the `with` block; the
     plain-SQL reads below need what pycolmap's reader skips or refuses."""
+    import os
     import sqlite3
 
-    return closing(sqlite3.connect(Path(path).resolve().as_uri() + "?mode=ro", uri=True))
+    path = Path(path).resolve()
+    uri = path.as_uri() + "?mode=ro"
+    if not os.access(path.parent, os.W_OK):
+        # a WAL database is read through a shared-memory file made next to it; in a folder that cannot be
+        # written (a read-only mount, another user's run) SQLite cannot make it, and nothing can change the file
+        wal = Path(f"{path}-wal")
+        if wal.is_file() and wal.stat().st_size > 0:
+            raise InputError(f"{path}: its last changes are still in {wal.name}, and its folder cannot be written "
+                             "to merge them; copy the folder to a writable place and run again")
+        uri += "&immutable=1"
+    return closing(sqlite3.connect(uri, uri=True))
 
 
 def pair_configurations(path) -> dict[str, int]:
@@ -118,8 +129,22 @@ def open_database(path):
     """Open (creating if needed) a COLMAP database and close it however the block ends. A file that is not a
     readable SQLite database is an InputError naming it (pycolmap would log a warning and raise a bare
     RuntimeError)."""
+    import os
+
     _check_sqlite(Path(path))
-    db = _pycolmap().Database.open(str(path))
+    folder = Path(path).resolve().parent
+    pycolmap = _pycolmap()
+    if not os.access(folder, os.W_OK):  # pycolmap logs a warning and raises "No registered database factory..."
+        saved, pycolmap.logging.minloglevel = pycolmap.logging.minloglevel, pycolmap.logging.ERROR
+        try:
+            db = pycolmap.Database.open(str(path))
+        except RuntimeError:
+            raise InputError(f"{folder}: cannot write in this folder (read-only, or another user's), which "
+                             "opening its database needs; copy the folder, or choose another one") from None
+        finally:
+            pycolmap.logging.minloglevel = saved
+    else:
+        db = pycolmap.Database.open(str(path))
     try:
         yield db
     finally:

@@ -118,6 +118,32 @@ def test_a_full_disk_met_by_python_writes_is_one_line_too(tmp_path, monkeypatch,
     assert (out / "database.db").is_file()
 
 
+def test_a_run_on_a_read_only_file_system_is_read_and_not_called_corrupt(tmp_path, capsys):
+    """A finished run on a read-only mount (a shared drive, a DVD): its WAL database cannot be read without a
+    shared-memory file next to it, so `map` said it was "not a readable COLMAP database; delete it". It is read,
+    and what needs to write says that the folder cannot be written."""
+    import os
+    import subprocess
+
+    if os.geteuid() != 0:
+        pytest.skip("mounting a read-only file system needs root")
+    mount = tmp_path / "drive"
+    mount.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64m", "tmpfs", str(mount)]).returncode != 0:
+        pytest.skip("this machine does not let tests mount a tmpfs")
+    try:
+        run = mount / "run"
+        assert main(["-q", "reconstruct", str(textured_views(tmp_path / "images")), "-o", str(run)]) == 0
+        subprocess.run(["mount", "-o", "remount,ro", str(mount)], check=True)
+        assert sum(dbmod.pair_configurations(run / "database.db").values()) == 15
+        capsys.readouterr()
+        assert main(["-q", "map", "-w", str(run), "--overwrite"]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and f"{run}: cannot write in this folder" in err and "delete" not in err
+    finally:
+        subprocess.run(["umount", str(mount)])
+
+
 def test_ctrl_c_inside_a_database_unit_waits_for_its_end(tmp_path):
     """pycolmap's transaction commits what its block wrote however the block ends: a Ctrl-C between an image's
     row and its features left the image without features. Ctrl-C now waits for the unit to be written whole."""
