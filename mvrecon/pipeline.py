@@ -314,6 +314,11 @@ def _match_one(task):
     return matches, verify_pair(kp1, kp2, matches, cam1, cam2, config.verify), len(putative) - len(matches)
 
 
+# more images than this matched exhaustively get the advice of a pair selection that grows linearly (COLMAP's
+# guide gives exhaustive matching "up to several hundreds" of images; 200 are 19,900 pairs)
+_MANY_FOR_EXHAUSTIVE = 200
+
+
 def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
           on_batch: Callable[[int], None] | None = None, batch_size: int = 16,
           max_cached_images: int = 256) -> MatchSummary:
@@ -344,6 +349,10 @@ def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
         if ws.begin_stage("matching", record, overwrite):
             dbmod.clear_matches(db)
         todo = [p for p in pairs if not dbmod.has_two_view_geometry(db, *p)]
+        if config.pairs == "exhaustive" and len(images) > _MANY_FOR_EXHAUSTIVE and len(todo) > len(pairs) // 2:
+            log.warning("exhaustive matching of %d images: %d pairs, growing with the square of the images; "
+                        "--pairs retrieval:20 matches each image with its 20 most similar ones (a photo "
+                        "collection), --pairs sequential:10 with the next 10 (a video)", len(images), len(pairs))
         remaining = {}  # image -> number of todo pairs still needing it, to free its descriptors early
         for p in todo:
             for i in p:

@@ -463,3 +463,24 @@ def test_a_config_file_the_command_reads_nothing_of_is_named_in_a_warning(tmp_pa
     with caplog.at_level(logging.WARNING):
         assert main(["-q", "features", str(images), "-w", str(tmp_path / "ws2"), "--config", str(both)]) == 0
     assert "reads none" not in caplog.text
+
+
+def test_exhaustive_matching_of_many_images_advises_a_linear_pair_selection(tmp_path, monkeypatch, caplog):
+    """Exhaustive pairs grow with the square of the images (500 photos: 124,750 pairs), and nothing said that
+    `retrieval:K` or `sequential:K` exists. Over the limit (lowered here to 4 images) one warning says so."""
+    from mvrecon import pipeline
+
+    monkeypatch.setattr(pipeline, "_MANY_FOR_EXHAUSTIVE", 4)
+    config = FrontendConfig(workers=1, sift=SiftConfig(max_num_features=300))
+    ws = tmp_path / "ws"
+    extract_features(config, textured_views(tmp_path / "images"), ws)
+    with caplog.at_level(logging.WARNING):
+        match(config, ws)
+    advice = [r.getMessage() for r in caplog.records if "--pairs retrieval:20" in r.getMessage()]
+    assert advice == ["exhaustive matching of 6 images: 15 pairs, growing with the square of the images; --pairs "
+                      "retrieval:20 matches each image with its 20 most similar ones (a photo collection), --pairs "
+                      "sequential:10 with the next 10 (a video)"]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        match(FrontendConfig(workers=1, pairs="sequential:2"), ws, overwrite=True)
+    assert not [r for r in caplog.records if "--pairs retrieval:20" in r.getMessage()]
