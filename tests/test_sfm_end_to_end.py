@@ -328,8 +328,9 @@ def test_two_images_give_a_model_and_a_run_without_a_model_exits_1_and_says_why(
     assert not (tmp_path / "run" / "sparse").exists() and not (tmp_path / "run" / "points.ply").exists()
     report = json.loads((tmp_path / "run" / "report.json").read_text())
     assert report["models"] == []
-    assert all(s["reason"].startswith("no initial pair accepted: ") and "< init_min_inliers 100000" in s["reason"]
-               for s in report["images"].values())
+    # COLMAP's relaxation: halved twice before the run gives up
+    assert all(s["reason"].startswith("no initial pair accepted: ") and "< init_min_inliers 25000 (relaxed from "
+               "100000, as no model could start)" in s["reason"] for s in report["images"].values())
     assert main(["-q", "map", "-w", str(tmp_path / "run"), "--overwrite", "--config", str(toml)]) == 1
     # for compare and study that is a result (2 registered), as a COLMAP run of two images is
     from mvrecon.eval.runners import run_mvrecon

@@ -16,6 +16,10 @@ class MapperConfig:
     init_min_inliers: verified matches a pair needs to be tried as the initial pair.
     init_min_tri_angles_deg: median triangulation angles tried in order; the first pair meeting one wins, so a
         scene without a 16 degree baseline still starts (COLMAP relaxes its thresholds the same way).
+    init_relaxations: while no model could start at all and no pair has init_min_inliers, it is halved this
+        many times (100, 50, 25), each time with every angle again: COLMAP's pipeline relaxes its inlier count
+        the same way, and small or weakly textured images (templeRing at 160 x 120: 43-66 inliers a pair) start
+        a model. Such a model is kept only when it reaches min_model_size.
     init_max_pairs: at most this many candidate pairs are tried per angle threshold.
     two_view_max_error_px: epipolar inlier threshold for the relative pose.
 
@@ -63,6 +67,7 @@ class MapperConfig:
 
     init_min_inliers: int = bounded(100, 0)
     init_min_tri_angles_deg: tuple = bounded((16.0, 8.0, 4.0, 2.0), 0.0, 180.0)
+    init_relaxations: int = bounded(2, 0)
     init_max_pairs: int = bounded(40, 1)
     two_view_max_error_px: float = bounded(4.0, 0.0, low_open=True)
     abs_pose_max_error_px: float = bounded(12.0, 0.0, low_open=True)

@@ -14,7 +14,7 @@ model its images belong in). Every image that ends unregistered gets a reason.
 import hashlib
 import logging
 import pickle
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +25,7 @@ from . import filtering
 from .ba_points import select_points
 from .bundle import bundle_adjust as _bundle_adjust
 from .config import MapperConfig
-from .initialize import evaluate_pair, find_initial_pair, initial_pair_rejections
+from .initialize import evaluate_pair, find_initial_pair, initial_pair_rejections, rejected_for_few_inliers
 from .model import Camera, Reconstruction
 from .register import correspondences_2d3d, rank_candidates, register_image
 from .tracks import build_tracks
@@ -126,6 +126,8 @@ class IncrementalMapper:
         # the largest model finished under min_model_size (the first of equals), kept only if no model reaches it
         self.small: Reconstruction | None = None
         self.tried_init: set = set()
+        # the initial-pair criteria in force: config's, with init_min_inliers halved while no model could start
+        self.init_config = config
         # what a model was started from (`_start_key`) when the model was discarded: starting it again from
         # the same pair and state would only build the same model again
         self.dropped_starts: set = set()
@@ -200,7 +202,8 @@ class IncrementalMapper:
                             "current": self.current.state() if self.current is not None else None,
                             "tried_init": set(self.tried_init), "reasons": dict(self.reasons),
                             "last_global": self.last_global, "attempts": dict(self.attempts),
-                            "dropped_starts": set(self.dropped_starts), "start_key": self.start_key})
+                            "dropped_starts": set(self.dropped_starts), "start_key": self.start_key,
+                            "init_min_inliers": self.init_config.init_min_inliers})
 
     def _restore(self, s: dict) -> None:
         self.finished = [Reconstruction.from_state(m, self.keypoints) for m in s["finished"]]
@@ -209,6 +212,8 @@ class IncrementalMapper:
         self.tried_init, self.reasons = s["tried_init"], s["reasons"]
         self.last_global, self.attempts = s["last_global"], s["attempts"]
         self.dropped_starts, self.start_key = s.get("dropped_starts", set()), s.get("start_key")
+        self.init_config = replace(self.config, init_min_inliers=s.get("init_min_inliers",
+                                                                        self.config.init_min_inliers))
 
     # ----- main loop -----
     def run(self, resume: bool = False) -> MappingResult:
@@ -257,8 +262,10 @@ class IncrementalMapper:
             calibration = {c: cam.params.tobytes() for c, cam in scratch.cameras.items() if cam.prior_trusted}
             if calibration != self.evaluated_with:  # pairs evaluated before a camera was calibrated are stale
                 self.evaluated_init, self.evaluated_with = {}, calibration
-            init = find_initial_pair(scratch, self.pairs, self._excluded(), self.config, self.tried_init,
+            init = find_initial_pair(scratch, self.pairs, self._excluded(), self.init_config, self.tried_init,
                                      self.evaluated_init)
+            if init is None and self._relax_initial_pair():
+                continue
             if init is None:
                 self._explain_no_initial_pair(scratch)
                 return False
@@ -289,6 +296,25 @@ class IncrementalMapper:
             self._save()
             return True
 
+    def _relax_initial_pair(self) -> bool:
+        """Halve init_min_inliers (up to init_relaxations times) while no model could start because no pair
+        has that many inliers, as COLMAP's pipeline relaxes it; the pairs rejected for too few inliers are then
+        assessed again. Pairs that have the inliers but were refused (a panorama's rotations, a baseline too
+        short) are not a reason to accept weaker ones: a panorama's far pairs, verified as F on 20-40 chance
+        matches, made a 2-image model."""
+        base, now = self.config.init_min_inliers, self.init_config.init_min_inliers
+        if self.finished or now <= base >> self.config.init_relaxations or now < 2:
+            return False
+        if any(len(p.inliers) >= now for p in self.pairs.values()):
+            return False
+        self.init_config = replace(self.config, init_min_inliers=now // 2)
+        stale = {key for key, found in self.evaluated_init.items() if rejected_for_few_inliers(found)}
+        self.evaluated_init = {k: v for k, v in self.evaluated_init.items() if k not in stale}
+        self.tried_init = {t for t in self.tried_init if t[0] not in stale}
+        log.info("no initial pair with %d inliers or more; trying again with %d, as COLMAP relaxes its own",
+                 now, now // 2)
+        return True
+
     def _start_key(self, init, scratch: Reconstruction) -> tuple:
         """Everything the model started from `init` depends on: the pair's pose, every camera of the scratch
         model (a guessed focal of another camera may have been moved by the pairs evaluated before), and the
@@ -303,15 +329,18 @@ class IncrementalMapper:
         """Why no model could start from the images left: per image, what the nearest miss among its pairs
         with other images left missed (for `_status`, which gives it to the images without another reason), and
         the nearest miss of all in the log."""
-        rejected = initial_pair_rejections(scratch, self.pairs, self._excluded(), self.config,
+        rejected = initial_pair_rejections(scratch, self.pairs, self._excluded(), self.init_config,
                                            self.evaluated_init, {key[:2] for key in self.dropped_starts})
         best = {}
         for r in rejected.values():
             for i in (r.image1, r.image2):
                 if i not in best or r.closeness > best[i].closeness:
                     best[i] = r
+        now, base = self.init_config.init_min_inliers, self.config.init_min_inliers
+        relaxed = f" (relaxed from {base}, as no model could start)" if now != base else ""
         self.init_rejections = {i: f"its best pair ({self.names[r.image1]} / {self.names[r.image2]}) has "
-                                   f"{r.text}" for i, r in best.items()}
+                                   f"{r.text}{relaxed if f'init_min_inliers {now}' in r.text else ''}"
+                                for i, r in best.items()}
         if best:
             r = max(best.values(), key=lambda r: r.closeness)
             log.info("no initial pair accepted%s: the best pair (%s / %s) has %s",
@@ -369,8 +398,8 @@ class IncrementalMapper:
         cfg, m = self.config, self._new_model()
         m.cameras[cam_id].set_focal(focal)
         if estimate:
-            init = evaluate_pair(m, self.pairs[(init.image1, init.image2)], init.image1, init.image2, cfg,
-                                 focal_from_pair=False)
+            init = evaluate_pair(m, self.pairs[(init.image1, init.image2)], init.image1, init.image2,
+                                 self.init_config, focal_from_pair=False)
             if init is None:
                 return None
         self._seed_model(m, init)
@@ -521,10 +550,16 @@ class IncrementalMapper:
         log.info("discarded a model of %d images (< %d)", n, least)
         if self.start_key is not None:
             self.dropped_starts.add(self.start_key)
-        if not self.finished and n > (int(self.small.registered.sum()) if self.small is not None else 0):
+        # a model started from a pair under the relaxed inlier count must grow to be kept: two images on a few
+        # dozen matches are weak evidence of anything
+        relaxed = self.init_config.init_min_inliers < self.config.init_min_inliers
+        if not self.finished and not relaxed and n > (int(self.small.registered.sum()) if self.small is not None
+                                                       else 0):
             self.small = m
+        started = (f", started from a pair under init_min_inliers {self.config.init_min_inliers} (relaxed to "
+                   f"{self.init_config.init_min_inliers}), " if relaxed else ", ")
         for i in np.flatnonzero(m.registered).tolist():
-            self.reasons[i] = f"its model stayed at {n} images, under min_model_size {least}, and was discarded"
+            self.reasons[i] = f"its model stayed at {n} images{started}under min_model_size {least}, and was discarded"
 
     def _drop_non_square_cameras(self, m: Reconstruction) -> None:
         """Deregister the images of cameras whose fx / fy ended more than 1.5x apart (`non_square_cameras`: wrong

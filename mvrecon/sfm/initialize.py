@@ -199,6 +199,11 @@ def find_initial_pair(model, pairs_by_index, excluded, config: MapperConfig, tri
     return None
 
 
+def rejected_for_few_inliers(found) -> bool:
+    """Whether an `assess_pair` result is a rejection that a lower init_min_inliers could turn round."""
+    return isinstance(found, PairRejection) and found.closeness[0] in (_FEW_POSE_INLIERS, _FEW_POINTS)
+
+
 def _candidates(pairs_by_index, excluded, config: MapperConfig) -> list:
     """(inliers, pair) of the pairs between images not in `excluded` with enough inliers, most inliers
     first."""
