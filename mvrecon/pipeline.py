@@ -8,6 +8,7 @@ loses at most the unit in progress and a rerun of the same command resumes.
 - `match(config, workspace)`: pairs -> putative matches -> verified two-view geometries.
 """
 
+import functools
 import hashlib
 import logging
 import time
@@ -60,6 +61,15 @@ def _workers(config: FrontendConfig) -> int:
 
 def _workspace(workspace) -> Workspace:
     return workspace if isinstance(workspace, Workspace) else Workspace(workspace)
+
+
+def _holding_workspace(func):
+    """`func(config, workspace, ...)` run with the workspace locked against other processes (Workspace.lock)."""
+    @functools.wraps(func)
+    def run(config, workspace, *args, **kwargs):
+        with _workspace(workspace).lock():
+            return func(config, workspace, *args, **kwargs)
+    return run
 
 
 def _stats(values) -> str:
@@ -197,7 +207,8 @@ def extract_features(config: FrontendConfig, image_dir, workspace, *, overwrite:
     called just before the first change."""
     start = time.perf_counter()
     ws = _workspace(workspace)
-    with WorkerPool(_workers(config)) as pool:  # started first: its start overlaps the set-up in _extract_all
+    # the pool starts first: its start overlaps the set-up in _extract_all
+    with ws.lock(), WorkerPool(_workers(config)) as pool:
         summary = _extract_all(config, Path(image_dir), ws, overwrite, on_image, pool, before_changes)
     summary.seconds = time.perf_counter() - start
     return summary
@@ -319,6 +330,7 @@ def _match_one(task):
 _MANY_FOR_EXHAUSTIVE = 200
 
 
+@_holding_workspace
 def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
           on_batch: Callable[[int], None] | None = None, batch_size: int = 16,
           max_cached_images: int = 256) -> MatchSummary:
@@ -465,6 +477,7 @@ class MapSummary:
         return "\n".join(parts)
 
 
+@_holding_workspace
 def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resume: bool = False,
                   overwrite: bool = False, keypoint_colors=None) -> MapSummary:
     """Run the incremental mapper on the workspace's database and write `sparse/N/` and `points.ply`.
@@ -650,34 +663,35 @@ def reconstruct(config: ReconstructConfig, image_dir, out_dir, *, text: bool = F
     kept = report_path.read_bytes() if report_path.is_file() and not overwrite else None
     fresh = not out.exists()
     ws = Workspace(out).create()
-    clock = StageClock()
+    with ws.lock():  # another run writing this folder is refused
+        clock = StageClock()
 
-    def before_changes():  # until this run ends, the folder holds no finished run
-        report_path.unlink(missing_ok=True)
+        def before_changes():  # until this run ends, the folder holds no finished run
+            report_path.unlink(missing_ok=True)
 
-    try:
-        features = extract_features(config.frontend, image_dir, ws, overwrite=overwrite,
-                                    before_changes=before_changes)
-        log.info("%s", features.text())
-        clock.done("features")
-        matches = match(config.frontend, ws, overwrite=overwrite)
-        log.info("%s", matches.text())
-        clock.done("matching")
-        summary = map_workspace(mapper, ws, image_dir=image_dir, text=text, resume=resume, overwrite=overwrite,
-                                keypoint_colors=features.keypoint_colors)
-    except DiskFull:  # the features and matches written so far are kept for the rerun
-        raise
-    except InputError:  # rejected input (no verified pairs, say), or refused settings
-        if fresh:  # a folder this call made holds nothing worth keeping
-            import shutil
+        try:
+            features = extract_features(config.frontend, image_dir, ws, overwrite=overwrite,
+                                        before_changes=before_changes)
+            log.info("%s", features.text())
+            clock.done("features")
+            matches = match(config.frontend, ws, overwrite=overwrite)
+            log.info("%s", matches.text())
+            clock.done("matching")
+            summary = map_workspace(mapper, ws, image_dir=image_dir, text=text, resume=resume,
+                                    overwrite=overwrite, keypoint_colors=features.keypoint_colors)
+        except DiskFull:  # the features and matches written so far are kept for the rerun
+            raise
+        except InputError:  # rejected input (no verified pairs, say), or refused settings
+            if fresh:  # a folder this call made holds nothing worth keeping
+                import shutil
 
-            shutil.rmtree(out, ignore_errors=True)
-        elif kept is not None:  # refused (another config, say) without --overwrite: the earlier run stands
-            report_path.write_bytes(kept)
-        raise
-    clock.done("mapping")
-    log.info("%s", summary.text())
-    skipped = dict(features.failed)
-    return write_report(out, config_hash=full_hash, seed=mapper.seed, summary=summary, stages=clock.stages,
-                        total=clock.total(), counts=dbmod.database_counts(ws.database_path), skipped=skipped)
+                shutil.rmtree(out, ignore_errors=True)
+            elif kept is not None:  # refused (another config, say) without --overwrite: the earlier run stands
+                report_path.write_bytes(kept)
+            raise
+        clock.done("mapping")
+        log.info("%s", summary.text())
+        skipped = dict(features.failed)
+        return write_report(out, config_hash=full_hash, seed=mapper.seed, summary=summary, stages=clock.stages,
+                            total=clock.total(), counts=dbmod.database_counts(ws.database_path), skipped=skipped)
 

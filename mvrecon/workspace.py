@@ -7,6 +7,9 @@ the record of every stage recorded after it, because their results were built on
 the matching database tables (`begin_stage` returns the names of the stages it dropped).
 """
 
+import fcntl
+import os
+from contextlib import contextmanager
 from pathlib import Path
 
 from . import config as cfgmod
@@ -14,6 +17,7 @@ from .errors import InputError
 from .io.files import read_json_object, write_json
 
 REDO = "rerun with --overwrite to recompute, or use another workspace"  # what a refused stage config advises
+_held: dict[Path, int] = {}  # workspace -> how many nested `lock` blocks of this process hold it
 
 
 class Workspace:
@@ -38,6 +42,38 @@ class Workspace:
             raise InputError(f"{self.path}: workspace exists and is not a folder")
         self.path.mkdir(parents=True, exist_ok=True)
         return self
+
+    @contextmanager
+    def lock(self):
+        """Hold the workspace for the block, against another mvrecon process: two runs writing one database
+        broke the second with a SQLite constraint error and a traceback. An exclusive `flock` on the folder
+        itself (no lock file is left behind), which the kernel releases when the process ends, however it ends;
+        nested blocks of one process share it. A folder that does not exist yet is not locked (nothing can be
+        using it)."""
+        key = self.path.resolve()
+        if key in _held or not self.path.is_dir():
+            _held[key] = _held.get(key, 0) + 1
+            try:
+                yield self
+            finally:
+                _held[key] -= 1
+                if not _held[key]:
+                    del _held[key]
+            return
+        fd = os.open(self.path, os.O_RDONLY | os.O_DIRECTORY)
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise InputError(f"{self.path}: another mvrecon run is using this folder; wait for it to end, "
+                                 "or choose another folder") from None
+            _held[key] = 1
+            try:
+                yield self
+            finally:
+                del _held[key]
+        finally:
+            os.close(fd)  # closing the only descriptor releases the lock
 
     def stages(self) -> dict:
         """{stage: {"hash": ..., "config": {...}}} in the order the stages were first run."""

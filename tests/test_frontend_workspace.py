@@ -484,3 +484,29 @@ def test_exhaustive_matching_of_many_images_advises_a_linear_pair_selection(tmp_
     with caplog.at_level(logging.WARNING):
         match(FrontendConfig(workers=1, pairs="sequential:2"), ws, overwrite=True)
     assert not [r for r in caplog.records if "--pairs retrieval:20" in r.getMessage()]
+
+
+def test_a_second_run_on_a_folder_in_use_is_refused_in_one_line(tmp_path, capsys):
+    """Two runs writing one workspace: the second died of a SQLite constraint error with a traceback. Another
+    process holding the workspace (here a child holding its lock, as a run in progress does) now refuses the
+    run in one line; once that process ends, the run goes ahead."""
+    import subprocess
+    import sys
+
+    images = textured_views(tmp_path / "images")
+    out = tmp_path / "run"
+    out.mkdir()
+    holder = subprocess.Popen([sys.executable, "-c", "import fcntl, os, sys, time; fd = os.open(sys.argv[1], "
+                               "os.O_RDONLY); fcntl.flock(fd, fcntl.LOCK_EX); print('held', flush=True); "
+                               "time.sleep(60)", str(out)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline() == "held\n"
+        for argv in (["reconstruct", str(images), "-o", str(out)], ["features", str(images), "-w", str(out)]):
+            assert main(["-q", *argv]) == 2
+            assert capsys.readouterr().err == f"mvrecon: error: {out}: another mvrecon run is using this folder; " \
+                "wait for it to end, or choose another folder\n"
+    finally:
+        holder.kill()
+        holder.wait()
+    assert main(["-q", "reconstruct", str(images), "-o", str(out)]) == 0
+    assert main(["-q", "map", "-w", str(out), "--overwrite"]) == 0  # the lock of the run before is gone
