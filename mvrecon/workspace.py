@@ -67,6 +67,8 @@ class Workspace:
             except BlockingIOError:
                 raise InputError(f"{self.path}: another mvrecon run is using this folder; wait for it to end, "
                                  "or choose another folder") from None
+            except OSError:  # a file system without locks (some network or FUSE mounts): run unguarded
+                pass
             _held[key] = 1
             try:
                 yield self
