@@ -411,7 +411,7 @@ def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
                         pair, future = in_flight.popleft()
                         batch.append((pair, future.result()))
                         submit(pool)
-                    size = sum(m.nbytes + g.inliers.nbytes for _, (m, g, _) in batch)
+                    size = sum(found[0].nbytes + found[1].inliers.nbytes for _, found in batch)
                     with dbmod.transaction(db, ws.database_path, size):
                         for (i, j), (matches, geometry, left_out) in batch:
                             dropped += left_out

@@ -21,7 +21,8 @@ ON_INTERRUPT = "finished images are kept; rerun the same command to continue"
 def add_arguments(parser) -> None:
     from ._options import non_negative_int
 
-    parser.add_argument("images", help="an image folder (JPEG, PNG, TIFF, BMP, PNM; sub-folders too) or a single image")
+    parser.add_argument("images",
+                        help="an image folder (JPEG, PNG, TIFF, BMP, PNM; sub-folders too) or a single image")
     parser.add_argument("-o", "--output", required=True,
                         help="output folder, outside IMAGES (created; files keep their names and sub-folders)")
     g = parser.add_argument_group("degradations (defaults leave the image unchanged)")
