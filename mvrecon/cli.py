@@ -16,7 +16,7 @@ import sys
 import threading
 
 from . import __version__
-from .errors import InputError
+from .errors import DiskFull, InputError
 from .progress import clear_line, set_enabled
 
 
@@ -115,8 +115,8 @@ def _run(argv) -> int:
     except OSError as exc:
         if exc.errno in (errno.ENOSPC, errno.EDQUOT):
             clear_line()
-            print(f"mvrecon: error: {exc.filename or 'writing the outputs'}: no space left on the disk; free some "
-                  "space and run the command again: what it did so far is kept", file=sys.stderr)
+            print(f"mvrecon: error: {exc.filename or 'writing the outputs'}: no space left on the disk; "
+                  f"{DiskFull.advice}", file=sys.stderr)
             return InputError.exit_code
         if not exc.filename:  # not about a path the user gave: a bug report needs the trace
             raise

@@ -133,18 +133,20 @@ def open_database(path):
 
     _check_sqlite(Path(path))
     folder = Path(path).resolve().parent
+    writable = os.access(folder, os.W_OK)
     pycolmap = _pycolmap()
-    if not os.access(folder, os.W_OK):  # pycolmap logs a warning and raises "No registered database factory..."
-        saved, pycolmap.logging.minloglevel = pycolmap.logging.minloglevel, pycolmap.logging.ERROR
-        try:
-            db = pycolmap.Database.open(str(path))
-        except RuntimeError:
-            raise InputError(f"{folder}: cannot write in this folder (read-only, or another user's), which "
-                             "opening its database needs; copy the folder, or choose another one") from None
-        finally:
-            pycolmap.logging.minloglevel = saved
-    else:
+    saved = pycolmap.logging.minloglevel
+    if not writable:  # pycolmap would log a warning, then raise "No registered database factory succeeded"
+        pycolmap.logging.minloglevel = pycolmap.logging.ERROR
+    try:
         db = pycolmap.Database.open(str(path))
+    except RuntimeError:
+        if writable:
+            raise
+        raise InputError(f"{folder}: cannot write in this folder (read-only, or another user's), which opening "
+                         "its database needs; copy the folder, or choose another one") from None
+    finally:
+        pycolmap.logging.minloglevel = saved
     try:
         yield db
     finally:

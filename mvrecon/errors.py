@@ -12,3 +12,5 @@ class InputError(Exception):
 
 class DiskFull(InputError):
     """No room left to write on: the run stops, and what it wrote so far is kept for the rerun."""
+
+    advice = "free some space and run the command again: what it did so far is kept"

@@ -50,32 +50,26 @@ class Workspace:
         itself (no lock file is left behind), which the kernel releases when the process ends, however it ends;
         nested blocks of one process share it. A folder that does not exist yet is not locked (nothing can be
         using it)."""
-        key = self.path.resolve()
-        if key in _held or not self.path.is_dir():
-            _held[key] = _held.get(key, 0) + 1
-            try:
-                yield self
-            finally:
-                _held[key] -= 1
-                if not _held[key]:
-                    del _held[key]
-            return
-        fd = os.open(self.path, os.O_RDONLY | os.O_DIRECTORY)
-        try:
+        key, fd = self.path.resolve(), None
+        if key not in _held and self.path.is_dir():
+            fd = os.open(self.path, os.O_RDONLY | os.O_DIRECTORY)
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
+                os.close(fd)
                 raise InputError(f"{self.path}: another mvrecon run is using this folder; wait for it to end, "
                                  "or choose another folder") from None
             except OSError:  # a file system without locks (some network or FUSE mounts): run unguarded
                 pass
-            _held[key] = 1
-            try:
-                yield self
-            finally:
-                del _held[key]
+        _held[key] = _held.get(key, 0) + 1
+        try:
+            yield self
         finally:
-            os.close(fd)  # closing the only descriptor releases the lock
+            _held[key] -= 1
+            if not _held[key]:
+                del _held[key]
+            if fd is not None:
+                os.close(fd)  # closing the only descriptor releases the lock
 
     def stages(self) -> dict:
         """{stage: {"hash": ..., "config": {...}}} in the order the stages were first run."""

@@ -36,7 +36,7 @@ def require_room(path, nbytes: int, spare: int = 32 << 20) -> None:
     free, wanted = stat.f_bavail * stat.f_frsize, int(nbytes) + spare
     if free < wanted:
         raise DiskFull(f"{path}: the disk is full ({free / 2**20:.1f} MB free, {wanted / 2**20:.0f} MB wanted to "
-                         "write on); free some space and run the command again: what it did so far is kept")
+                       f"write on); {DiskFull.advice}")
 
 
 def outermost_new_folder(path) -> Path | None:

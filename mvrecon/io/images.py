@@ -67,13 +67,13 @@ def visible_files(folder) -> list[str]:
     inside the image folder must not come back as input images on the next run."""
     folder = Path(folder)
     names = []
-    seen = {}  # (device, inode) -> the folder's first path: links are followed, but each folder is read once
+    # (device, inode) -> the folder's first path: links are followed, but each folder is read once
+    seen = {_identity(folder): folder}
     for root, dirs, files in os.walk(folder, followlinks=True):
         here = Path(root)
         skip = [d for d in dirs if not d.startswith(".") and any((here / d / m).exists() for m in OUTPUT_MARKS)]
         for d in skip:
             log.info("skipping %s: it holds the outputs of a run", here / d)
-        seen.setdefault(_identity(here), here)
         kept = []
         # real folders before links, so that a folder is named by its own path where it has one
         for d in sorted(dirs, key=lambda d: ((here / d).is_symlink(), d)):

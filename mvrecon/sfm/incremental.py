@@ -339,7 +339,7 @@ class IncrementalMapper:
         now, base = self.init_config.init_min_inliers, self.config.init_min_inliers
         relaxed = f" (relaxed from {base}, as no model could start)" if now != base else ""
         self.init_rejections = {i: f"its best pair ({self.names[r.image1]} / {self.names[r.image2]}) has "
-                                   f"{r.text}{relaxed if f'init_min_inliers {now}' in r.text else ''}"
+                                   f"{r.text}{relaxed if rejected_for_few_inliers(r) else ''}"
                                 for i, r in best.items()}
         if best:
             r = max(best.values(), key=lambda r: r.closeness)

@@ -200,8 +200,9 @@ def find_initial_pair(model, pairs_by_index, excluded, config: MapperConfig, tri
 
 
 def rejected_for_few_inliers(found) -> bool:
-    """Whether an `assess_pair` result is a rejection that a lower init_min_inliers could turn round."""
-    return isinstance(found, PairRejection) and found.closeness[0] in (_FEW_POSE_INLIERS, _FEW_POINTS)
+    """Whether a pair's `assess_pair` result or rejection is one that a lower init_min_inliers could turn
+    round."""
+    return isinstance(found, PairRejection) and found.closeness[0] in (_FEW_MATCHES, _FEW_POSE_INLIERS, _FEW_POINTS)
 
 
 def _candidates(pairs_by_index, excluded, config: MapperConfig) -> list:
