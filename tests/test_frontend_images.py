@@ -141,6 +141,46 @@ def test_bmp_and_pnm_are_read_and_cut_off_ones_skipped(tmp_path, caplog):
     assert read_image(tmp_path / "c.pgm").dtype == np.uint16 and np.array_equal(read_image(tmp_path / "c.pgm"), grey16)
 
 
+def _png_header_only(path, width, height):
+    """A valid PNG whose header claims `width` x `height` grey pixels, with one short row of data: enough for
+    every check that reads headers and chunk CRCs, without making gigabytes."""
+    import struct
+    import zlib
+
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    header = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(b"\0" * 9))
+                     + chunk(b"IEND", b""))
+
+
+def test_photos_over_pillows_bomb_limit_are_read_and_shrunk_for_sift(tmp_path, caplog):
+    """Pillow refuses images over 179 megapixels as "decompression bombs", so a stitched panorama or a 200 MP
+    photo was skipped with that message; COLMAP reads them. They are read now (SIFT works on them shrunk to
+    max_image_size, keypoints in the file's pixels); only what OpenCV cannot decode (over 2^30 pixels) is skipped,
+    saying so."""
+    import cv2
+
+    big = np.full((13400, 13500), 200, np.uint8)  # 180.9 megapixels
+    centres = [(2000, 3000), (9000, 7000), (12000, 11000)]  # (x, y) of dark blobs, 400 px across
+    for x, y in centres:
+        cv2.circle(big, (x, y), 200, 20, -1)
+    cv2.imwrite(str(tmp_path / "big.png"), big, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    del big
+    _png_header_only(tmp_path / "giant.png", 40000, 30000)
+    with caplog.at_level(logging.WARNING):
+        names, skipped = list_images(tmp_path)
+    assert names == ["big.png"] and list(skipped) == ["giant.png"]
+    assert "too large to decode (40000x30000, 1200 megapixels" in skipped["giant.png"]
+    assert not [r for r in caplog.records if "DecompressionBomb" in r.getMessage()]
+    image = read_image(tmp_path / "big.png")
+    assert image.shape == (13400, 13500)
+    keypoints, _ = extract_sift(image, SiftConfig(max_image_size=3200))
+    for x, y in centres:  # each blob found where it is in the full-size image (a shrunk pixel is 4.2 px)
+        assert np.min(np.hypot(keypoints[:, 0] - x, keypoints[:, 1] - y)) < 10
+
+
 def test_links_are_followed_but_a_loop_of_links_is_read_once(tmp_path, caplog):
     """A link back up the tree (`ln -s .. up`) made the listing walk the loop until the path grew too long:
     `features` ran for over a minute on 4 images. Each folder is now read once, by its first path."""

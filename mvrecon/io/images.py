@@ -39,6 +39,11 @@ _UNREAD_PHOTOS = {".heic": "HEIC", ".heif": "HEIF", ".avif": "AVIF", ".webp": "W
                   ".raf": "raw", ".orf": "raw", ".rw2": "raw", ".exr": "OpenEXR"}
 _UNCOMPRESSED = ("BMP", "DIB", "PPM")  # Pillow's names; decoding them is a copy, so it checks their length
 _ORIENTATION = 0x0112
+# A photo is the user's own, not an upload: Pillow's "decompression bomb" refusal of images over 179 megapixels
+# (stitched panoramas, aerial mosaics, 200 MP sensors; COLMAP reads them) is replaced by OpenCV's decoding limit,
+# which `image_problem` names; SIFT then works on them shrunk to --max-image-size.
+Image.MAX_IMAGE_PIXELS = None
+MAX_PIXELS = 1 << 30  # OpenCV's CV_IO_MAX_IMAGE_PIXELS: imdecode refuses larger images
 # Orientations 5-8 swap width and height.
 TRANSPOSED = {5, 6, 7, 8}
 
@@ -169,6 +174,9 @@ def image_problem(path: Path) -> str | None:
             return f"cut off or corrupt after its header ({type(exc).__name__}: {exc})"
     if w <= 0 or h <= 0:
         return f"empty image ({w}x{h})"
+    if w * h > MAX_PIXELS:
+        return (f"too large to decode ({w}x{h}, {w * h / 1e6:.0f} megapixels; the limit is "
+                f"{MAX_PIXELS / 1e6:.0f}): shrink it first")
     if jpeg:
         try:
             return _jpeg_problem(Path(path).read_bytes())
