@@ -22,6 +22,12 @@ from .io.images import ImageMeta
 CAMERA_MODES = ("auto", "single", "per-folder", "per-image")
 
 
+def report_entry(camera_id, model: str, width, height, params) -> dict:
+    """A camera as report.json lists it (COLMAP's parameter order), for either engine's model."""
+    return {"camera_id": int(camera_id), "model": model, "width": int(width), "height": int(height),
+            "params": [float(v) for v in params]}
+
+
 @dataclass(frozen=True)
 class CameraConfig:
     model: str = "SIMPLE_RADIAL"  # SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV or OPENCV_FISHEYE

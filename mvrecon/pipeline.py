@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from . import database as dbmod
-from .cameras import CameraConfig, group_cameras
+from .cameras import CameraConfig, group_cameras, report_entry
 from .config import bounded, config_hash, to_dict
 from .errors import DiskFull, InputError
 from .executor import StageClock, WorkerPool, blas_threads, default_workers
@@ -543,12 +543,8 @@ def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resu
 def camera_entries(model) -> list[dict]:
     """The cameras of a model's registered images with their final parameters (COLMAP's order), as report.json
     lists them: the refined intrinsics were only in sparse/N/cameras.bin."""
-    entries = []
-    for cid in np.unique(model.camera_of[model.registered]):
-        cam = model.cameras[int(cid)]
-        entries.append({"camera_id": int(cid), "model": cam.model, "width": int(cam.width),
-                        "height": int(cam.height), "params": [float(v) for v in cam.params]})
-    return entries
+    cams = [(cid, model.cameras[int(cid)]) for cid in np.unique(model.camera_of[model.registered])]
+    return [report_entry(cid, cam.model, cam.width, cam.height, cam.params) for cid, cam in cams]
 
 
 def _no_verified_pairs(ws: Workspace, corr, *, matched_by_mvrecon: bool) -> str:

@@ -486,12 +486,10 @@ def _fisheye_without_focal(cameras: dict) -> dict[int, str]:
 def _cameras(rec) -> list[dict]:
     """The cameras of a pycolmap model's registered images, as mvrecon's report.json lists them
     (`pipeline.camera_entries`)."""
-    entries = []
-    for cid in sorted({im.camera_id for im in rec.images.values() if im.has_pose}):
-        cam = rec.cameras[cid]
-        entries.append({"camera_id": int(cid), "model": cam.model.name, "width": int(cam.width),
-                        "height": int(cam.height), "params": [float(v) for v in cam.params]})
-    return entries
+    from ..cameras import report_entry
+
+    cams = [(cid, rec.cameras[cid]) for cid in sorted({im.camera_id for im in rec.images.values() if im.has_pose})]
+    return [report_entry(cid, cam.model.name, cam.width, cam.height, cam.params) for cid, cam in cams]
 
 
 def _pycolmap_version() -> str:
