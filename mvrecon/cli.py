@@ -2,10 +2,12 @@
 
 Each subcommand is a module in `mvrecon/commands/` with a docstring (its help line), an `ORDER` number (its
 place in `--help`), `add_arguments(parser)` and `run(args) -> int`; the module's name is the command's name
-(underscores become dashes). Command modules import heavy libraries inside `run`, so `mvrecon --help` stays fast.
+(underscores become dashes). `HOLDS_OUTPUT = True` makes the CLI hold its `-o` folder for the run, so that a
+second run into it stops in one line instead of breaking both. Command modules import heavy libraries inside `run`, so `mvrecon --help` stays fast.
 """
 
 import argparse
+import contextlib
 import errno
 import gc
 import importlib
@@ -17,6 +19,7 @@ import threading
 
 from . import __version__
 from .errors import DiskFull, InputError
+from .io.files import hold_folder
 from .progress import clear_line, set_enabled
 
 
@@ -106,8 +109,10 @@ def parse_args(argv=None) -> argparse.Namespace:
 def _run(argv) -> int:
     args = parse_args(argv)
     _setup_logging(args.verbose + args.global_verbose, args.quiet or args.global_quiet)
+    output = getattr(args, "output", None) if getattr(args._module, "HOLDS_OUTPUT", False) else None
     try:
-        return int(args._module.run(args) or 0)
+        with hold_folder(output) if output else contextlib.nullcontext():
+            return int(args._module.run(args) or 0)
     except InputError as exc:
         clear_line()
         print(f"mvrecon: error: {exc}", file=sys.stderr)

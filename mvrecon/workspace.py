@@ -7,17 +7,13 @@ the record of every stage recorded after it, because their results were built on
 the matching database tables (`begin_stage` returns the names of the stages it dropped).
 """
 
-import fcntl
-import os
-from contextlib import contextmanager
 from pathlib import Path
 
 from . import config as cfgmod
 from .errors import InputError
-from .io.files import read_json_object, write_json
+from .io.files import hold_folder, read_json_object, write_json
 
 REDO = "rerun with --overwrite to recompute, or use another workspace"  # what a refused stage config advises
-_held: dict[Path, int] = {}  # workspace -> how many nested `lock` blocks of this process hold it
 
 
 class Workspace:
@@ -43,33 +39,9 @@ class Workspace:
         self.path.mkdir(parents=True, exist_ok=True)
         return self
 
-    @contextmanager
     def lock(self):
-        """Hold the workspace for the block, against another mvrecon process: two runs writing one database
-        broke the second with a SQLite constraint error and a traceback. An exclusive `flock` on the folder
-        itself (no lock file is left behind), which the kernel releases when the process ends, however it ends;
-        nested blocks of one process share it. A folder that does not exist yet is not locked (nothing can be
-        using it)."""
-        key, fd = self.path.resolve(), None
-        if key not in _held and self.path.is_dir():
-            fd = os.open(self.path, os.O_RDONLY | os.O_DIRECTORY)
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                os.close(fd)
-                raise InputError(f"{self.path}: another mvrecon run is using this folder; wait for it to end, "
-                                 "or choose another folder") from None
-            except OSError:  # a file system without locks (some network or FUSE mounts): run unguarded
-                pass
-        _held[key] = _held.get(key, 0) + 1
-        try:
-            yield self
-        finally:
-            _held[key] -= 1
-            if not _held[key]:
-                del _held[key]
-            if fd is not None:
-                os.close(fd)  # closing the only descriptor releases the lock
+        """Hold the workspace for the block against another mvrecon process (`io.files.hold_folder`)."""
+        return hold_folder(self.path)
 
     def stages(self) -> dict:
         """{stage: {"hash": ..., "config": {...}}} in the order the stages were first run."""

@@ -510,3 +510,34 @@ def test_a_second_run_on_a_folder_in_use_is_refused_in_one_line(tmp_path, capsys
         holder.wait()
     assert main(["-q", "reconstruct", str(images), "-o", str(out)]) == 0
     assert main(["-q", "map", "-w", str(out), "--overwrite"]) == 0  # the lock of the run before is gone
+
+
+def test_every_command_writing_a_folder_holds_it_even_a_new_one(tmp_path, capsys):
+    """Two compares into one folder broke each other (one's COLMAP database "disk I/O error", the other's mvrecon
+    run refused): the commands that write an -o folder hold it for the run. A folder that did not exist is
+    created and held at once, so a second run started meanwhile is refused too, and removed again when the run
+    leaves it empty (a refused run leaves no folder behind)."""
+    import subprocess
+    import sys
+
+    images = textured_views(tmp_path / "images")
+    out = tmp_path / "new" / "report"
+    holder = subprocess.Popen([sys.executable, "-c", "import sys; from mvrecon.io.files import hold_folder\n"
+                               "with hold_folder(sys.argv[1]):\n print('held', flush=True); sys.stdin.readline()",
+                               str(out)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline() == "held\n" and out.is_dir()
+        for argv in (["compare", str(images), "-o", str(out)], ["study", str(images), "-o", str(out), "--noise", "5"],
+                     ["degrade", str(images), "-o", str(out), "--noise", "5"], ["demo", "-o", str(out)],
+                     ["scene", "make", "stereo_pair_small", "-o", str(out)], ["sem", str(images), "-o", str(out), "--estimate-tilts"],
+                     ["stereo", str(images / "view00.png"), str(images / "view01.png"), "-o", str(out)]):
+            assert main(["-q", *argv]) == 2, argv
+            assert capsys.readouterr().err == f"mvrecon: error: {out}: another mvrecon run is using this folder; " \
+                "wait for it to end, or choose another folder\n", argv
+    finally:
+        holder.communicate("done\n", timeout=30)
+    assert not (tmp_path / "new").exists()  # the holder made it, and removed it as it left it empty
+    assert main(["-q", "compare", str(images), "-o", str(out), "--gt", str(tmp_path / "missing")]) == 2
+    assert "ground truth not found" in capsys.readouterr().err and not (tmp_path / "new").exists()
+    assert main(["-q", "degrade", str(images), "-o", str(out), "--noise", "5"]) == 0
+    assert sorted(p.name for p in out.iterdir() if p.suffix == ".png") == sorted(p.name for p in images.iterdir())

@@ -15,6 +15,7 @@ folder or an IMC calibration/ folder. Writes REPORT/index.html (self-contained),
 """
 
 ORDER = 60
+HOLDS_OUTPUT = True  # its -o folder is held against a second run (`io.files.hold_folder`)
 ON_INTERRUPT = "finished runs are kept; rerun the same command to continue"
 
 

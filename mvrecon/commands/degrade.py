@@ -15,6 +15,7 @@ recorded in OUTPUT/.mvrecon-degrade.json; other settings need another output fol
 """
 
 ORDER = 60
+HOLDS_OUTPUT = True  # its -o folder is held against a second run (`io.files.hold_folder`)
 ON_INTERRUPT = "finished images are kept; rerun the same command to continue"
 
 

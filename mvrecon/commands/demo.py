@@ -15,6 +15,7 @@ Example:
 """
 
 ORDER = 1
+HOLDS_OUTPUT = True  # its -o folder is held against a second run (`io.files.hold_folder`)
 ON_INTERRUPT = "features, matches and the mapping snapshot are kept; rerun the same command to continue"
 
 SCENE = "object_orbit_small"

@@ -6,6 +6,7 @@ mvrecon scene make NAME -o DIR          render scene NAME (or a path to a .toml)
 """
 
 ORDER = 80
+HOLDS_OUTPUT = True  # its -o folder is held against a second run (`io.files.hold_folder`)
 ON_INTERRUPT = "the views rendered are kept; rerun the same command to continue"
 
 

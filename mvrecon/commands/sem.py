@@ -14,6 +14,7 @@ tilt of 90 deg or more either way are refused.
 """
 
 ORDER = 70
+HOLDS_OUTPUT = True  # its -o folder is held against a second run (`io.files.hold_folder`)
 
 
 def add_arguments(parser) -> None:

@@ -13,6 +13,7 @@ with the same inputs and settings (SIFT matches and F, each method's disparity, 
 """
 
 ORDER = 60
+HOLDS_OUTPUT = True  # its -o folder is held against a second run (`io.files.hold_folder`)
 ON_INTERRUPT = ("the matches, disparities and figures done are kept in the output folder; rerun the same command "
                 "to continue")
 

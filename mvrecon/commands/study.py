@@ -12,6 +12,7 @@ Example:
 """
 
 ORDER = 61
+HOLDS_OUTPUT = True  # its -o folder is held against a second run (`io.files.hold_folder`)
 ON_INTERRUPT = "finished cells are kept; rerun the same command to continue"
 
 

@@ -4,13 +4,17 @@ An interrupted run must leave the old file or the new one, never part of one: a 
 scene.json, record or degraded image would be taken for a finished one by the next run, or refused as damaged.
 """
 
+import fcntl
 import json
 import os
 import shutil
 from contextlib import contextmanager
 from pathlib import Path
 
-from ..errors import DiskFull
+from ..errors import DiskFull, InputError
+
+_held: dict[Path, int] = {}  # folder -> how many nested `hold_folder` blocks of this process hold it
+_made: dict[Path, Path] = {}  # folder held -> the outermost folder its `hold_folder` created
 
 
 def replace_whole(dst, write) -> None:
@@ -40,11 +44,11 @@ def require_room(path, nbytes: int, spare: int = 32 << 20) -> None:
 
 
 def outermost_new_folder(path) -> Path | None:
-    """The outermost folder that `Path(path).mkdir(parents=True)` would create (None when `path` exists): what a
-    run that fails must remove to leave nothing behind."""
+    """The outermost folder that `Path(path).mkdir(parents=True)` would create (None when `path` exists, unless
+    this run's `hold_folder` made it): what a run that fails must remove to leave nothing behind."""
     top = Path(path)
-    if top.exists():
-        return None
+    if top.exists():  # made by the `hold_folder` this run is inside, or there before the run
+        return _made.get(top.resolve())
     while not top.parent.exists() and top.parent != top:
         top = top.parent
     return top
@@ -64,6 +68,60 @@ def made_folder(path, removed_on=BaseException, within=None):
         if created is not None:
             shutil.rmtree(created, ignore_errors=True)
         raise
+
+
+@contextmanager
+def hold_folder(path):
+    """Hold output folder `path` for the block, against another mvrecon process: two runs writing one database
+    broke the second with a SQLite constraint error, and two compares into one folder each broke the other's runs.
+    An exclusive `flock` on the folder itself (no lock file is left behind), which the kernel releases when the
+    process ends, however it ends; nested blocks of one process share it. A missing folder is created first (so
+    that a second run started meanwhile is refused too) and removed afterwards if the block left it empty. A path
+    that cannot be a folder is left to the command to report."""
+    path = Path(path)
+    created = outermost_new_folder(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        key = path.resolve()
+    except OSError:  # a file in the way, no rights: the command's own checks say so
+        key = None
+    if key is None:
+        yield path
+        return
+    fd = None
+    if key in _held:  # an enclosing block of this process holds it (and owns what was created)
+        created = None
+    else:
+        fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise InputError(f"{path}: another mvrecon run is using this folder; wait for it to end, or choose "
+                             "another folder") from None
+        except OSError:  # a file system without locks (some network or FUSE mounts): run unguarded
+            pass
+    _held[key] = _held.get(key, 0) + 1
+    if created is not None:
+        _made[key] = created
+    try:
+        yield path
+    finally:
+        _held[key] -= 1
+        if not _held[key]:
+            del _held[key]
+        if fd is not None:
+            os.close(fd)  # closing the only descriptor releases the lock
+        if created is not None:  # what this call made, if the block left it empty (or removed it)
+            del _made[key]
+            for folder in (path, *path.parents):
+                try:
+                    if folder.exists():
+                        folder.rmdir()
+                except OSError:
+                    break
+                if folder == created:
+                    break
 
 
 def write_json(path, data, **dumps) -> None:
