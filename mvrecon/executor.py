@@ -166,7 +166,7 @@ class WorkerPool:
 def _openblas_controls():
     """(get, set) thread-count functions of every OpenBLAS this process has loaded (numpy's, scipy's)."""
     try:
-        with open("/proc/self/maps") as fh:
+        with open("/proc/self/maps", errors="surrogateescape") as fh:  # mapped files may have any bytes in their names
             paths = sorted({line.split()[-1] for line in fh if "openblas" in line.lower() and "/" in line})
     except OSError:
         return []

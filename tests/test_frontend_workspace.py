@@ -1,5 +1,6 @@
 """Workspace behaviour: resume after an interruption, refusal of a changed config, bad input through the CLI."""
 
+import json
 import logging
 
 import numpy as np
@@ -510,6 +511,26 @@ def test_a_second_run_on_a_folder_in_use_is_refused_in_one_line(tmp_path, capsys
         holder.wait()
     assert main(["-q", "reconstruct", str(images), "-o", str(out)]) == 0
     assert main(["-q", "map", "-w", str(out), "--overwrite"]) == 0  # the lock of the run before is gone
+
+
+def test_folder_and_file_names_that_are_not_utf8_are_run_or_named(tmp_path, caplog):
+    """Names from an old Latin-1 archive: an image named so crashed the run with a pybind11 cast error (pycolmap
+    takes UTF-8 names only), and a workspace folder named so crashed matching (reading /proc/self/maps as UTF-8).
+    The folders work; such images are skipped by name with the reason, the others reconstructed."""
+    import os
+    import shutil
+
+    images = textured_views(tmp_path / os.fsdecode(b"caf\xe9"))
+    for i in (0, 1):
+        shutil.copy(images / f"view0{i}.png", images / os.fsdecode(b"\xe9t\xe9_%d.png" % i))
+    out = tmp_path / os.fsdecode(b"r\xe9sultat")
+    with caplog.at_level(logging.WARNING):
+        assert main(["-q", "reconstruct", str(images), "-o", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    status = {name: im["status"] for name, im in report["images"].items()}
+    assert sorted(status) == ["\\xe9t\\xe9_0.png", "\\xe9t\\xe9_1.png"] + [f"view{i:02d}.png" for i in range(6)]
+    assert [status[f"view{i:02d}.png"] for i in range(6)] == ["registered"] * 6
+    assert sum("\\xe9t\\xe9_0.png: its name is not UTF-8 text" in r.getMessage() for r in caplog.records) == 1
 
 
 def test_every_command_writing_a_folder_holds_it_even_a_new_one(tmp_path, capsys):

@@ -103,6 +103,11 @@ def _identity(path: Path):
         return str(path)
 
 
+def printable_name(name: str) -> str:
+    """`name` with the bytes that are not UTF-8 (which Python keeps as surrogates) written as \\xNN escapes."""
+    return name.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+
+
 def list_images(folder) -> tuple[list[str], dict[str, str]]:
     """Image names (POSIX, relative to `folder`, sorted) and the skipped files (name -> reason)."""
     folder = Path(folder)
@@ -114,14 +119,20 @@ def list_images(folder) -> tuple[list[str], dict[str, str]]:
     for name in visible_files(folder):
         path = folder / name
         suffix = path.suffix.lower()
+        shown = printable_name(name)
         if suffix not in IMAGE_EXTENSIONS:
             kind = _UNREAD_PHOTOS.get(suffix)
             if kind:
-                photos.setdefault(kind, []).append(name)
-                skipped[name] = f"a {kind} image: not read; convert it to {FORMATS}"
+                photos.setdefault(kind, []).append(shown)
+                skipped[shown] = f"a {kind} image: not read; convert it to {FORMATS}"
             else:
-                non_images.append(name)
-                skipped[name] = f"not a {FORMATS} file"
+                non_images.append(shown)
+                skipped[shown] = f"not a {FORMATS} file"
+            continue
+        if shown != name:  # pycolmap cannot take the name (a Latin-1 name from an old archive, say)
+            log.warning("skipping %s: its name is not UTF-8 text, which COLMAP's database and models store; "
+                        "rename it", folder / shown)
+            skipped[shown] = "name not UTF-8 text; rename it"
             continue
         reason = image_problem(path)
         if reason:
