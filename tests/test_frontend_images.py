@@ -10,7 +10,7 @@ from mvrecon import config as cfgmod
 from mvrecon.cameras import CameraConfig, focal_prior, group_cameras, parse_camera_params
 from mvrecon.errors import InputError
 from mvrecon.features.sift import SiftConfig, extract_sift
-from mvrecon.io.images import image_metadata, list_images, read_image
+from mvrecon.io.images import image_metadata, list_images, read_image, write_image
 from mvrecon.matching.pairs import select_pairs
 from mvrecon.pipeline import FrontendConfig
 
@@ -179,6 +179,20 @@ def test_photos_over_pillows_bomb_limit_are_read_and_shrunk_for_sift(tmp_path, c
     keypoints, _ = extract_sift(image, SiftConfig(max_image_size=3200))
     for x, y in centres:  # each blob found where it is in the full-size image (a shrunk pixel is 4.2 px)
         assert np.min(np.hypot(keypoints[:, 0] - x, keypoints[:, 1] - y)) < 10
+
+
+def test_images_are_written_and_read_in_a_folder_whose_name_is_not_utf8(tmp_path):
+    """OpenCV's imwrite and imread crash the process (SIGSEGV) on such a path: a study's contact sheet, a
+    stereo run's rectified images and a degraded 16-bit colour TIFF went through them. They go through bytes."""
+    import os
+
+    folder = tmp_path / os.fsdecode(b"r\xe9sultats")
+    folder.mkdir()
+    rgb16 = pattern().astype(np.uint16) * 257
+    for suffix in (".png", ".tif"):
+        write_image(folder / f"a{suffix}", rgb16[:, :, ::-1])
+        back = read_image(folder / f"a{suffix}")
+        assert back.dtype == np.uint16 and np.array_equal(back, rgb16)
 
 
 def test_links_are_followed_but_a_loop_of_links_is_read_once(tmp_path, caplog):

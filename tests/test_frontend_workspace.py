@@ -516,7 +516,8 @@ def test_a_second_run_on_a_folder_in_use_is_refused_in_one_line(tmp_path, capsys
 def test_folder_and_file_names_that_are_not_utf8_are_run_or_named(tmp_path, caplog):
     """Names from an old Latin-1 archive: an image named so crashed the run with a pybind11 cast error (pycolmap
     takes UTF-8 names only), and a workspace folder named so crashed matching (reading /proc/self/maps as UTF-8).
-    The folders work; such images are skipped by name with the reason, the others reconstructed."""
+    The folders work (a compare's HTML report names them with \\xNN escapes); such images are skipped by name
+    with the reason, the others reconstructed."""
     import os
     import shutil
 
@@ -531,6 +532,10 @@ def test_folder_and_file_names_that_are_not_utf8_are_run_or_named(tmp_path, capl
     assert sorted(status) == ["\\xe9t\\xe9_0.png", "\\xe9t\\xe9_1.png"] + [f"view{i:02d}.png" for i in range(6)]
     assert [status[f"view{i:02d}.png"] for i in range(6)] == ["registered"] * 6
     assert sum("\\xe9t\\xe9_0.png: its name is not UTF-8 text" in r.getMessage() for r in caplog.records) == 1
+    report_dir = tmp_path / os.fsdecode(b"compar\xe9")  # the HTML names the models' folders, escaped
+    assert main(["-q", "compare", "--models", str(out / "sparse" / "0"), str(out / "sparse" / "0"),
+                 "-o", str(report_dir)]) == 0
+    assert "r\\xe9sultat/sparse/0" in (report_dir / "index.html").read_text(encoding="utf-8")
 
 
 def test_every_command_writing_a_folder_holds_it_even_a_new_one(tmp_path, capsys):

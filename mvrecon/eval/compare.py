@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..io.files import printable_name
 from ..io.images import IMAGE_EXTENSIONS, list_images
 from . import metrics as M
 from .runners import (RunOptions, RunResult, load_run, refuse_other_settings, run_colmap, run_colmap_on_database,
@@ -166,7 +167,8 @@ def compare_models(paths, gt=None, labels=None, config: CompareConfig = CompareC
             raise InputError(f"{path}: no such folder")
         else:
             raise InputError(f"{path}: not a COLMAP model, a sparse/ folder or a run folder with report.json")
-        label = labels[k] if labels else (run.engine if run.report else _folder_label(path))
+        # the label names the engine in the table, the plots and the CSV: in printable text
+        label = printable_name(labels[k] if labels else (run.engine if run.report else _folder_label(path)))
         while label in used:
             label += "'"
         used.add(label)

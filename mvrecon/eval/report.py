@@ -9,7 +9,7 @@ import csv
 import html
 from pathlib import Path
 
-from ..io.files import write_json
+from ..io.files import printable_name, write_json
 from . import figures
 
 INTEGER_METRICS = {"registered", "components", "points", "verified_pairs", "alignment_inliers"}
@@ -40,7 +40,7 @@ def write_report(comparison, report_dir) -> Path:
     write_json(report_dir / "metrics.json", m, indent=1, allow_nan=False)  # strict JSON: no NaN
     write_csv(m, report_dir / "metrics.csv")
     page = report_dir / "index.html"
-    page.write_text(render_html(comparison), encoding="utf-8")
+    page.write_text(printable_name(render_html(comparison)), encoding="utf-8")  # a folder's name may not be UTF-8
     return page
 
 

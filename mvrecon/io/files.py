@@ -124,6 +124,11 @@ def hold_folder(path):
                     break
 
 
+def printable_name(name: str) -> str:
+    """`name` (or any text holding file names) with the bytes that are not UTF-8 (which Python keeps as surrogates) written as \\xNN escapes."""
+    return name.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+
+
 def write_json(path, data, **dumps) -> None:
     """`data` as JSON text (json.dumps options in `dumps`) in `path`, whole or not at all."""
     replace_whole(path, lambda tmp: tmp.write_text(json.dumps(data, **dumps) + "\n"))

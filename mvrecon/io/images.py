@@ -27,6 +27,7 @@ import numpy as np
 from PIL import ExifTags, Image
 
 from ..errors import InputError
+from .files import printable_name
 
 log = logging.getLogger(__name__)
 
@@ -101,11 +102,6 @@ def _identity(path: Path):
         return st.st_dev, st.st_ino
     except OSError:  # a broken link: its own path stands for it
         return str(path)
-
-
-def printable_name(name: str) -> str:
-    """`name` with the bytes that are not UTF-8 (which Python keeps as surrogates) written as \\xNN escapes."""
-    return name.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
 
 
 def list_images(folder) -> tuple[list[str], dict[str, str]]:
@@ -326,6 +322,17 @@ def read_image(path, *, upright: bool = True) -> np.ndarray:
         else:
             image = cv2.cvtColor(image[:, :, :3], cv2.COLOR_BGR2RGB)
     return apply_orientation(image, _orientation(path)) if upright else image
+
+
+def write_image(path, image: np.ndarray, params=()) -> None:
+    """`cv2.imwrite` (BGR or grey pixels; the format from the suffix) through bytes: OpenCV's own imwrite and
+    imread crash the process (SIGSEGV) on a path that is not UTF-8."""
+    import cv2
+
+    ok, data = cv2.imencode(Path(path).suffix, image, list(params))
+    if not ok:
+        raise InputError(f"{path}: OpenCV could not encode the image")
+    Path(path).write_bytes(data.tobytes())
 
 
 def _orientation(path: Path) -> int:

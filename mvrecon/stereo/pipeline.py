@@ -16,6 +16,7 @@ from ..errors import InputError
 from ..io.files import made_folder, replace_whole, write_json
 from ..geometry.fundamental import RansacConfig, ransac_fundamental, sampson_distance
 from ..geometry.rectification import apply_homography, calibrated_rectification, fit_to_canvas, hartley_rectification
+from ..io.images import read_image, write_image
 from ..io.pfm import read_pfm, write_pfm
 from ..io.stage_cache import Stages, code_digest, digest
 from .best import BestConfig, best_disparity
@@ -125,8 +126,6 @@ def load_mask(path) -> np.ndarray:
 
 
 def read_pair(left_path, right_path) -> tuple[np.ndarray, np.ndarray]:
-    from ..io.images import read_image
-
     left, right = read_image(left_path), read_image(right_path)
     if left.shape[:2] != right.shape[:2]:
         raise InputError(f"{right_path}: size {right.shape[1]}x{right.shape[0]} differs from the left image's "
@@ -407,7 +406,7 @@ def _run(config: StereoConfig, left_path, right_path, out: Path, left, right, ca
                                        "max": float(dy.max())}
     timings = {"matching_and_F": stages.seconds("matches"), "rectification": time.perf_counter() - t0}
     for name, image in (("rectified_left.png", rect_l), ("rectified_right.png", rect_r)):
-        replace_whole(out / name, lambda tmp: cv2.imwrite(str(tmp), _bgr(image)))
+        replace_whole(out / name, lambda tmp: write_image(tmp, _bgr(image)))
     figure("rectified_pair.png", digest(rect_l, rect_r), lambda path: figures.rectified_figure(path, rect_l, rect_r))
 
     dmin, num = search_range(config, calib, p1[:, 0] - p2[:, 0], nonnegative=camera is None)
@@ -482,8 +481,6 @@ def _write_disparity_png(path: Path, disparity) -> bool:
     """KITTI's 16-bit disparity PNG: round(256 d), 0 = hole (so d = 0, a point at infinity, reads as one too).
     Written when every disparity fits (0 <= d < 256); a calibrated rectification can give negative ones, which
     only the PFM holds. Returns whether it was written."""
-    import cv2
-
     finite = np.isfinite(disparity)
     values = disparity[finite]
     if values.size and (values.min() < 0 or values.max() >= 65535 / 256):
@@ -492,7 +489,7 @@ def _write_disparity_png(path: Path, disparity) -> bool:
         return False
     png = np.zeros(disparity.shape, np.uint16)
     png[finite] = np.round(256 * values).astype(np.uint16)
-    replace_whole(path, lambda tmp: cv2.imwrite(str(tmp), png))
+    replace_whole(path, lambda tmp: write_image(tmp, png))
     return True
 
 

@@ -35,7 +35,7 @@ from PIL import Image
 
 from ..errors import InputError
 from ..io.files import read_json_object, replace_whole, write_json
-from ..io.images import FORMATS, IMAGE_EXTENSIONS, image_problem, list_images
+from ..io.images import FORMATS, IMAGE_EXTENSIONS, image_problem, list_images, write_image
 
 log = logging.getLogger(__name__)
 
@@ -296,7 +296,7 @@ def _write(path: Path, pixels: np.ndarray, src: Path, exif: bytes | None, jpeg_q
         else:
             if len(tags):
                 log.warning("%s: 16-bit colour TIFF written without its metadata tags", src.name)
-            cv2.imwrite(str(path), pixels)
+            write_image(path, pixels)
 
 
 def degrade_image(src: Path, dst: Path, deg: Degradation, seed: int = 0, name: str | None = None) -> None:

@@ -9,6 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ..io.images import read_image
 from .grid import AXES, CLEAN, Cell, Grid
 
 PLOTTED = (("registered_pct", "registered images (%)"), ("auc@1", "relative-pose AUC@1"),
@@ -69,13 +70,12 @@ def metric_plots(rows: list[dict], grid: Grid, out_dir) -> list[tuple[str, Path]
     return written
 
 
-def _to_display(img: np.ndarray) -> np.ndarray:
-    """8-bit RGB for display, whatever the file's depth and channels."""
+def _display(path) -> np.ndarray:
+    """An image file as 8-bit RGB for display, whatever its depth and channels."""
+    img = read_image(path)
     if img.dtype == np.uint16:
         img = (img / 257.0).round().astype(np.uint8)
-    if img.ndim == 2:
-        return np.dstack([img] * 3)
-    return cv2.cvtColor(img[..., :3], cv2.COLOR_BGR2RGB)
+    return np.dstack([img] * 3) if img.ndim == 2 else img
 
 
 def detailed_window(img: np.ndarray, size: int) -> tuple[int, int]:
@@ -108,7 +108,7 @@ def contact_sheet(folders: dict, grid: Grid, path, crop: int = 160, example: str
         names, _ = list_images(folders[CLEAN])
     names = [n for n in names if all((Path(f) / n).is_file() for f in folders.values())] or list(names)
     name = example if example in names else names[len(names) // 2]
-    clean = _to_display(cv2.imread(str(Path(folders[CLEAN]) / name), cv2.IMREAD_UNCHANGED))
+    clean = _display(Path(folders[CLEAN]) / name)
     crop = min(crop, *clean.shape[:2])
     x0, y0 = detailed_window(clean, crop)
     rows = grid.axes()
@@ -121,7 +121,7 @@ def contact_sheet(folders: dict, grid: Grid, path, crop: int = 160, example: str
             panel.axis("off")
             if c >= len(cells):
                 continue
-            img = _to_display(cv2.imread(str(Path(folders[cells[c].key]) / name), cv2.IMREAD_UNCHANGED))
+            img = _display(Path(folders[cells[c].key]) / name)
             sx, sy = img.shape[1] / clean.shape[1], img.shape[0] / clean.shape[0]
             x, y = int(round(x0 * sx)), int(round(y0 * sy))
             w, h = max(1, int(round(crop * sx))), max(1, int(round(crop * sy)))

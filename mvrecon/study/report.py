@@ -6,6 +6,7 @@ import math
 from datetime import datetime, timezone
 from pathlib import Path
 
+from ..io.files import printable_name
 from .grid import AXES
 
 TABLE_COLUMNS = (("engine", "engine"), ("degradation", "degradation"), ("level", "level"),
@@ -91,5 +92,5 @@ def write_report(path, config, grid, rows: list[dict], verdicts: dict, plots: li
                "Poisson noise, Gaussian noise, gamma, sharpen, JPEG (see <code>mvrecon degrade --help</code>).</p>"
                "</body></html>")
     path = Path(path)
-    path.write_text("\n".join(out), encoding="utf-8")
+    path.write_text(printable_name("\n".join(out)), encoding="utf-8")  # a folder's name may not be UTF-8
     return path
