@@ -7,10 +7,12 @@ second run into it stops in one line instead of breaking both. Command modules i
 """
 
 import argparse
+import codecs
 import contextlib
 import errno
 import gc
 import importlib
+import io
 import logging
 import pkgutil
 import signal
@@ -82,7 +84,23 @@ def _interrupted(module) -> int:
     return 130
 
 
+def _escape_undecodable(exc):
+    """Codec error handler: a file name's bytes that are not UTF-8 (kept by Python as surrogates) printed as \\xNN,
+    as the log lines name them (`io.files.printable_name`); a UTF-8 terminal's strict stdout raised instead."""
+    if not isinstance(exc, UnicodeEncodeError):
+        raise exc
+    text = exc.object[exc.start:exc.end]
+    return "".join(f"\\x{ord(c) - 0xDC00:02x}" if 0xDC80 <= ord(c) <= 0xDCFF else f"\\u{ord(c):04x}"
+                   for c in text), exc.end
+
+
+codecs.register_error("mvrecon-escape", _escape_undecodable)
+
+
 def main(argv=None) -> int:
+    for stream in (sys.stdout, sys.stderr):
+        if isinstance(stream, io.TextIOWrapper):
+            stream.reconfigure(errors="mvrecon-escape")
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGINT, _on_sigint) if in_main_thread else None
     _interrupt.clear()

@@ -513,7 +513,7 @@ def test_a_second_run_on_a_folder_in_use_is_refused_in_one_line(tmp_path, capsys
     assert main(["-q", "map", "-w", str(out), "--overwrite"]) == 0  # the lock of the run before is gone
 
 
-def test_folder_and_file_names_that_are_not_utf8_are_run_or_named(tmp_path, caplog):
+def test_folder_and_file_names_that_are_not_utf8_are_run_or_named(tmp_path, caplog, capsys):
     """Names from an old Latin-1 archive: an image named so crashed the run with a pybind11 cast error (pycolmap
     takes UTF-8 names only), and a workspace folder named so crashed matching (reading /proc/self/maps as UTF-8).
     The folders work (a compare's HTML report names them with \\xNN escapes); such images are skipped by name
@@ -536,6 +536,8 @@ def test_folder_and_file_names_that_are_not_utf8_are_run_or_named(tmp_path, capl
     assert main(["-q", "compare", "--models", str(out / "sparse" / "0"), str(out / "sparse" / "0"),
                  "-o", str(report_dir)]) == 0
     assert "r\\xe9sultat/sparse/0" in (report_dir / "index.html").read_text(encoding="utf-8")
+    # printed the same way on a strict UTF-8 stdout (a desktop's locale), which raised UnicodeEncodeError
+    assert f"report: {tmp_path}/compar\\xe9/index.html\n" in capsys.readouterr().out
 
 
 def test_every_command_writing_a_folder_holds_it_even_a_new_one(tmp_path, capsys):
