@@ -213,6 +213,23 @@ def test_links_are_followed_but_a_loop_of_links_is_read_once(tmp_path, caplog):
         "folder as" in warned[1]
 
 
+def test_a_broken_link_or_a_pipe_named_as_an_image_is_named_in_a_warning(tmp_path, caplog):
+    """They were left out without a word, so an image was missing from the run with no reason given (a pipe
+    is never opened: reading one would wait for ever)."""
+    import os
+
+    Image.fromarray(pattern()).save(tmp_path / "a.png")
+    (tmp_path / "b.png").symlink_to(tmp_path / "moved" / "b.png")
+    os.mkfifo(tmp_path / "c.jpg")
+    (tmp_path / "notes").symlink_to(tmp_path / "gone.txt")  # not named as an image: not worth a line
+    with caplog.at_level(logging.WARNING):
+        names, _ = list_images(tmp_path)
+    assert names == ["a.png"]
+    warned = sorted(r.getMessage() for r in caplog.records)
+    assert warned == [f"skipping {tmp_path}/b.png: a link to {tmp_path}/moved/b.png, which does not exist",
+                      f"skipping {tmp_path}/c.jpg: not a regular file (a pipe, socket or device)"]
+
+
 def test_bad_folders_raise_input_errors(tmp_path):
     with pytest.raises(InputError, match="no such folder"):
         list_images(tmp_path / "missing")

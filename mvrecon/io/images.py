@@ -91,8 +91,15 @@ def visible_files(folder) -> list[str]:
                 continue
             kept.append(d)
         dirs[:] = kept
-        names += [(here / f).relative_to(folder).as_posix() for f in files
-                  if not f.startswith(".") and (here / f).is_file()]
+        for f in files:
+            path = here / f
+            if f.startswith("."):
+                continue
+            if path.is_file():
+                names.append(path.relative_to(folder).as_posix())
+            elif path.suffix.lower() in IMAGE_EXTENSIONS:  # named as an image, yet nothing to read: say why
+                log.warning("skipping %s: %s", path, f"a link to {os.readlink(path)}, which does not exist"
+                            if path.is_symlink() else "not a regular file (a pipe, socket or device)")
     return sorted(names, key=lambda n: PurePosixPath(n).parts)
 
 
