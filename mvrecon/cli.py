@@ -21,6 +21,7 @@ import threading
 
 from . import __version__
 from .errors import DiskFull, InputError
+from .interrupts import STOPPING, keep_handlers_after_import
 from .io.files import hold_folder
 from .progress import clear_line, set_enabled
 
@@ -69,19 +70,25 @@ def _setup_logging(verbose: int, quiet: bool) -> None:
 
 
 _interrupt = threading.Event()
+_signal_received: list[int] = []  # the stopping signal received, if any
 
 
-def _on_sigint(signum, frame):
+def _on_stop_signal(signum, frame):
+    """Ctrl-C, or SIGTERM (`timeout`, `kill`, a batch scheduler): the run stops the same way."""
     _interrupt.set()
+    _signal_received[:] = [signum]
     raise KeyboardInterrupt
 
 
 def _interrupted(module) -> int:
-    """Exit 130 with one line; the command says what a rerun continues from (its ON_INTERRUPT), if anything."""
+    """Exit 130 (Ctrl-C) or 143 (SIGTERM) with one line; the command says what a rerun continues from (its
+    ON_INTERRUPT), if anything."""
     clear_line()
     hint = getattr(module, "ON_INTERRUPT", "")
-    print(f"mvrecon: interrupted{'; ' + hint if hint else ''}", file=sys.stderr)
-    return 130
+    terminated = _signal_received == [signal.SIGTERM]
+    print(f"mvrecon: {'terminated (SIGTERM)' if terminated else 'interrupted'}{'; ' + hint if hint else ''}",
+          file=sys.stderr)
+    return 143 if terminated else 130
 
 
 def _escape_undecodable(exc):
@@ -102,15 +109,17 @@ def main(argv=None) -> int:
         if isinstance(stream, io.TextIOWrapper):
             stream.reconfigure(errors="mvrecon-escape")
     in_main_thread = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGINT, _on_sigint) if in_main_thread else None
+    previous = {s: signal.signal(s, _on_stop_signal) for s in STOPPING} if in_main_thread else {}
+    keep_handlers_after_import("pycolmap")
     _interrupt.clear()
+    _signal_received.clear()
     try:
         return _run(argv)
     except KeyboardInterrupt:  # before a command was chosen (while the parser imports the command modules)
         return _interrupted(None)
     finally:
-        if in_main_thread:
-            signal.signal(signal.SIGINT, previous)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
 def parse_args(argv=None) -> argparse.Namespace:

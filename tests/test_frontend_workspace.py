@@ -162,6 +162,37 @@ def test_ctrl_c_inside_a_database_unit_waits_for_its_end(tmp_path):
         assert dbmod.has_features(db, image_id) and dbmod.num_keypoints(db, image_id) == 5
 
 
+def test_sigterm_stops_a_run_as_ctrl_c_does_and_the_rerun_continues(tmp_path):
+    """SIGTERM (`timeout`, `kill`, a batch scheduler) met glog's failure handler, which pycolmap installs on
+    import: a 30-line C stack dump, as if mvrecon had crashed, and death by the signal. It now stops the run as
+    Ctrl-C does: one line, exit code 143, the work done kept. SIGTERM here arrives as matching starts."""
+    import subprocess
+    import sys
+
+    images = textured_views(tmp_path / "images")
+    out = tmp_path / "run"
+    script = """
+import os, signal, sys
+import mvrecon.pipeline as pipeline
+real = pipeline.match
+def match(*args, **kwargs):
+    os.kill(os.getpid(), signal.SIGTERM)
+    return real(*args, **kwargs)
+pipeline.match = match
+from mvrecon.cli import main
+sys.exit(main(["-q", "reconstruct", sys.argv[1], "-o", sys.argv[2]]))
+"""
+    done = subprocess.run([sys.executable, "-c", script, str(images), str(out)], capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 143 and "Aborted" not in done.stderr
+    assert done.stderr.splitlines() == ["mvrecon: terminated (SIGTERM); features and matches done are kept; rerun "
+                                        "the same command to continue, with --resume to continue mapping from its "
+                                        "last snapshot too"]
+    with dbmod.open_database(out / "database.db") as db:
+        assert sum(dbmod.has_features(db, i) for i in dbmod.read_images(db)) == 6
+    assert main(["-q", "reconstruct", str(images), "-o", str(out)]) == 0
+
+
 def test_parallel_extraction_numbers_images_in_name_order(tmp_path):
     """Image ids (and so the mapper's order and its models) must not depend on which worker finishes first:
     the first image is made much larger, so it finishes last."""
