@@ -14,6 +14,7 @@ import gc
 import importlib
 import io
 import logging
+import os
 import pkgutil
 import signal
 import sys
@@ -139,11 +140,19 @@ def _run(argv) -> int:
     output = getattr(args, "output", None) if getattr(args._module, "HOLDS_OUTPUT", False) else None
     try:
         with hold_folder(output) if output else contextlib.nullcontext():
-            return int(args._module.run(args) or 0)
+            code = int(args._module.run(args) or 0)
+        sys.stdout.flush()  # here, where a reader that has gone is handled, not at the interpreter's exit
+        return code
     except InputError as exc:
         clear_line()
         print(f"mvrecon: error: {exc}", file=sys.stderr)
         return exc.exit_code
+    except BrokenPipeError:  # `mvrecon ... | head`: the reader has gone, and nothing is left to say
+        try:  # the exit's flush of stdout would raise again
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (OSError, ValueError):
+            pass
+        return 128 + signal.SIGPIPE
     except OSError as exc:
         if exc.errno in (errno.ENOSPC, errno.EDQUOT):
             clear_line()

@@ -496,6 +496,23 @@ def test_scene_command_lists_and_reports_errors(capsys, tmp_path):
     assert "no such scene" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("unbuffered", ["", "1"])
+def test_output_piped_to_a_reader_that_stops_early_ends_quietly(unbuffered):
+    """`mvrecon scene list | head -1` ended in a BrokenPipeError traceback and exit code 1 (or, with stdout
+    buffered, "Exception ignored ... BrokenPipeError" and exit code 120); now it ends as Unix tools do when the
+    reader has gone: nothing on stderr, exit code 141 (128 + SIGPIPE). The reader here is gone before the
+    listing is written."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"} | {"PYTHONUNBUFFERED": unbuffered}
+    proc = subprocess.Popen([sys.executable, "-m", "mvrecon.cli", "scene", "list"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, env=env)
+    proc.stdout.close()
+    assert proc.wait(timeout=60) == 141 and proc.stderr.read() == b""
+
+
 def test_meshes_load_from_ply_files(tmp_path):
     import open3d as o3d
 
