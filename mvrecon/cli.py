@@ -3,7 +3,8 @@
 Each subcommand is a module in `mvrecon/commands/` with a docstring (its help line), an `ORDER` number (its
 place in `--help`), `add_arguments(parser)` and `run(args) -> int`; the module's name is the command's name
 (underscores become dashes). `HOLDS_OUTPUT = True` makes the CLI hold its `-o` folder for the run, so that a
-second run into it stops in one line instead of breaking both. Command modules import heavy libraries inside `run`, so `mvrecon --help` stays fast.
+second run into it stops in one line instead of breaking both. Command modules import heavy libraries inside
+`run`, so `mvrecon --help` stays fast.
 """
 
 import argparse

@@ -42,7 +42,7 @@ def ctrl_c_deferred():
 
 class _HandlersBack:
     """A finder on `sys.meta_path` that puts the Python signal handlers back after `module` is imported (its C
-    code replaced them). (importlib.abc and importlib.util are imported only then: 12 ms of every start-up.)"""
+    code replaced them). Not an importlib.abc.MetaPathFinder: importing that took 7 ms of every start-up."""
 
     def __init__(self, module: str):
         self.module = module

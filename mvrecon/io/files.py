@@ -125,7 +125,8 @@ def hold_folder(path):
 
 
 def printable_name(name: str) -> str:
-    """`name` (or any text holding file names) with the bytes that are not UTF-8 (which Python keeps as surrogates) written as \\xNN escapes."""
+    """`name` (or any text holding file names) with the bytes that are not UTF-8 (which Python keeps as
+    surrogates) written as \\xNN escapes."""
     return name.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
 
 

@@ -331,12 +331,12 @@ def read_image(path, *, upright: bool = True) -> np.ndarray:
     return apply_orientation(image, _orientation(path)) if upright else image
 
 
-def write_image(path, image: np.ndarray, params=()) -> None:
+def write_image(path, image: np.ndarray) -> None:
     """`cv2.imwrite` (BGR or grey pixels; the format from the suffix) through bytes: OpenCV's own imwrite and
     imread crash the process (SIGSEGV) on a path that is not UTF-8."""
     import cv2
 
-    ok, data = cv2.imencode(Path(path).suffix, image, list(params))
+    ok, data = cv2.imencode(Path(path).suffix, image)
     if not ok:
         raise InputError(f"{path}: OpenCV could not encode the image")
     Path(path).write_bytes(data.tobytes())
