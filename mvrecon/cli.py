@@ -8,7 +8,6 @@ second run into it stops in one line instead of breaking both. Command modules i
 """
 
 import argparse
-import codecs
 import contextlib
 import errno
 import gc
@@ -24,7 +23,7 @@ import threading
 from . import __version__
 from .errors import DiskFull, InputError
 from .interrupts import STOPPING, keep_handlers_after_import
-from .io.files import hold_folder
+from .io.files import ESCAPE, hold_folder
 from .progress import clear_line, set_enabled
 
 
@@ -93,23 +92,12 @@ def _interrupted(module) -> int:
     return 143 if terminated else 130
 
 
-def _escape_undecodable(exc):
-    """Codec error handler: a file name's bytes that are not UTF-8 (kept by Python as surrogates) printed as \\xNN,
-    as the log lines name them (`io.files.printable_name`); a UTF-8 terminal's strict stdout raised instead."""
-    if not isinstance(exc, UnicodeEncodeError):
-        raise exc
-    text = exc.object[exc.start:exc.end]
-    return "".join(f"\\x{ord(c) - 0xDC00:02x}" if 0xDC80 <= ord(c) <= 0xDCFF else f"\\u{ord(c):04x}"
-                   for c in text), exc.end
-
-
-codecs.register_error("mvrecon-escape", _escape_undecodable)
-
-
 def main(argv=None) -> int:
+    # file names that are not UTF-8 printed as \xNN, as the log lines name them (a UTF-8 terminal's strict
+    # stdout raised UnicodeEncodeError instead)
     for stream in (sys.stdout, sys.stderr):
         if isinstance(stream, io.TextIOWrapper):
-            stream.reconfigure(errors="mvrecon-escape")
+            stream.reconfigure(errors=ESCAPE)
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous = {s: signal.signal(s, _on_stop_signal) for s in STOPPING} if in_main_thread else {}
     keep_handlers_after_import("pycolmap")

@@ -9,6 +9,7 @@ start instead of delaying it, and `mvrecon --help` does not pay it.
 """
 
 import functools
+import os
 from contextlib import closing, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -59,7 +60,6 @@ def colmap_blind_cameras(cameras: dict) -> list[int]:
 def connect_readonly(path):
     """A read-only sqlite3 connection to the database file `path`, closed on leaving the `with` block; the
     plain-SQL reads below need what pycolmap's reader skips or refuses."""
-    import os
     import sqlite3
 
     path = Path(path).resolve()
@@ -129,8 +129,6 @@ def open_database(path):
     """Open (creating if needed) a COLMAP database and close it however the block ends. A file that is not a
     readable SQLite database is an InputError naming it (pycolmap would log a warning and raise a bare
     RuntimeError)."""
-    import os
-
     _check_sqlite(Path(path))
     folder = Path(path).resolve().parent
     writable = os.access(folder, os.W_OK)

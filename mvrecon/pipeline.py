@@ -26,7 +26,7 @@ from .config import bounded, config_hash, to_dict
 from .errors import DiskFull, InputError
 from .executor import StageClock, WorkerPool, blas_threads, default_workers
 from .features.sift import SiftConfig
-from .io.files import read_json_object, write_json
+from .io.files import read_json_object, some_names, write_json
 from .io.images import IMAGE_EXTENSIONS, image_metadata, list_images, visible_files
 from .io.masks import check_masks, find_masks, mask_path
 from .matching.matcher import MatcherConfig, match_descriptors, prepare_descriptors
@@ -181,10 +181,8 @@ def _masks(config: FrontendConfig, names, stamps: dict) -> dict:
         st = path.stat()
         stamps[name] = stamps.get(name, []) + [st.st_size, st.st_mtime_ns]
     if missing:
-        more = f" and {len(missing) - 1} more" if len(missing) > 1 else ""
-        log.warning("%s: no mask for %d of %d images (%s%s, looked for %s): their features are taken everywhere",
-                    config.masks, len(missing), len(names), missing[0], more,
-                    mask_path(config.masks, missing[0]))
+        log.warning("%s: no mask for %d of %d images (%s, looked for %s): their features are taken everywhere",
+                    config.masks, len(missing), len(names), some_names(missing), mask_path(config.masks, missing[0]))
     return masks
 
 

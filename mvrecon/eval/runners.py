@@ -31,7 +31,7 @@ from ..config import diff
 from ..database import database_counts
 from ..errors import InputError
 from ..executor import StageClock
-from ..io.files import read_json_object
+from ..io.files import read_json_object, some_names
 
 log = logging.getLogger("mvrecon.eval.runners")
 
@@ -104,9 +104,8 @@ def check_run_masks(options: RunOptions, image_dir, names) -> str | None:
     check_masks(masks, Path(image_dir), {n: image_metadata(Path(image_dir) / n) for n in masks})
     if not missing:
         return None
-    more = f" and {len(missing) - 1} more" if len(missing) > 1 else ""
-    return (f"{options.masks}: no mask for {len(missing)} image(s) ({missing[0]}{more}): COLMAP leaves them out of "
-            "its runs, mvrecon takes their features everywhere")
+    return (f"{options.masks}: no mask for {len(missing)} image(s) ({some_names(missing)}): COLMAP leaves them out "
+            "of its runs, mvrecon takes their features everywhere")
 
 
 def colmap_fisheye_warning(options: RunOptions, image_dir, names) -> str | None:

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from .files import require_room
+from .files import require_room, some_names
 from .ply import write_ply
 
 log = logging.getLogger("mvrecon.io")
@@ -123,10 +123,9 @@ def warn_text_names(recs, sparse_dir) -> None:
     for k, rec in enumerate(recs):
         spaced = sorted(im.name for im in rec.images.values() if any(c.isspace() for c in im.name))
         if spaced:
-            more = f" and {len(spaced) - 1} more" if len(spaced) > 1 else ""
-            log.warning("%s: image names with spaces (%r%s) cannot be read back from images.txt, which ends a "
+            log.warning("%s: image names with spaces (%s) cannot be read back from images.txt, which ends a "
                         "name at its first space; read the binary model in the same folder, or rename the images",
-                        Path(sparse_dir) / str(k) / "images.txt", spaced[0], more)
+                        Path(sparse_dir) / str(k) / "images.txt", some_names(map(repr, spaced)))
 
 
 def write_points_ply(rec: pycolmap.Reconstruction, path) -> int:

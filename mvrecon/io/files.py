@@ -4,6 +4,7 @@ An interrupted run must leave the old file or the new one, never part of one: a 
 scene.json, record or degraded image would be taken for a finished one by the next run, or refused as damaged.
 """
 
+import codecs
 import fcntl
 import json
 import os
@@ -124,10 +125,29 @@ def hold_folder(path):
                     break
 
 
+def _escape_undecodable(exc):
+    """Codec error handler: a file name's bytes that are not UTF-8 (kept by Python as surrogates) as \\xNN."""
+    if not isinstance(exc, UnicodeEncodeError):
+        raise exc
+    text = exc.object[exc.start:exc.end]
+    return "".join(f"\\x{ord(c) - 0xDC00:02x}" if 0xDC80 <= ord(c) <= 0xDCFF else f"\\u{ord(c):04x}"
+                   for c in text), exc.end
+
+
+ESCAPE = "mvrecon-escape"  # the handler's name, for streams that print file names (the CLI's stdout and stderr)
+codecs.register_error(ESCAPE, _escape_undecodable)
+
+
 def printable_name(name: str) -> str:
     """`name` (or any text holding file names) with the bytes that are not UTF-8 (which Python keeps as
     surrogates) written as \\xNN escapes."""
-    return name.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+    return name.encode("utf-8", ESCAPE).decode("utf-8")
+
+
+def some_names(names, shown: int = 1) -> str:
+    """The first `shown` of `names` and how many more, for a message that names a few files."""
+    names = list(names)
+    return ", ".join(names[:shown]) + (f" and {len(names) - shown} more" if len(names) > shown else "")
 
 
 def write_json(path, data, **dumps) -> None:

@@ -27,7 +27,7 @@ import numpy as np
 from PIL import ExifTags, Image
 
 from ..errors import InputError
-from .files import printable_name
+from .files import printable_name, some_names
 
 log = logging.getLogger(__name__)
 
@@ -144,13 +144,10 @@ def list_images(folder) -> tuple[list[str], dict[str, str]]:
             continue
         names.append(name)
     if non_images:
-        more = f" and {len(non_images) - 10} more" if len(non_images) > 10 else ""
-        shown = ", ".join(non_images[:10]) + more
-        log.warning("skipping %d non-image file(s) in %s: %s", len(non_images), folder, shown)
+        log.warning("skipping %d non-image file(s) in %s: %s", len(non_images), folder, some_names(non_images, 10))
     for kind, found in photos.items():
-        more = f" and {len(found) - 1} more" if len(found) > 1 else ""
-        log.warning("skipping %d %s image(s) in %s (%s%s): mvrecon does not read them; convert them to %s",
-                    len(found), kind, folder, found[0], more, FORMATS)
+        log.warning("skipping %d %s image(s) in %s (%s): mvrecon does not read them; convert them to %s",
+                    len(found), kind, folder, some_names(found), FORMATS)
     if not names:
         advice = f"; convert the {' and '.join(photos)} images to {FORMATS}" if photos else ""
         raise InputError(f"{folder}: no readable {FORMATS} images found"

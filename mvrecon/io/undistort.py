@@ -24,7 +24,7 @@ from PIL import Image
 from ..errors import InputError
 from ..eval.models import load_reconstruction
 from .colmap_model import model_bytes
-from .files import require_room
+from .files import require_room, some_names
 from .images import TRANSPOSED, image_metadata, image_problem, read_image
 
 
@@ -191,10 +191,10 @@ def _stored_frame(rec, image_dir: Path, metas: dict, database, model_dir: Path) 
                  sum(by_size.values()), len(turned))
     if untold and len(agreed) == 1:
         log.info("%s: %s (the same size upright and as stored) taken %s, as the model's other image(s) with an "
-                 "EXIF orientation are", model_dir, _some(untold), "as stored" if guess else "upright")
+                 "EXIF orientation are", model_dir, some_names(untold, 5), "as stored" if guess else "upright")
     elif untold:
         log.warning("%s: cannot tell the frame of %s in the model (no database says, and the size is the same "
-                    "upright and as stored): exported as stored, as COLMAP reads images", model_dir, _some(untold))
+                    "upright and as stored): exported as stored, as COLMAP reads images", model_dir, some_names(untold, 5))
     return {n for n, stored in frames.items() if stored}
 
 
@@ -226,10 +226,6 @@ def _frame_from_size(meta, cam) -> bool | None:
     if upright == stored or size not in (upright, stored):
         return None
     return size == stored
-
-
-def _some(names: list[str], shown: int = 5) -> str:
-    return ", ".join(names[:shown]) + (f" and {len(names) - shown} more" if len(names) > shown else "")
 
 
 def database_frames(database, names) -> dict[str, bool]:
