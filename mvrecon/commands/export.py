@@ -9,6 +9,7 @@ Example:
 """
 
 ORDER = 32
+HOLDS_OUTPUT = True  # its -o folder is held against a second run (`io.files.hold_folder`)
 ON_INTERRUPT = "the export is written aside and moved into place when complete; rerun the same command"
 
 
