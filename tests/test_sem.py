@@ -254,6 +254,13 @@ def test_cli_bad_input(tmp_path, capsys):
         (["-q", "sem", images[0], images[1], "-o", str(tmp_path / "o3"), "--tilts", "0,5"],
          "no image pair has verified matches"),
     ]
+    import cv2
+
+    wide = str(tmp_path / "noise" / "wide.png")
+    cv2.imwrite(wide, np.zeros((120, 160), np.uint8))
+    # the odd image and both sizes are named (this named the first image's folder and (h, w) tuples)
+    cases.append((["-q", "sem", images[0], images[1], wide, "-o", str(tmp_path / "o5"), "--tilts", "0,5,10"],
+                  f"{wide}: is 160x120 but {images[0]} is 120x120; the images of a tilt series must share one size"))
     for argv, expected in cases:
         code, lines = _error_lines(capsys, argv)
         assert code == 2 and len(lines) == 1 and expected in lines[0], (argv, code, lines)
