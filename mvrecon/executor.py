@@ -19,6 +19,8 @@ from contextlib import contextmanager
 
 _PRELOAD = ["numpy", "cv2", "mvrecon.features.sift"]  # what extraction workers need; no pycolmap
 _SINGLE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+_ONE_BLAS_THREAD = {"OPENBLAS_NUM_THREADS": "1"}
+_set_here: dict[str, str] = {}  # what one_blas_thread added to this process's environment
 _context = None
 _closed_workers_cpu = 0.0  # seconds used by the workers of closed pools (cpu_seconds)
 
@@ -80,6 +82,24 @@ def default_workers() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:
         return max(1, os.cpu_count() or 1)
+
+
+def one_blas_thread() -> None:
+    """Every OpenBLAS this process loads (numpy's, and the copy OpenCV bundles) runs on the calling thread, unless
+    the user set OPENBLAS_NUM_THREADS. Each reads it when it loads, so call this before numpy is imported. An
+    OpenBLAS makes its extra thread again after every fork (the feature workers, and OpenCV's copy as they import
+    it), and the thread spins 0.1 s each time on the cores the stages need; no stage gains from it (their products
+    are small, or one per core already). templeSparseRing's reconstruct: 0.14 s less CPU, matching 0.03 s faster
+    (docs/speed-log.md, session 28)."""
+    for key, value in _ONE_BLAS_THREAD.items():
+        if key not in os.environ:
+            os.environ[key] = _set_here[key] = value
+
+
+def user_environment() -> dict[str, str]:
+    """This process's environment without what `one_blas_thread` added: the engines a comparison times run with
+    the user's own settings."""
+    return {k: v for k, v in os.environ.items() if k not in _set_here}
 
 
 def _get_context():

@@ -602,3 +602,25 @@ def test_every_command_writing_a_folder_holds_it_even_a_new_one(tmp_path, capsys
     assert "ground truth not found" in capsys.readouterr().err and not (tmp_path / "new").exists()
     assert main(["-q", "degrade", str(images), "-o", str(out), "--noise", "5"]) == 0
     assert sorted(p.name for p in out.iterdir() if p.suffix == ".png") == sorted(p.name for p in images.iterdir())
+
+
+def test_the_mvrecon_process_runs_openblas_on_one_thread():
+    """An OpenBLAS makes its extra thread again after every fork (the feature workers, and OpenCV's own copy as
+    they import it) and the thread spins 0.1 s each time on the cores the stages need: the `mvrecon` process runs
+    every OpenBLAS it loads on the calling thread. A user's setting stands, and the engines a comparison times
+    get the user's environment, not this one."""
+    import os
+    import subprocess
+    import sys
+
+    script = ("import sys; sys.argv = ['mvrecon', '-q', 'scene', 'list']\n"
+              "from mvrecon.cli import main\nmain()\n"
+              "import cv2, numpy\nfrom mvrecon.executor import _openblas_controls, user_environment\n"
+              "print(sorted({get() for get, _ in _openblas_controls()}), len(_openblas_controls()),\n"
+              "      user_environment().get('OPENBLAS_NUM_THREADS'))")
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    for setting, expected in ((None, "[1] 2 None"), ("2", "[2] 2 2")):
+        if setting:
+            env["OPENBLAS_NUM_THREADS"] = setting
+        out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120)
+        assert out.returncode == 0 and out.stdout.splitlines()[-1] == expected, (setting, out.stdout, out.stderr)

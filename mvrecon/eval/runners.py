@@ -30,7 +30,7 @@ from pathlib import Path
 from ..config import diff
 from ..database import database_counts
 from ..errors import InputError
-from ..executor import StageClock
+from ..executor import StageClock, user_environment
 from ..io.files import read_json_object, some_names
 
 log = logging.getLogger("mvrecon.eval.runners")
@@ -262,7 +262,7 @@ def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout,
     start = time.perf_counter()
     with open(out_dir / "run.log", "w") as logf:
         proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, start_new_session=True,
-                                env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                                env={**user_environment(), "PYTHONUNBUFFERED": "1"})
         try:
             code, peak_mb = _wait_measuring_memory(proc, timeout)
             error = None if code == 0 or _ran_without_model(out_dir, code) else _failure_line(out_dir / "run.log",
