@@ -591,7 +591,7 @@ def test_every_command_writing_a_folder_holds_it_even_a_new_one(tmp_path, capsys
                      ["scene", "make", "stereo_pair_small", "-o", str(out)],
                      ["sem", str(images), "-o", str(out), "--estimate-tilts"],
                      ["stereo", str(images / "view00.png"), str(images / "view01.png"), "-o", str(out)],
-                 ["export", str(tmp_path), "--undistort", "-o", str(out)]):
+                     ["export", str(tmp_path), "--undistort", "-o", str(out)]):
             assert main(["-q", *argv]) == 2, argv
             assert capsys.readouterr().err == f"mvrecon: error: {out}: another mvrecon run is using this folder; " \
                 "wait for it to end, or choose another folder\n", argv

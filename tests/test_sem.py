@@ -244,6 +244,8 @@ def test_cli_help_documents_height_source(capsys):
 
 
 def test_cli_bad_input(tmp_path, capsys):
+    import cv2
+
     images = _noise_images(tmp_path / "noise", 3)
     cases = [
         (["-q", "sem", *images, str(tmp_path / "missing.png"), "-o", str(tmp_path / "o0"), "--estimate-tilts"],
@@ -254,8 +256,6 @@ def test_cli_bad_input(tmp_path, capsys):
         (["-q", "sem", images[0], images[1], "-o", str(tmp_path / "o3"), "--tilts", "0,5"],
          "no image pair has verified matches"),
     ]
-    import cv2
-
     wide = str(tmp_path / "noise" / "wide.png")
     cv2.imwrite(wide, np.zeros((120, 160), np.uint8))
     # the odd image and both sizes are named (this named the first image's folder and (h, w) tuples)

@@ -147,11 +147,11 @@ def _load(paths, max_size):
                              "one view twice has no parallax")
         seen[key] = p
         images.append(to_gray_uint8(image))
-    odd = next((p for p, im in zip(paths, images) if im.shape != images[0].shape), None)
+    odd = next((k for k, im in enumerate(images) if im.shape != images[0].shape), None)
     if odd is not None:
-        (h0, w0), (h1, w1) = images[0].shape, images[paths.index(odd)].shape
-        raise InputError(f"{odd}: is {w1}x{h1} but {paths[0]} is {w0}x{h0}; the images of a tilt series must "
-                         "share one size")
+        (h0, w0), (h1, w1) = images[0].shape, images[odd].shape
+        raise InputError(f"{paths[odd]}: is {w1}x{h1} but {paths[0]} is {w0}x{h0}; the images of a tilt series "
+                         "must share one size")
     h, w = images[0].shape
     factor = min(1.0, max_size / max(h, w)) if max_size else 1.0
     if factor < 1.0:
