@@ -19,8 +19,7 @@ from contextlib import contextmanager
 
 _PRELOAD = ["numpy", "cv2", "mvrecon.features.sift"]  # what extraction workers need; no pycolmap
 _SINGLE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-_ONE_BLAS_THREAD = {"OPENBLAS_NUM_THREADS": "1"}
-_set_here: dict[str, str] = {}  # what one_blas_thread added to this process's environment
+_set_here: set[str] = set()  # the variables one_blas_thread added to this process's environment
 _context = None
 _closed_workers_cpu = 0.0  # seconds used by the workers of closed pools (cpu_seconds)
 
@@ -91,9 +90,9 @@ def one_blas_thread() -> None:
     it), and the thread spins 0.1 s each time on the cores the stages need; no stage gains from it (their products
     are small, or one per core already). templeSparseRing's reconstruct: 0.14 s less CPU, matching 0.03 s faster
     (docs/speed-log.md, session 28)."""
-    for key, value in _ONE_BLAS_THREAD.items():
-        if key not in os.environ:
-            os.environ[key] = _set_here[key] = value
+    if "OPENBLAS_NUM_THREADS" not in os.environ:
+        os.environ["OPENBLAS_NUM_THREADS"] = "1"
+        _set_here.add("OPENBLAS_NUM_THREADS")
 
 
 def user_environment() -> dict[str, str]:

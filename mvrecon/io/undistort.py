@@ -194,7 +194,8 @@ def _stored_frame(rec, image_dir: Path, metas: dict, database, model_dir: Path) 
                  "EXIF orientation are", model_dir, some_names(untold, 5), "as stored" if guess else "upright")
     elif untold:
         log.warning("%s: cannot tell the frame of %s in the model (no database says, and the size is the same "
-                    "upright and as stored): exported as stored, as COLMAP reads images", model_dir, some_names(untold, 5))
+                    "upright and as stored): exported as stored, as COLMAP reads images", model_dir,
+                    some_names(untold, 5))
     return {n for n, stored in frames.items() if stored}
 
 

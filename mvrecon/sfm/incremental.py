@@ -296,6 +296,11 @@ class IncrementalMapper:
             self._save()
             return True
 
+    @property
+    def _relaxed(self) -> bool:
+        """Whether the initial pair's inlier count is in force below the config's (`_relax_initial_pair`)."""
+        return self.init_config.init_min_inliers < self.config.init_min_inliers
+
     def _relax_initial_pair(self) -> bool:
         """Halve init_min_inliers (up to init_relaxations times) while no model could start because no pair
         has that many inliers, as COLMAP's pipeline relaxes it; the pairs rejected for too few inliers are then
@@ -336,8 +341,8 @@ class IncrementalMapper:
             for i in (r.image1, r.image2):
                 if i not in best or r.closeness > best[i].closeness:
                     best[i] = r
-        now, base = self.init_config.init_min_inliers, self.config.init_min_inliers
-        relaxed = f" (relaxed from {base}, as no model could start)" if now != base else ""
+        relaxed = (f" (relaxed from {self.config.init_min_inliers}, as no model could start)" if self._relaxed
+                   else "")
         self.init_rejections = {i: f"its best pair ({self.names[r.image1]} / {self.names[r.image2]}) has "
                                    f"{r.text}{relaxed if rejected_for_few_inliers(r) else ''}"
                                 for i, r in best.items()}
@@ -552,12 +557,11 @@ class IncrementalMapper:
             self.dropped_starts.add(self.start_key)
         # a model started from a pair under the relaxed inlier count must grow to be kept: two images on a few
         # dozen matches are weak evidence of anything
-        relaxed = self.init_config.init_min_inliers < self.config.init_min_inliers
-        if not self.finished and not relaxed and n > (int(self.small.registered.sum()) if self.small is not None
-                                                       else 0):
+        largest = int(self.small.registered.sum()) if self.small is not None else 0
+        if not self.finished and not self._relaxed and n > largest:
             self.small = m
         started = (f", started from a pair under init_min_inliers {self.config.init_min_inliers} (relaxed to "
-                   f"{self.init_config.init_min_inliers}), " if relaxed else ", ")
+                   f"{self.init_config.init_min_inliers}), " if self._relaxed else ", ")
         for i in np.flatnonzero(m.registered).tolist():
             self.reasons[i] = f"its model stayed at {n} images{started}under min_model_size {least}, and was discarded"
 
