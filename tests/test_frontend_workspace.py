@@ -646,4 +646,7 @@ def test_feature_workers_reuse_the_memory_they_free():
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     in_workers, here = map(int, out.stdout.split())
-    assert in_workers < 1000 and here > 8000, out.stdout
+    if here < 8000:
+        pytest.skip(f"a freed 64 MB block faulted in only {here} pages without the settings: this machine backs "
+                    "all memory with transparent huge pages, so there is nothing to tell apart")
+    assert in_workers < 1000, out.stdout
