@@ -24,6 +24,7 @@ _set_here: set[str] = set()  # the variables one_blas_thread added to this proce
 _context = None
 _closed_workers_cpu = 0.0  # seconds used by the workers of closed pools (cpu_seconds)
 _M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4  # glibc's mallopt parameters
+_RESULT_PIPE_BYTES = 1 << 20
 
 
 def peak_memory_mb() -> float:
@@ -158,6 +159,22 @@ def keep_freed_memory() -> None:
     mallopt(_M_TRIM_THRESHOLD, 2**31 - 1)  # and the heap never trimmed (the largest value mallopt takes)
 
 
+def _widen_result_pipe(pool) -> None:
+    """Let a worker hand over a whole result without waiting for the parent to read it. The workers share one
+    pipe of 64 KB, less than one image's features (866 SIFT descriptors are 111 KB), and a worker writes it
+    holding the pool's write lock: while the parent held its GIL (importing a library, writing the database),
+    its result thread could not read, and both workers stood idle. The kernel caps the size at
+    /proc/sys/fs/pipe-max-size (1 MB by default); elsewhere than Linux this is a no-op."""
+    try:
+        import fcntl
+
+        with open("/proc/sys/fs/pipe-max-size") as f:
+            size = min(_RESULT_PIPE_BYTES, int(f.read()))
+        fcntl.fcntl(pool._outqueue._writer.fileno(), fcntl.F_SETPIPE_SZ, size)
+    except (ImportError, AttributeError, OSError, ValueError):  # not Linux, or another Pool layout
+        pass
+
+
 class WorkerPool:
     """Up to `workers` processes, started when the pool is made: a caller that makes it, and calls `map`, before
     its own set-up (opening the database, probing images) overlaps that with the workers' start, their import
@@ -178,6 +195,7 @@ class WorkerPool:
             ctx = _get_context()
             logging.getLogger(__name__).debug("process pool: %d %s workers", self.workers, ctx.get_start_method())
             self._pool = ctx.Pool(self.workers, initializer=_init_worker)
+            _widen_result_pipe(self._pool)
 
     def map(self, func: Callable, items: Iterable) -> Iterator:
         """The items are handed to the workers now, not at the first `next`: the caller may do its own set-up

@@ -11,10 +11,12 @@ loses at most the unit in progress and a rerun of the same command resumes.
 import functools
 import hashlib
 import logging
+import threading
 import time
 from collections import OrderedDict, deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -199,22 +201,55 @@ def _too_few(folder: Path, usable: int, failed: dict[str, str]):
 
 def extract_features(config: FrontendConfig, image_dir, workspace, *, overwrite: bool = False,
                      on_image: Callable[[str], None] | None = None,
-                     before_changes: Callable[[], None] | None = None) -> FeatureSummary:
+                     before_changes: Callable[[], None] | None = None,
+                     alongside: Callable[[], None] | None = None) -> FeatureSummary:
     """Detect SIFT in every image of `image_dir` not yet in the workspace; `on_image(name)` after each commit.
     Refused settings or input raise InputError before anything in the workspace changes; `before_changes()` is
-    called just before the first change."""
+    called just before the first change. `alongside()` runs in a thread of this process while the workers
+    extract (see load_later_stages)."""
     start = time.perf_counter()
     ws = _workspace(workspace)
     # the pool starts first: its start overlaps the set-up in _extract_all
     with ws.lock(), WorkerPool(_workers(config)) as pool:
-        summary = _extract_all(config, Path(image_dir), ws, overwrite, on_image, pool, before_changes)
+        summary = _extract_all(config, Path(image_dir), ws, overwrite, on_image, pool, before_changes, alongside)
     summary.seconds = time.perf_counter() - start
     return summary
 
 
+@contextmanager
+def _in_thread(func: Callable[[], None] | None):
+    """`func()` in a thread for the duration of the block, which waits for it at its end."""
+    thread = None if func is None else threading.Thread(target=func, name=getattr(func, "__name__", None))
+    if thread is not None:
+        thread.start()
+    try:
+        yield
+    finally:
+        if thread is not None:
+            thread.join()
+
+
+def load_later_stages() -> None:
+    """Import what matching and mapping need, and make the matcher's onnxruntime session, while the feature
+    workers run. Between the stages, on one core, this took 0.15-0.2 s of a 2.1 s templeSparseRing run; beside
+    the workers, on a core they share, it costs them half of that (docs/frontend.md). A library that fails to
+    load here fails again where it is needed, with its error reported there."""
+    import importlib
+
+    try:
+        for name in ("cv2", "gtsam", "mvrecon.io.colmap_model", "mvrecon.sfm.incremental"):
+            importlib.import_module(name)
+        from .matching.int_product import int_product
+
+        int_product(np.zeros((1, 128), np.uint8), np.zeros((128, 1), np.int8))  # makes its session
+    except Exception:  # noqa: BLE001
+        pass
+
+
 def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite: bool,
                  on_image: Callable[[str], None] | None, pool: WorkerPool,
-                 before_changes: Callable[[], None] | None = None) -> FeatureSummary:
+                 before_changes: Callable[[], None] | None = None,
+                 alongside: Callable[[], None] | None = None) -> FeatureSummary:
     names, skipped = require_images(folder)
     config.camera.validate()
     failed = _unreadable(folder, skipped)
@@ -260,25 +295,28 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
         if results is None:
             jobs = [job for job in jobs if job[1] in wanted]
             results = pool.map(_extract_job, jobs)
-        for name, result in progress(results, total=len(jobs), desc="features", unit="image"):
-            if name not in wanted:
-                continue
-            if isinstance(result, str):
-                log.warning("skipping %s", result)
-                failed[name] = result
-                continue
-            keypoints, descriptors, colors[name] = result
-            gi = group_of[name]
-            with dbmod.transaction(db, ws.database_path, keypoints.nbytes + descriptors.nbytes):
-                if gi not in camera_ids:
-                    camera_ids[gi] = dbmod.write_camera(db, groups[gi][0])
-                image_id = existing[name].image_id if name in existing else \
-                    dbmod.write_image(db, name, camera_ids[gi])
-                dbmod.write_features(db, image_id, keypoints, descriptors)
-            existing[name] = dbmod.ImageInfo(image_id=image_id, name=name, camera_id=camera_ids[gi])
-            extracted += 1
-            if on_image is not None:
-                on_image(name)
+        # started once the workers have their jobs and this thread has done its set-up: an import holds the
+        # GIL, which the pool's threads need to hand out the jobs
+        with _in_thread(alongside):
+            for name, result in progress(results, total=len(jobs), desc="features", unit="image"):
+                if name not in wanted:
+                    continue
+                if isinstance(result, str):
+                    log.warning("skipping %s", result)
+                    failed[name] = result
+                    continue
+                keypoints, descriptors, colors[name] = result
+                gi = group_of[name]
+                with dbmod.transaction(db, ws.database_path, keypoints.nbytes + descriptors.nbytes):
+                    if gi not in camera_ids:
+                        camera_ids[gi] = dbmod.write_camera(db, groups[gi][0])
+                    image_id = existing[name].image_id if name in existing else \
+                        dbmod.write_image(db, name, camera_ids[gi])
+                    dbmod.write_features(db, image_id, keypoints, descriptors)
+                existing[name] = dbmod.ImageInfo(image_id=image_id, name=name, camera_id=camera_ids[gi])
+                extracted += 1
+                if on_image is not None:
+                    on_image(name)
         counts = {n: dbmod.num_keypoints(db, existing[n].image_id) for n in names if n in existing}
         counts = {n: c for n, c in counts.items() if n not in failed}
         num_cameras = len({existing[n].camera_id for n in counts})
@@ -665,7 +703,7 @@ def reconstruct(config: ReconstructConfig, image_dir, out_dir, *, text: bool = F
 
         try:
             features = extract_features(config.frontend, image_dir, ws, overwrite=overwrite,
-                                        before_changes=before_changes)
+                                        before_changes=before_changes, alongside=load_later_stages)
             log.info("%s", features.text())
             clock.done("features")
             matches = match(config.frontend, ws, overwrite=overwrite)

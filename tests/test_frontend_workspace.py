@@ -650,3 +650,65 @@ def test_feature_workers_reuse_the_memory_they_free():
         pytest.skip(f"a freed 64 MB block faulted in only {here} pages without the settings: this machine backs "
                     "all memory with transparent huge pages, so there is nothing to tell apart")
     assert in_workers < 1000, out.stdout
+
+
+def test_feature_workers_hand_over_results_while_the_parent_holds_the_gil(tmp_path):
+    """The workers share one result pipe of 64 KB, less than one image's features, and write a result holding
+    the pool's write lock: while the parent held its GIL (an import, a database write) its result thread could not
+    read, and both workers stood idle. With the pipe widened, the workers return 200 KB results and go on to the
+    next jobs while the parent holds the GIL for 2 s."""
+    import subprocess
+    import sys
+
+    script = ("import os, sys, time\nfrom pathlib import Path\nfrom mvrecon.executor import WorkerPool\n"
+              "folder = Path(sys.argv[1])\n"
+              "def job(k):\n"
+              "    (folder / f'start{k}').touch()\n"
+              "    if k < 2:\n"
+              "        time.sleep(0.3)\n"
+              "        return bytes(200_000)\n"
+              "    return b''\n"
+              "with WorkerPool(2) as pool:\n"
+              "    results = pool.map(job, range(4))\n"
+              "    while not all((folder / f'start{k}').exists() for k in (0, 1)):\n"
+              "        time.sleep(0.01)\n"
+              "    sys.setswitchinterval(30)\n"
+              "    end = time.perf_counter() + 2\n"
+              "    while time.perf_counter() < end:\n"
+              "        pass\n"
+              "    later = sorted(p.name for p in folder.iterdir() if p.name in ('start2', 'start3'))\n"
+              "    sys.setswitchinterval(0.005)\n"
+              "    print(len(later), sum(map(len, results)))")
+    out = subprocess.run([sys.executable, "-c", script, str(tmp_path)], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    later, total = map(int, out.stdout.split())
+    assert total == 400_000
+    assert later == 2, out.stdout  # with a 64 KB pipe: 0, both workers blocked on their first result
+
+
+def test_reconstruct_loads_the_later_stages_while_the_workers_extract(tmp_path, monkeypatch):
+    """Importing GTSAM, OpenCV and the mapper and making the matcher's session took 0.15-0.2 s on one core
+    between the stages; `reconstruct` does it in a thread of its own while the feature workers run (and waits
+    for it before matching). load_later_stages leaves them loaded."""
+    import subprocess
+    import sys
+    import threading
+
+    import mvrecon.pipeline as pipeline
+
+    calls = []
+    stamps = tmp_path / "out" / pipeline.STAMPS  # written when the features stage has ended
+
+    def record():
+        calls.append((threading.current_thread() is threading.main_thread(), stamps.exists()))
+
+    monkeypatch.setattr(pipeline, "load_later_stages", record)
+    images = textured_views(tmp_path / "images", count=3)
+    assert main(["-q", "reconstruct", str(images), "-o", str(tmp_path / "out")]) == 0
+    assert calls == [(False, False)] and stamps.exists()  # once, in another thread, during the features stage
+    script = ("import sys\nfrom mvrecon.pipeline import load_later_stages\nload_later_stages()\n"
+              "from mvrecon.matching import int_product\n"
+              "print(all(m in sys.modules for m in ('cv2', 'gtsam', 'mvrecon.sfm.incremental')),"
+              " int_product._session is not None)")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.split() == ["True", "True"], (out.stdout, out.stderr)
