@@ -108,12 +108,55 @@ def main(argv=None) -> int:
     _interrupt.clear()
     _signal_received.clear()
     try:
-        return _run(argv)
+        code = _run(argv)
     except KeyboardInterrupt:  # before a command was chosen (while the parser imports the command modules)
-        return _interrupted(None)
+        code = _interrupted(None)
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
+    return code
+
+
+def entry_point() -> int:
+    """The `mvrecon` process (its console script, `python -m mvrecon.cli`): `main()`, then the process ends
+    without the interpreter's teardown (`_end_process`). A caller of `main()` gets its exit code back."""
+    code = main()
+    _end_process(code)
+    return code
+
+
+def _end_process(code: int) -> None:
+    """End this process with `code` as the interpreter's exit would, without its teardown: the exit
+    handlers run (logging's flush, multiprocessing's clean-up, any a library registered) and every output is
+    flushed, but the modules are not unloaded and the native libraries' destructors (GTSAM's, onnxruntime's,
+    pycolmap's) do not run. That teardown took 18 ms of each run (docs/speed-log.md, session 31), and nothing
+    of the run's outputs depends on it: the commands close their files and databases themselves. While another
+    thread still runs (a pool ending in the background is waited for), this returns and the interpreter's own
+    exit waits for it; so it does under a profiler or a tracer (cProfile, coverage), which write their results
+    after `main` returns."""
+    import atexit
+
+    from .executor import wait_for_ended_pools
+
+    wait_for_ended_pools()
+    if sys.getprofile() is not None or sys.gettrace() is not None:
+        return
+    me = threading.current_thread()
+    if any(t is not me and not t.daemon and t.is_alive() for t in threading.enumerate()):
+        return
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a reader that has gone, or a closed stream: nothing more can be said
+            pass
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).fflush(None)  # what native libraries printed through C's stdio
+    except (OSError, AttributeError):
+        pass
+    os._exit(code)
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -173,4 +216,4 @@ def _run(argv) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(entry_point())

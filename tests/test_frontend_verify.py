@@ -185,6 +185,17 @@ def test_the_feature_cap_keeps_the_coarsest_scales_as_colmap():
     assert np.array_equal(k_same, k_all) and np.array_equal(d_same, d_all)
 
 
+def test_runs_of_a_sorted_array_count_as_unique_does():
+    """fixed_keypoints counts cells and images by the runs of sorted keys (numpy's hashing `unique` took 19 ms
+    of templeSparseRing's matching stage): the values and counts are np.unique's, also for 0 and 1 values."""
+    from mvrecon.matching.overlay import _runs
+
+    rng = np.random.default_rng(1)
+    for values in (np.zeros(0, np.int64), np.array([7]), np.sort(rng.integers(0, 50, 400))):
+        found, expected = _runs(values), np.unique(values, return_counts=True)
+        assert all(np.array_equal(a, b) for a, b in zip(found, expected))
+
+
 def test_features_printed_on_three_images_of_one_size_are_fixed_and_their_still_matches_dropped():
     """matching/overlay.py: a position is fixed when half the images of one size, and at least three, have a
     keypoint there; two copies of one view (a duplicate) are not enough, and images of another size do not

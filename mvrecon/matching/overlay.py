@@ -47,12 +47,20 @@ def fixed_keypoints(positions: dict, sizes: dict, min_images: int = MIN_IMAGES, 
             cell = np.floor((xy + offset) / (2 * radius)).astype(np.int64)
             cell -= cell.min(axis=0)
             key = cell[:, 0] * (cell[:, 1].max() + 1) + cell[:, 1]
-            occupied = np.unique(key * len(ids) + image) // len(ids)  # one row per (cell, image)
-            cells, images_in_cell = np.unique(occupied, return_counts=True)
+            occupied = _runs(np.sort(key * len(ids) + image))[0] // len(ids)  # one row per (cell, image)
+            cells, images_in_cell = _runs(occupied)
             fixed |= images_in_cell[np.searchsorted(cells, key)] >= needed
         for i, part in zip(ids, np.split(fixed, np.cumsum([len(positions[i]) for i in ids])[:-1])):
             out[i] = part
     return out
+
+
+def _runs(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(value, count) of each run of equal values in a sorted array: `np.unique(values, return_counts=True)`
+    without its sort, or its hashing (numpy 2.4 hashes integers, 2-4x slower than sorting them: fixed_keypoints
+    took 19 ms of templeSparseRing's matching stage, 7 ms this way)."""
+    starts = np.flatnonzero(np.r_[True, values[1:] != values[:-1]]) if len(values) else np.zeros(0, np.int64)
+    return values[starts], np.diff(np.r_[starts, len(values)])
 
 
 def drop_static(matches: np.ndarray, xy1: np.ndarray, xy2: np.ndarray, fixed1: np.ndarray, fixed2: np.ndarray,

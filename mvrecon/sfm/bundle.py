@@ -156,8 +156,8 @@ def bundle_adjust(model, variable_images, config: MapperConfig, *, point_ids=Non
     points = np.unique(obs_pt)
     xyz = model.xyz.data
     point_keys = _keys("l", points)
-    for k, p in zip(point_keys, points.tolist()):
-        values.insert(k, xyz[p])
+    for k, p in zip(point_keys, points.tolist()):  # `insert` would store a dynamic Vector, cast at every access
+        values.insertPoint3(k, xyz[p])
 
     uv = np.empty((len(obs), 2))
     for i in np.unique(obs_img):
