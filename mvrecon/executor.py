@@ -186,8 +186,9 @@ class WorkerPool:
     `func` must be a module-level function and its result picklable; `func` should catch its own expected
     errors and return them as values, so one bad item does not end the whole map. Leaving the `with` block
     terminates the workers, as `multiprocessing.Pool`'s own does: after an exception or Ctrl-C in the consumer
-    the items in flight are dropped, and after a drained map idle workers are not waited for. With
-    `workers <= 1` everything runs in the calling process, which keeps tracebacks simple and tests fast.
+    the items in flight are dropped and the workers are gone before it propagates; otherwise they end in a
+    thread while the caller goes on (`wait_for_ended_pools`). With `workers <= 1` everything runs in the
+    calling process, which keeps tracebacks simple and tests fast.
     """
 
     def __init__(self, workers: int | None = None):

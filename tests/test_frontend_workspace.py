@@ -718,17 +718,16 @@ def test_a_drained_pool_ends_its_workers_while_the_caller_goes_on(monkeypatch):
     """Ending the workers waits for the kernel to free their memory (10-13 ms of templeSparseRing's run, on one
     core between the stages): leaving the `with` block of a drained pool hands that to a thread, which the next
     pool and the process's end wait for. After an error the workers are gone before it propagates."""
-    import os
     import threading
 
     from mvrecon import executor
 
-    def alive(pid):
+    def alive(pid):  # a zombie (a forkserver worker not yet reaped by its server) has ended
         try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
+            with open(f"/proc/{pid}/stat") as f:
+                return f.read().rsplit(")", 1)[1].split()[0] not in "ZX"
+        except FileNotFoundError:
             return False
-        return True
 
     release, real = threading.Event(), executor._end_pool
     monkeypatch.setattr(executor, "_end_pool", lambda pool: (release.wait(60), real(pool)))
