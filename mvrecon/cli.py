@@ -94,9 +94,10 @@ def _interrupted(module) -> int:
 
 def main(argv=None) -> int:
     if argv is None:  # the `mvrecon` process itself, before numpy is loaded
-        from .executor import one_blas_thread
+        from .executor import keep_freed_memory, one_blas_thread
 
         one_blas_thread()
+        keep_freed_memory()
     # file names that are not UTF-8 printed as \xNN, as the log lines name them (a UTF-8 terminal's strict
     # stdout raised UnicodeEncodeError instead)
     for stream in (sys.stdout, sys.stderr):

@@ -143,6 +143,33 @@ def test_loop_closure_takes_back_views_that_drift_pushed_past_4_px(scene, drift_
         assert m.registered.sum() == 7
 
 
+@pytest.mark.parametrize("removed, rounds", [(0.004, 1), (0.02, 2)])
+def test_a_finished_model_gets_a_second_refinement_round_only_when_the_first_changed_one_percent(
+        scene, monkeypatch, removed, rounds):
+    """The final global refinement (BA with every point, retriangulation, filters) runs a second round only
+    when the first added or removed `final_min_change` (1%) of the observations; with 0.1% the round changing
+    0.4% was repeated. Here the first round's filters also drop the given fraction of the observations."""
+    _, corr, _ = scene
+    mapper = incremental.IncrementalMapper(corr, MapperConfig(seed=3))
+    m = mapper.run().models[0]
+    bundles, filters = [], []
+    real_bundle, real_filter = mapper._global_bundle, mapper._filter
+
+    def drop_more(model, point_ids=None):
+        real_filter(model, point_ids)
+        if not filters:
+            alive = np.flatnonzero(model.obs_alive.data[:model.obs_alive.n])
+            model.remove_observations(alive[::int(round(1 / removed))])
+        filters.append(len(filters))
+
+    monkeypatch.setattr(mapper, "_close_loops", lambda model: None)
+    monkeypatch.setattr(mapper, "_global_bundle", lambda *a, **k: bundles.append(1) or real_bundle(*a, **k))
+    monkeypatch.setattr(mapper, "_filter", drop_more)
+    mapper._finish_model(m)
+    assert len(bundles) == rounds
+    assert m.registered.sum() == 8
+
+
 def test_third_views_check_a_guessed_focal_but_not_one_the_pair_estimated(scene, monkeypatch):
     """The third-view focal search is for a focal that is still the guess, where Bougnoux's estimate from the
     pair's F degenerated (as here, and on every orbit). A focal that estimate replaced is kept without fitting

@@ -541,10 +541,10 @@ class IncrementalMapper:
 
     def _finish_model(self, m: Reconstruction) -> None:
         # loops closed, then global BA with every point (those during growth used a subset),
-        # retriangulation and filtering, a second round only when the first still changed 0.1% of the
-        # observations
+        # retriangulation and filtering, a second round only when the first still changed final_min_change
+        # of the observations
         self._close_loops(m)
-        self._global_refine(m, rounds=2, min_change=1e-3)
+        self._global_refine(m, rounds=2, min_change=self.config.final_min_change)
         self._drop_non_square_cameras(m)
         n, least = int(m.registered.sum()), self.min_model_size()
         if n >= least:
