@@ -138,12 +138,12 @@ def _extract_job(job):
 def _extraction_jobs(folder: Path, names, config: FrontendConfig, masks: dict, workers: int) -> list[tuple]:
     """`_extract_job`'s jobs. In a pool, each image runs on one OpenCV thread (a worker per core), except the
     last `workers` images, which run on `workers` threads each: when a worker takes one of them no image is left
-    for the others, whose cores would stand idle until it ends (templeSparseRing: about one image, 60 ms, of a
-    core). OpenCV's SIFT gives the same keypoints and descriptors on any number of threads (it sorts them)."""
-    if workers <= 1:
-        return [(folder / n, n, config.sift, masks.get(n), None) for n in names]
+    for the others, whose cores would stand idle until it ends (templeSparseRing: 20-65 ms of a core). OpenCV's
+    SIFT gives the same keypoints and descriptors on any number of threads (it sorts them). In-process
+    (`workers <= 1`) the threads are left as they are."""
     tail = len(names) - workers
-    return [(folder / n, n, config.sift, masks.get(n), workers if k >= tail else 1) for k, n in enumerate(names)]
+    return [(folder / n, n, config.sift, masks.get(n), None if workers <= 1 else workers if k >= tail else 1)
+            for k, n in enumerate(names)]
 
 
 def require_images(folder) -> tuple[list[str], dict[str, str]]:

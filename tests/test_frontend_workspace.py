@@ -661,9 +661,9 @@ def test_the_mvrecon_process_reuses_the_memory_it_frees():
     import sys
 
     script = ("import resource, sys\nfrom mvrecon import cli\n"
-              "sys.argv = ['mvrecon', '--version'] if sys.argv[1] == 'command' else sys.argv\n"
+              "how, sys.argv = sys.argv[1], ['mvrecon', '--version']\n"
               "try:\n"
-              "    cli.main() if sys.argv[0] == 'mvrecon' else cli.main(['--version'])\n"
+              "    cli.main() if how == 'command' else cli.main(['--version'])\n"
               "except SystemExit:\n"
               "    pass\n"
               "a = bytearray(64 << 20); del a\n"

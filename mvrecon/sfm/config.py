@@ -55,7 +55,7 @@ class MapperConfig:
         5 rounds while one changes 0.05%). On the A/B sets the first round changes 0.1-0.8% (1.7% and 5%
         on imc_reichstag and wide_orbit_small, which keep their second round): 1% instead of 0.1% cut the BA
         work (observations x iterations) by 4-20% on 8 of the 11 sets, with the same registered images, AUC@5
-        within 0.001 and AUC@1 at most 0.004 lower (3 seeds each; docs/speed-log.md, session 32).
+        within 0.001 and AUC@1 at most 0.003 lower (3 seeds each; docs/speed-log.md, session 32).
     huber_px: Huber loss width (pixels); refine_intrinsics: focal and distortion refined in global BA.
     focal_min_images: intrinsics stay fixed in the two-view BA of the initial pair, where the focal length is
         not observable (it collapses towards zero with the depths).
