@@ -626,30 +626,47 @@ def test_the_mvrecon_process_runs_openblas_on_one_thread():
         assert out.returncode == 0 and out.stdout.splitlines()[-1] == expected, (setting, out.stdout, out.stderr)
 
 
+def _stdout_of(script: str, *argv: str) -> str:
+    """What `script` prints, run in a fresh interpreter (the allocator settings under test last a process)."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", script, *argv], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    return out.stdout
+
+
+def _faults_in_workers_and_here(faults: str) -> tuple[int, int]:
+    """The page faults that `faults(_)` (a function's source) counts: the most of four calls in a WorkerPool's
+    workers, then in the parent, an interpreter with glibc's defaults."""
+    script = ("import resource, threading\nfrom mvrecon.executor import WorkerPool\n" + faults +
+              "with WorkerPool(2) as pool:\n    print(max(pool.map(faults, range(4))))\nprint(faults(0))")
+    in_workers, here = map(int, _stdout_of(script).split())
+    return in_workers, here
+
+
+def _skip_under_huge_pages(faults_without: int, least: int, block: str) -> None:
+    """Where all memory is backed by transparent huge pages a block faults in few pages with or without the
+    settings: nothing to tell apart."""
+    if faults_without < least:
+        pytest.skip(f"{block} faulted in only {faults_without} pages without the settings: this machine backs all "
+                    "memory with transparent huge pages, so there is nothing to tell apart")
+
+
 def test_feature_workers_reuse_the_memory_they_free():
     """SIFT allocates and frees its scale space on every image (1 GB for a 3072 x 2048 photo); glibc unmaps
     such blocks when they are freed, and each image then faulted all of it in again (herzjesu's SIFT: 1.7-1.9 s an
     image instead of 0.9-1.0 s). A worker keeps what it frees: a 64 MB block allocated again after being freed
     faults in almost none of its 16,384 pages there, and all of them in a process with glibc's defaults."""
-    import subprocess
-    import sys
-
     # bytearray, not numpy: numpy asks for huge pages on large arrays, OpenCV's allocator does not
-    script = ("import resource\nfrom mvrecon.executor import WorkerPool\n"
-              "def faults(_):\n"
-              "    a = bytearray(64 << 20); del a\n"
-              "    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt\n"
-              "    a = bytearray(64 << 20); del a\n"
-              "    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before\n"
-              "with WorkerPool(2) as pool:\n"
-              "    print(max(pool.map(faults, range(4))), faults(0))")
-    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
-    assert out.returncode == 0, out.stderr
-    in_workers, here = map(int, out.stdout.split())
-    if here < 8000:
-        pytest.skip(f"a freed 64 MB block faulted in only {here} pages without the settings: this machine backs "
-                    "all memory with transparent huge pages, so there is nothing to tell apart")
-    assert in_workers < 1000, out.stdout
+    in_workers, here = _faults_in_workers_and_here(
+        "def faults(_):\n"
+        "    a = bytearray(64 << 20); del a\n"
+        "    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt\n"
+        "    a = bytearray(64 << 20); del a\n"
+        "    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before\n")
+    _skip_under_huge_pages(here, 8000, "a freed 64 MB block")
+    assert in_workers < 1000, (in_workers, here)
 
 
 def test_a_feature_workers_threads_reuse_the_memory_it_frees():
@@ -657,29 +674,18 @@ def test_a_feature_workers_threads_reuse_the_memory_it_frees():
     and faulted in fresh memory while the worker's heap held the earlier images' free (herzjesu's features stage:
     5.5-5.6 s instead of 4.9-5.1 s, 110 MB more at the peak). In a worker, a 32 MB block that a second thread
     allocates after the worker freed one faults in almost none of its 8,192 pages; with glibc's arenas, nearly all."""
-    import subprocess
-    import sys
-
-    script = ("import resource, threading\nfrom mvrecon.executor import WorkerPool\n"
-              "def faults(_):\n"
-              "    a = bytearray(32 << 20); del a\n"
-              "    counts = []\n"
-              "    def other():\n"
-              "        before = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt\n"
-              "        a = bytearray(32 << 20); del a\n"
-              "        counts.append(resource.getrusage(resource.RUSAGE_THREAD).ru_minflt - before)\n"
-              "    t = threading.Thread(target=other); t.start(); t.join()\n"
-              "    return counts[0]\n"
-              "with WorkerPool(2) as pool:\n"
-              "    print(max(pool.map(faults, range(2))))\n"
-              "print(faults(0))")
-    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
-    assert out.returncode == 0, out.stderr
-    in_workers, here = map(int, out.stdout.split())
-    if here < 4000:
-        pytest.skip(f"a second thread's 32 MB block faulted in only {here} pages with glibc's defaults: this "
-                    "machine backs all memory with transparent huge pages, so there is nothing to tell apart")
-    assert in_workers < 500, out.stdout
+    in_workers, here = _faults_in_workers_and_here(
+        "def faults(_):\n"
+        "    a = bytearray(32 << 20); del a\n"
+        "    counts = []\n"
+        "    def other():\n"
+        "        before = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt\n"
+        "        a = bytearray(32 << 20); del a\n"
+        "        counts.append(resource.getrusage(resource.RUSAGE_THREAD).ru_minflt - before)\n"
+        "    t = threading.Thread(target=other); t.start(); t.join()\n"
+        "    return counts[0]\n")
+    _skip_under_huge_pages(here, 4000, "a second thread's 32 MB block")
+    assert in_workers < 500, (in_workers, here)
 
 
 def test_the_mvrecon_process_reuses_the_memory_it_frees():
@@ -687,9 +693,6 @@ def test_the_mvrecon_process_reuses_the_memory_it_frees():
     descriptors and their products in blocks of a few MB): after `main` has started as the command, a 64 MB
     block allocated again after being freed faults in almost none of its pages. Called as a function, with
     arguments, `main` leaves the caller's allocator alone."""
-    import subprocess
-    import sys
-
     script = ("import resource, sys\nfrom mvrecon import cli\n"
               "how, sys.argv = sys.argv[1], ['mvrecon', '--version']\n"
               "try:\n"
@@ -700,14 +703,8 @@ def test_the_mvrecon_process_reuses_the_memory_it_frees():
               "before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt\n"
               "a = bytearray(64 << 20); del a\n"
               "print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)")
-    faults = {}
-    for how in ("command", "function"):
-        out = subprocess.run([sys.executable, "-c", script, how], capture_output=True, text=True, timeout=120)
-        assert out.returncode == 0, out.stderr
-        faults[how] = int(out.stdout.split()[-1])
-    if faults["function"] < 8000:
-        pytest.skip(f"a freed 64 MB block faulted in only {faults['function']} pages without the settings: this "
-                    "machine backs all memory with transparent huge pages, so there is nothing to tell apart")
+    faults = {how: int(_stdout_of(script, how).split()[-1]) for how in ("command", "function")}
+    _skip_under_huge_pages(faults["function"], 8000, "a freed 64 MB block")
     assert faults["command"] < 1000, faults
 
 
