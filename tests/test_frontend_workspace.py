@@ -636,10 +636,19 @@ def _stdout_of(script: str, *argv: str) -> str:
     return out.stdout
 
 
+# `refaults(mb, who)`: the page faults (of the process, or of the calling thread) of a block of `mb` MB allocated
+# and freed again, which a process that keeps what it frees serves from memory it has already touched
+_REFAULTS = ("import resource\n"
+             "def refaults(mb, who=resource.RUSAGE_SELF):\n"
+             "    before = resource.getrusage(who).ru_minflt\n"
+             "    a = bytearray(mb << 20); del a\n"
+             "    return resource.getrusage(who).ru_minflt - before\n")
+
+
 def _faults_in_workers_and_here(faults: str) -> tuple[int, int]:
-    """The page faults that `faults(_)` (a function's source) counts: the most of four calls in a WorkerPool's
-    workers, then in the parent, an interpreter with glibc's defaults."""
-    script = ("import resource, threading\nfrom mvrecon.executor import WorkerPool\n" + faults +
+    """The page faults that `faults(_)` (a function's source, which may call `refaults`) counts: the most of four
+    calls in a WorkerPool's workers, then in the parent, an interpreter with glibc's defaults."""
+    script = (_REFAULTS + "import threading\nfrom mvrecon.executor import WorkerPool\n" + faults +
               "with WorkerPool(2) as pool:\n    print(max(pool.map(faults, range(4))))\nprint(faults(0))")
     in_workers, here = map(int, _stdout_of(script).split())
     return in_workers, here
@@ -662,9 +671,7 @@ def test_feature_workers_reuse_the_memory_they_free():
     in_workers, here = _faults_in_workers_and_here(
         "def faults(_):\n"
         "    a = bytearray(64 << 20); del a\n"
-        "    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt\n"
-        "    a = bytearray(64 << 20); del a\n"
-        "    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before\n")
+        "    return refaults(64)\n")
     _skip_under_huge_pages(here, 8000, "a freed 64 MB block")
     assert in_workers < 1000, (in_workers, here)
 
@@ -678,11 +685,8 @@ def test_a_feature_workers_threads_reuse_the_memory_it_frees():
         "def faults(_):\n"
         "    a = bytearray(32 << 20); del a\n"
         "    counts = []\n"
-        "    def other():\n"
-        "        before = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt\n"
-        "        a = bytearray(32 << 20); del a\n"
-        "        counts.append(resource.getrusage(resource.RUSAGE_THREAD).ru_minflt - before)\n"
-        "    t = threading.Thread(target=other); t.start(); t.join()\n"
+        "    t = threading.Thread(target=lambda: counts.append(refaults(32, resource.RUSAGE_THREAD)))\n"
+        "    t.start(); t.join()\n"
         "    return counts[0]\n")
     _skip_under_huge_pages(here, 4000, "a second thread's 32 MB block")
     assert in_workers < 500, (in_workers, here)
@@ -693,16 +697,14 @@ def test_the_mvrecon_process_reuses_the_memory_it_frees():
     descriptors and their products in blocks of a few MB): after `main` has started as the command, a 64 MB
     block allocated again after being freed faults in almost none of its pages. Called as a function, with
     arguments, `main` leaves the caller's allocator alone."""
-    script = ("import resource, sys\nfrom mvrecon import cli\n"
+    script = (_REFAULTS + "import sys\nfrom mvrecon import cli\n"
               "how, sys.argv = sys.argv[1], ['mvrecon', '--version']\n"
               "try:\n"
               "    cli.main() if how == 'command' else cli.main(['--version'])\n"
               "except SystemExit:\n"
               "    pass\n"
               "a = bytearray(64 << 20); del a\n"
-              "before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt\n"
-              "a = bytearray(64 << 20); del a\n"
-              "print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)")
+              "print(refaults(64))")
     faults = {how: int(_stdout_of(script, how).split()[-1]) for how in ("command", "function")}
     _skip_under_huge_pages(faults["function"], 8000, "a freed 64 MB block")
     assert faults["command"] < 1000, faults
