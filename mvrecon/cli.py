@@ -4,7 +4,7 @@ Each subcommand is a module in `mvrecon/commands/` with a docstring (its help li
 place in `--help`), `add_arguments(parser)` and `run(args) -> int`; the module's name is the command's name
 (underscores become dashes). `HOLDS_OUTPUT = True` makes the CLI hold its `-o` folder for the run, so that a
 second run into it stops in one line instead of breaking both. Command modules import heavy libraries inside
-`run`, so `mvrecon --help` stays fast.
+`run`, so `mvrecon --help` stays fast, and a run imports only its own command's module.
 """
 
 import argparse
@@ -28,15 +28,32 @@ from .progress import clear_line, set_enabled
 
 
 
-def _command_modules():
+def _command_modules(only: str | None = None):
+    """The command modules in `--help` order; with `only` (a command as typed), that one alone when it is one:
+    importing and describing every command took 8 ms of each run's single-core start-up (docs/speed-log.md)."""
     from . import commands
 
-    modules = [importlib.import_module(f"mvrecon.commands.{info.name}")
-               for info in pkgutil.iter_modules(commands.__path__) if not info.name.startswith("_")]
+    names = [info.name for info in pkgutil.iter_modules(commands.__path__) if not info.name.startswith("_")]
+    if only is not None and only.replace("-", "_") in names:
+        names = [only.replace("-", "_")]
+    modules = [importlib.import_module(f"mvrecon.commands.{name}") for name in names]
     return sorted(modules, key=lambda m: (getattr(m, "ORDER", 100), m.__name__))
 
 
-def build_parser() -> argparse.ArgumentParser:
+def _command_in(argv: list[str]) -> str | None:
+    """The command `argv` runs: its first word that is not an option (the options before a command take no
+    value), or None when `-h`/`--help` comes first, which lists every command."""
+    for arg in argv:
+        if arg in ("-h", "--help"):
+            return None
+        if not arg.startswith("-"):
+            return arg
+    return None
+
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The parser of every command, or of the command `only` alone (`_command_modules`); an unknown one gets
+    every command, so that argparse's error lists them."""
     parser = argparse.ArgumentParser(prog="mvrecon", description="Structure from motion in Python, validated against COLMAP.")
     parser.add_argument("--version", action="version", version=f"mvrecon {__version__}")
     # -v/-q are accepted before the command too (`mvrecon -q reconstruct ...`); own dests, as a subcommand's
@@ -47,7 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
     common.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
     common.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors, no progress bars")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for module in _command_modules():
+    for module in _command_modules(only):
         name = module.__name__.rsplit(".", 1)[1]
         doc = (module.__doc__ or "").strip()
         first = doc.splitlines()[0] if doc else name
@@ -168,7 +185,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     argv = sys.argv[1:] if argv is None else list(argv)
     for option in DASHED_VALUES:
         argv = join_option_value(argv, option)
-    return build_parser().parse_args(argv)
+    return build_parser(_command_in(argv)).parse_args(argv)
 
 
 def _run(argv) -> int:

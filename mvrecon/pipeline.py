@@ -253,7 +253,8 @@ def load_later_stages() -> None:
     import importlib
 
     try:
-        for name in ("cv2", "gtsam", "mvrecon.io.colmap_model", "mvrecon.sfm.incremental"):
+        # numpy.ma: the initial pair's np.median imports it (8 ms of the mapping, on its one core)
+        for name in ("cv2", "gtsam", "numpy.ma", "mvrecon.io.colmap_model", "mvrecon.sfm.incremental"):
             importlib.import_module(name)
         from .matching.int_product import int_product
 

@@ -477,6 +477,30 @@ def test_the_command_line_and_pipeline_load_without_pycolmap():
     assert done.stdout.strip() == "[]"
 
 
+def test_a_run_imports_only_its_command_and_help_still_lists_every_command(capsys):
+    """The start-up before the feature workers fork runs on one core: `reconstruct` imports its own command's
+    module and not the others', nor numpy.random (15 ms of it together). `--help`, `-h COMMAND` and a mistyped
+    command still get every command."""
+    import subprocess
+    import sys
+
+    from mvrecon.cli import parse_args
+
+    code = ("import sys, mvrecon.cli, mvrecon.pipeline; "
+            "mvrecon.cli.parse_args(['-q', 'reconstruct', 'IMAGES', '-o', 'OUT']); "
+            "print(sorted(m for m in sys.modules if m.startswith(('mvrecon.commands.', 'numpy.random'))))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "['mvrecon.commands._options', 'mvrecon.commands.reconstruct']"
+    assert parse_args(["-q", "reconstruct", "IMAGES", "-o", "OUT"]).output == "OUT"
+    for argv in (["--help"], ["-h", "reconstruct"], ["-v", "recnstruct"]):
+        with pytest.raises(SystemExit):
+            parse_args(argv)
+        out = capsys.readouterr()
+        listed = out.out + out.err
+        assert all(name in listed for name in ("reconstruct", "study", "stereo", "sem", "export")), argv
+
+
 def test_a_config_file_the_command_reads_nothing_of_is_named_in_a_warning(tmp_path, caplog):
     """A file holding only [mapper] settings, given to `features` or `match`, was taken without a word, as if
     its settings had been applied; a file that holds a table the command reads is not mentioned."""
