@@ -57,9 +57,10 @@ def _cluster_sums(x: np.ndarray, labels: np.ndarray, k: int) -> tuple[np.ndarray
     return indicator @ x, np.bincount(labels, minlength=k)
 
 
+# `rng`'s annotation is a string: evaluated, it imported numpy.random at every start-up (7 ms before the feature
+# workers fork, on one core)
 def kmeans(x: np.ndarray, k: int, iterations: int, rng: "np.random.Generator") -> np.ndarray:
-    """Lloyd's k-means from k distinct sample rows; an empty cluster keeps its centre. (The annotation is a
-    string: evaluated, it imported numpy.random at every start-up, 7 ms before the feature workers fork.)"""
+    """Lloyd's k-means from k distinct sample rows; an empty cluster keeps its centre."""
     centres = x[rng.choice(len(x), size=k, replace=False)].astype(np.float32)
     for _ in range(iterations):
         sums, counts = _cluster_sums(x, assign(x, centres), k)
