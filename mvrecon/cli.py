@@ -34,8 +34,9 @@ def _command_modules(only: str | None = None):
     from . import commands
 
     names = [info.name for info in pkgutil.iter_modules(commands.__path__) if not info.name.startswith("_")]
-    if only is not None and only.replace("-", "_") in names:
-        names = [only.replace("-", "_")]
+    wanted = None if only is None else only.replace("-", "_")
+    if wanted in names:
+        names = [wanted]
     modules = [importlib.import_module(f"mvrecon.commands.{name}") for name in names]
     return sorted(modules, key=lambda m: (getattr(m, "ORDER", 100), m.__name__))
 

@@ -464,34 +464,35 @@ def test_the_command_runs_as_a_fresh_process(tmp_path):
         assert sorted(i.name for i in dbmod.read_images(db).values()) == [f"view{i:02d}.png" for i in range(3)]
 
 
-def test_the_command_line_and_pipeline_load_without_pycolmap():
-    """pycolmap (0.1 s to import) loads at the first database call, so that `mvrecon --help` does not pay it
-    and the feature workers are forked, and import OpenCV, while the parent imports it."""
+def _stdout_of(script: str, *argv: str) -> str:
+    """What `script` prints, run in a fresh interpreter (the modules loaded and the allocator settings under test
+    last a process)."""
     import subprocess
     import sys
 
+    out = subprocess.run([sys.executable, "-c", script, *argv], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    return out.stdout
+
+
+def test_the_command_line_and_pipeline_load_without_pycolmap():
+    """pycolmap (0.1 s to import) loads at the first database call, so that `mvrecon --help` does not pay it
+    and the feature workers are forked, and import OpenCV, while the parent imports it."""
     code = ("import sys, mvrecon.cli, mvrecon.pipeline; mvrecon.cli.build_parser(); "
             "print(sorted(m for m in ('pycolmap', 'cv2', 'gtsam') if m in sys.modules))")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert done.returncode == 0, done.stderr
-    assert done.stdout.strip() == "[]"
+    assert _stdout_of(code).strip() == "[]"
 
 
 def test_a_run_imports_only_its_command_and_help_still_lists_every_command(capsys):
     """The start-up before the feature workers fork runs on one core: `reconstruct` imports its own command's
     module and not the others', nor numpy.random (15 ms of it together). `--help`, `-h COMMAND` and a mistyped
     command still get every command."""
-    import subprocess
-    import sys
-
     from mvrecon.cli import parse_args
 
     code = ("import sys, mvrecon.cli, mvrecon.pipeline; "
             "mvrecon.cli.parse_args(['-q', 'reconstruct', 'IMAGES', '-o', 'OUT']); "
             "print(sorted(m for m in sys.modules if m.startswith(('mvrecon.commands.', 'numpy.random'))))")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert done.returncode == 0, done.stderr
-    assert done.stdout.strip() == "['mvrecon.commands._options', 'mvrecon.commands.reconstruct']"
+    assert _stdout_of(code).strip() == "['mvrecon.commands._options', 'mvrecon.commands.reconstruct']"
     assert parse_args(["-q", "reconstruct", "IMAGES", "-o", "OUT"]).output == "OUT"
     for argv in (["--help"], ["-h", "reconstruct"], ["-v", "recnstruct"]):
         with pytest.raises(SystemExit):
@@ -648,16 +649,6 @@ def test_the_mvrecon_process_runs_openblas_on_one_thread():
             env["OPENBLAS_NUM_THREADS"] = setting
         out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120)
         assert out.returncode == 0 and out.stdout.splitlines()[-1] == expected, (setting, out.stdout, out.stderr)
-
-
-def _stdout_of(script: str, *argv: str) -> str:
-    """What `script` prints, run in a fresh interpreter (the allocator settings under test last a process)."""
-    import subprocess
-    import sys
-
-    out = subprocess.run([sys.executable, "-c", script, *argv], capture_output=True, text=True, timeout=120)
-    assert out.returncode == 0, out.stderr
-    return out.stdout
 
 
 # `refaults(mb, who)`: the page faults (of the process, or of the calling thread) of a block of `mb` MB allocated
