@@ -1,15 +1,17 @@
-"""The workspace's COLMAP SQLite database, read and written through `pycolmap.Database`.
+"""The workspace's COLMAP SQLite database, read and written with Python's sqlite3 in COLMAP's schema.
 
-Because the schema is COLMAP's own, `pycolmap.incremental_mapping` can map our matches and our mapper can map
-COLMAP's. Coordinates stored here use COLMAP's pixel convention (top-left pixel centre at (0.5, 0.5)).
-The rest of mvrecon sees plain dataclasses and numpy arrays, never pycolmap objects.
+Because the schema and the blobs are COLMAP's own (pycolmap 4.2's: rigs and frames tables, a descriptor type),
+`pycolmap.incremental_mapping` can map our matches and our mapper can map COLMAP's. Coordinates stored here use
+COLMAP's pixel convention (top-left pixel centre at (0.5, 0.5)). The rest of mvrecon sees plain dataclasses and
+numpy arrays.
 
-pycolmap is imported on first use, not with this module: its import (0.1 s) then overlaps the feature workers'
-start instead of delaying it, and `mvrecon --help` does not pay it.
+pycolmap is not imported for any of this: its import took 0.11 s of CPU in every run, beside the feature workers on
+the cores they need (docs/speed-log.md, session 39). It is still what tests read our databases with, and what
+tells which of COLMAP's cameras it cannot verify without a focal length (`colmap_needs_focal`).
 """
 
-import functools
 import os
+import sqlite3
 from contextlib import closing, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,22 +22,64 @@ from .errors import InputError
 from .interrupts import ctrl_c_deferred
 from .io.files import require_room
 
+# COLMAP's enumerations as pycolmap 4.2 numbers them (tests/test_io_formats.py checks both against pycolmap)
+CAMERA_MODEL_IDS = {"SIMPLE_PINHOLE": 0, "PINHOLE": 1, "SIMPLE_RADIAL": 2, "RADIAL": 3, "OPENCV": 4,
+                    "OPENCV_FISHEYE": 5, "FULL_OPENCV": 6, "FOV": 7, "SIMPLE_RADIAL_FISHEYE": 8, "RADIAL_FISHEYE": 9,
+                    "THIN_PRISM_FISHEYE": 10, "RAD_TAN_THIN_PRISM_FISHEYE": 11, "SIMPLE_DIVISION": 12, "DIVISION": 13,
+                    "SIMPLE_FISHEYE": 14, "FISHEYE": 15, "EUCM": 16, "EQUIRECTANGULAR": 17}
+TWO_VIEW_CONFIGS = {"UNDEFINED": 0, "DEGENERATE": 1, "CALIBRATED": 2, "UNCALIBRATED": 3, "PLANAR": 4,
+                    "PANORAMIC": 5, "PLANAR_OR_PANORAMIC": 6, "WATERMARK": 7, "MULTIPLE": 8, "CALIBRATED_RIG": 9}
+_MODEL_NAMES = {v: k for k, v in CAMERA_MODEL_IDS.items()}
+_CONFIG_NAMES = {v: k for k, v in TWO_VIEW_CONFIGS.items()}
+_SIFT = 0  # the descriptors' type: COLMAP's FeatureExtractorType.SIFT
+_MAX_IMAGE_ID = 2147483647  # pair_id = image_id1 * this + image_id2, with image_id1 < image_id2
+_USER_VERSION = 4020100  # what pycolmap 4.2.1 stamps on the databases it makes (its version)
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS rigs (
+    rig_id INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL, ref_sensor_id INTEGER NOT NULL,
+    ref_sensor_type INTEGER NOT NULL);
+CREATE UNIQUE INDEX IF NOT EXISTS rig_ref_sensor_assignment ON rigs(ref_sensor_id, ref_sensor_type);
+CREATE TABLE IF NOT EXISTS rig_sensors (
+    rig_id INTEGER NOT NULL, sensor_id INTEGER NOT NULL, sensor_type INTEGER NOT NULL, sensor_from_rig BLOB,
+    FOREIGN KEY(rig_id) REFERENCES rigs(rig_id) ON DELETE CASCADE);
+CREATE UNIQUE INDEX IF NOT EXISTS rig_sensor_assignment ON rig_sensors(sensor_id, sensor_type);
+CREATE TABLE IF NOT EXISTS cameras (
+    camera_id INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL, model INTEGER NOT NULL, width INTEGER NOT NULL,
+    height INTEGER NOT NULL, params BLOB, prior_focal_length INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS frames (
+    frame_id INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL, rig_id INTEGER NOT NULL,
+    FOREIGN KEY(rig_id) REFERENCES rigs(rig_id) ON DELETE CASCADE);
+CREATE TABLE IF NOT EXISTS frame_data (
+    frame_id INTEGER NOT NULL, data_id INTEGER NOT NULL, sensor_id INTEGER NOT NULL, sensor_type INTEGER NOT NULL,
+    FOREIGN KEY(frame_id) REFERENCES frames(frame_id) ON DELETE CASCADE);
+CREATE UNIQUE INDEX IF NOT EXISTS frame_sensor_assignment ON frame_data(data_id, sensor_type);
+CREATE TABLE IF NOT EXISTS images (
+    image_id INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL, name TEXT NOT NULL UNIQUE, camera_id INTEGER NOT NULL,
+    CONSTRAINT image_id_check CHECK(image_id >= 0 and image_id < 2147483647),
+    FOREIGN KEY(camera_id) REFERENCES cameras(camera_id));
+CREATE UNIQUE INDEX IF NOT EXISTS index_name ON images(name);
+CREATE TABLE IF NOT EXISTS pose_priors (
+    pose_prior_id INTEGER PRIMARY KEY NOT NULL, corr_data_id INTEGER NOT NULL, corr_sensor_id INTEGER NOT NULL,
+    corr_sensor_type INTEGER NOT NULL, position BLOB, position_covariance BLOB, gravity BLOB,
+    coordinate_system INTEGER NOT NULL);
+CREATE UNIQUE INDEX IF NOT EXISTS pose_prior_data_assignment ON
+    pose_priors(corr_data_id, corr_sensor_id, corr_sensor_type);
+CREATE TABLE IF NOT EXISTS keypoints (
+    image_id INTEGER PRIMARY KEY NOT NULL, rows INTEGER NOT NULL, cols INTEGER NOT NULL, data BLOB,
+    FOREIGN KEY(image_id) REFERENCES images(image_id) ON DELETE CASCADE);
+CREATE TABLE IF NOT EXISTS descriptors (
+    image_id INTEGER PRIMARY KEY NOT NULL, type INTEGER NOT NULL, rows INTEGER NOT NULL, cols INTEGER NOT NULL,
+    data BLOB, FOREIGN KEY(image_id) REFERENCES images(image_id) ON DELETE CASCADE);
+CREATE TABLE IF NOT EXISTS matches (
+    pair_id INTEGER PRIMARY KEY NOT NULL, rows INTEGER NOT NULL, cols INTEGER NOT NULL, data BLOB);
+CREATE TABLE IF NOT EXISTS two_view_geometries (
+    pair_id INTEGER PRIMARY KEY NOT NULL, rows INTEGER NOT NULL, cols INTEGER NOT NULL, data BLOB,
+    config INTEGER NOT NULL, F BLOB, E BLOB, H BLOB, qvec BLOB, tvec BLOB, camera1 BLOB, camera2 BLOB);
+"""
 
-def _pycolmap():
-    import pycolmap
 
-    return pycolmap
-
-
-@functools.cache
-def _configs() -> dict[str, int]:
-    """COLMAP's two-view configurations, by name (pycolmap.TwoViewGeometryConfiguration)."""
-    return {m.name: int(m.value) for m in _pycolmap().TwoViewGeometryConfiguration.__members__.values()}
-
-
-@functools.cache
 def _config_name(value: int) -> str:
-    return next((name for name, v in _configs().items() if v == value), "UNDEFINED")
+    return _CONFIG_NAMES.get(int(value), "UNDEFINED")
 
 
 COLMAP_FISHEYE_NOTE = "COLMAP verifies no pair of a fisheye camera without a known focal length"
@@ -45,7 +89,8 @@ def colmap_needs_focal(model: str) -> bool:
     """Whether COLMAP marks every pair of a `model` camera without a focal-length prior DEGENERATE (pycolmap 4.2
     does so for its fisheye models, whose focal length a fundamental matrix cannot give, when it matches and again
     when its mapper loads a database), so that its runs register no image of such a camera."""
-    pycolmap = _pycolmap()
+    import pycolmap
+
     if model not in pycolmap.CameraModelId.__members__:
         return False
     return bool(pycolmap.Camera(model=model, width=1, height=1).is_perspective_fisheye())
@@ -126,81 +171,130 @@ class Correspondences:
 
 @contextmanager
 def open_database(path):
-    """Open (creating if needed) a COLMAP database and close it however the block ends. A file that is not a
-    readable SQLite database is an InputError naming it (pycolmap would log a warning and raise a bare
-    RuntimeError)."""
-    _check_sqlite(Path(path))
-    folder = Path(path).resolve().parent
-    writable = os.access(folder, os.W_OK)
-    pycolmap = _pycolmap()
-    saved = pycolmap.logging.minloglevel
-    if not writable:  # pycolmap would log a warning, then raise "No registered database factory succeeded"
-        pycolmap.logging.minloglevel = pycolmap.logging.ERROR
+    """Open (creating if needed, in COLMAP's schema) a COLMAP database and close it however the block ends. A
+    file that is not a readable SQLite database is an InputError naming it, and so is a folder that cannot be
+    written (SQLite makes its journal next to the database)."""
+    path = Path(path)
+    _check_sqlite(path)
+    folder = path.resolve().parent
     try:
-        db = pycolmap.Database.open(str(path))
-    except RuntimeError:
-        if writable:
+        db = sqlite3.connect(path, isolation_level=None)  # autocommit; `transaction` groups a unit's writes
+    except sqlite3.OperationalError:
+        _not_writable(folder)
+        raise
+    try:
+        try:
+            _create_schema(db)
+        except sqlite3.OperationalError:
+            _not_writable(folder)
             raise
-        raise InputError(f"{folder}: cannot write in this folder (read-only, or another user's), which opening "
-                         "its database needs; copy the folder, or choose another one") from None
-    finally:
-        pycolmap.logging.minloglevel = saved
-    try:
         yield db
     finally:
         db.close()
 
 
+def _not_writable(folder: Path) -> None:
+    if not os.access(folder, os.W_OK):
+        raise InputError(f"{folder}: cannot write in this folder (read-only, or another user's), which opening "
+                         "its database needs; copy the folder, or choose another one") from None
+
+
+def _create_schema(db) -> None:
+    """COLMAP's tables where they are missing; a new database gets COLMAP's WAL journal and version stamp."""
+    if db.execute("SELECT COUNT(*) FROM sqlite_master WHERE type = 'table' AND name = 'two_view_geometries'"
+                  ).fetchone()[0]:
+        return
+    db.execute("PRAGMA journal_mode = WAL")
+    db.executescript(f"BEGIN; {_SCHEMA} PRAGMA user_version = {_USER_VERSION}; COMMIT;")
+
+
+def _blob(array, dtype):
+    """A matrix as COLMAP stores it: (rows, cols, row-major bytes), NULL for an empty one."""
+    a = np.ascontiguousarray(array, dtype=dtype)
+    return a.shape[0], a.shape[1], (a.tobytes() if a.size else None)
+
+
+def _array(data, rows: int, cols: int, dtype) -> np.ndarray:
+    if data is None or rows == 0:
+        return np.zeros((int(rows), int(cols)), dtype)
+    return np.frombuffer(data, dtype=dtype).reshape(int(rows), -1)
+
+
+def pair_id(image_id1: int, image_id2: int) -> int:
+    """COLMAP's id of an unordered image pair."""
+    i, j = sorted((int(image_id1), int(image_id2)))
+    return i * _MAX_IMAGE_ID + j
+
+
+def pair_images(pair: int) -> tuple[int, int]:
+    """The (smaller, larger) image ids of a COLMAP pair id."""
+    return int(pair) // _MAX_IMAGE_ID, int(pair) % _MAX_IMAGE_ID
+
+
 def write_camera(db, cam: CameraInfo) -> int:
-    c = _pycolmap().Camera(model=cam.model, width=int(cam.width), height=int(cam.height),
-                           params=np.asarray(cam.params, dtype=float), has_prior_focal_length=bool(cam.prior_trusted))
+    if cam.model not in CAMERA_MODEL_IDS:
+        raise ValueError(f"unknown COLMAP camera model {cam.model!r}")
+    row = (CAMERA_MODEL_IDS[cam.model], int(cam.width), int(cam.height),
+           np.asarray(cam.params, dtype=np.float64).tobytes(), int(bool(cam.prior_trusted)))
     if cam.camera_id > 0:
-        c.camera_id = cam.camera_id
-        return db.write_camera(c, use_camera_id=True)
-    return db.write_camera(c)
+        db.execute("INSERT INTO cameras (camera_id, model, width, height, params, prior_focal_length) "
+                   "VALUES (?, ?, ?, ?, ?, ?)", (int(cam.camera_id), *row))
+        return int(cam.camera_id)
+    return int(db.execute("INSERT INTO cameras (model, width, height, params, prior_focal_length) "
+                          "VALUES (?, ?, ?, ?, ?)", row).lastrowid)
 
 
 def write_image(db, name: str, camera_id: int) -> int:
-    return db.write_image(_pycolmap().Image(name=name, camera_id=int(camera_id)))
+    return int(db.execute("INSERT INTO images (name, camera_id) VALUES (?, ?)", (name, int(camera_id))).lastrowid)
 
 
 def write_features(db, image_id: int, keypoints: np.ndarray, descriptors: np.ndarray) -> None:
     """Keypoints (N,4): x, y (COLMAP convention), scale, orientation in radians; descriptors (N,128) uint8."""
-    kp = np.ascontiguousarray(keypoints, dtype=np.float32).reshape(-1, 4)
-    desc = np.ascontiguousarray(descriptors, dtype=np.uint8).reshape(len(kp), -1 if len(kp) else 128)
-    db.write_keypoints(int(image_id), kp)
-    pycolmap = _pycolmap()
-    db.write_descriptors(int(image_id), pycolmap.FeatureDescriptors(type=pycolmap.FeatureExtractorType.SIFT,
-                                                                    data=desc))
+    kp = np.asarray(keypoints, dtype=np.float32).reshape(-1, 4)
+    desc = np.asarray(descriptors, dtype=np.uint8).reshape(len(kp), -1 if len(kp) else 128)
+    db.execute("INSERT INTO keypoints (image_id, rows, cols, data) VALUES (?, ?, ?, ?)",
+               (int(image_id), *_blob(kp, np.float32)))
+    db.execute("INSERT INTO descriptors (image_id, type, rows, cols, data) VALUES (?, ?, ?, ?, ?)",
+               (int(image_id), _SIFT, *_blob(desc, np.uint8)))
 
 
 def write_matches(db, image_id1: int, image_id2: int, matches: np.ndarray) -> None:
     """Raw (putative) matches, (N,2) keypoint indices of image 1 and image 2."""
-    db.write_matches(int(image_id1), int(image_id2), np.ascontiguousarray(matches, dtype=np.uint32).reshape(-1, 2))
+    m = np.asarray(matches, dtype=np.uint32).reshape(-1, 2)
+    if int(image_id1) > int(image_id2):
+        m = m[:, ::-1]
+    db.execute("INSERT INTO matches (pair_id, rows, cols, data) VALUES (?, ?, ?, ?)",
+               (pair_id(image_id1, image_id2), *_blob(m, np.uint32)))
 
 
 def write_two_view_geometry(db, pair: PairGeometry) -> None:
-    kwargs = {"config": _configs()[pair.config],
-              "inlier_matches": np.ascontiguousarray(pair.inliers, dtype=np.uint32).reshape(-1, 2)}
-    for name in ("F", "E", "H"):
-        value = getattr(pair, name)
-        if value is not None:
-            kwargs[name] = np.asarray(value, dtype=float)
-    db.write_two_view_geometry(int(pair.image_id1), int(pair.image_id2), _pycolmap().TwoViewGeometry(**kwargs))
-
-
-def _camera_info(c) -> CameraInfo:
-    return CameraInfo(camera_id=int(c.camera_id), model=c.model.name, width=int(c.width), height=int(c.height),
-                      params=np.asarray(c.params, dtype=float), prior_trusted=bool(c.has_prior_focal_length))
+    """Stored for the pair in COLMAP's order (smaller image id first), as COLMAP does: the inliers' columns
+    swapped, F and E transposed and H inverted when the pair comes the other way round."""
+    inliers = np.asarray(pair.inliers, dtype=np.uint32).reshape(-1, 2)
+    F, E, H = pair.F, pair.E, pair.H
+    if int(pair.image_id1) > int(pair.image_id2):
+        inliers = inliers[:, ::-1]
+        F, E = (None if m is None else np.asarray(m).T for m in (F, E))
+        H = None if H is None else np.linalg.inv(H)
+    matrices = [None if m is None else np.ascontiguousarray(m, dtype=np.float64).reshape(3, 3).tobytes()
+                for m in (F, E, H)]
+    db.execute("INSERT INTO two_view_geometries (pair_id, rows, cols, data, config, F, E, H) "
+               "VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+               (pair_id(pair.image_id1, pair.image_id2), *_blob(inliers, np.uint32), TWO_VIEW_CONFIGS[pair.config],
+                *matrices))
 
 
 def read_cameras(db) -> dict[int, CameraInfo]:
-    return {int(c.camera_id): _camera_info(c) for c in db.read_all_cameras()}
+    return {int(cid): CameraInfo(camera_id=int(cid), model=_MODEL_NAMES.get(int(model), f"UNKNOWN_{model}"),
+                                 width=int(w), height=int(h), params=np.frombuffer(params or b"", np.float64).copy(),
+                                 prior_trusted=bool(prior))
+            for cid, model, w, h, params, prior in db.execute(
+                "SELECT camera_id, model, width, height, params, prior_focal_length FROM cameras ORDER BY camera_id")}
 
 
 def read_images(db) -> dict[int, ImageInfo]:
-    return {int(i.image_id): ImageInfo(image_id=int(i.image_id), name=i.name, camera_id=int(i.camera_id))
-            for i in db.read_all_images()}
+    return {int(i): ImageInfo(image_id=int(i), name=name, camera_id=int(c))
+            for i, name, c in db.execute("SELECT image_id, name, camera_id FROM images ORDER BY image_id")}
 
 
 def read_correspondences(path, min_inliers: int = 0, *, mapped: bool = True) -> Correspondences:
@@ -220,15 +314,15 @@ def read_correspondences(path, min_inliers: int = 0, *, mapped: bool = True) -> 
         out.images = read_images(db)
         for image_id in out.images:
             out.keypoints[image_id] = read_keypoints(db, image_id)[:, :2].copy()
-        pair_ids, geometries = db.read_two_view_geometries()
-        for pair_id, g in zip(pair_ids, geometries):
-            inliers = np.asarray(g.inlier_matches, dtype=np.int64).reshape(-1, 2)
-            if len(inliers) == 0 or len(inliers) < min_inliers:
+        for pair, rows, cols, data, config, F, E, H in db.execute(
+                "SELECT pair_id, rows, cols, data, config, F, E, H FROM two_view_geometries ORDER BY pair_id"):
+            if rows == 0 or rows < min_inliers:
                 continue
-            id1, id2 = _pycolmap().pair_id_to_image_pair(int(pair_id))
+            id1, id2 = pair_images(pair)
             out.pairs.append(PairGeometry(
-                image_id1=int(id1), image_id2=int(id2), config=_config_name(int(g.config)),
-                inliers=inliers, F=_matrix_or_none(g.F), E=_matrix_or_none(g.E), H=_matrix_or_none(g.H)))
+                image_id1=id1, image_id2=id2, config=_config_name(config),
+                inliers=_array(data, rows, cols, np.uint32).astype(np.int64), F=_matrix_or_none(F),
+                E=_matrix_or_none(E), H=_matrix_or_none(H)))
     return out
 
 
@@ -243,9 +337,7 @@ def _check_camera_models(path: Path, cameras: dict[int, CameraInfo]) -> None:
 
 def _check_sqlite(path: Path) -> None:
     if not path.is_file() or path.stat().st_size == 0:
-        return  # a new database, created by pycolmap
-    import sqlite3
-
+        return  # a new database, created by open_database
     try:
         with connect_readonly(path) as con:
             # the schema and one row of every table: cheap, and what a cut-off or foreign file fails on
@@ -256,30 +348,44 @@ def _check_sqlite(path: Path) -> None:
                          "run again") from None
 
 
-def _matrix_or_none(m):
-    m = np.asarray(m, dtype=float)
-    return None if m.shape != (3, 3) or not np.any(m) else m
+def _matrix_or_none(blob):
+    """A stored 3x3 matrix, or None for a NULL or all-zero one (no such model for the pair)."""
+    if blob is None or len(blob) != 72:
+        return None
+    m = np.frombuffer(blob, dtype=np.float64).reshape(3, 3).copy()
+    return m if np.any(m) else None
 
 
 # --- resumable stages (features, matching): what is done, one transaction per unit of work ---
 
 @contextmanager
 def transaction(db, path, nbytes: int):
-    """One unit of work (an image's features, a batch of pairs) written at once. pycolmap's transaction commits
-    whatever the block wrote however it ends, so Ctrl-C is held back until the block's end; and a commit that
-    fails (a full disk) aborts the process from inside pycolmap, so the disk must have room for twice the block's
-    `nbytes` (the WAL, then the database) first, or the run stops with one line, its earlier units kept."""
+    """One unit of work (an image's features, a batch of pairs) written whole or not at all: Ctrl-C is held back
+    until the block's end, and an error inside it rolls the unit back. The disk must have room for twice the
+    block's `nbytes` (the WAL, then the database) first, or the run stops with one line, its earlier units kept."""
     require_room(path, 2 * nbytes)
-    with ctrl_c_deferred(), _pycolmap().DatabaseTransaction(db):
-        yield db
+    with ctrl_c_deferred():
+        db.execute("BEGIN")
+        try:
+            yield db
+        except BaseException:
+            db.execute("ROLLBACK")
+            raise
+        db.execute("COMMIT")
+
+
+def _one(db, sql: str, *args):
+    return db.execute(sql, args).fetchone()
 
 
 def has_features(db, image_id: int) -> bool:
-    return bool(db.exists_keypoints(int(image_id)) and db.exists_descriptors(int(image_id)))
+    return bool(_one(db, "SELECT 1 FROM keypoints WHERE image_id = ?", int(image_id)) and
+                _one(db, "SELECT 1 FROM descriptors WHERE image_id = ?", int(image_id)))
 
 
 def num_keypoints(db, image_id: int) -> int:
-    return int(db.num_keypoints_for_image(int(image_id))) if db.exists_keypoints(int(image_id)) else 0
+    row = _one(db, "SELECT rows FROM keypoints WHERE image_id = ?", int(image_id))
+    return int(row[0]) if row else 0
 
 
 def read_features(db, image_id: int) -> tuple[np.ndarray, np.ndarray]:
@@ -288,39 +394,41 @@ def read_features(db, image_id: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def read_keypoints(db, image_id: int) -> np.ndarray:
-    """(N,4+) float keypoints of one image, x, y in COLMAP pixels first."""
-    kp = np.asarray(db.read_keypoints(int(image_id)), dtype=float)
-    if len(kp) == 0:  # a featureless image (a blank frame, sky): reshape(0, -1) would raise
-        return kp.reshape(0, 4)
-    return kp.reshape(len(kp), -1)
+    """(N,4+) float keypoints of one image, x, y in COLMAP pixels first; (0,4) for an image without any (a blank
+    frame, sky)."""
+    row = _one(db, "SELECT rows, cols, data FROM keypoints WHERE image_id = ?", int(image_id))
+    if row is None or not row[0]:
+        return np.zeros((0, 4))
+    return _array(row[2], row[0], row[1], np.float32).astype(np.float64)
 
 
 def read_descriptors(db, image_id: int) -> np.ndarray:
     """(N,128) uint8 descriptors of one image, without its keypoints (retrieval needs only these)."""
-    desc = np.asarray(db.read_descriptors(int(image_id)).data, dtype=np.uint8)
-    return desc if desc.ndim == 2 and desc.shape[1] else desc.reshape(-1, 128)
+    row = _one(db, "SELECT rows, cols, data FROM descriptors WHERE image_id = ?", int(image_id))
+    if row is None or not row[0]:
+        return np.zeros((0, 128), np.uint8)
+    return _array(row[2], row[0], row[1], np.uint8)
 
 
 def has_two_view_geometry(db, image_id1: int, image_id2: int) -> bool:
-    return bool(db.exists_two_view_geometry(int(image_id1), int(image_id2)))
+    return _one(db, "SELECT 1 FROM two_view_geometries WHERE pair_id = ?", pair_id(image_id1, image_id2)) is not None
+
+
+def num_matched_pairs(db) -> int:
+    """Pairs with raw matches stored (COLMAP's NumMatchedImagePairs)."""
+    return int(_one(db, "SELECT COUNT(*) FROM matches")[0])
 
 
 def clear_matches(db) -> None:
     """Drop raw matches and verified geometries (when the matching config changes)."""
-    db.clear_matches()
-    db.clear_two_view_geometries()
+    db.execute("DELETE FROM matches")
+    db.execute("DELETE FROM two_view_geometries")
 
 
 def read_verified_pairs(db) -> list[tuple[int, int, str, int]]:
     """(image_id1, image_id2, configuration name, inlier count) of every pair with at least one inlier."""
-    out = []
-    pair_ids, geometries = db.read_two_view_geometries()
-    for pair_id, g in zip(pair_ids, geometries):
-        n = len(np.asarray(g.inlier_matches).reshape(-1, 2))
-        if n:
-            id1, id2 = _pycolmap().pair_id_to_image_pair(int(pair_id))
-            out.append((int(id1), int(id2), _config_name(int(g.config)), n))
-    return out
+    return [(*pair_images(pair), _config_name(config), int(rows)) for pair, config, rows in db.execute(
+        "SELECT pair_id, config, rows FROM two_view_geometries WHERE rows > 0 ORDER BY pair_id")]
 
 
 def database_counts(path) -> dict:

@@ -608,7 +608,7 @@ def _no_verified_pairs(ws: Workspace, corr, *, matched_by_mvrecon: bool) -> str:
     configs = dbmod.pair_configurations(ws.database_path)
     if not configs:
         with dbmod.open_database(ws.database_path) as db:
-            matched = db.num_matched_image_pairs()
+            matched = dbmod.num_matched_pairs(db)
         return head + (f"run `mvrecon match -w {ws.path}` first" if not matched else
                        "the images do not overlap or have too little texture (nothing to reconstruct)")
     total = sum(configs.values())

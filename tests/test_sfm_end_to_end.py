@@ -386,7 +386,7 @@ def test_mapper_settings_from_toml_and_flags(demo, tmp_path, capsys):
     (tmp_path / "m.toml").write_text("[mapper]\nrefine_intrinsics = false\nseed = 5\n")
     assert main(["-q", "map", "-w", str(work), "--config", str(tmp_path / "m.toml"), "--seed", "3"]) == 0
     assert json.loads((work / "report.json").read_text())["seed"] == 3  # the flag wins over the file
-    with database.open_database(work / "database.db") as db:
+    with pycolmap.Database.open(str(work / "database.db")) as db:
         prior = {c.camera_id: c.params for c in db.read_all_cameras()}
     rec = pycolmap.Reconstruction(str(work / "sparse" / "0"))
     assert rec.num_reg_images() == 10

@@ -28,7 +28,7 @@ def synthetic_database(path, num_images=8, num_points=600, noise_px=0.5, seed=0,
                                             camera_width=640, camera_height=480,
                                             camera_model_id=pycolmap.CameraModelId.SIMPLE_RADIAL,
                                             camera_params=[600.0, 320.0, 240.0, 0.02])
-    with database.open_database(path) as db:
+    with pycolmap.Database.open(str(path)) as db:
         gt = pycolmap.synthesize_dataset(opts, db)
         pycolmap.synthesize_noise(pycolmap.SyntheticNoiseOptions(point2D_stddev=noise_px), gt, db)
         for cam in db.read_all_cameras():  # the mapper must find the focal length itself

@@ -36,7 +36,7 @@ def synthetic_database(path: Path, images: int) -> None:
 
     opts = pycolmap.SyntheticDatasetOptions(num_rigs=1, num_cameras_per_rig=1, num_frames_per_rig=images,
                                             num_points3D=2000, camera_width=1024, camera_height=768)
-    with database.open_database(path) as db:
+    with pycolmap.Database.open(str(path)) as db:
         rec = pycolmap.synthesize_dataset(opts, db)
         pycolmap.synthesize_noise(pycolmap.SyntheticNoiseOptions(point2D_stddev=0.5), rec, db)
 
