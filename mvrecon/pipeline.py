@@ -579,7 +579,7 @@ def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resu
         shutil.rmtree(old, ignore_errors=True)
         write_points_ply(recs[0], ws.path / "points.ply")
         if text:
-            warn_text_names(recs, sparse)
+            warn_text_names([r.names for r in recs], sparse)
     else:
         shutil.rmtree(new, ignore_errors=True)
         if sparse.exists():

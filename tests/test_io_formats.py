@@ -281,7 +281,7 @@ def test_written_model_is_what_pycolmap_writes_and_reads(tmp_path, caplog):
     np.testing.assert_allclose(p2, model.xyz.data[alive])
     np.testing.assert_array_equal(c2, rgb[alive])
     with caplog.at_level("WARNING", logger="mvrecon.io"):
-        warn_text_names(written, tmp_path / "sparse")
+        warn_text_names([w.names for w in written], tmp_path / "sparse")
     assert len(caplog.records) == 1 and "'photo 2.png'" in caplog.records[0].getMessage()
 
 
@@ -316,12 +316,12 @@ def test_writing_a_model_does_not_load_pycolmap(tmp_path):
 def test_quaternions_are_pycolmaps_to_the_bit():
     """The poses in images.bin and frames.bin are Eigen's quaternions of our rotation matrices; one addition in
     another order changed the last bit of 4% of these."""
-    from mvrecon.io.colmap_model import quaternions
+    from mvrecon.geometry.rotation import eigen_quaternions
 
     q, r = np.linalg.qr(np.random.default_rng(3).normal(size=(3000, 3, 3)))
     R = q * np.sign(np.diagonal(r, axis1=1, axis2=2))[:, None, :]
     R[np.linalg.det(R) < 0] *= -1
-    ours = quaternions(R)
+    ours = eigen_quaternions(R)
     theirs = np.array([pycolmap.Rotation3d(m).quat for m in R])[:, [3, 0, 1, 2]]
     assert (np.trace(R, axis1=1, axis2=2) < 0).sum() > 1000  # both of Eigen's branches
     np.testing.assert_array_equal(ours, theirs)

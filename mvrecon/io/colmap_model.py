@@ -19,6 +19,7 @@ import numpy as np
 from ..database import CAMERA_MODEL_IDS
 from ..errors import InputError
 from ..geometry import camera as cammodel
+from ..geometry.rotation import eigen_quaternions, eigen_rotate
 from .files import require_room, some_names
 from .ply import write_ply
 
@@ -43,36 +44,6 @@ class WrittenModel:
     names: list[str]
     xyz: np.ndarray
     rgb: np.ndarray
-
-
-def quaternions(R) -> np.ndarray:
-    """(n,4) unit quaternions (w, x, y, z) of rotation matrices (n,3,3), computed as Eigen's Quaternion(matrix)
-    does, operation for operation, so that the poses come out in the same bits as pycolmap's."""
-    R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
-    q = np.empty((len(R), 4))  # x, y, z, w as Eigen stores them
-    trace = R[:, 0, 0] + (R[:, 1, 1] + R[:, 2, 2])  # Eigen's sum order (it differs in the last bit otherwise)
-    pos = trace > 0
-    t = np.sqrt(trace[pos] + 1.0)
-    q[pos, 3] = 0.5 * t
-    t = 0.5 / t
-    Rp = R[pos]
-    q[pos, 0] = (Rp[:, 2, 1] - Rp[:, 1, 2]) * t
-    q[pos, 1] = (Rp[:, 0, 2] - Rp[:, 2, 0]) * t
-    q[pos, 2] = (Rp[:, 1, 0] - Rp[:, 0, 1]) * t
-    rows = np.flatnonzero(~pos)
-    diag = R[rows][:, [0, 1, 2], [0, 1, 2]]
-    big = np.where(diag[:, 1] > diag[:, 0], 1, 0)  # the largest diagonal entry, first one on ties
-    big = np.where(diag[:, 2] > diag[np.arange(len(rows)), big], 2, big)
-    for i in range(3):
-        r = rows[big == i]
-        j, k = (i + 1) % 3, (i + 2) % 3
-        t = np.sqrt(R[r, i, i] - R[r, j, j] - R[r, k, k] + 1.0)
-        q[r, i] = 0.5 * t
-        t = 0.5 / t
-        q[r, 3] = (R[r, k, j] - R[r, j, k]) * t
-        q[r, j] = (R[r, j, i] + R[r, i, j]) * t
-        q[r, k] = (R[r, k, i] + R[r, i, k]) * t
-    return q[:, [3, 0, 1, 2]]
 
 
 def point_colors(model, keypoint_colors: dict) -> np.ndarray | None:
@@ -140,23 +111,10 @@ def _tracks(model):
     return obs, op, points, lengths
 
 
-def _rotate(q, X) -> np.ndarray:
-    """Points X (n,3) turned by unit quaternions q (n,4; w, x, y, z) with Eigen's formula for q * v, the one
-    COLMAP projects with: by R instead, all but 2 of templeSparseRing's 1699 point errors differed in the last
-    bits."""
-    def cross(a, b):
-        return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                         a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
-
-    uv = cross(q[:, 1:], X)
-    uv = uv + uv
-    return X + q[:, :1] * uv + cross(q[:, 1:], uv)
-
-
 def _point_errors(model, obs, poses, kp_xy, lengths) -> np.ndarray:
     """Each point's mean reprojection error over its track (`obs`, grouped by point; `poses`: their images'
     written poses; `kp_xy`: their keypoints), computed and summed as pycolmap's `update_point_3d_errors`."""
-    Xc = _rotate(poses[:, :4], model.xyz.data[model.obs_point.data[obs]]) + poses[:, 4:]
+    Xc = eigen_rotate(poses[:, :4], model.xyz.data[model.obs_point.data[obs]]) + poses[:, 4:]
     cams = model.camera_of[model.obs_image.data[obs]]
     uv = np.empty((len(obs), 2))
     for cid in np.unique(cams):
@@ -189,7 +147,7 @@ def model_files(model, colors=None) -> tuple[dict[str, bytes], WrittenModel]:
     points2d["xy"] = keypoints
     points2d["point3d"] = _INVALID_POINT3D
     points2d["point3d"][where] = new_id[op]
-    poses = np.concatenate([quaternions(model.R[reg]), model.t[reg]], axis=1)
+    poses = np.concatenate([eigen_quaternions(model.R[reg]), model.t[reg]], axis=1)
 
     images = [struct.pack("<Q", len(reg))]
     for k, i in enumerate(reg):
@@ -297,16 +255,15 @@ def write_text_models(sparse_dir) -> int:
     require_room(sparse_dir, 3 * sum(model_bytes(rec) for rec in recs))
     for rec, d in zip(recs, dirs):
         rec.write_text(str(d))
-    warn_text_names(recs, sparse_dir)
+    warn_text_names([[im.name for im in rec.images.values()] for rec in recs], sparse_dir)
     return len(dirs)
 
 
-def warn_text_names(recs, sparse_dir) -> None:
-    """Warn when an image name of the text models sparse_dir/N holds white space: the text format ends a name at
-    its first space, so COLMAP's reader (pycolmap read 'photo 2.png' back as 'photo') and nerfstudio's lose
-    those names; the binary files next to them keep them whole. `recs`: WrittenModels or pycolmap ones."""
-    for k, rec in enumerate(recs):
-        names = rec.names if isinstance(rec, WrittenModel) else [im.name for im in rec.images.values()]
+def warn_text_names(models_names, sparse_dir) -> None:
+    """Warn when an image name of the text models sparse_dir/N (`models_names[N]`: its image names) holds white
+    space: the text format ends a name at its first space, so COLMAP's reader (pycolmap read 'photo 2.png' back
+    as 'photo') and nerfstudio's lose those names; the binary files next to them keep them whole."""
+    for k, names in enumerate(models_names):
         spaced = sorted(name for name in names if any(c.isspace() for c in name))
         if spaced:
             log.warning("%s: image names with spaces (%s) cannot be read back from images.txt, which ends a "
