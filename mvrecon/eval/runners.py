@@ -23,6 +23,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -259,12 +260,12 @@ def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout,
     meta_path.write_text(json.dumps({**identity, **(record or {}), "finished": False}, indent=1))
     _cache_bytecode()
     log.debug("running %s on %s -> %s", engine, source, out_dir)
-    start = time.perf_counter()
+    start, end = time.perf_counter(), None
     with open(out_dir / "run.log", "w") as logf:
         proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, start_new_session=True,
                                 env={**user_environment(), "PYTHONUNBUFFERED": "1"})
         try:
-            code, peak_mb = _wait_measuring_memory(proc, timeout)
+            code, peak_mb, end = _wait_measuring_memory(proc, timeout)
             error = None if code == 0 or _ran_without_model(out_dir, code) else _failure_line(out_dir / "run.log",
                                                                                               code)
         except subprocess.TimeoutExpired:
@@ -278,7 +279,8 @@ def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout,
             raise
     timed_out = error is not None and error.startswith("timed out")
     meta = {**identity, **(record or {}), "finished": error is None or timed_out,
-            "wall_s": time.perf_counter() - start, "peak_tree_mem_mb": peak_mb, "error": error, "command": cmd}
+            "wall_s": (end if end is not None else time.perf_counter()) - start, "peak_tree_mem_mb": peak_mb,
+            "error": error, "command": cmd}
     meta_path.write_text(json.dumps(meta, indent=1))
     return _result(engine, out_dir, meta)
 
@@ -299,24 +301,31 @@ def _cache_bytecode() -> None:
     compileall.compile_dir(Path(__file__).resolve().parents[1], quiet=2)
 
 
-def _wait_measuring_memory(proc, timeout, interval: float = 0.2) -> tuple[int, float]:
-    """Wait for the run; return its exit code and the largest summed RSS (MB) of its whole process tree.
+def _wait_measuring_memory(proc, timeout, interval: float = 0.2) -> tuple[int, float, float]:
+    """Wait for the run; return its exit code, the largest summed RSS (MB) of its whole process tree and the
+    `time.perf_counter()` of its end.
 
     Sampled by the parent in the same way for every engine, so worker processes (mvrecon's feature pool) count
-    as much as threads (COLMAP's) do. Raises subprocess.TimeoutExpired after `timeout` seconds.
+    as much as threads (COLMAP's) do. The end is taken by a thread blocked in `waitpid`, not by the sampling
+    loop: `Popen.wait` with a timeout polls with sleeps growing to 50 ms, and noticed the end of a run 3-48 ms
+    late (10-29 ms for 2 s runs), adding to both engines' times and to their spread; the thread notices it in
+    2-7 ms, the child's own exit included. Raises subprocess.TimeoutExpired after `timeout` seconds.
     """
     import psutil
 
     deadline = None if timeout is None else time.monotonic() + timeout
+    ended = []
+    waiter = threading.Thread(target=lambda: ended.append((proc.wait(), time.perf_counter())), daemon=True,
+                              name="run-waiter")
+    waiter.start()
     peak = 0.0
     root = psutil.Process(proc.pid)
     while True:
-        try:
-            code = proc.wait(timeout=interval)
-            return code, peak / 2 ** 20
-        except subprocess.TimeoutExpired:
-            if deadline is not None and time.monotonic() > deadline:
-                raise
+        waiter.join(interval)
+        if ended:
+            return ended[0][0], peak / 2 ** 20, ended[0][1]
+        if deadline is not None and time.monotonic() > deadline:
+            raise subprocess.TimeoutExpired(proc.args, timeout)
         rss = 0
         try:
             for p in [root, *root.children(recursive=True)]:
