@@ -34,6 +34,7 @@ from .config import MapperConfig
 log = logging.getLogger("mvrecon.sfm")
 _TIGHT = 1e-6
 _LOOSE = 1e6
+_CERES_LAMBDA = 1e-4  # LM's initial damping (CeresDefaults), except in BAs of shared cameras (MapperConfig)
 
 
 @dataclass
@@ -189,8 +190,9 @@ def bundle_adjust(model, variable_images, config: MapperConfig, *, point_ids=Non
     # reduced factor touches the calibration, so eliminating it before the poses joins them all at once
     # (an LM iteration of templeRing's final BA: 98 ms median against 114)
     ordering = gtsam.Ordering([*point_keys, *_keys("x", optimised), *_keys("k", list(var_cams))])
+    lam = config.ba_shared_initial_lambda if model.cameras_shared(optimised) else _CERES_LAMBDA
     result, used, initial, final = _optimize(gtsam, graph, values, optimizer or config.optimizer, iterations,
-                                             config.ba_relative_tolerance, ordering)
+                                             config.ba_relative_tolerance, ordering, lam)
 
     for i in optimised:
         pose = result.atPose3(X(i))
@@ -211,13 +213,14 @@ def bundle_adjust(model, variable_images, config: MapperConfig, *, point_ids=Non
     return out
 
 
-def _optimize(gtsam, graph, values, kind: str, iterations: int, relative_tolerance: float, ordering):
+def _optimize(gtsam, graph, values, kind: str, iterations: int, relative_tolerance: float, ordering,
+              initial_lambda: float = _CERES_LAMBDA):
     """(optimised values, iterations, initial cost, final cost); the costs are the optimizer's own, so that
     the graph is not evaluated twice more (~7 ms each for 12,500 observations). Ceres-style LM settings
-    (diagonal damping, lambda 1e-4, factor 2): with GTSAM's legacy defaults a tiny lambda let the first steps
-    of a two-view problem jump points behind the cameras, which the Sfm optimizer reports as an error. Plain
-    LM gets the points-first `ordering` (its COLAMD ordering cost ~0.6 s per call on 5000 points); the Sfm
-    optimizer builds its own Schur ordering."""
+    (diagonal damping, lambda 1e-4 unless `initial_lambda` says otherwise, factor 2): with GTSAM's legacy
+    defaults a tiny lambda let the first steps of a two-view problem jump points behind the cameras, which the
+    Sfm optimizer reports as an error. Plain LM gets the points-first `ordering` (its COLAMD ordering cost ~0.6 s
+    per call on 5000 points); the Sfm optimizer builds its own Schur ordering."""
     if kind == "sfm":
         params = gtsam.SfmLevenbergMarquardtParams.ceresDefaults()
         params.setEliminationMode(gtsam.SfmEliminationMode.Schur)
@@ -231,6 +234,7 @@ def _optimize(gtsam, graph, values, kind: str, iterations: int, relative_toleran
         raise ValueError(f"unknown optimizer {kind!r}; use 'sfm' or 'lm'")
     params.setMaxIterations(iterations)
     params.setRelativeErrorTol(relative_tolerance)
+    params.setlambdaInitial(initial_lambda)
     try:
         with _native_stdout_silenced():
             opt = make(graph, values, params)
@@ -242,7 +246,7 @@ def _optimize(gtsam, graph, values, kind: str, iterations: int, relative_toleran
             raise
         # the Sfm optimizer raises (with no message) when a trial step puts a point behind a camera
         log.warning("SfmLevenbergMarquardtOptimizer failed; retrying this bundle adjustment with plain LM")
-        return _optimize(gtsam, graph, values, "lm", iterations, relative_tolerance, ordering)
+        return _optimize(gtsam, graph, values, "lm", iterations, relative_tolerance, ordering, initial_lambda)
 
 
 def _fix_gauge(gtsam, graph, model, variable, num_fixed_images, X):

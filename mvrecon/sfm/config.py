@@ -42,6 +42,12 @@ class MapperConfig:
     ba_relative_tolerance: LM stops when the cost falls by less than this fraction in an iteration (1e-3:
         the same models as 1e-4 on templeRing and lund_door, in 30% less BA time; the final global BAs
         still run to it, and the next BA continues from where this one stopped).
+    ba_shared_initial_lambda: LM's initial damping in a BA whose cameras are each shared by 3 or more registered
+        images (1e-4, Ceres's, otherwise). Every camera's focal is pinned by many images there, and the damped
+        first steps only cost iterations: 3e-5 cut templeSparseRing's BA work (observations x iterations) by 11%
+        with the same AUC@5 over seeds 0-2. A camera of one or two images keeps 1e-4: 1e-5 for every BA took
+        imc_reichstag (a camera per image) from AUC@5 0.750 / 0.658 / 0.701 to 0.688 / 0.647 / 0.633
+        (docs/speed-log.md, session 40).
     ba_points_per_image: while the model grows, BAs optimise up to this many well-spread points per image
         and re-fit the others (sfm/ba_points.py); 0 optimises every point. The final BAs use every point.
     ba_points_per_image_early: the same quota while the model has fewer than distortion_min_images images,
@@ -91,6 +97,7 @@ class MapperConfig:
     global_ba_iterations: int = bounded(50, 1)
     global_ba_growth: float = bounded(1.1, 1.0, low_open=True)
     ba_relative_tolerance: float = bounded(1e-3, 0.0, 1.0, low_open=True)
+    ba_shared_initial_lambda: float = bounded(3e-5, 0.0, low_open=True)
     ba_points_per_image: int = bounded(300, 0)
     ba_points_per_image_early: int = bounded(100, 0)
     final_min_change: float = bounded(0.01, 0.0, 1.0)

@@ -166,8 +166,7 @@ class IncrementalMapper:
         n = int(m.registered.sum())
         if n >= cfg.distortion_min_images or cfg.ba_points_per_image <= 0:
             return cfg.ba_points_per_image
-        users = np.bincount(self.camera_of[m.registered], minlength=int(self.camera_of.max()) + 1)
-        if np.all(users[self.camera_of[np.asarray(images)]] >= 3):
+        if m.cameras_shared(images):
             return cfg.ba_points_per_image_early
         return cfg.ba_points_per_image
 

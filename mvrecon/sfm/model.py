@@ -131,6 +131,13 @@ class Reconstruction:
     def camera(self, i: int) -> Camera:
         return self.cameras[int(self.camera_of[i])]
 
+    def cameras_shared(self, images, least: int = 3) -> bool:
+        """Whether every camera of `images` is shared by `least` or more registered images: then the observations
+        of all of them pin its focal, which the BAs lean on (ba_points_per_image_early,
+        ba_shared_initial_lambda)."""
+        users = np.bincount(self.camera_of[self.registered], minlength=int(self.camera_of.max()) + 1)
+        return bool(np.all(users[self.camera_of[np.asarray(images, dtype=np.int64)]] >= least))
+
     def normalized_keypoints(self, i: int) -> np.ndarray:
         """Undistorted normalised coordinates of image i's keypoints, cached per camera parameter set.
 
