@@ -14,24 +14,9 @@ def quat_to_rotmat(q) -> np.ndarray:
 
 
 def rotmat_to_quat(R) -> np.ndarray:
-    """Unit quaternion (w, x, y, z) with w >= 0 of a rotation matrix (Shepperd's method, stable near 180 deg)."""
-    R = np.asarray(R, dtype=float)
-    tr = np.trace(R)
-    diag = np.diag(R)
-    k = int(np.argmax([tr, *diag]))
-    if k == 0:
-        s = 2.0 * np.sqrt(1.0 + tr)
-        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
-    else:
-        i = k - 1
-        j, m = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * np.sqrt(max(1.0 + R[i, i] - R[j, j] - R[m, m], 1e-300))
-        q = np.zeros(4)
-        q[0] = (R[m, j] - R[j, m]) / s
-        q[1 + i] = 0.25 * s
-        q[1 + j] = (R[j, i] + R[i, j]) / s
-        q[1 + m] = (R[m, i] + R[i, m]) / s
-    q = np.asarray(q, dtype=float)
+    """Unit quaternion (w, x, y, z) with w >= 0 of a rotation matrix: Eigen's (eigen_quaternions, stable near
+    180 deg), normalised, so that a matrix read from a file with few digits still gives a unit quaternion."""
+    q = eigen_quaternions(R)[0]
     q /= np.linalg.norm(q)
     return -q if q[0] < 0 else q
 
@@ -39,7 +24,7 @@ def rotmat_to_quat(R) -> np.ndarray:
 def eigen_quaternions(R) -> np.ndarray:
     """(n,4) unit quaternions (w, x, y, z) of rotation matrices (n,3,3), computed as Eigen's Quaternion(matrix)
     does, operation for operation (w may be negative), so that written poses come out in the same bits as
-    pycolmap's (io/colmap_model.py); `rotmat_to_quat` is the one-matrix form with w >= 0."""
+    pycolmap's (io/colmap_model.py)."""
     R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
     q = np.empty((len(R), 4))  # x, y, z, w as Eigen stores them
     trace = R[:, 0, 0] + (R[:, 1, 1] + R[:, 2, 2])  # Eigen's sum order (it differs in the last bit otherwise)

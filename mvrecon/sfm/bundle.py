@@ -214,10 +214,10 @@ def bundle_adjust(model, variable_images, config: MapperConfig, *, point_ids=Non
 
 
 def _optimize(gtsam, graph, values, kind: str, iterations: int, relative_tolerance: float, ordering,
-              initial_lambda: float = _CERES_LAMBDA):
+              initial_lambda: float):
     """(optimised values, iterations, initial cost, final cost); the costs are the optimizer's own, so that
     the graph is not evaluated twice more (~7 ms each for 12,500 observations). Ceres-style LM settings
-    (diagonal damping, lambda 1e-4 unless `initial_lambda` says otherwise, factor 2): with GTSAM's legacy
+    (diagonal damping, lambda starting at `initial_lambda`, factor 2): with GTSAM's legacy
     defaults a tiny lambda let the first steps of a two-view problem jump points behind the cameras, which the
     Sfm optimizer reports as an error. Plain LM gets the points-first `ordering` (its COLAMD ordering cost ~0.6 s
     per call on 5000 points); the Sfm optimizer builds its own Schur ordering."""
