@@ -217,10 +217,10 @@ def _optimize(gtsam, graph, values, kind: str, iterations: int, relative_toleran
               initial_lambda: float):
     """(optimised values, iterations, initial cost, final cost); the costs are the optimizer's own, so that
     the graph is not evaluated twice more (~7 ms each for 12,500 observations). Ceres-style LM settings
-    (diagonal damping, lambda starting at `initial_lambda`, factor 2): with GTSAM's legacy
-    defaults a tiny lambda let the first steps of a two-view problem jump points behind the cameras, which the
-    Sfm optimizer reports as an error. Plain LM gets the points-first `ordering` (its COLAMD ordering cost ~0.6 s
-    per call on 5000 points); the Sfm optimizer builds its own Schur ordering."""
+    (diagonal damping, lambda starting at `initial_lambda`, factor 2): with GTSAM's legacy defaults a tiny
+    lambda let the first steps of a two-view problem jump points behind the cameras, which the Sfm optimizer
+    reports as an error. Plain LM gets the points-first `ordering` (its COLAMD ordering cost ~0.6 s per call on
+    5000 points); the Sfm optimizer builds its own Schur ordering."""
     if kind == "sfm":
         params = gtsam.SfmLevenbergMarquardtParams.ceresDefaults()
         params.setEliminationMode(gtsam.SfmEliminationMode.Schur)
