@@ -7,7 +7,6 @@ import json
 import math
 import re
 import shutil
-import statistics
 import subprocess
 import sys
 import time
@@ -248,19 +247,22 @@ def test_compare_again_with_other_mvrecon_args(tmp_path, capsys):
 
 
 def test_a_runs_end_is_timed_when_it_happens(tmp_path):
-    """The wall time of a run ends when the process ends: a thread blocked in waitpid takes the time. The sampling
-    loop's own `Popen.wait(timeout)` polls with sleeps growing to 50 ms and noticed these ends 3-48 ms late, 18-23
-    ms in the median of the five."""
-    late = []
-    for k, seconds in enumerate((0.11, 0.13, 0.15, 0.17, 0.19)):
+    """The wall time of a run ends when the process ends, not at the memory sampler's next look: a thread
+    blocked in waitpid takes the time. With the sampler looking every 5 s, runs that end 0.1-0.2 s in must be
+    timed within 0.5 s of the child's last statement. The bound is loose on purpose, so that a loaded machine
+    cannot fail it: it checks where the end is taken. How precisely (2-7 ms, against 3-48 ms for the
+    `Popen.wait(timeout)` loop before) is a measurement, in docs/speed-log.md (session 40), not a test."""
+    for k, seconds in enumerate((0.11, 0.19)):
         stamp = tmp_path / f"end{k}"
         code = f"import time; time.sleep({seconds}); open({str(stamp)!r}, 'w').write(repr(time.perf_counter()))"
+        started = time.perf_counter()
         proc = subprocess.Popen([sys.executable, "-S", "-c", code])
-        exit_code, peak_mb, end = _wait_measuring_memory(proc, timeout=30)
-        assert exit_code == 0 and end <= time.perf_counter()
-        late.append(end - float(stamp.read_text()))  # both clocks are the system's monotonic clock
-    assert min(late) > 0  # the end is after the child's last statement, not before
-    assert statistics.median(late) < 0.012, [round(x * 1e3, 1) for x in late]
+        exit_code, peak_mb, end = _wait_measuring_memory(proc, timeout=30, interval=5.0)
+        returned = time.perf_counter()
+        late = end - float(stamp.read_text())  # both clocks are the system's monotonic clock
+        assert exit_code == 0 and end <= returned
+        assert 0 < late < 0.5, late  # after the child's last statement, and not at the sampler's next look
+        assert returned - started < 4.0  # the sampler's 5 s sleep was cut short by the end
 
 
 def test_failed_run_is_reported_not_raised(tmp_path):
