@@ -14,6 +14,7 @@ from mvrecon.eval.ground_truth import load_ground_truth
 from mvrecon.eval.metrics import accuracy_summary
 from mvrecon.eval.models import poses, sparse_models
 from mvrecon.matching.pairs import check_spec, select_pairs
+from mvrecon.matching.retrieval import nearest
 from mvrecon.pipeline import FrontendConfig, match
 
 
@@ -81,6 +82,20 @@ def test_retrieval_pairs_each_view_with_its_orbit_neighbours_deterministically(c
     assert all(min(abs(int(a[1:3]) - int(b[1:3])), 16 - abs(int(a[1:3]) - int(b[1:3]))) <= 3 for a, b in wider)
 
 
+def test_near_ties_after_query_expansion_are_ranked_by_the_raw_vectors():
+    # rows 0 and 1 expanded to the same vector (the two ends of a chain of views), 1e-9 apart: row 2 is as
+    # similar to both, and its raw vector is nearer row 1's
+    expanded = np.array([[1.0, 0.0, 0.0], [1.0, 1e-9, 0.0], [0.5, 0.0, 0.75 ** 0.5]])
+    raw = np.array([[1.0, 0.0, 0.0], [0.6, 0.8, 0.0], [0.0, 0.8, 0.6]])
+    assert nearest(expanded, 1)[2, 0] == 0  # by index alone
+    assert nearest(expanded, 1, tiebreak=raw)[2, 0] == 1
+    assert nearest(expanded, 2, tiebreak=raw).tolist() == [[1, 2], [0, 2], [1, 0]]
+    # a real difference in the expanded similarity is not overruled by the raw vectors
+    apart = expanded.copy()
+    apart[1] = [1.0, 0.01, 0.0] / np.linalg.norm([1.0, 0.01, 0.0])  # row 2's similarity to it: 0.499975
+    assert nearest(apart, 1, tiebreak=raw)[2, 0] == 0
+
+
 def test_few_images_or_images_without_descriptors_fall_back_to_exhaustive(caplog):
     views = orbit_descriptors(views=6)
     names = sorted(views)
@@ -137,7 +152,9 @@ def test_retrieval_ranks_the_orbit_neighbours_first_and_another_k_is_another_con
         ids = {i.name: i.image_id for i in dbmod.read_images(db).values()}
         pairs = select_pairs("retrieval:1", sorted(ids),
                              descriptors=lambda name: dbmod.read_features(db, ids[name])[1])
-    # 10 views 20 deg apart on a half orbit (names in orbit order): each one's nearest is a next view
+    # 10 views 20 deg apart on a half orbit (names in orbit order): each one's nearest is a next view (at the
+    # ends only through the raw vectors' tie-break: 0000 and 0001 expand to the same vector, which 0002 is as
+    # near to)
     assert pairs and all(abs(int(a[:4]) - int(b[:4])) == 1 for a, b in pairs)
     with pytest.raises(InputError, match=r"different matching config \(pairs: retrieval:3 -> retrieval:4\)"):
         match(FrontendConfig(pairs="retrieval:4"), ws)
