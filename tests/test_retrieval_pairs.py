@@ -14,7 +14,7 @@ from mvrecon.eval.ground_truth import load_ground_truth
 from mvrecon.eval.metrics import accuracy_summary
 from mvrecon.eval.models import poses, sparse_models
 from mvrecon.matching.pairs import check_spec, select_pairs
-from mvrecon.matching.retrieval import nearest
+from mvrecon.matching.retrieval import nearest, similarities
 from mvrecon.pipeline import FrontendConfig, match
 
 
@@ -85,15 +85,14 @@ def test_retrieval_pairs_each_view_with_its_orbit_neighbours_deterministically(c
 def test_near_ties_after_query_expansion_are_ranked_by_the_raw_vectors():
     # rows 0 and 1 expanded to the same vector (the two ends of a chain of views), 1e-9 apart: row 2 is as
     # similar to both, and its raw vector is nearer row 1's
-    expanded = np.array([[1.0, 0.0, 0.0], [1.0, 1e-9, 0.0], [0.5, 0.0, 0.75 ** 0.5]])
-    raw = np.array([[1.0, 0.0, 0.0], [0.6, 0.8, 0.0], [0.0, 0.8, 0.6]])
+    expanded = similarities(np.array([[1.0, 0.0, 0.0], [1.0, 1e-9, 0.0], [0.5, 0.0, 0.75 ** 0.5]]))
+    raw = similarities(np.array([[1.0, 0.0, 0.0], [0.6, 0.8, 0.0], [0.0, 0.8, 0.6]]))
     assert nearest(expanded, 1)[2, 0] == 0  # by index alone
     assert nearest(expanded, 1, tiebreak=raw)[2, 0] == 1
     assert nearest(expanded, 2, tiebreak=raw).tolist() == [[1, 2], [0, 2], [1, 0]]
     # a real difference in the expanded similarity is not overruled by the raw vectors
-    apart = expanded.copy()
-    apart[1] = [1.0, 0.01, 0.0] / np.linalg.norm([1.0, 0.01, 0.0])  # row 2's similarity to it: 0.499975
-    assert nearest(apart, 1, tiebreak=raw)[2, 0] == 0
+    apart = np.array([[1.0, 0.0, 0.0], [1.0, 0.01, 0.0] / np.linalg.norm([1.0, 0.01, 0.0]), [0.5, 0.0, 0.75 ** 0.5]])
+    assert nearest(similarities(apart), 1, tiebreak=raw)[2, 0] == 0  # row 2's similarity to row 1: 0.499975
 
 
 def test_few_images_or_images_without_descriptors_fall_back_to_exhaustive(caplog):

@@ -95,34 +95,35 @@ def vlad(descriptors: np.ndarray, centres: np.ndarray) -> np.ndarray:
     return (v / max(np.linalg.norm(v), 1e-12)).astype(np.float32)
 
 
-def _similarities(vectors: np.ndarray) -> np.ndarray:
+def similarities(vectors: np.ndarray) -> np.ndarray:
+    """Cosines of every pair of unit rows (float64); the diagonal is -inf, so that each row's own index sorts
+    last in `nearest`, past the n - 1 others."""
     sim = vectors.astype(np.float64) @ vectors.T.astype(np.float64)
-    np.fill_diagonal(sim, -np.inf)  # each row's own index sorts last, past the n - 1 others
+    np.fill_diagonal(sim, -np.inf)
     return sim
 
 
-def nearest(vectors: np.ndarray, k: int, tiebreak: np.ndarray | None = None) -> np.ndarray:
-    """(n, min(k, n-1)) indices of each row's k most similar other rows, best first (cosine). Similarities
-    equal to 6 decimals are ranked by the rows of `tiebreak` (the same images' vectors before query expansion),
-    then by index."""
-    sim = _similarities(vectors)
+def nearest(sim: np.ndarray, k: int, tiebreak: np.ndarray | None = None) -> np.ndarray:
+    """(n, min(k, n-1)) indices of each row's k most similar other rows of a `similarities` matrix, best first.
+    Similarities equal to 6 decimals are ranked by `tiebreak` (the same images' similarities before query
+    expansion), then by index."""
     k = min(k, len(sim) - 1)
     if tiebreak is None:
         return np.argsort(-sim, axis=1, kind="stable")[:, :k]
-    return np.lexsort((-_similarities(tiebreak), -np.round(sim, 6)), axis=1)[:, :k]
+    return np.lexsort((-tiebreak, -np.round(sim, 6)), axis=1)[:, :k]
 
 
-def expand_queries(vectors: np.ndarray, n: int = EXPANSION) -> np.ndarray:
-    """Each unit row replaced by the unit mean of itself and its n nearest rows (average query expansion, Chum
-    et al. 2007): an image then also finds the views of its views, which a street walk's chain of moderately
-    overlapping images needs."""
-    out = vectors + vectors[nearest(vectors, n)].sum(axis=1)
+def expand_queries(vectors: np.ndarray, sim: np.ndarray, n: int = EXPANSION) -> np.ndarray:
+    """Each unit row replaced by the unit mean of itself and its n nearest rows by `sim` (its `similarities`;
+    average query expansion, Chum et al. 2007): an image then also finds the views of its views, which a street
+    walk's chain of moderately overlapping images needs."""
+    out = vectors + vectors[nearest(sim, n)].sum(axis=1)
     return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
 
 
-def nearest_pairs(vectors: np.ndarray, k: int, tiebreak: np.ndarray | None = None) -> set[tuple[int, int]]:
+def nearest_pairs(sim: np.ndarray, k: int, tiebreak: np.ndarray | None = None) -> set[tuple[int, int]]:
     """(i, j), i < j, for every j among i's k nearest rows (`nearest`)."""
-    return {(min(i, int(j)), max(i, int(j))) for i, row in enumerate(nearest(vectors, k, tiebreak)) for j in row}
+    return {(min(i, int(j)), max(i, int(j))) for i, row in enumerate(nearest(sim, k, tiebreak)) for j in row}
 
 
 def retrieval_pairs(names: list[str], read: Callable[[str], np.ndarray], k: int) -> list[tuple[str, str]]:
@@ -142,11 +143,12 @@ def retrieval_pairs(names: list[str], read: Callable[[str], np.ndarray], k: int)
     vectors = np.stack(vectors)
     pairs = set()
     if len(found) > 1:
+        raw = similarities(vectors[found])
         # at the two ends of a chain of views (a street, a half orbit) an image and its neighbour expand to the
         # same vector (each is among the other's nearest, and they share the third), so the third's choice
         # between them fell to float rounding (3.7e-9 apart on object_orbit_small): the raw vectors decide
-        pairs = {(found[a], found[b]) for a, b in nearest_pairs(expand_queries(vectors[found]), k,
-                                                                 tiebreak=vectors[found])}
+        expanded = similarities(expand_queries(vectors[found], raw))
+        pairs = {(found[a], found[b]) for a, b in nearest_pairs(expanded, k, tiebreak=raw)}
     if empty:
         log.info("retrieval:%d: %d image(s) without descriptors (%s) are paired with every other image",
                  k, len(empty), ", ".join(names[i] for i in empty[:3]) + (", ..." if len(empty) > 3 else ""))
