@@ -50,6 +50,11 @@ _FOCAL_ENTRIES = {"Cal3Bundler": [0], "Cal3_S2": [0, 1], "Cal3DS2": [0, 1], "Cal
 _KINDS = tuple(_FOCAL_ENTRIES)
 
 
+def four_term_lens(model: str) -> bool:
+    """A lens model with four distortion terms (OPENCV, OPENCV_FISHEYE), whose BA valleys are shallow."""
+    return model in ("OPENCV", "OPENCV_FISHEYE")
+
+
 def _calibration_layout(model: str, params):
     """(gtsam class name, gtsam calibration vector, mask of the tangent entries that may be refined)."""
     p = np.asarray(params, dtype=float)
@@ -61,7 +66,7 @@ def _calibration_layout(model: str, params):
         return "Cal3Bundler", [p[0], p[3], p[4], p[1], p[2]], [True, True, True]
     if model == "PINHOLE":
         return "Cal3_S2", [p[0], p[1], 0.0, p[2], p[3]], [True, True, False, False, False]
-    if model in ("OPENCV", "OPENCV_FISHEYE"):  # both: fx, fy, s, u0, v0, then the four distortion terms
+    if four_term_lens(model):  # both: fx, fy, s, u0, v0, then the four distortion terms
         return "Cal3DS2" if model == "OPENCV" else "Cal3Fisheye", [p[0], p[1], 0.0, p[2], p[3], *p[4:8]], [
             True, True, False, False, False, True, True, True, True]
     raise ValueError(f"camera model {model} is not supported by bundle adjustment (use one of "
@@ -98,10 +103,11 @@ def _pose3(gtsam, R, t):
 
 
 def bundle_adjust(model, variable_images, config: MapperConfig, *, point_ids=None, refine_intrinsics=False,
-                  refine_distortion=True, max_iterations=None, optimizer=None) -> BundleResult:
+                  refine_distortion=True, max_iterations=None, relative_tolerance=None,
+                  optimizer=None) -> BundleResult:
     """Optimise the poses of `variable_images`, the points they see (or `point_ids`) and, when asked, the
     intrinsics of cameras whose registered images are all variable (the focal only, without
-    `refine_distortion`). Other registered images stay constant."""
+    `refine_distortion`). Other registered images stay constant. `relative_tolerance` overrides the config's."""
     import gtsam
     from gtsam.symbol_shorthand import K, L, X
 
@@ -192,7 +198,7 @@ def bundle_adjust(model, variable_images, config: MapperConfig, *, point_ids=Non
     ordering = gtsam.Ordering([*point_keys, *_keys("x", optimised), *_keys("k", list(var_cams))])
     lam = config.ba_shared_initial_lambda if model.cameras_shared(optimised) else _CERES_LAMBDA
     result, used, initial, final = _optimize(gtsam, graph, values, optimizer or config.optimizer, iterations,
-                                             config.ba_relative_tolerance, ordering, lam)
+                                             relative_tolerance or config.ba_relative_tolerance, ordering, lam)
 
     for i in optimised:
         pose = result.atPose3(X(i))
