@@ -46,7 +46,7 @@ class MapperConfig:
         cameras is a four-term lens (OPENCV, OPENCV_FISHEYE). Focal and k1..k4 trade off along a shallow valley
         where LM at 1e-3 stops wherever the path of the seed's model left it: on the fisheye catalog scene,
         seeds 0-7 ended at median rotation errors of 0.019-0.075 deg (AUC@1 0.897-0.966); at 1e-5 they end at
-        0.017-0.039 deg (AUC@1 0.941-0.967), for 0.2-0.45 s more mapping on 10-12 images. With a two-term or no
+        0.017-0.039 deg (AUC@1 0.941-0.967), for 0.2-0.6 s more mapping on 10-12 images. With a two-term or no
         lens the same 1e-5 was worse (templeSparseRing AUC@1 0.122 -> 0.099), so it applies to these only.
     ba_shared_initial_lambda: LM's initial damping in a BA whose cameras are each shared by 3 or more registered
         images (1e-4, Ceres's, otherwise). Every camera's focal is pinned by many images there, and the damped
