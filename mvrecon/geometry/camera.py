@@ -22,6 +22,11 @@ PARAM_NAMES = {
 MODELS = tuple(PARAM_NAMES)
 
 
+def num_distortion_terms(model: str) -> int:
+    """Lens terms beyond focal and principal point: 0 (pinholes), 1-2 (radial), 4 (OPENCV, OPENCV_FISHEYE)."""
+    return sum(name not in ("f", "fx", "fy", "cx", "cy") for name in PARAM_NAMES[model])
+
+
 def check_model(model: str, params) -> np.ndarray:
     """Validated float parameter vector for `model`; ValueError names the model and the expected layout."""
     if model not in PARAM_NAMES:

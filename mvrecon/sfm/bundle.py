@@ -50,11 +50,6 @@ _FOCAL_ENTRIES = {"Cal3Bundler": [0], "Cal3_S2": [0, 1], "Cal3DS2": [0, 1], "Cal
 _KINDS = tuple(_FOCAL_ENTRIES)
 
 
-def four_term_lens(model: str) -> bool:
-    """A lens model with four distortion terms (OPENCV, OPENCV_FISHEYE), whose BA valleys are shallow."""
-    return model in ("OPENCV", "OPENCV_FISHEYE")
-
-
 def _calibration_layout(model: str, params):
     """(gtsam class name, gtsam calibration vector, mask of the tangent entries that may be refined)."""
     p = np.asarray(params, dtype=float)
@@ -66,7 +61,7 @@ def _calibration_layout(model: str, params):
         return "Cal3Bundler", [p[0], p[3], p[4], p[1], p[2]], [True, True, True]
     if model == "PINHOLE":
         return "Cal3_S2", [p[0], p[1], 0.0, p[2], p[3]], [True, True, False, False, False]
-    if four_term_lens(model):  # both: fx, fy, s, u0, v0, then the four distortion terms
+    if model in ("OPENCV", "OPENCV_FISHEYE"):  # both: fx, fy, s, u0, v0, then the four distortion terms
         return "Cal3DS2" if model == "OPENCV" else "Cal3Fisheye", [p[0], p[1], 0.0, p[2], p[3], *p[4:8]], [
             True, True, False, False, False, True, True, True, True]
     raise ValueError(f"camera model {model} is not supported by bundle adjustment (use one of "

@@ -19,11 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
+from ..geometry.camera import num_distortion_terms
 from ..io.files import replace_whole
 from ..progress import progress
 from . import filtering
 from .ba_points import select_points
-from .bundle import bundle_adjust as _bundle_adjust, four_term_lens
+from .bundle import bundle_adjust as _bundle_adjust
 from .config import MapperConfig
 from .initialize import evaluate_pair, find_initial_pair, initial_pair_rejections, rejected_for_few_inliers
 from .model import Camera, Reconstruction
@@ -485,14 +486,14 @@ class IncrementalMapper:
         return np.array([i, *best], dtype=np.int64)
 
     def _global_refine(self, m: Reconstruction, rounds: int = 1, growing: bool = False,
-                       min_change: float = 0.0, tolerance=None) -> None:
-        """Up to `rounds` of global BA (on a point subset while `growing`; LM to `tolerance` when given),
+                       min_change: float = 0.0, relative_tolerance=None) -> None:
+        """Up to `rounds` of global BA (on a point subset while `growing`; LM to `relative_tolerance` when given),
         retriangulation and filtering; stops early once a round adds and removes fewer than `min_change` of
         the observations (COLMAP's iterative global refinement)."""
         cfg = self.config
         for _ in range(rounds):
             alive_before, n_before = m.obs_alive.data.copy(), m.obs_alive.n
-            self._global_bundle(m, growing, tolerance=tolerance)
+            self._global_bundle(m, growing, relative_tolerance=relative_tolerance)
             retriangulate(m, self.tracks, cfg, cfg.seed)
             self._filter(m)
             changed = (m.obs_alive.n - n_before) + int((alive_before & ~m.obs_alive.data[:n_before]).sum())
@@ -500,7 +501,7 @@ class IncrementalMapper:
             if changed < min_change * max(int(alive_before.sum()), 1):
                 break
 
-    def _global_bundle(self, m: Reconstruction, growing: bool, keep=(), tolerance=None) -> None:
+    def _global_bundle(self, m: Reconstruction, growing: bool, keep=(), relative_tolerance=None) -> None:
         """Global BA of every registered image. One that leaves a camera implausible (focal 10x off its prior
         or |k| > 1, COLMAP's bogus-camera test) is undone and repeated with the distortion fixed, then with all
         intrinsics fixed: in a small model a guessed focal and the distortion trade off against each other
@@ -514,7 +515,7 @@ class IncrementalMapper:
         for intr, dist in dict.fromkeys([(intrinsics, distortion), (intrinsics, False), (False, False)]):
             self._bundle_points(m, m.registered_images(), m.alive_points(), growing, keep,
                                 refine_intrinsics=intr, refine_distortion=dist,
-                                max_iterations=cfg.global_ba_iterations, relative_tolerance=tolerance)
+                                max_iterations=cfg.global_ba_iterations, relative_tolerance=relative_tolerance)
             bad = filtering.degenerate_cameras(m)
             if not bad:
                 return
@@ -544,9 +545,9 @@ class IncrementalMapper:
         # of the observations; LM run further for a four-term lens (config.py)
         self._close_loops(m)
         cfg = self.config
-        four_terms = any(four_term_lens(m.cameras[c].model) for c in np.unique(m.camera_of[m.registered]).tolist())
+        four_terms = any(num_distortion_terms(m.cameras[c].model) == 4 for c in set(m.camera_of[m.registered].tolist()))
         self._global_refine(m, rounds=2, min_change=cfg.final_min_change,
-                            tolerance=cfg.four_term_final_tolerance if four_terms else None)
+                            relative_tolerance=cfg.four_term_final_tolerance if four_terms else None)
         self._drop_non_square_cameras(m)
         n, least = int(m.registered.sum()), self.min_model_size()
         if n >= least:
