@@ -22,8 +22,8 @@ from mvrecon.eval import ground_truth as G
 from mvrecon.eval.compare import CompareConfig, compare_images, compare_models, summary_rows
 from mvrecon.eval.metrics import accuracy_summary, camera_center
 from mvrecon.eval.report import format_value, write_report
-from mvrecon.eval.runners import (RunOptions, _wait_measuring_memory, load_run, run_colmap,
-                                  run_colmap_on_database)
+from mvrecon.eval.runners import (RunOptions, _wait_measuring_memory, code_environment, load_run, run_colmap,
+                                  run_colmap_on_database, run_mvrecon_map)
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 OPTS = RunOptions(camera_mode="single")
@@ -212,6 +212,35 @@ def test_a_run_on_a_database_that_changed_since_is_redone(runs, tmp_path):
     again = run_colmap_on_database(db, out, images, OPTS)
     assert again.error is None and again.wall_s != first.wall_s  # mapped again, not read back (it was before)
     assert again.report["counts"]["verified_pairs"] == first.report["counts"]["verified_pairs"] - 1
+
+
+def test_mvrecons_mapper_alone_on_a_database(runs, tmp_path):
+    """run_mvrecon_map: mvrecon's mapper on COLMAP's database of the synthetic scene registers all 8 images at
+    the ground truth's poses, and a finished run is read back, not rerun."""
+    images, gt, colmap, _ = runs
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    shutil.copyfile(colmap.out_dir / "database.db", ws / "database.db")
+    root = Path(__file__).resolve().parents[1]
+    run = run_mvrecon_map(ws, OPTS, image_dir=images, code=root)
+    assert run.error is None and run.engine == "mvrecon-map"
+    assert [m.num_reg_images() for m in run.models] == [8] and set(run.report["stages"]) == {"mapping"}
+    assert accuracy_summary(run.poses, G.load_ground_truth(gt))["auc@5"] > 0.95
+    assert json.loads((ws / "runner.json").read_text())["code"] == str(root)
+    assert run_mvrecon_map(ws, OPTS, image_dir=images, code=root).wall_s == run.wall_s
+
+
+def test_code_environment_imports_mvrecon_from_the_tree_given(tmp_path, monkeypatch):
+    """A run of another source tree imports that tree's mvrecon, even started from a checkout of its own (the
+    working directory comes first on the path of `python -m` and `-c`)."""
+    tree = tmp_path / "other"
+    (tree / "mvrecon").mkdir(parents=True)
+    (tree / "mvrecon" / "__init__.py").write_text("TREE = 'other'\n")
+    monkeypatch.chdir(Path(__file__).resolve().parents[1])
+    env, cwd = code_environment(tree)
+    out = subprocess.run([sys.executable, "-c", "import mvrecon; print(getattr(mvrecon, 'TREE', 'this one'))"],
+                         env=env, cwd=cwd, capture_output=True, text=True)
+    assert out.stdout.strip() == "other"
 
 
 def test_compare_again_with_other_mvrecon_args(tmp_path, capsys):

@@ -5,6 +5,8 @@
   with the same camera mode and model; engine "colmap" (or "colmap-global").
 - `run_colmap_on_database`: COLMAP's incremental mapper on mvrecon's own database ("same matches"), which separates
   front-end differences from mapper differences.
+- `run_mvrecon_map`: mvrecon's mapper alone (`mvrecon map`) on a database, the other side of that comparison; it can
+  run another source tree of mvrecon (an earlier commit's checkout) than the one imported here.
 
 Each run happens in a subprocess so its wall time and peak memory are its own and a crash cannot take the caller
 down. A finished OUT (its `runner.json` says so, with the same options) is read back instead of rerun, and so is a
@@ -170,6 +172,34 @@ def run_colmap_on_database(database_path, out_dir, image_dir=None, options: RunO
     return _run("colmap-same-matches", cmd, database_path, out_dir, options, timeout, {"database_sha256": content})
 
 
+def run_mvrecon_map(workspace, options: RunOptions = RunOptions(), image_dir=None, code=None,
+                    timeout: float | None = None) -> RunResult:
+    """`mvrecon map -w WORKSPACE` on the database.db already in it, with the options' seed and extra flags
+    (`mvrecon_args`, here `map`'s mapper flags): mvrecon's mapper alone, as `run_colmap_on_database` runs COLMAP's.
+
+    `code`: the mvrecon source tree to run (a folder holding `mvrecon/`), else the one installed; `image_dir`
+    only serves to colour the points. A finished run in WORKSPACE is read back, as every runner's is."""
+    workspace = Path(workspace).resolve()  # the run's working directory may be `code`
+    cmd = [sys.executable, "-m", "mvrecon.cli", "map", "-w", str(workspace), "-q", "--seed", str(options.seed)]
+    if image_dir is not None:
+        cmd += ["--image-dir", str(Path(image_dir).resolve())]
+    cmd += list(options.mvrecon_args)
+    return _run("mvrecon-map", cmd, workspace / "database.db", workspace, options, timeout,
+                {"code": str(Path(code).resolve()) if code else ""}, tree=code)
+
+
+def code_environment(code) -> tuple[dict[str, str], str | None]:
+    """(environment, working directory) that make `python -m mvrecon...` import mvrecon from the source tree
+    `code`, or the user's environment and the caller's directory when `code` is None: `-m` puts the working
+    directory first on the path, before PYTHONPATH, so a run started from another checkout would import that one."""
+    env = {**user_environment(), "PYTHONUNBUFFERED": "1"}
+    if code is None:
+        return env, None
+    code = str(Path(code).resolve())
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (code, env.get("PYTHONPATH", "")) if p)
+    return env, code
+
+
 def _drop_if_database_changed(database_path: Path, out_dir: Path, options: RunOptions) -> str:
     """The database's sha256, after deleting a finished run of COLMAP on an earlier content of it (mvrecon's run
     redone after its folder was deleted, say): the run's identity holds the database's path, so its runner.json
@@ -246,9 +276,10 @@ def _identity(engine: str, source: Path, options: RunOptions) -> dict:
     return {"engine": engine, "source": str(source.resolve()), "options": options.identity(engine)}
 
 
-def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout, record: dict | None = None
-         ) -> RunResult:
-    """Run `cmd` into OUT_DIR unless a finished run is there; `record` is kept in runner.json beside the identity."""
+def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout, record: dict | None = None,
+         tree=None) -> RunResult:
+    """Run `cmd` into OUT_DIR unless a finished run is there; `record` is kept in runner.json beside the identity;
+    `tree`: the mvrecon source tree the command imports (`code_environment`), else the installed one."""
     if not source.exists():
         raise InputError(f"{source}: not found")
     identity = _identity(engine, source, options)
@@ -262,8 +293,9 @@ def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout,
     log.debug("running %s on %s -> %s", engine, source, out_dir)
     start, end = time.perf_counter(), None
     with open(out_dir / "run.log", "w") as logf:
-        proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, start_new_session=True,
-                                env={**user_environment(), "PYTHONUNBUFFERED": "1"})
+        env, cwd = code_environment(tree)
+        proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, start_new_session=True, env=env,
+                                cwd=cwd)
         try:
             code, peak_mb, end = _wait_measuring_memory(proc, timeout)
             error = None if code == 0 or _ran_without_model(out_dir, code) else _failure_line(out_dir / "run.log",
