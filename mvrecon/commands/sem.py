@@ -6,11 +6,11 @@ Examples:
 
 Images are taken in the order given (a folder: natural name order). Estimated tilts are relative to the
 reference image and increase along that order (parallel projection cannot tell a tilt's sign from the relief's).
-Outputs in OUT: height.tif (32-bit float), height.png, profile.png, points.ply (merged points),
-surface.ply (height map as points), report.json (tilts, axis, scale, matches, point counts, ICP, timings,
-warnings). A given --axis more than 5 deg from the matches' own estimate is warned about; one view given twice
-(the same file, identical pixels, or matches without parallax, also as one pair inside a longer series) and a
-tilt of 90 deg or more either way are refused.
+Outputs in OUT: height.tif (32-bit float), height.png, profile.png, points.ply (merged points), surface.ply
+(height map as points), report.json (tilts, axis, scale, matches, point counts, ICP, timings, warnings, and
+with --gt the height error against ground truth). A given --axis more than 5 deg from the matches' own
+estimate is warned about; one view given twice (the same file, identical pixels, or matches without parallax,
+also as one pair inside a longer series) and a tilt of 90 deg or more either way are refused.
 """
 
 ORDER = 70
@@ -40,14 +40,19 @@ def add_arguments(parser) -> None:
                                                              "in the paper)")
     parser.add_argument("--icp", choices=("kdtree", "brute", "open3d-point", "open3d-plane"), default="kdtree",
                         help="ICP variant for merging the pair point sets (default kdtree)")
-    parser.add_argument("--height-source", choices=("dense", "joint", "merged"), default="dense",
+    parser.add_argument("--height-source", choices=("dense", "stereo", "joint", "merged"), default="dense",
                         help="what the height map is made from: dense = the joint points refined at every pixel by "
-                             "least-squares matching of all images (default, most accurate); joint = the joint "
-                             "adjustment's points interpolated; merged = the joint points and the ICP-merged pair "
-                             "point sets interpolated (the paper's integration)")
+                             "least-squares matching of all images (default, most accurate); stereo = the same "
+                             "refinement started from semi-global matching of the rectified pairs (reference, "
+                             "other image) where they agree; joint = the joint adjustment's points interpolated; "
+                             "merged = the joint points and the ICP-merged pair point sets interpolated (the paper's "
+                             "integration)")
     parser.add_argument("--densify", action="store_true",
                         help="replace the height map by SGBM dense matching of one rectified pair where it matched "
                              "(reference and the image tilted farthest from it; less accurate than the default)")
+    parser.add_argument("--gt", help="ground-truth height map (.npy or .tif) on the input images' grid, in um with "
+                                      "--pixel-size (else input pixels): the log and report.json give the height "
+                                      "error (RMS over the covered pixels, in %% of the true range) and coverage")
     parser.add_argument("--profile", help="profile line x0,y0,x1,y1 in input pixels (default: across the axis "
                                           "through the centre)")
 
@@ -87,6 +92,7 @@ def run(args) -> int:
     import logging
 
     from mvrecon.errors import InputError
+    from mvrecon.sem.heightmap import read_height_map
     from mvrecon.sem.icp import IcpConfig
     from mvrecon.sem.parallax import parse_axis
     from mvrecon.sem.pipeline import SemConfig, parse_length_um, resolve_images, run_sem
@@ -103,7 +109,8 @@ def run(args) -> int:
                        pairs=args.pairs, icp_method=args.icp, height_source=args.height_source, densify=args.densify,
                        profile=_floats(args.profile, "--profile", 4) if args.profile else None, icp=IcpConfig())
     _check_output_folder(args.output, args.images)
-    report = run_sem(resolve_images(args.images), args.output, config)
+    gt = read_height_map(args.gt) if args.gt else None
+    report = run_sem(resolve_images(args.images), args.output, config, gt)
     log = logging.getLogger("mvrecon.sem")
     unit = report["units"]
     hm = report["height_map"]
@@ -114,4 +121,15 @@ def run(args) -> int:
              report["merged_points"], len(report["pair_point_sets"]), 100 * hm["valid_fraction"],
              hm["min"] if hm["min"] is not None else float("nan"),
              hm["max"] if hm["max"] is not None else float("nan"), unit, args.output)
+    accuracy = report["accuracy"]
+    if accuracy is not None and accuracy["pixels"]:
+        log.info("against --gt (%s): height RMS %.3g %s = %.2f%% of the range %.3g %s over %.1f%% of the pixels "
+                 "(99th percentile %.2f%%)", accuracy["height_source"], accuracy["rms"], unit,
+                 accuracy["rms_percent_of_range"], accuracy["range"], unit, 100 * accuracy["coverage"],
+                 accuracy["p99_percent_of_range"])
+        log.info("against --gt, every map made on the way: %s", "; ".join(
+            f"{name} {a['rms_percent_of_range']:.2f}% over {100 * a['coverage']:.1f}%" if a["pixels"] else
+            f"{name}: no pixel" for name, a in accuracy["maps"].items()))
+    elif accuracy is not None:
+        log.warning("warning: --gt: no pixel has both a true and an estimated height")
     return 0

@@ -24,9 +24,11 @@ class DenseMatchConfig:
     local mean and contrast removed from each image. scales: image pre-blur per stage, coarse to fine (a wider
     capture range first, then full detail). iterations: Gauss-Newton steps per stage. max_step_px: cap on a
     height update in one step. min_views: other views that must see a pixel for its height to count.
-    prior_weight, prior_sigma_px: pull of a pixel towards the texture-weighted mean height of its neighbours
-    (Gaussian of that sigma), relative to the median texture: flat-shaded grains carry no parallax signal.
-    Defaults measured on the sem_tilt scenes (docs/sem.md)."""
+    prior_weight, prior_sigma_px: pull of a pixel towards the height its neighbours predict for it (a Gaussian
+    window of that sigma), relative to the median texture: flat-shaded grains carry no parallax signal.
+    prior_plane: the neighbours predict by a texture-weighted plane fit (a slope is carried across a flat grain)
+    instead of their texture-weighted mean (which flattens it: 0.61 % against 0.81 % of the height range on
+    sem_tilt_small). Defaults measured on the sem_tilt scenes (docs/sem.md)."""
 
     window_sigma_px: float = 4.0
     normalise_sigma_px: float = 3.0
@@ -34,8 +36,9 @@ class DenseMatchConfig:
     iterations: int = 6
     max_step_px: float = 2.0
     min_views: int = 1
-    prior_weight: float = 0.3
+    prior_weight: float = 0.5
     prior_sigma_px: float = 4.0
+    prior_plane: bool = True
 
 
 def _normalise(image, sigma: float, blur: float):
@@ -48,6 +51,37 @@ def _normalise(image, sigma: float, blur: float):
     centred = im - mean
     std = np.sqrt(cv2.GaussianBlur(centred * centred, (0, 0), sigma))
     return centred / (std + np.float32(0.5 * np.median(std) + 1.0))  # no noise blown up to full contrast
+
+
+def _plane_prediction(weight, heights, sigma: float) -> np.ndarray:
+    """Height at every pixel of the plane fitted to its neighbours' heights by weighted least squares (Gaussian
+    window of `sigma` times `weight`); the weighted mean where the fit is degenerate (weight on a line or none).
+
+    The window's moments about each pixel are separable filters with kernels g(t), t g(t) and t^2 g(t), so the
+    3x3 normal equations of every pixel come from nine filterings and are solved by Cramer's rule."""
+    import cv2
+
+    radius = int(np.ceil(3 * sigma))
+    t = np.arange(-radius, radius + 1, dtype=np.float32)
+    g = np.exp(-0.5 * (t / sigma) ** 2)
+    g /= g.sum()
+    k0, k1, k2 = g, t * g, t * t * g
+
+    def filt(a, kx, ky):
+        return cv2.sepFilter2D(a, cv2.CV_32F, kx, ky, borderType=cv2.BORDER_REFLECT)
+
+    w = weight.astype(np.float32)
+    wh = w * heights.astype(np.float32)
+    S, Sx, Sy = filt(w, k0, k0), filt(w, k1, k0), filt(w, k0, k1)
+    ridge = np.float32(0.1) * S  # a light pull of the slopes to 0 keeps a window of aligned weights solvable
+    Sxx, Syy, Sxy = filt(w, k2, k0) + ridge, filt(w, k0, k2) + ridge, filt(w, k1, k1)
+    Sh, Shx, Shy = filt(wh, k0, k0), filt(wh, k1, k0), filt(wh, k0, k1)
+    cof = Sxx * Syy - Sxy * Sxy
+    det = S * cof - Sx * (Sx * Syy - Sxy * Sy) + Sy * (Sx * Sxy - Sxx * Sy)
+    num = Sh * cof - Sx * (Shx * Syy - Sxy * Shy) + Sy * (Shx * Sxy - Sxx * Shy)
+    mean = Sh / np.maximum(S, 1e-12)
+    ok = det > 1e-6 * S * cof
+    return np.where(ok, num / np.where(ok, det, 1.0), mean).astype(np.float32)
 
 
 def refine_heights(images, tilts_deg, axis_deg: float, shifts, reference: int, start,
@@ -94,11 +128,14 @@ def refine_heights(images, tilts_deg, axis_deg: float, shifts, reference: int, s
                 A += gauss(d * d)
                 b += gauss(d * r)
                 seen += inside
-            # where the window has too little texture the data barely constrain h: lean on the neighbours' heights
-            # (a confidence-weighted average over a wider window)
+            # where the window has too little texture the data barely constrain h: lean on the height the
+            # neighbours predict (weighted by their texture)
             lam = np.float32(config.prior_weight * np.median(A))
-            near = cv2.GaussianBlur(A * heights, (0, 0), config.prior_sigma_px) / np.maximum(
-                cv2.GaussianBlur(A, (0, 0), config.prior_sigma_px), 1e-12)
+            if config.prior_plane:
+                near = _plane_prediction(A, heights, config.prior_sigma_px)
+            else:
+                near = cv2.GaussianBlur(A * heights, (0, 0), config.prior_sigma_px) / np.maximum(
+                    cv2.GaussianBlur(A, (0, 0), config.prior_sigma_px), 1e-12)
             step = (-b + lam * (near - heights)) / (A + lam)
             heights += np.clip(step, -config.max_step_px, config.max_step_px).astype(np.float32)
             bar.update()

@@ -1,18 +1,15 @@
-"""Height maps on the reference image grid: gridding scattered points, dense matching of a rectified pair, profiles.
+"""Height maps on the reference image grid from scattered points: gridding, spike removal, profiles.
 
-Sparse SIFT points give heights where the texture allows; a dense map needs either interpolation between them
-(piecewise linear over their Delaunay triangulation) or dense matching. Under parallel projection a tilt pair is
-rectified by a rotation that turns the tilt axis vertical (parallax becomes horizontal) and, for the second view,
-a stretch by cos(t_ref)/cos(t_other) across the axis, after which the horizontal disparity is proportional to
-height: D = h sin(t_ref - t_other) / cos(t_other). Semi-global matching (OpenCV SGBM) then measures D per pixel.
-World frame, units and signs: see `parallax.py`.
+Sparse SIFT points give heights where the texture allows; a map needs interpolation between them (piecewise
+linear over their Delaunay triangulation), which `dense.py` refines at every pixel. World frame, units and signs:
+see `parallax.py`.
 """
 
-from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
-from .parallax import axis_vectors
+from ..errors import InputError
 
 
 def grid_heights(xy, heights, shape) -> np.ndarray:
@@ -26,93 +23,6 @@ def grid_heights(xy, heights, shape) -> np.ndarray:
     interp = LinearNDInterpolator(xy, np.asarray(heights, dtype=float))
     gx, gy = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
     return interp(gx, gy).astype(np.float32)
-
-
-@dataclass(frozen=True)
-class DenseConfig:
-    """Semi-global matching on the rectified pair. block_size: SGBM window (odd). margin_px: disparity search
-    beyond the range the sparse points span. uniqueness: SGBM uniqueness ratio (%); higher rejects more."""
-
-    block_size: int = 5
-    margin_px: float = 8.0
-    uniqueness: int = 10
-
-
-def _rectify(image, axis_deg, center, out_shape, out_center, stretch=1.0, shift=(0.0, 0.0)):
-    """Resample `image` on a grid whose x runs along the parallax direction (scaled by `stretch`) and y along the
-    axis: rectified pixel (p, q) reads image pixel c + shift + stretch (p - pc) n + (q - qc) a."""
-    import cv2
-
-    a, n = axis_vectors(axis_deg)
-    A = np.column_stack([stretch * n, a])
-    t = np.asarray(center, float) + np.asarray(shift, float) - A @ np.asarray(out_center, float)
-    M = np.hstack([A, t[:, None]])
-    return cv2.warpAffine(image, M, (out_shape[1], out_shape[0]), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                          borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-
-
-def dense_heights(ref_image, other_image, tilt_ref: float, tilt_other: float, axis_deg: float, other_shift,
-                  disparity_range, config: DenseConfig = DenseConfig()) -> np.ndarray:
-    """float32 height map (NaN where unmatched) on the 0-degree grid of the reference image, by SGBM.
-
-    `other_shift` is the other view's drift (pixels) from the joint solution, so heights share its gauge;
-    `disparity_range` (lo, hi) in rectified pixels is where the sparse points say the disparities lie.
-    """
-    import cv2
-
-    h, w = ref_image.shape[:2]
-    center = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
-    side = int(np.ceil(np.hypot(w, h)))
-    out_shape, out_center = (side, side), np.array([(side - 1) / 2.0] * 2)
-    tr, to = np.radians(tilt_ref), np.radians(tilt_other)
-    stretch = np.cos(to) / np.cos(tr)
-    left = _rectify(ref_image, axis_deg, center, out_shape, out_center)
-    right = _rectify(other_image, axis_deg, center, out_shape, out_center, stretch, other_shift)
-    lo, hi = disparity_range
-    min_disp = int(np.floor(lo - config.margin_px))
-    num = int(np.ceil((hi - lo + 2 * config.margin_px) / 16.0)) * 16
-    bs = config.block_size
-    sgbm = cv2.StereoSGBM_create(minDisparity=min_disp, numDisparities=max(16, num), blockSize=bs,
-                                 P1=8 * bs * bs, P2=32 * bs * bs, disp12MaxDiff=1,
-                                 uniquenessRatio=config.uniqueness, speckleWindowSize=100, speckleRange=2,
-                                 mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
-    disp = sgbm.compute(left, right).astype(np.float32) / 16.0
-    valid = (disp >= min_disp) & (left > 0)
-    height = np.where(valid, disp * np.cos(to) / np.sin(tr - to), np.nan)
-    # the reference pixel at rectified p sees alpha = (p - h sin t_ref) / cos t_ref: resample each row onto alpha
-    p = np.arange(side, dtype=float) - out_center[0]
-    rect = np.full(out_shape, np.nan, dtype=np.float32)
-    for row in range(side):
-        ok = np.isfinite(height[row])
-        if ok.sum() < 2:
-            continue
-        alpha = (p[ok] - height[row, ok] * np.sin(tr)) / np.cos(tr)
-        order = np.argsort(alpha)
-        values = np.interp(p, alpha[order], height[row, ok][order], left=np.nan, right=np.nan)
-        gaps = np.interp(p, p[ok], np.zeros(ok.sum()), left=np.nan, right=np.nan)  # no values past the ends
-        rect[row] = np.where(np.isfinite(gaps), values, np.nan)
-        rect[row, ~_near_valid(ok)] = np.nan
-    return _unrectify(rect, axis_deg, center, (h, w), out_center)
-
-
-def _near_valid(ok: np.ndarray, reach: int = 2) -> np.ndarray:
-    """Pixels within `reach` of a matched pixel: interpolation must not bridge unmatched stretches."""
-    kernel = np.ones(2 * reach + 1)
-    return np.convolve(ok.astype(float), kernel, mode="same") > 0
-
-
-def _unrectify(rect, axis_deg, center, shape, out_center) -> np.ndarray:
-    import cv2
-
-    a, n = axis_vectors(axis_deg)
-    A = np.column_stack([n, a]).T  # image offset -> (p, q)
-    t = np.asarray(out_center, float) - A @ np.asarray(center, float)
-    M = np.hstack([A, t[:, None]])
-    filled = np.nan_to_num(rect, nan=0.0)
-    valid = cv2.warpAffine(np.isfinite(rect).astype(np.float32), M, (shape[1], shape[0]),
-                           flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-    out = cv2.warpAffine(filled, M, (shape[1], shape[0]), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-    return np.where(valid > 0.999, out, np.nan).astype(np.float32)
 
 
 def profile(height_map, start, end, samples: int | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -148,3 +58,44 @@ def height_outliers(points, neighbours: int = 12, threshold_px: float = 3.0, mad
     diff = np.abs(points[:, 2] - local)
     limit = max(threshold_px, mad_factor * 1.4826 * float(np.median(diff)))
     return diff > limit
+
+
+def height_accuracy(estimate, truth) -> dict:
+    """Height map against ground truth on the same grid (NaN = no value in either): `coverage` is the share of
+    the pixels with a true height that have an estimate, and the errors are over those covered pixels after
+    removing the median offset (nothing in a tilt series fixes the absolute level): RMS, 99th percentile of the
+    absolute error, both also in % of the true height range."""
+    estimate, truth = np.asarray(estimate, float), np.asarray(truth, float)
+    known = np.isfinite(truth)
+    both = known & np.isfinite(estimate)
+    span = float(np.ptp(truth[known])) if known.any() else float("nan")
+    if not both.any():
+        return {"coverage": 0.0, "pixels": 0, "range": span}
+    r = estimate[both] - truth[both]
+    r -= np.median(r)
+    rms, p99 = float(np.sqrt(np.mean(r * r))), float(np.percentile(np.abs(r), 99))
+    return {"coverage": float(both.sum() / known.sum()), "pixels": int(both.sum()), "range": span, "rms": rms,
+            "p99": p99, "rms_percent_of_range": 100 * rms / span, "p99_percent_of_range": 100 * p99 / span}
+
+
+def read_height_map(path) -> np.ndarray:
+    """float32 height map from .npy or 32-bit TIFF (what `mvrecon sem` and `mvrecon scene make` write), NaN where
+    unknown; a missing, unreadable or non-2D file is an InputError."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: ground-truth height map not found")
+    try:
+        if path.suffix.lower() == ".npy":
+            height = np.load(path, allow_pickle=False)
+        elif path.suffix.lower() in (".tif", ".tiff"):
+            import tifffile
+
+            height = tifffile.imread(path)
+        else:
+            raise ValueError("expected a .npy or .tif height map")
+        height = np.asarray(height, dtype=np.float32)
+    except (ValueError, OSError) as exc:
+        raise InputError(f"{path}: cannot read ground-truth heights ({exc})") from None
+    if height.ndim != 2:
+        raise InputError(f"{path}: a height map has one value per pixel, this array has shape {height.shape}")
+    return height

@@ -21,16 +21,18 @@ from ..features.sift import SiftConfig
 from ..io.files import made_folder
 from ..matching.matcher import MatcherConfig
 from ..progress import progress
+from ..stereo.sgbm import SGBMConfig
 from .affine import (AffineRansacConfig, affine_epipolar_error, ransac_affine_fundamental,
                      tilt_axis_from_affine_fundamental)
-from .factorization import build_tracks, solve_tilt_series
 from .dense import DenseMatchConfig, fill_nearest, refine_heights
-from .heightmap import DenseConfig, dense_heights, grid_heights, height_outliers, profile
+from .factorization import build_tracks, solve_tilt_series
+from .heightmap import grid_heights, height_accuracy, height_outliers, profile
 from .icp import IcpConfig, icp
 from .parallax import axis_vectors, heights_from_parallax
+from .rectified import StereoConfig, pair_heights, stereo_heights
 
 log = logging.getLogger("mvrecon.sem")
-HEIGHT_SOURCES = ("dense", "joint", "merged")
+HEIGHT_SOURCES = ("dense", "stereo", "joint", "merged")
 # A pair whose matches move beyond a common shift by less than this many times their matching noise shows no
 # parallax: measured 0x to 2.8x for an image and its shifted, JPEG or noisy copy, 14.7x to 58.7x for the pairs of
 # sem_tilt_small and of the Karido DSA and quartz series (docs/sem.md, "Checks on the input").
@@ -45,7 +47,7 @@ MIN_MOTION_COHERENCE = 0.15
 MIN_COHERENCE_MATCHES = 50  # fewer matches: the correlation's own noise (1 / sqrt(matches)) is too large to judge
 # A given --axis farther than this from the matches' own estimate is warned about: that estimate (median over
 # the pairs of the affine-F axis) is within 0.2 deg of the true or jointly estimated axis on the good series
-# (single pairs within 1.8 deg); an axis 5 deg off raises sem_tilt_small's height error from 0.81 to 1.17 %.
+# (single pairs within 1.8 deg); an axis 5 deg off raises sem_tilt_small's height error from 0.61 to 1.00 %.
 AXIS_TOLERANCE_DEG = 5.0
 
 
@@ -58,11 +60,12 @@ class SemConfig:
     are estimated). pairs: how many best-matched pairs give per-pair point sets (the paper uses 2).
     icp_method: kdtree | brute | open3d-point | open3d-plane. height_source: "dense" (default) refines the
     gridded joint points at every pixel by least-squares matching of all images (`dense.py`; the sparse points
-    alone are too few and too noisy for 1% accuracy), "joint" grids the points of the joint adjustment (every
-    observation of a track), "merged" grids the ICP-merged union of the joint points and the pair point sets
-    (the paper's integration). densify: SGBM on the rectified pair of the reference and the image tilted
-    farthest from it, replacing the map where it matched. profile: (x0, y0, x1, y1) in input pixels, None = the line
-    across the tilt axis through the image centre."""
+    alone are too few and too noisy for 1% accuracy), "stereo" refines the same way a start made by semi-global
+    matching of the rectified pairs (reference, other view) where the pairs agree (`rectified.py`), "joint"
+    grids the points of the joint adjustment (every observation of a track), "merged" grids the ICP-merged union
+    of the joint points and the pair point sets (the paper's integration). densify: SGBM on the rectified pair
+    of the reference and the image tilted farthest from it, replacing the map where it matched. profile:
+    (x0, y0, x1, y1) in input pixels, None = the line across the tilt axis through the image centre."""
 
     tilts_deg: tuple | None = None
     axis_deg: float | None = None
@@ -78,8 +81,9 @@ class SemConfig:
     matcher: MatcherConfig = field(default_factory=MatcherConfig)
     ransac: AffineRansacConfig = field(default_factory=AffineRansacConfig)
     icp: IcpConfig = field(default_factory=IcpConfig)
-    dense: DenseConfig = field(default_factory=DenseConfig)
+    densify_matcher: SGBMConfig = field(default_factory=lambda: SGBMConfig(block_size=5))
     dense_match: DenseMatchConfig = field(default_factory=DenseMatchConfig)
+    stereo: StereoConfig = field(default_factory=StereoConfig)
 
 
 def parse_length_um(text) -> float:
@@ -273,6 +277,17 @@ def _check_tilts_differ(tilts_deg) -> None:
                          "have no parallax (equal tilts) to give heights")
 
 
+def _check_ground_truth_size(gt_height, first) -> None:
+    """Ground truth must lie on the input images' grid (it is resampled with them under --max-size)."""
+    from ..io.images import image_metadata
+
+    meta = image_metadata(first)
+    if np.shape(gt_height) != (meta.height, meta.width):
+        rows, cols = np.shape(gt_height)
+        raise InputError(f"--gt: a {cols}x{rows} height map for {meta.width}x{meta.height} images ({first}); "
+                         "it must lie on the input images' grid")
+
+
 def _reference(config: SemConfig, n: int) -> int:
     if config.reference is not None:
         if not 0 <= config.reference < n:
@@ -296,8 +311,11 @@ def _cell_average(points: np.ndarray, shape) -> np.ndarray:
     return out / counts[:, None]
 
 
-def run_sem(image_paths, out_dir, config: SemConfig = SemConfig()) -> dict:
-    """Run the whole SEM pipeline and write the outputs to `out_dir`; returns the report (also report.json)."""
+def run_sem(image_paths, out_dir, config: SemConfig = SemConfig(), gt_height=None) -> dict:
+    """Run the whole SEM pipeline and write the outputs to `out_dir`; returns the report (also report.json).
+    gt_height: a ground-truth height map on the reference image's grid at input size, in the output's units
+    (um with a pixel size, else input pixels), scored by `heightmap.height_accuracy` into the report's
+    "accuracy", with every map made on the way."""
     timings, t0 = {}, time.perf_counter()
     paths = [Path(p) for p in image_paths]
     n = len(paths)
@@ -313,13 +331,15 @@ def run_sem(image_paths, out_dir, config: SemConfig = SemConfig()) -> dict:
         _check_tilts_in_range(config.tilts_deg)
         _check_tilts_differ(config.tilts_deg)
     _check_distinct_files(paths)
+    if gt_height is not None:
+        _check_ground_truth_size(gt_height, paths[0])
     ref = _reference(config, n)
     # a failed or interrupted run leaves no folder it made (nothing in it is reused)
     with made_folder(out_dir) as out:
-        return _run(paths, out, config, ref, timings, t0)
+        return _run(paths, out, config, ref, timings, t0, gt_height)
 
 
-def _run(paths, out: Path, config: SemConfig, ref: int, timings: dict, t0: float) -> dict:
+def _run(paths, out: Path, config: SemConfig, ref: int, timings: dict, t0: float, gt_height) -> dict:
     """run_sem after its argument checks, into the existing folder `out`."""
     n = len(paths)
     report_warnings = []
@@ -398,19 +418,37 @@ def _run(paths, out: Path, config: SemConfig, ref: int, timings: dict, t0: float
     merged_outliers = height_outliers(merged)
     merged = merged[~merged_outliers]
 
-    # height map on the reference grid (working resolution)
+    # height map on the reference grid (working resolution); with ground truth every map on the way is scored
     t = time.perf_counter()
-    source = merged if config.height_source == "merged" else anchor
-    cells = _cell_average(np.column_stack([source[:, :2] + center, source[:, 2]]), (h, w))
-    height = grid_heights(cells[:, :2], cells[:, 2], (h, w))
-    dense_report = None
-    if not np.isfinite(height).any():
-        raise InputError(f"{paths[0].parent}: only {len(source)} 3D points survived the outlier tests; "
-                         "too few for a height map")
-    if config.height_source == "dense":
-        height = refine_heights(images, tilts, axis, solution.shifts, ref, fill_nearest(height), config.dense_match)
+
+    def gridded(points):
+        cells = _cell_average(np.column_stack([points[:, :2] + center, points[:, 2]]), (h, w))
+        return grid_heights(cells[:, :2], cells[:, 2], (h, w))
+
+    sparse = "merged" if config.height_source == "merged" else "joint"
+    maps = {sparse: gridded(merged if sparse == "merged" else anchor)}
+    if not np.isfinite(maps[sparse]).any():
+        raise InputError(f"{paths[0].parent}: only {len(merged if sparse == 'merged' else anchor)} 3D points "
+                         "survived the outlier tests; too few for a height map")
+    if gt_height is not None:
+        other = "joint" if sparse == "merged" else "merged"
+        maps[other] = gridded(anchor if other == "joint" else merged)
+    height = maps[sparse]
+    dense_report = stereo_report = None
+    if config.height_source in ("dense", "stereo"):
+        start = fill_nearest(height)
+        if config.height_source == "stereo":
+            t_stereo = time.perf_counter()
+            span = (np.percentile(anchor[:, 2], 1), np.percentile(anchor[:, 2], 99))
+            matched, stereo_report = stereo_heights(images, tilts, axis, solution.shifts, ref, span, config.stereo)
+            maps["stereo_matching"] = matched
+            start = np.where(np.isfinite(matched), matched, start)
+            timings["stereo_s"] = time.perf_counter() - t_stereo
+        height = maps[config.height_source] = refine_heights(images, tilts, axis, solution.shifts, ref, start,
+                                                             config.dense_match)
     if config.densify:
-        height, dense_report = _densify(images, ref, tilts, axis, solution, pairs, height, config.dense)
+        height, dense_report = _densify(images, ref, tilts, axis, solution, pairs, height, config.densify_matcher)
+        maps["densify"] = height
     timings["heightmap_s"] = time.perf_counter() - t
 
     unit = "um" if config.pixel_size_um else "px"
@@ -420,6 +458,11 @@ def _run(paths, out: Path, config: SemConfig, ref: int, timings: dict, t0: float
     finite = np.isfinite(height_u)
     line = _profile_line(config.profile, factor, axis, center, (h, w))
     _write_outputs(out, images[ref], height_u, merged_u, merged, center, line, unit, to_unit)
+    accuracy = None
+    if gt_height is not None:
+        truth = _to_working_grid(gt_height, (h, w))
+        accuracy = {"height_source": config.height_source, "units": unit, **height_accuracy(height_u, truth),
+                    "maps": {name: height_accuracy(m * to_unit, truth) for name, m in maps.items()}}
     timings["total_s"] = time.perf_counter() - t0
 
     report = {
@@ -454,12 +497,27 @@ def _run(paths, out: Path, config: SemConfig, ref: int, timings: dict, t0: float
                        "max": float(np.nanmax(height_u)) if finite.any() else None,
                        "profile_line_px": [float(v / factor) for v in line]},
         "dense": dense_report,
+        "stereo": stereo_report,
+        "accuracy": accuracy,
         "config": {k: v for k, v in asdict(config).items()
                    if k in ("pairs", "icp_method", "height_source", "densify", "max_size", "reference")},
         "timings": timings,
     }
     (out / "report.json").write_text(json.dumps(report, indent=1))
     return report
+
+
+def _to_working_grid(height, shape) -> np.ndarray:
+    """A map of the input grid resampled to the working grid (area average; NaN where any input pixel is NaN)."""
+    import cv2
+
+    height = np.asarray(height, np.float32)
+    if height.shape == tuple(shape):
+        return height
+    size = (shape[1], shape[0])
+    values = cv2.resize(np.nan_to_num(height, nan=0.0), size, interpolation=cv2.INTER_AREA)
+    known = cv2.resize(np.isfinite(height).astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    return np.where(known > 0.999, values / np.maximum(known, 1e-6), np.nan)
 
 
 def _check_given_axis(config: SemConfig, obs, n: int, ref: int, solution, axis_from_pairs: float, pairs_used: int,
@@ -490,17 +548,17 @@ def _check_given_axis(config: SemConfig, obs, n: int, ref: int, solution, axis_f
     return check
 
 
-def _densify(images, ref, tilts, axis, solution, pairs, sparse_height, dense_config):
-    """SGBM heights of the pair (reference, image tilted farthest from it), holes filled from the sparse map."""
+def _densify(images, ref, tilts, axis, solution, pairs, sparse_height, matcher: SGBMConfig):
+    """SGBM heights of the rectified pair (reference, image tilted farthest from it), holes filled from the map
+    made so far."""
     candidates = [j for j in range(len(images)) if j != ref and pairs[tuple(sorted((ref, j)))]["verified"] > 0]
     if not candidates:
         return sparse_height, {"used": False, "reason": "the reference image has no verified pair"}
     other = max(candidates, key=lambda j: abs(tilts[j] - tilts[ref]))
-    tr, to = np.radians(tilts[ref]), np.radians(tilts[other])
     z = solution.points[np.isfinite(solution.points).all(axis=1), 2]
-    disparities = z * np.sin(tr - to) / np.cos(to)
-    dense = dense_heights(images[ref], images[other], tilts[ref], tilts[other], axis, solution.shifts[other],
-                          (np.percentile(disparities, 1), np.percentile(disparities, 99)), dense_config)
+    dense = pair_heights(images[ref], images[other], tilts[ref], tilts[other], axis, solution.shifts[ref],
+                         solution.shifts[other], (np.percentile(z, 1), np.percentile(z, 99)), matcher,
+                         margin_px=8.0)
     both = np.isfinite(dense) & np.isfinite(sparse_height)
     diff = float(np.median(np.abs(dense[both] - sparse_height[both]))) if both.any() else float("nan")
     filled = np.where(np.isfinite(dense), dense, sparse_height)
