@@ -394,7 +394,7 @@ def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
     start = time.perf_counter()
     ws = _workspace(workspace)
     check_spec(config.pairs)
-    ws.require_stage("features", "run `mvrecon features IMAGES -w WORKSPACE` first")
+    ws.require_stage("features", "run `mvrecon features IMAGES -o WORKSPACE` first")
     record = {"pairs": config.pairs, "matcher": to_dict(config.matcher), "verify": to_dict(config.verify)}
     with dbmod.open_database(ws.database_path) as db:
         images = {i.image_id: i for i in dbmod.read_images(db).values() if dbmod.has_features(db, i.image_id)}
@@ -550,7 +550,7 @@ def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resu
         raise InputError(f"{ws.path}: no database.db here; run `mvrecon reconstruct IMAGES -o {ws.path}` "
                          "first")
     record, sparse, snapshot = to_dict(config), ws.path / "sparse", ws.snapshot_path
-    ws.check_stage("mapping", record, overwrite, hint=f"rerun with --overwrite to map again (`mvrecon map -w "
+    ws.check_stage("mapping", record, overwrite, hint=f"rerun with --overwrite to map again (`mvrecon map -o "
                    f"{ws.path} --overwrite` redoes only the mapping), or use another workspace")
     try:
         stages = ws.stages()
@@ -609,7 +609,7 @@ def _no_verified_pairs(ws: Workspace, corr, *, matched_by_mvrecon: bool) -> str:
     if not configs:
         with dbmod.open_database(ws.database_path) as db:
             matched = dbmod.num_matched_pairs(db)
-        return head + (f"run `mvrecon match -w {ws.path}` first" if not matched else
+        return head + (f"run `mvrecon match -o {ws.path}` first" if not matched else
                        "the images do not overlap or have too little texture (nothing to reconstruct)")
     total = sum(configs.values())
     head += (f"its one matched pair is {next(iter(configs))}" if total == 1 else

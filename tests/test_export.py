@@ -286,7 +286,7 @@ def test_export_is_in_the_frame_the_features_were_extracted_in(rendered, tmp_pat
                                   extraction_options=threads)
         pycolmap.match_exhaustive(ws / "database.db", matching_options=pycolmap.FeatureMatchingOptions(
             num_threads=1))
-        assert main(["-q", "map", "-w", str(ws), "--image-dir", str(images)]) == 0
+        assert main(["-q", "map", "-o", str(ws), "--image-dir", str(images)]) == 0
     else:
         assert main(["-q", "reconstruct", str(images), "-o", str(ws), "--workers", "1"]) == 0
     model = pycolmap.Reconstruction(str(ws / "sparse" / "0"))

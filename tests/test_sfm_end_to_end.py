@@ -349,7 +349,7 @@ def test_map_without_verified_pairs_exits_2_with_a_message(tmp_path, capsys):
     assert main(["-q", "map", "-w", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "no verified image pairs among 2 images" in err and err.count("\n") == 1
-    assert f"run `mvrecon match -w {tmp_path}` first" in err  # features but no matching yet
+    assert f"run `mvrecon match -o {tmp_path}` first" in err  # features but no matching yet
     assert main(["-q", "map", "-w", str(tmp_path), "--image-dir", str(tmp_path / "nope")]) == 2
     assert "nope: no such image folder" in capsys.readouterr().err
     # a database cut short, and a file that is not one: one line naming it, not pycolmap's RuntimeError
