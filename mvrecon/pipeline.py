@@ -558,7 +558,8 @@ def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resu
         stages = {}
     corr = dbmod.read_correspondences(ws.database_path)
     if not corr.pairs:
-        raise InputError(_no_verified_pairs(ws, corr, matched_by_mvrecon="matching" in stages))
+        raise NoVerifiedPairs(ws.database_path,
+                              _no_verified_pairs(ws, corr, matched_by_mvrecon="matching" in stages))
     if image_dir is None and not keypoint_colors:
         image_dir = _recorded_images(stages)
     if overwrite:  # --overwrite starts mapping over, --resume or not
@@ -600,11 +601,20 @@ def camera_entries(model) -> list[dict]:
     return [report_entry(cid, cam.model, cam.width, cam.height, cam.params) for cid, cam in cams]
 
 
+class NoVerifiedPairs(InputError):
+    """The database gives the mapper no verified pair; `reason` is why, without the path the error names (the
+    database, or the images of a `reconstruct` that removed the folder it made, database included)."""
+
+    def __init__(self, path, reason: str):
+        super().__init__(f"{path}: {reason}")
+        self.reason = reason
+
+
 def _no_verified_pairs(ws: Workspace, corr, *, matched_by_mvrecon: bool) -> str:
     """Why a database gives the mapper no pair: none matched yet, or what the database marked the matched pairs,
     with COLMAP's fisheye rule when that is the likely cause (COLMAP matched a fisheye camera without a focal
     prior: it marks every such pair DEGENERATE, which looked like images without overlap)."""
-    head = f"{ws.database_path}: no verified image pairs among {len(corr.images)} images; "
+    head = f"no verified image pairs among {len(corr.images)} images; "
     configs = dbmod.pair_configurations(ws.database_path)
     if not configs:
         with dbmod.open_database(ws.database_path) as db:
@@ -615,7 +625,7 @@ def _no_verified_pairs(ws: Workspace, corr, *, matched_by_mvrecon: bool) -> str:
     head += (f"its one matched pair is {next(iter(configs))}" if total == 1 else
              f"all {total} matched pairs are {next(iter(configs))}" if len(configs) == 1 else
              f"the {total} matched pairs are " + ", ".join(f"{n} {name}" for name, n in configs.items())) \
-        + " in the database"
+        + ("" if matched_by_mvrecon else " in the database")
     blind = dbmod.colmap_blind_cameras(corr.cameras)
     if blind and not matched_by_mvrecon:
         cid, model = blind[0], corr.cameras[blind[0]].model
@@ -730,11 +740,13 @@ def reconstruct(config: ReconstructConfig, image_dir, out_dir, *, text: bool = F
                                     overwrite=overwrite, keypoint_colors=features.keypoint_colors)
         except DiskFull:  # the features and matches written so far are kept for the rerun
             raise
-        except InputError:  # rejected input (no verified pairs, say), or refused settings
+        except InputError as exc:  # rejected input (no verified pairs, say), or refused settings
             if fresh:  # a folder this call made holds nothing worth keeping
                 import shutil
 
                 shutil.rmtree(out, ignore_errors=True)
+                if isinstance(exc, NoVerifiedPairs):  # the database it names went with the folder
+                    raise NoVerifiedPairs(image_dir, exc.reason) from None
             elif kept is not None:  # refused (another config, say) without --overwrite: the earlier run stands
                 report_path.write_bytes(kept)
             raise

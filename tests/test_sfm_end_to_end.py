@@ -362,7 +362,8 @@ def test_map_without_verified_pairs_exits_2_with_a_message(tmp_path, capsys):
 
 
 def test_reconstruct_of_unrelated_images_exits_2_and_leaves_no_folder(tmp_path, capsys):
-    """Images that share no verified pair: one line, exit 2, and the output folder this run made is removed."""
+    """Images that share no verified pair: one line, exit 2, and the output folder this run made is removed. The
+    line named OUT/database.db, which went with the folder: it names the images now."""
     import cv2
 
     images = tmp_path / "images"
@@ -373,7 +374,8 @@ def test_reconstruct_of_unrelated_images_exits_2_and_leaves_no_folder(tmp_path, 
     out = tmp_path / "out"
     assert main(["-q", "reconstruct", str(images), "-o", str(out)]) == 2
     err = capsys.readouterr().err
-    assert "no verified image pairs among 3 images" in err and err.count("\n") == 1
+    assert err.startswith(f"mvrecon: error: {images}: no verified image pairs among 3 images; ")
+    assert err.count("\n") == 1 and "database" not in err
     assert not out.exists()
 
 
