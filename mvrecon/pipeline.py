@@ -679,7 +679,8 @@ def write_report(out_dir, *, config_hash: str, seed: int, summary: MapSummary, s
 def _finished_report(out: Path, full_hash: str, image_dir: Path) -> dict | None:
     """report.json of a finished run in `out` with this config, of these very images (the same folder, and
     every image file in it has a status in the report: none added or removed since, and none changed in size or
-    time), else None."""
+    time), else None. A run whose database.db was damaged since is refused (dbmod.database_damage): it was
+    reported finished, and its database could serve neither a rerun nor `map` or `compare`."""
     report = read_json_object(out / "report.json")
     if report is None or report.get("config_hash") != full_hash or not (out / "sparse").is_dir():
         return None
@@ -693,7 +694,14 @@ def _finished_report(out: Path, full_hash: str, image_dir: Path) -> dict | None:
     if names != set(report.get("images") or ()):
         return None
     stamps = read_json_object(out / STAMPS)  # none in a workspace of an older version: names decide there
-    return report if stamps is None or stamps == _stamps(image_dir, names) else None
+    if stamps is not None and stamps != _stamps(image_dir, names):
+        return None
+    database = out / "database.db"  # one deleted since (to save space, say) leaves the model as it was
+    damage = dbmod.database_damage(database) if database.is_file() else None
+    if damage is not None:
+        raise InputError(f"{database}: damaged since its run finished ({damage}); rerun with --overwrite to "
+                         "start over")
+    return report
 
 
 def reconstruct(config: ReconstructConfig, image_dir, out_dir, *, text: bool = False, resume: bool = False,

@@ -93,6 +93,28 @@ def test_reconstruct_outputs_follow_the_contract(demo):
     assert (run / "database.db").is_file()
 
 
+def test_a_finished_run_whose_database_was_damaged_since_is_refused_not_trusted(demo, tmp_path, capsys):
+    """A finished run whose database.db was overwritten in its middle afterwards was reported "finished, not
+    redone" (nothing opened it): now one line names it, and --overwrite starts over."""
+    import shutil
+
+    from mvrecon.database import database_counts, database_damage
+
+    run = tmp_path / "run"
+    shutil.copytree(demo / "run", run)
+    data = (run / "database.db").read_bytes()
+    middle = len(data) // 2 // 4096 * 4096
+    (run / "database.db").write_bytes(data[:middle] + bytes(4096) + data[middle + 4096:])
+    images = demo / "scene" / "images"
+    assert main(["-q", "reconstruct", str(images), "-o", str(run)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"mvrecon: error: {run / 'database.db'}: damaged since its run finished (")
+    assert err.endswith("; rerun with --overwrite to start over\n") and err.count("\n") == 1
+    assert main(["-q", "reconstruct", str(images), "-o", str(run), "--overwrite"]) == 0
+    assert database_damage(run / "database.db") is None
+    assert database_counts(run / "database.db") == json.loads((demo / "run" / "report.json").read_text())["counts"]
+
+
 def test_point_colours_from_the_keypoints_equal_colmaps_from_the_images(demo):
     # reconstruct colours the points from colours sampled at the keypoints during feature extraction; COLMAP
     # decodes every registered image again and samples at the observations: the same bilinear mean
