@@ -8,6 +8,7 @@ import re
 import numpy as np
 import pycolmap
 import pytest
+from PIL import Image
 
 from mvrecon import database
 from mvrecon.cli import main
@@ -564,6 +565,25 @@ def test_copies_of_one_view_say_that_the_camera_did_not_move(demo, tmp_path, cap
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "no verified image pairs among 4 images" in err
     assert "the camera did not move between the images" in err
+
+
+def test_copies_of_an_image_among_others_are_named(demo, tmp_path, caplog):
+    """A copy of one image and the same image saved again as JPEG were registered at its pose without a word:
+    a warning names each group, and only them (none of the scene's ten views, which move 9 px and more)."""
+    import shutil
+
+    images = tmp_path / "images"
+    shutil.copytree(demo / "scene" / "images", images)
+    shutil.copy(images / "0003.png", images / "copy.png")
+    Image.open(images / "0005.png").convert("RGB").save(images / "resaved.jpg", quality=95)
+    with caplog.at_level(logging.WARNING):
+        assert main(["-q", "reconstruct", str(images), "-o", str(tmp_path / "run")]) == 0
+    named = [r.getMessage() for r in caplog.records if "images that show one view" in r.getMessage()]
+    assert len(named) == 1 and named[0].endswith(": 0003.png = copy.png; 0005.png = resaved.jpg"), named
+    rec = pycolmap.Reconstruction(str(tmp_path / "run" / "sparse" / "0"))
+    centre = {im.name: im.projection_center() for im in rec.images.values()}
+    assert len(centre) == 12  # registered, at one pose with their originals
+    assert np.linalg.norm(centre["copy.png"] - centre["0003.png"]) < 1e-3 * np.ptp(list(centre.values()), axis=0).max()
 
 
 def test_bmp_and_pnm_images_are_read_and_heic_ones_named(demo, tmp_path, caplog):
