@@ -241,9 +241,9 @@ def choose_reference(runs: list[RunResult], image_names, default: str | None) ->
 
     `default` is trusted while its largest model holds at least as many images as any other engine's and at
     least half of them. Otherwise the engine whose model holds the most images is, when that is half of them or
-    more; else there is no trustworthy reference and nothing is scored. A failed reference scored every model
-    zero without a word: on opensfm_lund COLMAP registers 2 of 29 images and mvrecon 29, which read AUC 0.000.
-    Diagnostic runs (COLMAP's mapper on mvrecon's matches) are never the reference.
+    more; else there is no trustworthy reference and nothing is scored. Against a reference of 2 images (COLMAP's
+    on opensfm_lund, of 29, where mvrecon registers all 29) every other model scores AUC 0.000, which says
+    nothing about it. Diagnostic runs (COLMAP's mapper on mvrecon's matches) are never the reference.
     """
     n = len(image_names)
     enough = max(2, math.ceil(n / 2))
@@ -282,8 +282,8 @@ def _evaluate_run(run: RunResult, role: str, image_names, ref_poses: dict, confi
     for k, m in enumerate(models):
         for n in m:
             model_of.setdefault(n, k)
-    # the largest model's images are the headline; the other models' are shown beside them ("13 + 3"), as
-    # adding them up read "16 (100%)" on templeSparseRing, whose largest model holds 13, as COLMAP's does
+    # the largest model's images are the headline, the other models' shown beside them ("13 + 3"): their sum is
+    # no one model (templeSparseRing: 13 + 3 images in mvrecon's models, 13 in COLMAP's one)
     sizes = model_sizes(run, image_names)
     largest = sizes[0] if sizes else 0
     summary = {"registered": largest, "registered_pct": 100.0 * largest / max(len(image_names), 1),
