@@ -20,7 +20,7 @@ import signal
 import sys
 import threading
 
-from . import __version__
+from . import __version__, zlib_order
 from .errors import DiskFull, InputError
 from .interrupts import STOPPING, keep_handlers_after_import
 from .io.files import ESCAPE, hold_folder
@@ -111,6 +111,8 @@ def _interrupted(module) -> int:
 
 
 def main(argv=None) -> int:
+    if zlib_order.TAKEN_OVER:  # pycolmap was imported first: a PNG written here would abort this process
+        return _in_fresh_process(argv)
     if argv is None:  # the `mvrecon` process itself, before numpy is loaded
         from .executor import keep_freed_memory, one_blas_thread
 
@@ -133,6 +135,52 @@ def main(argv=None) -> int:
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
+    return code
+
+
+def _in_fresh_process(argv) -> int:
+    """`main(argv)` run by a new interpreter (`python -m mvrecon.cli`), for a process whose zlib pycolmap has taken
+    over (`zlib_order`); returns its exit code. Its output goes where this process's does (through this process
+    when a stream has no file descriptor: a notebook's), and Ctrl-C or SIGTERM here stops it as it would this
+    run: it has a process group of its own, so that it gets the signal once, from here."""
+    import codecs
+    import subprocess
+    from pathlib import Path
+
+    argv = sys.argv[1:] if argv is None else [os.fspath(a) for a in argv]
+    env = dict(os.environ)  # the same mvrecon package, wherever this process found it
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, (str(Path(__file__).resolve().parents[1]),
+                                                      env.get("PYTHONPATH"))))
+    targets = []
+    for stream in (sys.stdout, sys.stderr):
+        stream.flush()
+        try:
+            targets.append(stream.fileno())
+        except (AttributeError, OSError, ValueError):  # io.UnsupportedOperation, a closed stream
+            targets.append(subprocess.PIPE)
+    proc = subprocess.Popen([sys.executable, "-m", "mvrecon.cli", *argv], env=env, stdout=targets[0],
+                            stderr=targets[1], process_group=0)
+
+    def forward(pipe, stream):
+        decoder = codecs.getincrementaldecoder("utf-8")(errors="replace")
+        for chunk in iter(lambda: pipe.read1(65536), b""):
+            stream.write(decoder.decode(chunk))
+            stream.flush()
+
+    threads = [threading.Thread(target=forward, args=(pipe, stream), daemon=True)
+               for pipe, stream in ((proc.stdout, sys.stdout), (proc.stderr, sys.stderr)) if pipe is not None]
+    for thread in threads:
+        thread.start()
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous = {s: signal.signal(s, lambda signum, frame: proc.send_signal(signum)) for s in STOPPING} \
+        if in_main_thread else {}
+    try:
+        code = proc.wait()
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    for thread in threads:
+        thread.join()
     return code
 
 

@@ -348,6 +348,19 @@ def _check_sqlite(path: Path) -> None:
                          "run again") from None
 
 
+def database_damage(path) -> str | None:
+    """What SQLite's `PRAGMA quick_check` finds wrong in the database file `path` (its first problem: a page cut
+    off or overwritten since it was written), or None when it finds nothing. It reads every page, unlike
+    `_check_sqlite`, which passed a database with 4 KB zeroed in its middle: 40 ms for a 24 MB database."""
+    try:
+        with connect_readonly(path) as con:
+            rows = con.execute("PRAGMA quick_check").fetchall()
+    except sqlite3.DatabaseError as exc:
+        return str(exc)
+    lines = [line for (text,) in rows for line in str(text).splitlines() if not line.startswith("***")]
+    return None if lines == ["ok"] else (lines or ["quick_check found a problem"])[0]
+
+
 def _matrix_or_none(blob):
     """A stored 3x3 matrix, or None for a NULL or all-zero one (no such model for the pair)."""
     if blob is None or len(blob) != 72:

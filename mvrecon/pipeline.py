@@ -32,7 +32,7 @@ from .io.files import read_json_object, some_names, write_json
 from .io.images import IMAGE_EXTENSIONS, image_metadata, list_images, visible_files
 from .io.masks import check_masks, find_masks, mask_path
 from .matching.matcher import MatcherConfig, match_descriptors, prepare_descriptors
-from .matching.overlay import drop_static, fixed_keypoints
+from .matching.overlay import drop_static, fixed_keypoints, same_view
 from .matching.pairs import check_spec, select_pairs
 from .matching.verify import VerifyConfig, verify_pair
 from .progress import progress
@@ -394,7 +394,7 @@ def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
     start = time.perf_counter()
     ws = _workspace(workspace)
     check_spec(config.pairs)
-    ws.require_stage("features", "run `mvrecon features IMAGES -w WORKSPACE` first")
+    ws.require_stage("features", "run `mvrecon features IMAGES -o WORKSPACE` first")
     record = {"pairs": config.pairs, "matcher": to_dict(config.matcher), "verify": to_dict(config.verify)}
     with dbmod.open_database(ws.database_path) as db:
         images = {i.image_id: i for i in dbmod.read_images(db).values() if dbmod.has_features(db, i.image_id)}
@@ -550,7 +550,7 @@ def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resu
         raise InputError(f"{ws.path}: no database.db here; run `mvrecon reconstruct IMAGES -o {ws.path}` "
                          "first")
     record, sparse, snapshot = to_dict(config), ws.path / "sparse", ws.snapshot_path
-    ws.check_stage("mapping", record, overwrite, hint=f"rerun with --overwrite to map again (`mvrecon map -w "
+    ws.check_stage("mapping", record, overwrite, hint=f"rerun with --overwrite to map again (`mvrecon map -o "
                    f"{ws.path} --overwrite` redoes only the mapping), or use another workspace")
     try:
         stages = ws.stages()
@@ -558,7 +558,9 @@ def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resu
         stages = {}
     corr = dbmod.read_correspondences(ws.database_path)
     if not corr.pairs:
-        raise InputError(_no_verified_pairs(ws, corr, matched_by_mvrecon="matching" in stages))
+        raise NoVerifiedPairs(ws.database_path,
+                              _no_verified_pairs(ws, corr, matched_by_mvrecon="matching" in stages))
+    _warn_same_views(ws, corr)
     if image_dir is None and not keypoint_colors:
         image_dir = _recorded_images(stages)
     if overwrite:  # --overwrite starts mapping over, --resume or not
@@ -600,22 +602,31 @@ def camera_entries(model) -> list[dict]:
     return [report_entry(cid, cam.model, cam.width, cam.height, cam.params) for cid, cam in cams]
 
 
+class NoVerifiedPairs(InputError):
+    """The database gives the mapper no verified pair; `reason` is why, without the path the error names (the
+    database, or the images of a `reconstruct` that removed the folder it made, database included)."""
+
+    def __init__(self, path, reason: str):
+        super().__init__(f"{path}: {reason}")
+        self.reason = reason
+
+
 def _no_verified_pairs(ws: Workspace, corr, *, matched_by_mvrecon: bool) -> str:
     """Why a database gives the mapper no pair: none matched yet, or what the database marked the matched pairs,
     with COLMAP's fisheye rule when that is the likely cause (COLMAP matched a fisheye camera without a focal
     prior: it marks every such pair DEGENERATE, which looked like images without overlap)."""
-    head = f"{ws.database_path}: no verified image pairs among {len(corr.images)} images; "
+    head = f"no verified image pairs among {len(corr.images)} images; "
     configs = dbmod.pair_configurations(ws.database_path)
     if not configs:
         with dbmod.open_database(ws.database_path) as db:
             matched = dbmod.num_matched_pairs(db)
-        return head + (f"run `mvrecon match -w {ws.path}` first" if not matched else
+        return head + (f"run `mvrecon match -o {ws.path}` first" if not matched else
                        "the images do not overlap or have too little texture (nothing to reconstruct)")
     total = sum(configs.values())
     head += (f"its one matched pair is {next(iter(configs))}" if total == 1 else
              f"all {total} matched pairs are {next(iter(configs))}" if len(configs) == 1 else
              f"the {total} matched pairs are " + ", ".join(f"{n} {name}" for name, n in configs.items())) \
-        + " in the database"
+        + ("" if matched_by_mvrecon else " in the database")
     blind = dbmod.colmap_blind_cameras(corr.cameras)
     if blind and not matched_by_mvrecon:
         cid, model = blind[0], corr.cameras[blind[0]].model
@@ -627,6 +638,25 @@ def _no_verified_pairs(ws: Workspace, corr, *, matched_by_mvrecon: bool) -> str:
         return head + (": most features stay on the same pixels of every image, whose matches are left out "
                        "(matching/overlay.py): the camera did not move between the images (nothing to reconstruct)")
     return head + ": the images do not overlap or have too little texture (nothing to reconstruct)"
+
+
+def _warn_same_views(ws: Workspace, corr) -> None:
+    """A warning naming the images that show one view (`overlay.same_view`: copies of one photo, or shots from a
+    camera that did not move), which the mapper registers at one pose without adding a viewpoint; from the
+    verified matches the mapper reads anyway (opensfm_lund's 238 pairs: 27 ms, beside the 63 ms of reading them)."""
+    group = {i: {i} for i in corr.images}
+    for p in corr.pairs:
+        a, b = group[p.image_id1], group[p.image_id2]
+        if a is not b and same_view(corr.keypoints[p.image_id1], corr.keypoints[p.image_id2], p.inliers):
+            a |= b
+            for i in b:
+                group[i] = a
+    groups = sorted({id(g): sorted(corr.images[i].name for i in g) for g in group.values() if len(g) > 1}.values())
+    if groups:
+        shown = "; ".join(" = ".join(names) for names in groups[:5]) + (
+            f"; and {len(groups) - 5} more groups" if len(groups) > 5 else "")
+        log.warning("%s: images that show one view (their matches stay on their pixels: copies of one photo, or "
+                    "shots from a camera that did not move), which a model places at one pose: %s", ws.path, shown)
 
 
 def _mostly_fixed(corr) -> bool:
@@ -669,7 +699,8 @@ def write_report(out_dir, *, config_hash: str, seed: int, summary: MapSummary, s
 def _finished_report(out: Path, full_hash: str, image_dir: Path) -> dict | None:
     """report.json of a finished run in `out` with this config, of these very images (the same folder, and
     every image file in it has a status in the report: none added or removed since, and none changed in size or
-    time), else None."""
+    time), else None. A run whose database.db was damaged since is refused (dbmod.database_damage): it was
+    reported finished, and its database could serve neither a rerun nor `map` or `compare`."""
     report = read_json_object(out / "report.json")
     if report is None or report.get("config_hash") != full_hash or not (out / "sparse").is_dir():
         return None
@@ -683,7 +714,14 @@ def _finished_report(out: Path, full_hash: str, image_dir: Path) -> dict | None:
     if names != set(report.get("images") or ()):
         return None
     stamps = read_json_object(out / STAMPS)  # none in a workspace of an older version: names decide there
-    return report if stamps is None or stamps == _stamps(image_dir, names) else None
+    if stamps is not None and stamps != _stamps(image_dir, names):
+        return None
+    database = out / "database.db"  # one deleted since (to save space, say) leaves the model as it was
+    damage = dbmod.database_damage(database) if database.is_file() else None
+    if damage is not None:
+        raise InputError(f"{database}: damaged since its run finished ({damage}); rerun with --overwrite to "
+                         "start over")
+    return report
 
 
 def reconstruct(config: ReconstructConfig, image_dir, out_dir, *, text: bool = False, resume: bool = False,
@@ -730,11 +768,13 @@ def reconstruct(config: ReconstructConfig, image_dir, out_dir, *, text: bool = F
                                     overwrite=overwrite, keypoint_colors=features.keypoint_colors)
         except DiskFull:  # the features and matches written so far are kept for the rerun
             raise
-        except InputError:  # rejected input (no verified pairs, say), or refused settings
+        except InputError as exc:  # rejected input (no verified pairs, say), or refused settings
             if fresh:  # a folder this call made holds nothing worth keeping
                 import shutil
 
                 shutil.rmtree(out, ignore_errors=True)
+                if isinstance(exc, NoVerifiedPairs):  # the database it names went with the folder
+                    raise NoVerifiedPairs(image_dir, exc.reason) from None
             elif kept is not None:  # refused (another config, say) without --overwrite: the earlier run stands
                 report_path.write_bytes(kept)
             raise

@@ -84,7 +84,7 @@ class Workspace:
             # them (a `map -w` of that database) was made from it, so --overwrite redoes it all
             if not overwrite:
                 raise InputError(f"{self.database_path}: a database without mvrecon's record of how its features "
-                                 f"were made (another tool's, say); map it with `mvrecon map -w {self.path}`, or "
+                                 f"were made (another tool's, say); map it with `mvrecon map -o {self.path}`, or "
                                  "rerun with --overwrite to start over")
             return {}, [stage, *stages]
         names = list(stages)

@@ -19,7 +19,8 @@ import pytest
 from mvrecon.cli import main
 from mvrecon.errors import InputError
 from mvrecon.eval import ground_truth as G
-from mvrecon.eval.compare import CompareConfig, compare_images, compare_models, summary_rows
+from mvrecon.eval.compare import (Comparison, CompareConfig, compare_images, compare_models, evaluate,
+                                  summary_rows)
 from mvrecon.eval.metrics import accuracy_summary, camera_center
 from mvrecon.eval.report import format_value, write_report
 from mvrecon.eval.runners import (RunOptions, _wait_measuring_memory, code_environment, load_run, run_colmap,
@@ -373,6 +374,101 @@ def test_without_ground_truth_the_last_model_is_the_reference(runs):
     # COLMAP's mapper on the same database gives nearly the same model (multithreaded BA: not bit-identical)
     other = m["engines"]["colmap-same-matches"]["summary"]
     assert other["registered"] == 8 and other["auc@5"] > 0.9 and other["max_rotation_error_deg"] < 0.5
+
+
+def ring_poses(n: int, noise_deg: float = 0.0, seed: int = 0) -> dict:
+    """n cameras on a ring looking at its centre (name -> (R, t)), rotated by up to `noise_deg` at random."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    out = {}
+    for k in range(n):
+        a = 2 * np.pi * k / n
+        centre = np.array([4 * np.cos(a), 4 * np.sin(a), 0.3 * k / n])
+        z = -centre / np.linalg.norm(centre)
+        x = np.cross([0.0, 0.0, 1.0], z)
+        x /= np.linalg.norm(x)
+        R = np.stack([x, np.cross(z, x), z])
+        R = Rotation.from_rotvec(np.radians(noise_deg) * rng.uniform(-1, 1, 3)).as_matrix() @ R
+        out[f"{k:03d}.png"] = (R, -R @ centre)
+    return out
+
+
+def run_of(engine: str, *models: dict, error: str | None = None):
+    """A RunResult of camera-only models made of poses (largest first), or of a run that failed with `error`."""
+    from mvrecon.eval.models import reconstruction_from_poses
+    from mvrecon.eval.runners import RunResult
+
+    return RunResult(engine=engine, out_dir=Path(engine), models=[reconstruction_from_poses(m) for m in models],
+                     error=error)
+
+
+def write_model(poses: dict, folder: Path) -> None:
+    from mvrecon.eval.models import reconstruction_from_poses
+
+    folder.mkdir(parents=True)
+    reconstruction_from_poses(poses).write(str(folder))
+
+
+def test_a_reference_that_holds_fewer_images_is_not_trusted():
+    # opensfm_lund's case: COLMAP registered 2 of 29 images, mvrecon 29, and mvrecon read AUC 0.000
+    gt = ring_poses(12)
+    names = sorted(gt)
+    colmap = run_of("colmap", {n: gt[n] for n in names[:2]})
+    m = evaluate([run_of("mvrecon", ring_poses(12, 0.05)), colmap], names).metrics
+    assert m["reference"]["name"] == "mvrecon" and m["reference"]["images"] == 12
+    note = m["reference"]["note"]
+    assert "colmap's largest model holds 2 of the 12 images, fewer than mvrecon's 12" in note
+    assert "not a trustworthy reference" in note
+    assert m["engines"]["mvrecon"]["role"] == "reference" and m["engines"]["mvrecon"]["summary"]["auc@5"] is None
+    colmap = m["engines"]["colmap"]["summary"]
+    assert m["engines"]["colmap"]["role"] == "engine" and colmap["registered"] == 2
+    assert 0 < colmap["auc@5"] < 0.05  # its one pair of 66 is right: scored, and low, as it should be
+    # a failed reference run: the same
+    failed = run_of("colmap", error="exit code 1: boom")
+    m = evaluate([run_of("mvrecon", ring_poses(12, 0.05)), failed], names).metrics
+    assert m["reference"]["name"] == "mvrecon" and "colmap's run failed (exit code 1: boom)" in m["reference"]["note"]
+    # an equal model stays the reference, without a note
+    m = evaluate([run_of("mvrecon", ring_poses(12, 0.05)), run_of("colmap", gt)], names).metrics
+    assert m["reference"] == {"name": "colmap", "source": "colmap", "images": 12, "note": ""}
+    assert m["engines"]["mvrecon"]["summary"]["auc@5"] > 0.9
+
+
+def test_no_model_with_half_the_images_means_no_reference_not_a_zero(tmp_path):
+    gt = ring_poses(12)
+    names = sorted(gt)
+    runs = [run_of("mvrecon", {n: gt[n] for n in names[:5]}, {n: gt[n] for n in names[5:9]}),
+            run_of("colmap", {n: gt[n] for n in names[:4]})]
+    m = evaluate(runs, names).metrics
+    assert m["reference"]["name"] is None and m["reference"]["images"] == 0
+    assert m["reference"]["note"].startswith("no trustworthy reference: no ground truth was given, colmap's largest "
+                                             "model holds 4 of the 12 images, fewer than mvrecon's 5")
+    for e in m["engines"].values():
+        assert e["role"] == "engine" and all(e["summary"][k] is None for k in ("auc@1", "auc@5"))
+    page = write_report(Comparison(metrics=m, geometry={}), tmp_path / "report").read_text()
+    assert page.index("id='reference-note'") < page.index("<div class=\"meta\">")  # at the top
+    assert "none that can be trusted" in page
+
+
+def test_registered_images_count_the_largest_model_and_show_the_others(tmp_path, capsys):
+    # templeSparseRing's case: mvrecon's models of 13 and 3 images read "16 (100%)" beside COLMAP's 13
+    gt = ring_poses(16)
+    names = sorted(gt)
+    for k, part in enumerate((names[:13], names[13:])):
+        write_model({n: gt[n] for n in part}, tmp_path / "mv" / "sparse" / str(k))
+    write_model({n: gt[n] for n in names[:13]}, tmp_path / "cm")
+    out = tmp_path / "report"
+    assert main(["compare", "--models", str(tmp_path / "mv"), str(tmp_path / "cm"), "--labels", "mvrecon", "colmap",
+                 "-o", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert re.search(r"registered images\s+13 \+ 3\s+13\n", printed), printed
+    m = json.loads((out / "metrics.json").read_text())
+    mv = m["engines"]["mvrecon"]["summary"]
+    assert (mv["registered"], mv["registered_other_models"], mv["registered_pct"]) == (13, [3], 81.25)
+    assert m["reference"]["name"] == "colmap" and m["reference"]["note"] == ""  # 13 = 13: still trusted
+    page = (out / "index.html").read_text()
+    assert ("data-metric='registered'><span class='v'>13</span><span class='others' title='images in the other "
+            "models'> + 3</span>") in page
 
 
 def test_unregistered_images_and_failed_runs_carry_reasons(runs, tmp_path):

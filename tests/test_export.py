@@ -159,6 +159,35 @@ def test_export_of_16_bit_images_is_8_bit_and_as_bright(views, tmp_path):
         assert np.abs(image.astype(float) - reference).mean() < 0.5
 
 
+def test_export_needs_no_flag_and_refuses_a_run_folder_another_run_holds(views, tmp_path, capsys):
+    """`export` ran beside a `reconstruct --overwrite` of its run folder (which `map` refuses), reading a model
+    that was being rewritten; and it wanted --undistort, its only kind of export."""
+    names = [f"v{k}.png" for k in range(4)]
+    run = tmp_path / "run"
+    _model(run / "sparse" / "0", names)
+    images = tmp_path / "images"
+    images.mkdir()
+    for name, view in zip(names, views):
+        Image.fromarray(view).save(images / name)
+    argv = ["-q", "export", str(run), "--image-dir", str(images), "-o", str(tmp_path / "splat")]
+    holder = subprocess.Popen([sys.executable, "-c", "import fcntl, os, sys, time; fd = os.open(sys.argv[1], "
+                               "os.O_RDONLY); fcntl.flock(fd, fcntl.LOCK_EX); print('held', flush=True); "
+                               "time.sleep(60)", str(run)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline() == "held\n"
+        assert main(argv) == 2
+        assert capsys.readouterr().err == f"mvrecon: error: {run}: another mvrecon run is using this folder; " \
+            "wait for it to end, or choose another folder\n"
+        assert not (tmp_path / "splat").exists()
+    finally:
+        holder.kill()
+        holder.wait()
+    assert main(argv) == 0
+    assert sorted(p.name for p in (tmp_path / "splat" / "images").iterdir()) == names
+    rec = pycolmap.Reconstruction(str(tmp_path / "splat" / "sparse" / "0"))
+    assert {cam.model.name for cam in rec.cameras.values()} == {"PINHOLE"} and rec.num_reg_images() == 4
+
+
 def test_export_of_images_of_another_size_is_one_error_line(views, tmp_path):
     """pycolmap aborts the process (SIGABRT) on an image whose size is not its camera's: refused before."""
     names = [f"v{k}.jpg" for k in range(4)]
@@ -257,7 +286,7 @@ def test_export_is_in_the_frame_the_features_were_extracted_in(rendered, tmp_pat
                                   extraction_options=threads)
         pycolmap.match_exhaustive(ws / "database.db", matching_options=pycolmap.FeatureMatchingOptions(
             num_threads=1))
-        assert main(["-q", "map", "-w", str(ws), "--image-dir", str(images)]) == 0
+        assert main(["-q", "map", "-o", str(ws), "--image-dir", str(images)]) == 0
     else:
         assert main(["-q", "reconstruct", str(images), "-o", str(ws), "--workers", "1"]) == 0
     model = pycolmap.Reconstruction(str(ws / "sparse" / "0"))

@@ -560,6 +560,17 @@ def test_exhaustive_matching_of_many_images_advises_a_linear_pair_selection(tmp_
     assert not [r for r in caplog.records if "--pairs retrieval:20" in r.getMessage()]
 
 
+def test_the_run_folder_is_o_everywhere_and_w_where_it_was():
+    """`reconstruct -o` but `features -w`, `match -w` and `map -w` for the same folder: -o/--output is taken by
+    every one of them now, and -w/--workspace stays the same option."""
+    from mvrecon.cli import parse_args
+
+    for argv, dest in ((["features", "imgs"], "workspace"), (["match"], "workspace"), (["map"], "workspace"),
+                       (["reconstruct", "imgs"], "output")):
+        for flag in ("-o", "--output", "-w", "--workspace"):
+            assert getattr(parse_args([*argv, flag, "ws"]), dest) == "ws", (argv, flag)
+
+
 def test_a_second_run_on_a_folder_in_use_is_refused_in_one_line(tmp_path, capsys):
     """Two runs writing one workspace: the second died of a SQLite constraint error with a traceback. Another
     process holding the workspace (here a child holding its lock, as a run in progress does) now refuses the

@@ -8,6 +8,7 @@ import re
 import numpy as np
 import pycolmap
 import pytest
+from PIL import Image
 
 from mvrecon import database
 from mvrecon.cli import main
@@ -91,6 +92,28 @@ def test_reconstruct_outputs_follow_the_contract(demo):
     pts, colors = read_ply_points(run / "points.ply")
     assert len(pts) == rec.num_points3D() and colors is not None and colors.std() > 5
     assert (run / "database.db").is_file()
+
+
+def test_a_finished_run_whose_database_was_damaged_since_is_refused_not_trusted(demo, tmp_path, capsys):
+    """A finished run whose database.db was overwritten in its middle afterwards was reported "finished, not
+    redone" (nothing opened it): now one line names it, and --overwrite starts over."""
+    import shutil
+
+    from mvrecon.database import database_counts, database_damage
+
+    run = tmp_path / "run"
+    shutil.copytree(demo / "run", run)
+    data = (run / "database.db").read_bytes()
+    middle = len(data) // 2 // 4096 * 4096
+    (run / "database.db").write_bytes(data[:middle] + bytes(4096) + data[middle + 4096:])
+    images = demo / "scene" / "images"
+    assert main(["-q", "reconstruct", str(images), "-o", str(run)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"mvrecon: error: {run / 'database.db'}: damaged since its run finished (")
+    assert err.endswith("; rerun with --overwrite to start over\n") and err.count("\n") == 1
+    assert main(["-q", "reconstruct", str(images), "-o", str(run), "--overwrite"]) == 0
+    assert database_damage(run / "database.db") is None
+    assert database_counts(run / "database.db") == json.loads((demo / "run" / "report.json").read_text())["counts"]
 
 
 def test_point_colours_from_the_keypoints_equal_colmaps_from_the_images(demo):
@@ -349,7 +372,7 @@ def test_map_without_verified_pairs_exits_2_with_a_message(tmp_path, capsys):
     assert main(["-q", "map", "-w", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "no verified image pairs among 2 images" in err and err.count("\n") == 1
-    assert f"run `mvrecon match -w {tmp_path}` first" in err  # features but no matching yet
+    assert f"run `mvrecon match -o {tmp_path}` first" in err  # features but no matching yet
     assert main(["-q", "map", "-w", str(tmp_path), "--image-dir", str(tmp_path / "nope")]) == 2
     assert "nope: no such image folder" in capsys.readouterr().err
     # a database cut short, and a file that is not one: one line naming it, not pycolmap's RuntimeError
@@ -362,7 +385,8 @@ def test_map_without_verified_pairs_exits_2_with_a_message(tmp_path, capsys):
 
 
 def test_reconstruct_of_unrelated_images_exits_2_and_leaves_no_folder(tmp_path, capsys):
-    """Images that share no verified pair: one line, exit 2, and the output folder this run made is removed."""
+    """Images that share no verified pair: one line, exit 2, and the output folder this run made is removed. The
+    line named OUT/database.db, which went with the folder: it names the images now."""
     import cv2
 
     images = tmp_path / "images"
@@ -373,7 +397,8 @@ def test_reconstruct_of_unrelated_images_exits_2_and_leaves_no_folder(tmp_path, 
     out = tmp_path / "out"
     assert main(["-q", "reconstruct", str(images), "-o", str(out)]) == 2
     err = capsys.readouterr().err
-    assert "no verified image pairs among 3 images" in err and err.count("\n") == 1
+    assert err.startswith(f"mvrecon: error: {images}: no verified image pairs among 3 images; ")
+    assert err.count("\n") == 1 and "database" not in err
     assert not out.exists()
 
 
@@ -540,6 +565,25 @@ def test_copies_of_one_view_say_that_the_camera_did_not_move(demo, tmp_path, cap
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "no verified image pairs among 4 images" in err
     assert "the camera did not move between the images" in err
+
+
+def test_copies_of_an_image_among_others_are_named(demo, tmp_path, caplog):
+    """A copy of one image and the same image saved again as JPEG were registered at its pose without a word:
+    a warning names each group, and only them (none of the scene's ten views, which move 9 px and more)."""
+    import shutil
+
+    images = tmp_path / "images"
+    shutil.copytree(demo / "scene" / "images", images)
+    shutil.copy(images / "0003.png", images / "copy.png")
+    Image.open(images / "0005.png").convert("RGB").save(images / "resaved.jpg", quality=95)
+    with caplog.at_level(logging.WARNING):
+        assert main(["-q", "reconstruct", str(images), "-o", str(tmp_path / "run")]) == 0
+    named = [r.getMessage() for r in caplog.records if "images that show one view" in r.getMessage()]
+    assert len(named) == 1 and named[0].endswith(": 0003.png = copy.png; 0005.png = resaved.jpg"), named
+    rec = pycolmap.Reconstruction(str(tmp_path / "run" / "sparse" / "0"))
+    centre = {im.name: im.projection_center() for im in rec.images.values()}
+    assert len(centre) == 12  # registered, at one pose with their originals
+    assert np.linalg.norm(centre["copy.png"] - centre["0003.png"]) < 1e-3 * np.ptp(list(centre.values()), axis=0).max()
 
 
 def test_bmp_and_pnm_images_are_read_and_heic_ones_named(demo, tmp_path, caplog):

@@ -90,7 +90,7 @@ def test_changed_mapper_settings_are_refused_and_a_failed_remap_keeps_the_model(
     model = (ws / "sparse" / "0" / "images.bin").read_bytes()
     # --seed 1 silently replaced the seed-0 model. The workspace's stage check refuses it (the one check of
     # every stage), with the hint of the command that redoes only the mapping.
-    hint = (f"rerun with --overwrite to map again (`mvrecon map -w {ws} --overwrite` redoes only the mapping), "
+    hint = (f"rerun with --overwrite to map again (`mvrecon map -o {ws} --overwrite` redoes only the mapping), "
             "or use another workspace")
     assert main(["-q", "reconstruct", str(images), "-o", str(ws), "--seed", "1"]) == 2
     assert capsys.readouterr().err == (f"mvrecon: error: {ws}: made with a different mapping config "
@@ -116,7 +116,7 @@ def test_a_database_without_our_record_is_refused(base, tmp_path, capsys):
     database = (ws / "database.db").read_bytes()
     assert main(["-q", "reconstruct", str(images), "-o", str(ws)]) == 2
     err = capsys.readouterr().err
-    assert len(err.splitlines()) == 1 and "without mvrecon's record" in err and "mvrecon map -w" in err
+    assert len(err.splitlines()) == 1 and "without mvrecon's record" in err and "mvrecon map -o" in err
     assert (ws / "database.db").read_bytes() == database and not (ws / "config.json").exists()
     # mapped as advised, then started over: the mapping record of the foreign database is not kept (it stayed,
     # ahead of the new features, and refused a later `map` with other settings for a config never mapped)

@@ -9,7 +9,9 @@ Each scene's comparison goes to WORK/<scene>/ (index.html, metrics.json, runs/);
 second call only runs what is missing (delete WORK/<scene> to redo one). docs/scoreboard.md is rewritten after
 every scene with one row per scene: both engines' registered images, AUC@1/5, points, reprojection error, wall time
 and the time ratio, plus the machine and the date. Scenes with ground truth are scored against it; the others
-against COLMAP's model (then COLMAP's AUC is the reference and reads "ref").
+against COLMAP's model (then COLMAP's AUC is the reference and reads "ref"), unless it holds fewer images than
+mvrecon's or under half of them (then the model with the most images is the reference, or none is: `compare`'s
+`choose_reference`, whose note goes to the row).
 """
 
 import argparse
@@ -77,6 +79,9 @@ def run_scene(name, images, gt, work: Path, timeout: float | None) -> dict:
     return comparison.metrics
 
 
+_ENGINE_NAMES = {"colmap": "COLMAP"}
+
+
 def _fmt(metric, value, role="engine"):
     from mvrecon.eval.report import format_value
 
@@ -93,18 +98,23 @@ def finished(report_dir: Path) -> bool:
 
 def table_row(name: str, origin: str, m: dict, work: Path) -> tuple[str, str]:
     """The scene's markdown row, and the path of its HTML report."""
+    from mvrecon.eval.report import other_models_text
+
     mv, cm = m["engines"].get("mvrecon", {}), m["engines"].get("colmap", {})
 
     def pair(metric):
-        return " / ".join(_fmt(metric, e.get("summary", {}).get(metric), e.get("role", "engine")) for e in (mv, cm))
+        return " / ".join(_fmt(metric, e.get("summary", {}).get(metric), e.get("role", "engine"))
+                          + (other_models_text(e.get("summary", {})) if metric == "registered" else "")
+                          for e in (mv, cm))
 
     n = len(m["images"])
-    gt = "GT" if m["reference"]["name"] == "ground truth" else "vs COLMAP"
+    reference = m["reference"]["name"]
+    gt = "GT" if reference == "ground truth" else f"vs {_ENGINE_NAMES.get(reference, reference)}" if reference \
+        else "none"
     ratio = _fmt("time_ratio_vs_colmap", mv.get("summary", {}).get("time_ratio_vs_colmap"))
     notes = [f"{k} failed: {e['error']}" for k, e in m["engines"].items() if e.get("error")]
-    if gt != "GT" and m["reference"]["images"] < 0.5 * n:
-        notes.append(f"COLMAP's model, the reference, holds only {m['reference']['images']} of {n} images: "
-                     "the AUC columns say little here")
+    if m["reference"].get("note"):
+        notes.append(m["reference"]["note"])
     failed = "; ".join(notes)
     link = Path(work / name / "index.html").resolve()
     return (f"| {name} | {origin} | {n} | {gt} | {pair('registered')} | {pair('auc@1')} | {pair('auc@5')} | "
@@ -124,10 +134,13 @@ Python {machine['python']}; pycolmap on the CPU. Both engines ran in the same pr
 the same camera settings (`--camera-mode auto`, SIMPLE_RADIAL, seed 0), one after the other.
 
 Each cell is `mvrecon / COLMAP`. *scored*: GT = against the data set's ground truth; vs COLMAP = no ground truth, so
-AUC is measured against COLMAP's model (COLMAP's own reads "ref"). AUC@t is the relative-pose AUC over all image
-pairs (a pair with an unregistered image, or split across models, counts 180 deg); points and reprojection error
-are of the largest model; wall time is the whole run (start-up, features, matching, mapping); time ratio =
-mvrecon / COLMAP (below 1: mvrecon is faster). The per-scene HTML reports (`mvrecon compare`) hold every other number.
+AUC is measured against COLMAP's model (COLMAP's own reads "ref"); vs mvrecon = no ground truth, and COLMAP's model
+holds fewer images than mvrecon's or under half of them, so mvrecon's is the reference (the note says why); none =
+no model holds half the images. Registered images are those of the largest model, the other models' after a "+".
+AUC@t is the relative-pose AUC over all image pairs (a pair with an unregistered image, or split across models,
+counts 180 deg); points and reprojection error are of the largest model; wall time is the whole run (start-up,
+features, matching, mapping); time ratio = mvrecon / COLMAP (below 1: mvrecon is faster). The per-scene HTML
+reports (`mvrecon compare`) hold every other number.
 
 {header}{chr(10).join(rows)}
 """

@@ -108,6 +108,13 @@ def add_matching_options(parser: argparse.ArgumentParser) -> None:
                    help="inliers for a pair to count as verified (default 15)")
 
 
+def add_workspace(parser: argparse.ArgumentParser, help: str, dest: str = "workspace") -> None:
+    """The run's folder: -o/--output, as every command names the folder it writes; -w/--workspace, the name
+    `features`, `match` and `map` gave it first, is the same option."""
+    parser.add_argument("-o", "--output", "-w", "--workspace", dest=dest, required=True, metavar="FOLDER",
+                        help=f"{help} (-w/--workspace is the same option)")
+
+
 # --config help of commands that read every table (reconstruct); features and match name their own
 RUN_CONFIG_HELP = "e.g. [sift] max_num_features = 4096 or [mapper] init_min_inliers = 50"
 

@@ -10,7 +10,9 @@
       one model is scored against --gt, without it two or more are needed.
 
 Each model is aligned to the reference (GT when given, else COLMAP's model; with --models, the last one) by a
-robust Sim3 of camera centres. GT: a COLMAP model folder, a Middlebury *_par.txt, a Strecha gt_dense_cameras/
+robust Sim3 of camera centres. Without GT, a reference whose model holds fewer images than another's, or under
+half of them, is not trusted: the model with the most images is scored against instead, or none, and the report
+says so at its top. GT: a COLMAP model folder, a Middlebury *_par.txt, a Strecha gt_dense_cameras/
 folder or an IMC calibration/ folder. Writes REPORT/index.html (self-contained), metrics.json and metrics.csv.
 """
 
@@ -112,7 +114,7 @@ def run(args) -> int:
     from ..cameras import CameraConfig, parse_camera_params
     from ..errors import InputError
     from ..eval.compare import CompareConfig, compare_images, compare_models
-    from ..eval.report import format_value, write_report
+    from ..eval.report import format_value, other_models_text, write_report
     from ..eval.runners import RunOptions, check_run_masks, colmap_fisheye_warning, forget_if_failed
     from ._options import flag_name
 
@@ -161,7 +163,9 @@ def run(args) -> int:
     shown = ("registered", "points", "mean_reprojection_error_px", "auc@1", "auc@5", "median_rotation_error_deg",
              "wall_s", "time_ratio_vs_colmap", "peak_mem_mb")
     table = [(row["label"] + (f" ({row['unit']})" if row["unit"] else ""),
-              [format_value(row["metric"], row["values"][e]) + ("*" if e in row["winners"] else "") for e in engines])
+              [format_value(row["metric"], row["values"][e])
+               + (other_models_text(m["engines"][e]["summary"]) if row["metric"] == "registered" else "")
+               + ("*" if e in row["winners"] else "") for e in engines])
              for row in m["rows"] if row["metric"] in shown]
     width = max(len(t) for t in [*engines, *(t for _, texts in table for t in texts)]) + 2
     print(f"{'':34}" + "".join(f"{e:>{width}}" for e in engines))
@@ -170,7 +174,9 @@ def run(args) -> int:
     for name, e in m["engines"].items():
         if e["error"]:
             print(f"{name} failed: {e['error']}")
-    print(f"reference: {m['reference']['name']}; report: {page}")
+    if m["reference"]["note"]:
+        logging.getLogger("mvrecon").warning("%s: %s", args.output, m["reference"]["note"])
+    print(f"reference: {m['reference']['name'] or 'none'}; report: {page}")
     if not any((e["summary"] or {}).get("registered") for e in m["engines"].values()):  # nothing compared
         print(f"mvrecon: error: {args.output}: no engine registered any image; see the runs' run.log",
               file=sys.stderr)

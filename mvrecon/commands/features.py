@@ -4,7 +4,7 @@ Finds every JPEG/PNG/TIFF/BMP/PNM under IMAGES (recursively), groups them into c
 keypoints and descriptors to WORKSPACE/database.db (COLMAP's schema). A rerun skips images already done; a
 different config is refused unless --overwrite.
 
-example:  mvrecon features photos/ -w work/
+example:  mvrecon features photos/ -o work/
 """
 
 ORDER = 10
@@ -12,10 +12,10 @@ ON_INTERRUPT = "the images done are kept in the workspace; rerun the same comman
 
 
 def add_arguments(parser):
-    from ._options import add_camera_options, add_feature_options, add_run_options
+    from ._options import add_camera_options, add_feature_options, add_run_options, add_workspace
 
     parser.add_argument("images", help="folder of images (searched recursively)")
-    parser.add_argument("-w", "--workspace", required=True, help="workspace folder (created if missing)")
+    add_workspace(parser, "workspace folder (created if missing)")
     add_camera_options(parser)
     add_feature_options(parser)
     add_run_options(parser, config_help="in the [camera] and [sift] tables, e.g. [sift] "

@@ -5,7 +5,7 @@ WORKSPACE/points.ply and WORKSPACE/report.json. This is how mapper differences a
 differences: COLMAP's matches through our mapper, or ours through COLMAP's.
 
 Example:
-  mvrecon map -w out/ --image-dir images/
+  mvrecon map -o out/ --image-dir images/
 """
 
 ORDER = 31
@@ -13,7 +13,9 @@ ON_INTERRUPT = "rerun the same command with --resume to continue mapping from it
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("-w", "--workspace", required=True, help="folder holding database.db")
+    from ._options import add_workspace
+
+    add_workspace(parser, "folder holding database.db (a run's output folder, or a COLMAP workspace)")
     parser.add_argument("--image-dir", default=None,
                         help="images, only used to colour the points (default: the image folder recorded in "
                              "config.json, if it still exists; else the points stay black, with a warning)")

@@ -4,7 +4,7 @@ Selects pairs (exhaustive, sequential:K, retrieval:K or a pairs file), matches S
 mutual check), verifies each pair with F/E/H (USAC MAGSAC++) and stores raw matches and verified two-view geometries in
 WORKSPACE/database.db, ready for a mapper (ours or COLMAP's). A rerun skips pairs already done.
 
-example:  mvrecon match -w work/ --pairs sequential:10
+example:  mvrecon match -o work/ --pairs sequential:10
 """
 
 ORDER = 20
@@ -12,9 +12,9 @@ ON_INTERRUPT = "the pairs done are kept in the workspace; rerun the same command
 
 
 def add_arguments(parser):
-    from ._options import add_matching_options, add_run_options
+    from ._options import add_matching_options, add_run_options, add_workspace
 
-    parser.add_argument("-w", "--workspace", required=True, help="workspace folder made by `mvrecon features`")
+    add_workspace(parser, "workspace folder made by `mvrecon features`")
     add_matching_options(parser)
     add_run_options(parser, config_help='pairs = "sequential:5" and the [matcher] and [verify] tables, e.g. '
                                         "[verify] max_error = 2.0")

@@ -59,10 +59,10 @@ def mapper_config(args, from_file=None):
 
 
 def add_arguments(parser) -> None:
-    from ._options import add_frontend_options
+    from ._options import add_frontend_options, add_workspace
 
     parser.add_argument("images", help="folder of images (searched recursively)")
-    parser.add_argument("-o", "--output", required=True, help="output folder (the workspace)")
+    add_workspace(parser, "output folder (the workspace)", dest="output")
     add_frontend_options(parser)
     add_mapper_options(parser, standalone=False)
 

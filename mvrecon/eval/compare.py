@@ -1,10 +1,12 @@
 """mvrecon against COLMAP on the same images: run the engines, align each model to one reference, measure.
 
-The reference is the ground truth when there is one, else COLMAP's model (then COLMAP's own accuracy cells are
-"reference", not numbers). Every model is aligned to it by our robust Sim3 of camera centres
-(`metrics.align_and_compare`), and that alignment is cross-checked against pycolmap's
-`align_reconstructions_via_proj_centers`: the largest distance between the centres placed by the two, as % of the
-scene's extent, is reported, so a bad alignment cannot hide behind good-looking numbers.
+The reference is the ground truth when there is one, else COLMAP's largest model (then COLMAP's own accuracy cells
+are "reference", not numbers), as long as it is trustworthy: a COLMAP run that failed, or whose model holds fewer
+images than another engine's or under half of them, is not (`choose_reference`), and the report says so at its
+top. Every model is aligned to it by our robust Sim3 of camera centres (`metrics.align_and_compare`), and that
+alignment is cross-checked against pycolmap's `align_reconstructions_via_proj_centers`: the largest distance
+between the centres placed by the two, as % of the scene's extent, is reported, so a bad alignment cannot hide
+behind good-looking numbers.
 
 Everything the report shows comes out of one dict (`Comparison.metrics`), which is also written as metrics.json:
 the page and the files cannot disagree.
@@ -198,8 +200,9 @@ def evaluate(runs: list[RunResult], image_names, gt_poses=None, config: CompareC
     `skipped`: image files of the source that no engine could read, name -> reason (listed, not counted)."""
     image_names = sorted(image_names)
     if gt_poses is not None:
-        ref_poses, ref_name, reference_engine = dict(gt_poses), "ground truth", None
+        ref_poses, ref_name, reference_engine, note = dict(gt_poses), "ground truth", None, ""
     else:
+        reference_engine, note = choose_reference(runs, image_names, reference_engine)
         ref_run = next((r for r in runs if r.engine == reference_engine), None)
         ref_poses = ref_run.poses[0] if ref_run is not None and ref_run.models else {}
         ref_name = reference_engine
@@ -219,13 +222,54 @@ def evaluate(runs: list[RunResult], image_names, gt_poses=None, config: CompareC
         "title": title, "source": source,
         "created": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"), "machine": machine_info(),
         "reference": {"name": ref_name, "source": gt_source if gt_poses is not None else ref_name,
-                      "images": len(ref_poses),
-                      "note": "" if len(ref_poses) >= 2 else
-                      "no reference: no ground truth was given and the reference engine made no model"},
+                      "images": len(ref_poses), "note": note},
         "images": image_names, "skipped_images": dict(sorted((skipped or {}).items())),
         "engines": engines, "rows": summary_rows(engines),
     }
     return Comparison(metrics=jsonable(metrics), geometry=geometry)
+
+
+def model_sizes(run: RunResult, image_names) -> list[int]:
+    """How many of `image_names` each model of the run holds, largest model first ([] for a run without one)."""
+    names = set(image_names)
+    return [len(names.intersection(m)) for m in run.poses]
+
+
+def choose_reference(runs: list[RunResult], image_names, default: str | None) -> tuple[str | None, str]:
+    """Without ground truth: the engine whose largest model every other is scored against, and the note the
+    report shows at its top when that is not `default` (COLMAP's, or the last of --models) or there is none.
+
+    `default` is trusted while its largest model holds at least as many images as any other engine's and at
+    least half of them. Otherwise the engine whose model holds the most images is, when that is half of them or
+    more; else there is no trustworthy reference and nothing is scored. Against a reference of 2 images (COLMAP's
+    on opensfm_lund, of 29, where mvrecon registers all 29) every other model scores AUC 0.000, which says
+    nothing about it. Diagnostic runs (COLMAP's mapper on mvrecon's matches) are never the reference.
+    """
+    n = len(image_names)
+    enough = max(2, math.ceil(n / 2))
+    sizes = {r.engine: (model_sizes(r, image_names) or [0])[0] for r in runs
+             if r.engine not in DIAGNOSTIC_ENGINES or r.engine == default}
+    if not sizes:
+        return None, "no trustworthy reference: no ground truth was given and no engine ran"
+    best = max(sizes, key=lambda e: (sizes[e], e == default))  # the most images; `default` wins a tie
+    own = sizes.get(default, 0)
+    if default in sizes and own >= max(sizes[best], enough):
+        return default, ""
+    run = next((r for r in runs if r.engine == default), None)
+    if run is None:
+        why = f"no {default} run"
+    elif run.error:
+        why = f"{default}'s run failed ({run.error})"
+    elif not run.models:
+        why = f"{default} made no model"
+    else:
+        why = f"{default}'s largest model holds {own} of the {n} images" + (
+            f", fewer than {best}'s {sizes[best]}" if sizes[best] > own else ", under half of them")
+    if sizes[best] >= enough:
+        return best, (f"{why}: not a trustworthy reference, so every model is scored against {best}'s largest "
+                      f"model ({sizes[best]} of {n} images), the one with the most images")
+    return None, (f"no trustworthy reference: no ground truth was given, {why}, and no model holds half of the "
+                  f"{n} images; accuracy is not scored")
 
 
 def _evaluate_run(run: RunResult, role: str, image_names, ref_poses: dict, config: CompareConfig):
@@ -238,9 +282,13 @@ def _evaluate_run(run: RunResult, role: str, image_names, ref_poses: dict, confi
     for k, m in enumerate(models):
         for n in m:
             model_of.setdefault(n, k)
-    registered = [n for n in image_names if n in model_of]
-    summary = {"registered": len(registered), "registered_pct": 100.0 * len(registered) / max(len(image_names), 1),
-               "components": len(models), "points": stats.get("points"),
+    # the largest model's images are the headline, the other models' shown beside them ("13 + 3"): their sum is
+    # no one model (templeSparseRing: 13 + 3 images in mvrecon's models, 13 in COLMAP's one)
+    sizes = model_sizes(run, image_names)
+    largest = sizes[0] if sizes else 0
+    summary = {"registered": largest, "registered_pct": 100.0 * largest / max(len(image_names), 1),
+               "registered_other_models": [k for k in sizes[1:] if k], "components": len(models),
+               "points": stats.get("points"),
                "mean_track_length": stats.get("mean_track_length"),
                "mean_reprojection_error_px": stats.get("mean_reprojection_error_px")}
     counts = _counts(run)

@@ -32,6 +32,11 @@ def format_value(metric: str, value) -> str:
     return f"{value:.4g}"
 
 
+def other_models_text(summary: dict) -> str:
+    """The images of a run's other models, shown after the largest model's count: " + 3" (none: "")."""
+    return "".join(f" + {k}" for k in summary.get("registered_other_models") or ())
+
+
 def write_report(comparison, report_dir) -> Path:
     """Write index.html, metrics.json and metrics.csv into REPORT_DIR; returns the page's path."""
     report_dir = Path(report_dir)
@@ -89,8 +94,11 @@ def _summary_table(m: dict) -> str:
             if value is None and m["engines"][n]["role"] == "reference" and row["metric"] in _accuracy_metrics():
                 text = "ref"
             win = n in row["winners"]
+            others = other_models_text(m["engines"][n]["summary"]) if row["metric"] == "registered" else ""
+            if others:
+                others = f"<span class='others' title='images in the other models'>{others}</span>"
             cells.append(f"<td class='{'winner' if win else ''}' data-engine='{html.escape(n)}' "
-                         f"data-metric='{html.escape(row['metric'])}'><span class='v'>{text}</span>"
+                         f"data-metric='{html.escape(row['metric'])}'><span class='v'>{text}</span>{others}"
                          f"{'<span class=star title=winner> ★</span>' if win else ''}</td>")
         body.append(f"<tr data-metric='{html.escape(row['metric'])}'><th>{html.escape(row['label'])}{unit}"
                     f"<span class='muted'>{arrow}</span></th>{''.join(cells)}</tr>")
@@ -176,9 +184,11 @@ def render_html(comparison) -> str:
         "<p class='muted'>no model to draw.</p>"
     reference_line = (f"ground truth ({html.escape(str(ref['source']))}, {ref['images']} images)"
                       if ref["name"] == "ground truth" else
-                      f"the <b>{html.escape(str(ref['name']))}</b> model (no ground truth given): its own accuracy "
-                      "cells read 'ref', and images it did not register cannot be scored")
-    note = f"<p class='error'>{html.escape(ref['note'])}</p>" if ref.get("note") else ""
+                      "none that can be trusted (no ground truth given): accuracy is not scored"
+                      if ref["name"] is None else
+                      f"the <b>{html.escape(str(ref['name']))}</b> model ({ref['images']} images; no ground truth "
+                      "given): its own accuracy cells read 'ref', and images it did not register cannot be scored")
+    note = f"<p class='error' id='reference-note'>{html.escape(ref['note'])}</p>" if ref.get("note") else ""
     folders = ", ".join(html.escape(e["out_dir"]) for e in m["engines"].values())
     n_skipped = len(m.get("skipped_images") or {})
     skipped_note = (f" ({n_skipped} more skipped: <a href='#skipped'>unreadable</a>)" if n_skipped else "")
@@ -186,11 +196,11 @@ def render_html(comparison) -> str:
 <html lang="en"><head><meta charset="utf-8"><title>mvrecon compare: {html.escape(m['title'])}</title>
 <meta name="viewport" content="width=device-width, initial-scale=1"><style>{CSS}</style></head>
 <body>
-<h1>mvrecon vs COLMAP: {html.escape(m['title'])}</h1>
+<h1>mvrecon vs COLMAP: {html.escape(m['title'])}</h1>{note}
 <div class="meta">{len(m['images'])} images from <code>{html.escape(m['source'])}</code>{skipped_note}<br>
 Reference: {reference_line}<br>
 Run {html.escape(m['created'])} on {html.escape(str(machine['cpu']))}, {machine['cores']} cores,
-{machine['memory_gb']} GB, {html.escape(machine['system'])}, Python {html.escape(machine['python'])}</div>{note}
+{machine['memory_gb']} GB, {html.escape(machine['system'])}, Python {html.escape(machine['python'])}</div>
 
 <h2>Summary</h2>
 <p class="meta">★ marks the best value of a row among the end-to-end engines (↑ higher is better, ↓ lower);

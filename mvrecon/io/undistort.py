@@ -11,7 +11,7 @@ COLMAP's own undistorter does the resampling (`pycolmap.undistort_images`), so t
 as stored, so images with an EXIF orientation and 16-bit ones (trainers read 8 bits) are given to it as 8-bit
 copies without the tag in DIR.partial/input/, the others as links. The copies are in the frame the model was made
 in: upright when mvrecon extracted the image's features (its reader applies the orientation), as stored when
-COLMAP did (a COLMAP database mapped with `mvrecon map -w`, or a bare COLMAP model); see `_stored_frame`.
+COLMAP did (a COLMAP database mapped with `mvrecon map -o`, or a bare COLMAP model); see `_stored_frame`.
 """
 
 import logging
