@@ -27,9 +27,9 @@ from .cameras import CameraConfig, group_cameras, report_entry
 from .config import bounded, config_hash, to_dict
 from .errors import DiskFull, InputError
 from .executor import StageClock, WorkerPool, blas_threads, default_workers
-from .features.sift import SiftConfig
+from .features.sift import SiftConfig, extraction_memory_mb
 from .io.files import read_json_object, some_names, write_json
-from .io.images import IMAGE_EXTENSIONS, image_metadata, list_images, visible_files
+from .io.images import IMAGE_EXTENSIONS, decoding_for_detection, image_metadata, list_images, visible_files
 from .io.masks import check_masks, find_masks, mask_path
 from .matching.matcher import MatcherConfig, match_descriptors, prepare_descriptors
 from .matching.overlay import drop_static, fixed_keypoints, same_view
@@ -88,7 +88,7 @@ class FeatureSummary:
     num_images: int  # images of the folder with features in the database
     num_extracted: int  # of which extracted in this run (the rest were already there)
     keypoints: dict[str, int]  # name -> keypoint count
-    failed: dict[str, str] = field(default_factory=dict)  # unreadable images: name -> reason
+    failed: dict[str, str] = field(default_factory=dict)  # images unreadable or not extracted: name -> reason
     skipped: dict[str, str] = field(default_factory=dict)  # every file left out (not an image, unreadable)
     num_cameras: int = 0
     seconds: float = 0.0
@@ -101,7 +101,8 @@ class FeatureSummary:
                  f"{self.num_images - self.num_extracted} already done) in {self.seconds:.1f} s, "
                  f"{self.num_cameras} camera(s); keypoints per image: {_stats(list(self.keypoints.values()))}."]
         if self.failed:
-            parts.append(f"{len(self.failed)} unreadable image(s) skipped: {', '.join(sorted(self.failed))}.")
+            parts.append(f"{len(self.failed)} image(s) unreadable or not extracted, skipped: "
+                         f"{', '.join(sorted(self.failed))}.")
         others = len(set(self.skipped) - set(self.failed))
         if others:
             parts.append(f"{others} non-image file(s) skipped.")
@@ -112,7 +113,7 @@ def _extract_job(job):
     """Worker: (path, name, sift config, mask path or None, OpenCV threads or None to leave them) -> (name,
     (keypoints, descriptors, keypoint colours)) or (name, error message)."""
     from .features.sift import extract_sift
-    from .io.images import colors_at, read_image
+    from .io.images import colors_at, read_image_for_detection
 
     path, name, sift_config, mask, threads = job
     try:
@@ -121,18 +122,35 @@ def _extract_job(job):
 
             if cv2.getNumThreads() != threads:
                 cv2.setNumThreads(threads)
-        image = read_image(path)
-        keypoints, descriptors = extract_sift(image, sift_config)
+        # a large JPEG decoded at 1/2-1/8 of its size (bounded memory); its colours are sampled there too
+        image, reduced = read_image_for_detection(path, sift_config.max_image_size)
+        keypoints, descriptors = extract_sift(image, sift_config, reduced)
         if mask is not None:
             from .io.masks import keypoints_outside_mask
 
-            keep = keypoints_outside_mask(mask, path, keypoints, image.shape)
+            full_shape = (image.shape[0] * reduced, image.shape[1] * reduced)
+            keep = keypoints_outside_mask(mask, path, keypoints, full_shape)
             keypoints, descriptors = keypoints[keep], descriptors[keep]
-        return name, (keypoints, descriptors, colors_at(image, keypoints[:, :2]))
+        return name, (keypoints, descriptors, colors_at(image, keypoints[:, :2] / reduced))
     except InputError as exc:
         return name, str(exc)
     except Exception as exc:  # OpenCV or memory errors on one image must not stop the run
         return name, f"{path}: {type(exc).__name__}: {exc}"
+
+
+def _hand_out(pool: WorkerPool, jobs: list[tuple]):
+    """`_extract_job`'s results for `jobs`, computed by `pool`: as many images at a time as the memory
+    available holds (`_extraction_memory_mb`), and an image whose worker died twice skipped with the
+    reason."""
+    return pool.map(_extract_job, jobs, name=lambda job: str(job[0]), cost=_extraction_memory_mb,
+                    died=lambda job, why: (job[1], f"{job[0]}: the worker extracting it died twice: {why}"))
+
+
+def _extraction_memory_mb(job) -> float:
+    """The memory a worker needs for `_extract_job(job)` (MB), from the image's header."""
+    path, _, sift_config, _, _ = job
+    width, height, reduced, _ = decoding_for_detection(path, sift_config.max_image_size)
+    return extraction_memory_mb(width, height, sift_config, reduced)
 
 
 def _extraction_jobs(folder: Path, names, config: FrontendConfig, masks: dict, workers: int) -> list[tuple]:
@@ -281,7 +299,7 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
     jobs = _extraction_jobs(folder, names, config, masks, pool.workers)
     # Without a database nothing is extracted yet: every image goes to the workers now, so that probing the
     # images and creating the database (which imports pycolmap) overlap SIFT instead of delaying it.
-    results = pool.map(_extract_job, jobs) if redo or not ws.database_path.exists() else None
+    results = _hand_out(pool, jobs) if redo or not ws.database_path.exists() else None
     metas = {}
     for name in names:
         try:
@@ -311,7 +329,7 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
         wanted = set(todo)  # an image handed over early may have failed its probe since
         if results is None:
             jobs = _extraction_jobs(folder, [n for n in names if n in wanted], config, masks, pool.workers)
-            results = pool.map(_extract_job, jobs)
+            results = _hand_out(pool, jobs)
         # started once the workers have their jobs and this thread has done its set-up: an import holds the
         # GIL, which the pool's threads need to hand out the jobs
         with _in_thread(alongside):

@@ -33,7 +33,8 @@ from pathlib import Path
 from ..config import diff
 from ..database import database_counts
 from ..errors import InputError
-from ..executor import StageClock, user_environment
+from ..executor import StageClock, describe_death, user_environment
+from ..memory import INTERVAL_S, PeakSampler, process_tree
 from ..io.files import read_json_object, some_names
 
 log = logging.getLogger("mvrecon.eval.runners")
@@ -83,7 +84,7 @@ class RunResult:
     report: dict = field(default_factory=dict)
     models: list = field(default_factory=list)  # pycolmap.Reconstruction, largest first
     wall_s: float = float("nan")  # wall time of the whole subprocess, measured the same way for every engine
-    peak_mem_mb: float = float("nan")  # largest summed RSS of the run's process tree (else report.json's total)
+    peak_mem_mb: float = float("nan")  # the run's peak memory, its process tree's (memory.py)
     error: str | None = None  # why the run produced no report (crash, timeout, bad input), else None
 
     @property
@@ -291,28 +292,40 @@ def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout,
     meta_path.write_text(json.dumps({**identity, **(record or {}), "finished": False}, indent=1))
     _cache_bytecode()
     log.debug("running %s on %s -> %s", engine, source, out_dir)
-    start, end = time.perf_counter(), None
-    with open(out_dir / "run.log", "w") as logf:
-        env, cwd = code_environment(tree)
-        proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, start_new_session=True, env=env,
-                                cwd=cwd)
-        try:
-            code, peak_mb, end = _wait_measuring_memory(proc, timeout)
-            error = None if code == 0 or _ran_without_model(out_dir, code) else _failure_line(out_dir / "run.log",
-                                                                                              code)
-        except subprocess.TimeoutExpired:
-            peak_mb = None
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-            error = f"timed out after {timeout:g} s"
-        except BaseException:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-            raise
+    wall, peaks = 0.0, []
+    for attempt in (1, 2):
+        code, error, start, end = None, None, time.perf_counter(), None
+        with open(out_dir / "run.log", "w") as logf:
+            env, cwd = code_environment(tree)
+            proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, start_new_session=True, env=env,
+                                    cwd=cwd)
+            try:
+                code, peak_mb, end = _wait_measuring_memory(proc, timeout)
+                peaks.append(peak_mb)
+                if code != 0 and not _ran_without_model(out_dir, code):
+                    error = _failure_line(out_dir / "run.log", code)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+                error = f"timed out after {timeout:g} s"
+            except BaseException:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+                raise
+        wall += (end if end is not None else time.perf_counter()) - start
+        if code is None or code >= 0:
+            break
+        # killed (the out-of-memory killer, a crash): once more, as the feature pool does with an image; an
+        # mvrecon run resumes from what it had written, so the time is that of both attempts
+        if attempt == 1:
+            log.warning("%s on %s: the process running it died (%s); running it again", engine, source,
+                        describe_death(code))
+        else:
+            error = f"the process running it died twice: {describe_death(code)}"
     timed_out = error is not None and error.startswith("timed out")
-    meta = {**identity, **(record or {}), "finished": error is None or timed_out,
-            "wall_s": (end if end is not None else time.perf_counter()) - start, "peak_tree_mem_mb": peak_mb,
-            "error": error, "command": cmd}
+    meta = {**identity, **(record or {}), "finished": error is None or timed_out, "wall_s": wall,
+            "peak_tree_mem_mb": max(peaks) if peaks else None, "error": error, "command": cmd,
+            "attempts": attempt}
     meta_path.write_text(json.dumps(meta, indent=1))
     return _result(engine, out_dir, meta)
 
@@ -333,41 +346,28 @@ def _cache_bytecode() -> None:
     compileall.compile_dir(Path(__file__).resolve().parents[1], quiet=2)
 
 
-def _wait_measuring_memory(proc, timeout, interval: float = 0.2) -> tuple[int, float, float]:
-    """Wait for the run; return its exit code, the largest summed RSS (MB) of its whole process tree and the
-    `time.perf_counter()` of its end.
+def _wait_measuring_memory(proc, timeout, interval: float = INTERVAL_S) -> tuple[int, float, float]:
+    """Wait for the run; return its exit code, its peak memory (MB) and the `time.perf_counter()` of its end.
 
-    Sampled by the parent in the same way for every engine, so worker processes (mvrecon's feature pool) count
-    as much as threads (COLMAP's) do. The end is taken by a thread blocked in `waitpid`, not by the sampling
-    loop: `Popen.wait` with a timeout polls with sleeps growing to 50 ms, and noticed the end of a run 3-48 ms
-    late (10-29 ms for 2 s runs), adding to both engines' times and to their spread; the thread notices it in
-    2-7 ms, the child's own exit included. Raises subprocess.TimeoutExpired after `timeout` seconds.
+    The peak is the largest summed RSS of the run's whole process tree, sampled by the parent (memory.py's
+    definition, which report.json's peak_mem_mb follows too): the same way for every engine, so worker
+    processes (mvrecon's feature pool) count as much as threads (COLMAP's) do. The end is taken by a thread
+    blocked in `waitpid`: `Popen.wait` with a timeout polls with sleeps growing to 50 ms, and noticed the end
+    of a run 3-48 ms late (10-29 ms for 2 s runs), adding to both engines' times and to their spread; the
+    thread notices it in 2-7 ms, the child's own exit included. Raises subprocess.TimeoutExpired after
+    `timeout` seconds.
     """
-    import psutil
-
-    deadline = None if timeout is None else time.monotonic() + timeout
     ended = []
     waiter = threading.Thread(target=lambda: ended.append((proc.wait(), time.perf_counter())), daemon=True,
                               name="run-waiter")
+    sampler = PeakSampler(lambda: process_tree(proc.pid), interval)
     waiter.start()
-    peak = 0.0
-    root = psutil.Process(proc.pid)
-    while True:
-        waiter.join(interval)
-        if ended:
-            return ended[0][0], peak / 2 ** 20, ended[0][1]
-        if deadline is not None and time.monotonic() > deadline:
-            raise subprocess.TimeoutExpired(proc.args, timeout)
-        rss = 0
-        try:
-            for p in [root, *root.children(recursive=True)]:
-                try:
-                    rss += p.memory_info().rss
-                except psutil.Error:
-                    pass
-        except psutil.Error:
-            pass
-        peak = max(peak, rss)
+    sampler.start()
+    waiter.join(timeout)
+    peak = sampler.stop()
+    if not ended:
+        raise subprocess.TimeoutExpired(proc.args, timeout)
+    return ended[0][0], peak, ended[0][1]
 
 
 def _failure_line(log_path: Path, code: int) -> str:

@@ -297,16 +297,57 @@ def _focal_from_sensor(focal_mm, sub, exif, stored_width) -> float | None:
 def read_image(path, *, upright: bool = True) -> np.ndarray:
     """Decode an image upright: HxW grey or HxWx3 RGB, uint8 or uint16 as stored; alpha is dropped. With
     `upright=False` the EXIF orientation is not applied: the pixels as stored, the frame COLMAP works in."""
+    return _decode(Path(path), 1, upright)
+
+
+def read_image_for_detection(path, detection_size: int) -> tuple[np.ndarray, int]:
+    """`read_image(path)`, or for a large JPEG the same picture decoded at 1/2, 1/4 or 1/8 of its size, and
+    that factor: (image, 1) or (image, r) as `decoding_for_detection` chooses r."""
+    path = Path(path)
+    _, _, factor, grey = decoding_for_detection(path, detection_size)
+    return _decode(path, factor, True, grey=grey), factor
+
+
+def decoding_for_detection(path, detection_size: int) -> tuple[int, int, int, bool]:
+    """(width, height, r, grey) of an image as stored (its header; (0, 0, 1, False) if unreadable), and the
+    fraction 1/r of its size to decode it at for a detector that shrinks it to `detection_size` pixels on its
+    long side. libjpeg shrinks a JPEG in its inverse DCT at a fraction of the memory and time of a whole
+    decode (a 12000 x 9000 photo: 81 MB instead of 324 MB at 1/2; castle's 2832 x 2128 photos decode in 71 ms
+    at 1/2 against 190 ms whole). r is the largest of 2, 4, 8 that keeps the long side at least
+    `detection_size` pixels, so that the detector still shrinks the picture, and that divides both sides, so
+    that pixel k of the reduced picture covers pixels r*k .. r*k+r-1 exactly and coordinates scale by r;
+    otherwise 1 (and always for other formats)."""
+    try:
+        with Image.open(path) as im:
+            (w, h), jpeg, grey = im.size, im.format in ("JPEG", "MPO"), im.mode == "L"
+    except Exception:  # noqa: BLE001 - reading the pixels names the problem
+        return 0, 0, 1, False
+    if jpeg:
+        for r in (8, 4, 2):
+            if max(w, h) // r >= detection_size and w % r == 0 and h % r == 0:
+                return w, h, r, grey
+    return w, h, 1, grey and jpeg
+
+
+# cv2.imdecode flags for a JPEG at 1/r of its size, colour or grey (EXIF orientation is applied by _decode)
+_REDUCED = {(2, False): "IMREAD_REDUCED_COLOR_2", (4, False): "IMREAD_REDUCED_COLOR_4",
+            (8, False): "IMREAD_REDUCED_COLOR_8", (2, True): "IMREAD_REDUCED_GRAYSCALE_2",
+            (4, True): "IMREAD_REDUCED_GRAYSCALE_4", (8, True): "IMREAD_REDUCED_GRAYSCALE_8"}
+
+
+def _decode(path: Path, factor: int, upright: bool, grey: bool = False) -> np.ndarray:
+    """The pixels of `path` (at 1/factor of its size: a JPEG only) as read_image gives them."""
     import cv2
 
-    path = Path(path)
     try:
         data = np.fromfile(path, dtype=np.uint8)
     except OSError as exc:
         raise InputError(f"{path}: cannot read file ({exc.strerror or exc})") from None
     # A failed decode is reported below, by file name; OpenCV's own log lines would only repeat it.
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
-    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    flags = cv2.IMREAD_UNCHANGED if factor == 1 else \
+        getattr(cv2, _REDUCED[factor, grey]) | cv2.IMREAD_IGNORE_ORIENTATION
+    image = cv2.imdecode(data, flags) if data.size else None
     if image is None or image.size == 0:
         raise InputError(f"{path}: cannot decode image (corrupt, truncated or unsupported)")
     if image.dtype not in (np.uint8, np.uint16):
