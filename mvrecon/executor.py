@@ -545,6 +545,9 @@ class WorkerPool:
         global _closed_workers_cpu
         if self._thread is None:
             return False
+        # a last sample while the workers live: their memory only grows (keep_freed_memory), so it holds their
+        # peaks even when the sampler's thread, on a loaded machine, has not run since they started
+        _tree.sample()
         with self._lock:
             self._closing = True
             workers, self._live = self._live, []
