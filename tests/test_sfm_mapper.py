@@ -591,16 +591,45 @@ def test_an_image_whose_pose_waits_keeps_its_registration_trials(monkeypatch):
     corr = lined_up_views([((0.0, 2.0, 4.0, 6.0, 8.0, 10.0, 12.0), (20, 40), 200)])
     real, waited = incremental.register_image, []
 
-    def register(m, tracks, i, config, seed=0):  # the middle view "waits" until the six others are registered
-        if i == 3 and m.registered.sum() < 6:
+    def register(m, tracks, i, config, seed=0, decide=False):  # the middle view "waits" until the six others
+        if i == 3 and m.registered.sum() < 6 and not decide:  # are registered
             waited.append(int(m.registered.sum()))
             return Registration(False, "ambiguous pose (test)", 0, 0, wait=True)
-        return real(m, tracks, i, config, seed)
+        return real(m, tracks, i, config, seed, decide)
 
     monkeypatch.setattr(incremental, "register_image", register)
     result = map_correspondences(corr, MapperConfig(max_register_trials=2))
     assert len(waited) >= 2  # it waited at least as many times as it may fail
     assert [int(m.registered.sum()) for m in result.models] == [7]
+
+
+def test_images_that_wait_for_each_other_join_the_model(monkeypatch):
+    """Two images whose poses are ambiguous, each waiting for the other to register first (as two neighbours of
+    an object's 100 views did, 0089 for 0090 and 0090 for 0089): once no other image can be registered, the
+    first of them is registered with the pose its registered views support, and the second follows. They made
+    a second model, or none, when waiting could last for ever."""
+    from mvrecon.sfm.register import Registration
+
+    corr = lined_up_views([((0.0, 2.0, 4.0, 6.0, 8.0, 10.0, 12.0), (20, 40), 200)])
+    real, waits, decided = incremental.register_image, [], []
+
+    def register(m, tracks, i, config, seed=0, decide=False):  # views 3 and 4 each wait while the other is out
+        other = {3: 4, 4: 3}.get(i)
+        if other is not None and not m.registered[other]:
+            if not decide:
+                waits.append(i)
+                return Registration(False, f"ambiguous pose (test): waits for {other}", 0, 0, wait=True)
+            decided.append(i)
+        return real(m, tracks, i, config, seed, decide)
+
+    monkeypatch.setattr(incremental, "register_image", register)
+    result = map_correspondences(corr)
+    assert [int(m.registered.sum()) for m in result.models] == [7]
+    assert set(waits) == {3, 4} and len(decided) == 1
+    assert result.stats["undecided_registrations"] == 1
+    assert all(s["status"] == "registered" for s in result.status.values())
+    noted = [name for name, s in result.status.items() if s.get("note")]
+    assert noted == [f"g0_{decided[0]}.png"] and "waits for" in result.status[noted[0]]["note"]
 
 
 def test_the_bar_ends_at_the_registered_images(monkeypatch):

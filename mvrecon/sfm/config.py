@@ -26,14 +26,15 @@ class MapperConfig:
     Registration (COLMAP: abs_pose_max_error=12, abs_pose_min_num_inliers=30, abs_pose_min_inlier_ratio=0.25):
     abs_pose_*: RANSAC threshold, minimum inliers and inlier ratio of the absolute pose.
     max_register_trials: how many times an image is tried before it is given up (it is retried only after
-        the model has grown since its last trial).
-    candidates_per_round: how many best-scored images are tried before the mapper gives up growing.
+        the model has changed since its last trial). Every candidate is tried, best-scored first, before the
+        mapper gives up growing a model, as COLMAP does.
 
     Triangulation and filtering (COLMAP: tri_min_angle=1.5, tri_continue_max_angle_error=2,
     filter_max_reproj_error=4, filter_min_tri_angle=1.5):
     min_tri_angle_deg, max_reproj_error_px (creating and continuing points), filter_max_reproj_error_px,
     filter_min_tri_angle_deg; tri_max_angle_error_deg: the loose angular gate of the one continuation before
-    the final refinement that closes loops (sfm/triangulate.py).
+    the final refinement that closes loops (COLMAP's continue_max_angle_error; a view it lets in must also pass
+    COLMAP's test for merging tracks, sfm/triangulate.py).
 
     Bundle adjustment (COLMAP: ba_local_num_images=6, ba_global_images_ratio=1.1,
     ba_local_max_num_iterations=25):
@@ -92,7 +93,6 @@ class MapperConfig:
     abs_pose_min_inliers: int = bounded(30, 4)
     abs_pose_min_inlier_ratio: float = bounded(0.25, 0.0, 1.0)
     max_register_trials: int = bounded(3, 1)
-    candidates_per_round: int = bounded(5, 1)
     min_tri_angle_deg: float = bounded(1.5, 0.0, 90.0)
     tri_max_angle_error_deg: float = bounded(2.0, 0.0, low_open=True)
     max_reproj_error_px: float = bounded(4.0, 0.0, low_open=True)

@@ -34,7 +34,8 @@ from .triangulate import (continue_points, refine_existing_points, retriangulate
                           triangulate_tracks)
 
 log = logging.getLogger("mvrecon.sfm")
-SNAPSHOT_VERSION = 3  # 2: small models kept as candidates (1 dropped them); 3: only the largest of them
+SNAPSHOT_VERSION = 4  # 2: small models kept as candidates (1 dropped them); 3: only the largest of them;
+# 4: registration trials keyed on the model's state (size, refined after a stall)
 _FOCAL_SCALES = (1.0, 0.25, 0.35, 0.5, 0.7, 1.4, 2.0, 3.0)  # of a guessed focal, tried at initialisation
 
 
@@ -139,8 +140,10 @@ class IncrementalMapper:
         self.reasons: dict[int, str] = {}
         self.current: Reconstruction | None = None
         self.last_global = 0
-        self.attempts: dict[int, tuple[int, int]] = {}
+        self.attempts: dict[int, tuple] = {}  # image -> (failed trials, the model's state at the last one)
+        self.stalled_at = -1  # the size at which the current model last stopped growing (`_grow`)
         self.ba_calls, self.ba_seconds = 0, 0.0
+        self.undecided: dict[int, str] = {}  # image -> why its pose was ambiguous when it was registered (`_grow`)
 
     def _bundle(self, m, images, **kwargs):
         out = _bundle_adjust(m, images, self.config, **kwargs)
@@ -202,6 +205,7 @@ class IncrementalMapper:
                             "current": self.current.state() if self.current is not None else None,
                             "tried_init": set(self.tried_init), "reasons": dict(self.reasons),
                             "last_global": self.last_global, "attempts": dict(self.attempts),
+                            "stalled_at": self.stalled_at, "undecided": dict(self.undecided),
                             "dropped_starts": set(self.dropped_starts), "start_key": self.start_key,
                             "init_min_inliers": self.init_config.init_min_inliers})
 
@@ -210,7 +214,8 @@ class IncrementalMapper:
         self.small = Reconstruction.from_state(s["small"], self.keypoints) if s.get("small") else None
         self.current = Reconstruction.from_state(s["current"], self.keypoints) if s["current"] else None
         self.tried_init, self.reasons = s["tried_init"], s["reasons"]
-        self.last_global, self.attempts = s["last_global"], s["attempts"]
+        self.last_global, self.attempts, self.stalled_at = s["last_global"], s["attempts"], s["stalled_at"]
+        self.undecided = s["undecided"]
         self.dropped_starts, self.start_key = s.get("dropped_starts", set()), s.get("start_key")
         self.init_config = replace(self.config, init_min_inliers=s.get("init_min_inliers",
                                                                         self.config.init_min_inliers))
@@ -240,7 +245,8 @@ class IncrementalMapper:
         return MappingResult(self.finished, self._status(),
                              {"tracks": len(self.tracks),
                               "split_inconsistent_tracks": self.tracks.split_inconsistent,
-                              "ba_calls": self.ba_calls, "ba_seconds": self.ba_seconds})
+                              "ba_calls": self.ba_calls, "ba_seconds": self.ba_seconds,
+                              "undecided_registrations": len(self.undecided)})
 
     def _show_progress(self, bar) -> None:
         """The bar counts the images registered now, in the finished models and the current one: each image
@@ -293,6 +299,7 @@ class IncrementalMapper:
                          self.names[init.image1], self.names[init.image2], points, least)
                 continue
             self.current, self.last_global, self.attempts, self.start_key = m, 2, {}, key
+            self.stalled_at = -1
             self._save()
             return True
 
@@ -421,31 +428,65 @@ class IncrementalMapper:
         return fits, len(err), init
 
     def _grow(self, m: Reconstruction, bar) -> None:
+        """Register images one at a time until none can be added: every candidate is tried, the best-scored
+        first, and when none registers, a global refinement and one more round (COLMAP's incremental pipeline
+        does both; neutral on every shared set and catalog scene, docs/benchmarks.md).
+
+        An image whose pose is ambiguous (repeated structure, sfm/register.py) waits while other images can
+        be registered; once none can, the first of the waiting images is registered with the pose its
+        registered views support most. So waiting can reorder registration but never hold an image out of
+        the model, where two images waiting for each other would start a second model."""
         cfg = self.config
         excluded = self._excluded()
         while True:
             num_reg = int(m.registered.sum())
+            state = (num_reg, self.stalled_at == num_reg)  # an image is tried once per state of the model
             pool = [i for i in range(len(self.image_ids))
                     if not m.registered[i] and i not in excluded
-                    and self.attempts.get(i, (0, -1))[0] < cfg.max_register_trials
-                    and self.attempts.get(i, (0, -1))[1] != num_reg]
+                    and self.attempts.get(i, (0, None))[0] < cfg.max_register_trials
+                    and self.attempts.get(i, (0, None))[1] != state]
             ranked = [r for r in rank_candidates(m, self.tracks, pool) if r[1] > 0]
+            waiting = []
             added = False
-            for _, n_matches, i in ranked[:cfg.candidates_per_round]:
+            for _, _, i in ranked:
                 reg = register_image(m, self.tracks, i, cfg, seed=cfg.seed + i)
                 # a pose that waits for the model to grow (ambiguous) does not use up a trial
-                self.attempts[i] = (self.attempts.get(i, (0, -1))[0] + (not reg.wait), num_reg)
-                if not reg.ok:
-                    self.reasons[i] = reg.reason
-                    log.debug("%s: %s", self.names[i], reg.reason)
-                    continue
-                self.reasons.pop(i, None)
-                self._after_registration(m, i)
-                self._show_progress(bar)
-                added = True
-                break
+                self.attempts[i] = (self.attempts.get(i, (0, None))[0] + (not reg.wait), state)
+                if reg.wait:
+                    waiting.append(i)
+                added = self._registered(m, i, reg, bar)
+                if added:
+                    break
+            if not added and ranked and self.stalled_at != num_reg:
+                # as COLMAP: when no image can be registered, a global refinement and one more round
+                self.stalled_at = num_reg
+                self._global_refine(m, growing=True)
+                self.last_global = num_reg
+                continue
+            for i in waiting if not added else ():
+                why = self.reasons.get(i)
+                reg = register_image(m, self.tracks, i, cfg, seed=cfg.seed + i, decide=True)
+                self.attempts[i] = (self.attempts[i][0] + (not reg.ok), state)
+                if reg.ok:
+                    log.info("%s: registered with the pose its registered views support most, as no other "
+                             "image could be registered (%s)", self.names[i], why)
+                    self.undecided[i] = why
+                added = self._registered(m, i, reg, bar)
+                if added:
+                    break
             if not added:
                 return
+
+    def _registered(self, m: Reconstruction, i: int, reg, bar) -> bool:
+        """Book `register_image`'s outcome for image i; when it registered, triangulate and adjust (True)."""
+        if not reg.ok:
+            self.reasons[i] = reg.reason
+            log.debug("%s: %s", self.names[i], reg.reason)
+            return False
+        self.reasons.pop(i, None)
+        self._after_registration(m, i)
+        self._show_progress(bar)
+        return True
 
     def _after_registration(self, m: Reconstruction, i: int) -> None:
         """Triangulate the new image's tracks, then a local BA, or a global one when the model grew enough
@@ -528,13 +569,15 @@ class IncrementalMapper:
 
     def _close_loops(self, m: Reconstruction) -> None:
         """Views of existing points that the drift of growth left past the 4 px gate rejoin through the loose
-        angular gate (see triangulate.py), and a global BA pulls the loop together; the filters then drop the
+        angular gate, when their point can be re-fitted to them or their image sees them displaced together
+        (`triangulate.continue_points`), and a global BA pulls the loop together; the filters then drop the
         views it could not bring within 4 px. That BA optimises the points that gained views plus the usual
-        well-spread subset: where there is no loop the new views are a few outliers, and a BA of every point
-        spent 4x the iterations of the final one to reject them (lund_door: 5.5 s)."""
+        well-spread subset: where there is no loop the new views are a few, and a BA of every point cost
+        several times the final one to settle them. Better or neutral wherever it fires on the shared sets,
+        the catalog and the degraded temples (docs/benchmarks.md)."""
         cfg = self.config
         first = m.obs_point.n
-        if continue_points(m, self.tracks, cfg, loose=True) == 0:
+        if continue_points(m, self.tracks, cfg, loose=True, seed=cfg.seed) == 0:
             return
         self._global_bundle(m, True, keep=np.unique(m.obs_point.data[first:m.obs_point.n]))
         self._filter(m)
@@ -616,6 +659,9 @@ class IncrementalMapper:
         for i, name in enumerate(self.names):
             if i in model_of:
                 out[name] = {"status": "registered", "model": model_of[i], "reason": None}
+                if i in self.undecided:
+                    out[name]["note"] = (f"registered when no other image could be, with the pose its registered "
+                                         f"views support most: {self.undecided[i]}")
                 continue
             if len(self.keypoints[i]) == 0:
                 reason = "no keypoints: a featureless image (blank, or out of focus)"

@@ -6,17 +6,17 @@ more, so 200 points spread over the frame beat 400 in one corner. Registration r
 2D-3D matches; when the focal length is only a guess and no registered image shares the camera, a few focal
 hypotheses are scored and the best pose is refined together with the focal length.
 
-Repeated structure can make a second pose fit nearly as many matches as the best one: fisheye views of a
-ground tiled every 6 m (about the orbit's diameter) match the ground of views across the orbit one tile off,
-and those verified pairs hold nothing else. At 184 deg, 7 of 10 registrations had a rival pose (found by
-RANSAC on the best pose's outliers) fitting half as many matches or more, sometimes more than the true pose,
-and a block of views registered one tile off. So when a rival fits 20% as many matches (on the perspective
-test sets at most 33%, and the best pose won each time), the pose the image's best-connected views support
-wins: an inlier counts the tracks the image shares with the registered views observing its point, over the
-most it shares with any image (a true neighbour's pair held 2-4 times the matches of a repeated-texture pair).
-When no registered view shares 75% of that most, the image's neighbours are not registered yet and the
-registered views cannot decide: it waits for the model to grow. Where a wrong pose led, the best registered
-view shared at most 67%; where the weighting chose right, 77% or more.
+Repeated structure can make a second pose fit nearly as many matches as the best one: a wide lens looking at a
+tiled ground matches the ground of views across the scene one tile off, and the pose with the most inliers is then
+a choice, not a measurement. So when a rival pose (found by RANSAC on the best pose's outliers) fits a fifth as
+many matches, the pose the image's best-connected registered views support wins: an inlier counts the tracks the
+image shares with the registered views observing its point, over the most it shares with any image (a true
+neighbour shares several times the tracks of a view that only sees the same texture). When no registered view
+shares three quarters of that most, the views that could decide are not registered yet, and the image waits: the
+mapper registers the others first, and registers a waiting image with its best-supported pose only once nothing
+else can be registered (`IncrementalMapper._grow`), so waiting reorders registration but never keeps an image
+out of the model. Measured across the shared sets and the catalog (docs/benchmarks.md), it decides the fisheye
+scenes' tiled ground right and changes nothing elsewhere.
 """
 
 import logging
@@ -75,8 +75,13 @@ class Registration:
     wait: bool = False  # not a failure of the image: its pose waits for its neighbours (`choose_pose`)
 
 
-def register_image(model, tracks, image: int, config: MapperConfig, seed: int = 0) -> Registration:
-    """Estimate image's pose from its 2D-3D matches and register it (observations are added by the caller)."""
+def register_image(model, tracks, image: int, config: MapperConfig, seed: int = 0,
+                   decide: bool = False) -> Registration:
+    """Estimate image's pose from its 2D-3D matches and register it (observations are added by the caller).
+
+    An image whose pose is ambiguous and whose best-connected views are not registered yet is not registered
+    but told to wait (`Registration.wait`); with `decide` it is registered with the pose its registered views
+    support most (`choose_pose`), which the mapper asks for once no other image can be registered."""
     kps, pids = correspondences_2d3d(model, tracks, image)
     has_ray = np.isfinite(model.normalized_keypoints(image)[kps]).all(axis=1)
     kps, pids = kps[has_ray], pids[has_ray]
@@ -102,10 +107,9 @@ def register_image(model, tracks, image: int, config: MapperConfig, seed: int = 
     rivals = rival_poses(X, uvh, Kh, inl, config.abs_pose_max_error_px,
                          max(config.abs_pose_min_inliers, _RIVAL_SHARE * inl.sum()), seed=seed)
     if rivals:
-        chosen = choose_pose(model, tracks, image, pids, [(R, t, inl), *rivals])
-        if isinstance(chosen, str):
-            return Registration(False, chosen, int(inl.sum()), len(kps), wait=True)
-        R, t, inl = chosen
+        (R, t, inl), undecided = choose_pose(model, tracks, image, pids, [(R, t, inl), *rivals])
+        if undecided and not decide:
+            return Registration(False, undecided, int(inl.sum()), len(kps), wait=True)
     if estimate_focal:
         R, t, f = refine_pose_and_focal(X[inl], uvh[inl], Kh, R, t)
         cam.set_focal(cam.focal() * f / Kh[0, 0])
@@ -143,7 +147,8 @@ def track_links(tracks, image: int) -> np.ndarray:
 
 def choose_pose(model, tracks, image: int, pids, poses):
     """Of `poses` ((R, t, inlier mask over the 2D-3D matches of points `pids`), the best RANSAC pose first),
-    the one the image's best-connected registered views support most, or the reason it must wait (a str).
+    the one the image's registered views support most, and None, or with the reason to wait (a str) when
+    none of its best-connected views is registered yet, so that they cannot vouch for either pose.
 
     An inlier weighs the most tracks the image shares with a registered view observing its point, over the
     most it shares with any image; ties keep the first pose."""
@@ -151,13 +156,14 @@ def choose_pose(model, tracks, image: int, pids, poses):
     others = model.registered.copy()
     others[image] = False
     strongest = int(np.argmax(links))
-    if links[strongest] <= 0:  # no shared tracks to weigh by (the matches come through tracks, so never)
-        return poses[0]
-    if not others.any() or links[others].max() < _WEAK_LINK * links[strongest]:
+    if links[strongest] <= 0 or not others.any():  # nothing to weigh by (matches come through tracks: never)
+        return poses[0], None
+    undecided = None
+    if links[others].max() < _WEAK_LINK * links[strongest]:
         counts = " and ".join(str(int(inl.sum())) for _, _, inl in poses)
-        return (f"ambiguous pose: {len(poses)} poses fit {counts} of its {len(pids)} 2D-3D matches (repeated "
-                f"structure?), and no registered image shares {_WEAK_LINK:.0%} as many tracks with it as "
-                f"{model.names[strongest]} does")
+        undecided = (f"ambiguous pose: {len(poses)} poses fit {counts} of its {len(pids)} 2D-3D matches "
+                     f"(repeated structure?), and no registered image shares {_WEAK_LINK:.0%} as many tracks "
+                     f"with it as {model.names[strongest]} does")
     obs = model.observations_of_points(np.unique(pids))
     point_link = np.zeros(model.xyz.n)
     np.maximum.at(point_link, model.obs_point.data[obs], links[model.obs_image.data[obs]])
@@ -167,4 +173,4 @@ def choose_pose(model, tracks, image: int, pids, poses):
     if pick:
         log.debug("%s: a rival pose wins (inliers %s, supported %s)", model.names[image],
                   [int(inl.sum()) for _, _, inl in poses], [round(v) for v in support])
-    return poses[pick]
+    return poses[pick], undecided

@@ -16,6 +16,7 @@ measured slower (outliers cost bundle adjustment iterations) and no more accurat
 
 import numpy as np
 
+from ..geometry.absolute_pose import pnp_ransac
 from ..geometry.triangulation import reaches_triangulation_angle, refine_points, triangulate_dlt
 from .config import MapperConfig
 
@@ -157,9 +158,10 @@ def triangulate_tracks(model, tracks, track_ids, config: MapperConfig, seed: int
     return len(sel)
 
 
-def continue_points(model, tracks, config: MapperConfig, images=None, loose: bool = False) -> int:
+def continue_points(model, tracks, config: MapperConfig, images=None, loose: bool = False, seed: int = 0) -> int:
     """Add observations of existing points in registered views of their tracks (restricted to `images` when
-    given) that pass the pixel gate, or the angular one with `loose`. Returns observations added."""
+    given) that pass the pixel gate, or with `loose` the angular one and then `_refits` or `_coherent`.
+    Returns observations added."""
     pid = model.point_of_track[tracks.element_track]
     cand = (pid >= 0) & model.registered[tracks.image]
     if images is not None:
@@ -179,8 +181,49 @@ def continue_points(model, tracks, config: MapperConfig, images=None, loose: boo
             m = img == i
             x[m] = model.normalized_keypoints(i)[kp[m]]
     good = _passes_gate(model, model.xyz.data[p], img, kp, config, x)
+    if loose:
+        good[good] = (_refits(model, p[good], img[good], kp[good], config)
+                      | _coherent(model, model.xyz.data[p[good]], img[good], x[good], config, seed))
     model.add_observations(p[good], img[good], kp[good])
     return int(good.sum())
+
+
+def _refits(model, points, images, kps, config: MapperConfig) -> np.ndarray:
+    """Whether each new view (images, kps) of `points` is one the point, re-fitted to its views and this one,
+    reprojects within the pixel gate in all of them (COLMAP's test for merging two tracks): a view that drift or
+    a poor early estimate left a few pixels off, where a wrong match that the angular gate lets in (its 2
+    degrees are tens of pixels at a long focal length) cannot be fitted so. Fitted by the bundle adjustment
+    that follows, such matches bent blurred and noisy models."""
+    pids, obs, mask = model.padded_observations(np.unique(points))
+    row = np.searchsorted(pids, points)
+    ok = row < len(pids)
+    row = np.minimum(row, max(len(pids) - 1, 0))
+    ok &= pids[row] == points if len(pids) else np.zeros(len(points), bool)
+    images_k = np.c_[model.obs_image.data[obs][row], images]
+    kps_k = np.c_[model.obs_kp.data[obs][row], kps]
+    mask_k = np.c_[mask[row], np.ones(len(points), bool)] & ok[:, None]
+    x, valid = _normalized(model, images_k, kps_k, mask_k)
+    X = refine_points(model.xyz.data[points], model.R[images_k], model.t[images_k], x, valid, iterations=3)
+    inl = _inlier_views(model, X, images_k, kps_k, valid, config)
+    return ok & np.isfinite(X).all(axis=1) & (inl == valid).all(axis=1)
+
+
+def _coherent(model, X, images, x, config: MapperConfig, seed: int) -> np.ndarray:
+    """Whether each new view (of point X, at normalised coordinates x, in `images`) is among those of its image
+    that one pose of the image fits within the pixel gate, when at least abs_pose_min_inliers do (P3P in
+    RANSAC). The image closing a loop sees the loop's first points displaced together by the drift: their
+    points are pinned by many views and cannot be re-fitted to it (`_refits`), but one pose fits them all."""
+    keep = np.zeros(len(X), bool)
+    for i in np.unique(images):
+        sel = np.flatnonzero(images == i)
+        if len(sel) < config.abs_pose_min_inliers:
+            continue
+        K = model.camera(int(i)).K()
+        uv = x[sel] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+        est = pnp_ransac(X[sel], uv, K, config.max_reproj_error_px, seed=seed)
+        if est is not None and est[2].sum() >= config.abs_pose_min_inliers:
+            keep[sel[est[2]]] = True
+    return keep
 
 
 def tracks_of_image(model, tracks, image: int) -> np.ndarray:
