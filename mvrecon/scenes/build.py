@@ -22,6 +22,7 @@ log = logging.getLogger("mvrecon.scenes")
 
 TRAJECTORIES = {
     "orbit": cameras.orbit,
+    "handheld": cameras.handheld,
     "forward": cameras.forward,
     "hemisphere": cameras.hemisphere,
     "inward": cameras.inward,
@@ -32,13 +33,15 @@ TRAJECTORIES = {
 
 OBJECT_KEYS = {
     "quad": {"origin", "u", "v", "texture", "uv_repeat"},
-    "box": {"center", "size", "yaw_deg", "texture", "textures"},
+    "box": {"center", "size", "yaw_deg", "texture", "textures", "tile"},
     "room": {"center", "size", "yaw_deg", "texture", "textures"},
     "sphere": {"center", "radius", "texture", "segments"},
+    "cylinder": {"base", "radius", "height", "texture", "segments"},
     "heightfield": {"origin", "u", "v", "resolution", "relief", "amplitude", "features", "texture",
                     "uv_repeat"},
     "mesh": {"path", "texture", "scale", "translate"},
 }
+REPEAT_KEYS = {"repeat", "step"}  # any object: copies in a row or grid (`repeat_offsets`)
 
 
 # keys an [[objects]] table of each type cannot do without (the others have defaults)
@@ -47,6 +50,7 @@ OBJECT_REQUIRED = {
     "box": ("center", "size"),
     "room": ("center", "size"),
     "sphere": ("center", "radius", "texture"),
+    "cylinder": ("base", "radius", "height", "texture"),
     "heightfield": ("origin", "u", "v", "texture"),
     "mesh": ("path",),
 }
@@ -127,6 +131,12 @@ def check_entry(entry: dict) -> None:
                          f"{MIN_VIEWS} or more")
     if ttype == "tilt":
         _check_tilt_angles(traj["angles_deg"])
+    if isinstance(entry.get("render"), dict) and entry["render"].get("alpha"):
+        if ortho:
+            raise ValueError("[render] alpha = true: SEM tilt series are grey images without alpha")
+        if entry.get("image_format", "png") != "png":
+            raise ValueError(f"[render] alpha = true needs image_format = \"png\": "
+                             f"{entry['image_format']} has no alpha channel")
     objects = entry.get("objects")
     if not objects:
         raise ValueError("no [[objects]] table; a rendered scene needs at least one")
@@ -137,7 +147,10 @@ def check_entry(entry: dict) -> None:
         if otype not in OBJECT_KEYS:
             raise ValueError(f"[[objects]] #{k}: unknown object type {otype!r}; expected one of "
                              f"{', '.join(OBJECT_KEYS)}")
-        _check_keys(spec, OBJECT_REQUIRED[otype], {"type", *OBJECT_KEYS[otype]}, f"[[objects]] #{k} {otype}")
+        _check_keys(spec, OBJECT_REQUIRED[otype], {"type", *OBJECT_KEYS[otype], *REPEAT_KEYS},
+                    f"[[objects]] #{k} {otype}")
+        if REPEAT_KEYS & set(spec):
+            repeat_offsets(spec, f"[[objects]] #{k} {otype}")
 
 
 def _check_tilt_angles(angles) -> None:
@@ -174,6 +187,25 @@ def _check_synthetic(entry: dict) -> None:
                          f"{MIN_VIEWS} images")
 
 
+def repeat_offsets(spec: dict, what: str = "object") -> np.ndarray:
+    """The offsets (N,3) of an object's copies: `repeat = [n1, n2, ...]` copies along each of the vectors
+    `step = [[x, y, z], ...]` (a row, a grid), the object itself first; one copy without `repeat`."""
+    if not REPEAT_KEYS & set(spec):
+        return np.zeros((1, 3))
+    counts, steps = spec.get("repeat"), spec.get("step")
+    if not (isinstance(counts, list) and counts and all(_whole(n, 1) for n in counts)):
+        raise ValueError(f"{what}: repeat = {counts!r}: must be a list of whole numbers of copies, 1 or more")
+    try:
+        steps = np.asarray(steps, float)
+    except (TypeError, ValueError):
+        steps = None
+    if steps is None or steps.shape != (len(counts), 3) or not np.all(np.isfinite(steps)):
+        raise ValueError(f"{what}: step = {spec.get('step')!r}: must be {len(counts)} vector(s) [x, y, z], "
+                         "one per repeat count")
+    grids = np.meshgrid(*[np.arange(n) for n in counts], indexing="ij")
+    return np.stack([g.ravel() for g in grids], 1) @ steps
+
+
 def _call(func, kwargs: dict, what: str):
     """func(**kwargs) with a ValueError that names the entry and the accepted keys when a key is wrong."""
     params = inspect.signature(func).parameters
@@ -184,9 +216,18 @@ def _call(func, kwargs: dict, what: str):
 
 
 def build_object(spec: dict, seed: int, base_dir: Path) -> meshes.TexturedMesh:
-    """One `[[objects]]` table -> a textured mesh. Texture seeds default to `seed` + face index."""
+    """One `[[objects]]` table -> a textured mesh (with `repeat`, its copies: `repeat_offsets`). Texture seeds
+    default to `seed` + face index."""
     spec = dict(spec)
     kind = spec.pop("type", None)
+    offsets = repeat_offsets(spec, kind)
+    for key in REPEAT_KEYS:
+        spec.pop(key, None)
+    mesh = _build_one(kind, spec, seed, base_dir)
+    return mesh if len(offsets) == 1 else meshes.tile(mesh, offsets)
+
+
+def _build_one(kind, spec: dict, seed: int, base_dir: Path) -> meshes.TexturedMesh:
     if kind not in OBJECT_KEYS:
         raise ValueError(f"unknown object type {kind!r}; expected one of {', '.join(OBJECT_KEYS)}")
     unknown = set(spec) - OBJECT_KEYS[kind]
@@ -207,11 +248,16 @@ def build_object(spec: dict, seed: int, base_dir: Path) -> meshes.TexturedMesh:
         if len(textures) == 1:
             textures = [TextureSpec(**{**textures[0].__dict__, "seed": seed + k}) for k in range(6)]
         return meshes.box(
-            spec["center"], spec["size"], textures, spec.get("yaw_deg", 0.0), inward=kind == "room"
+            spec["center"], spec["size"], textures, spec.get("yaw_deg", 0.0), inward=kind == "room",
+            tile=spec.get("tile"),
         )
     if kind == "sphere":
         return meshes.uv_sphere(
             spec["center"], spec["radius"], tex(spec["texture"]), spec.get("segments", 64)
+        )
+    if kind == "cylinder":
+        return meshes.cylinder(
+            spec["base"], spec["radius"], spec["height"], tex(spec["texture"]), spec.get("segments", 32)
         )
     if kind == "heightfield":
         u, v = np.asarray(spec["u"], float), np.asarray(spec["v"], float)
@@ -246,7 +292,7 @@ def build_poses(entry: dict) -> list:
     kind = traj.pop("type", None)
     if kind not in TRAJECTORIES:
         raise ValueError(f"trajectory type {kind!r}; expected one of {', '.join(TRAJECTORIES)}")
-    if kind == "hemisphere":
+    if kind in ("hemisphere", "handheld"):
         traj.setdefault("seed", int(entry.get("seed", 0)))
     return _call(TRAJECTORIES[kind], traj, f"trajectory {kind}")
 

@@ -12,6 +12,7 @@ from functools import cached_property
 import numpy as np
 
 from ..geometry import camera as camera_model
+from ..geometry.rotation import angle_axis_to_rotmat
 
 
 @dataclass(frozen=True)
@@ -135,6 +136,53 @@ def orbit(
     return poses
 
 
+def handheld(
+    count: int,
+    radius: float,
+    height: float,
+    target=(0, 0, 0),
+    start_deg: float = 0.0,
+    arc_deg: float = 90.0,
+    jitter: float = 0.0,
+    jitter_deg: float = 0.0,
+    pace: float = 0.0,
+    shake_deg: float = 0.0,
+    seed: int = 0,
+) -> list:
+    """Frames of a phone video walked around `target` along an arc (both ends included), with a hand's sway.
+
+    The centre wanders off the arc by about `jitter` (scene units, per axis) and the view turns off the target
+    by about `jitter_deg` in pan, tilt and roll: seeded smooth noise, three sinusoids per axis with periods of
+    6-40 frames and random phases, so that neighbouring frames stay close as a video's do while the path is
+    no circle and the rotations are about every axis. `pace` varies the walking speed the same way (relative
+    standard deviation; the speed never falls below a tenth of the mean): frames sampled at a fixed rate are
+    then unevenly spaced, bunched where the walker slows down. `shake_deg` adds a hand's shake, a rotation
+    drawn anew for each frame (standard deviation per axis): frames taken a good fraction of a second apart
+    from a video do not share it.
+    """
+    rng = np.random.default_rng(seed)
+    k = np.arange(count)[:, None]
+    periods = rng.uniform(6.0, 40.0, (7, 3))
+    phases = rng.uniform(0.0, 2 * np.pi, (7, 3))
+    # (count, 7) smooth noise with a standard deviation about 1 per axis (3 sinusoids of variance 1/2 each):
+    # position x, y, z, rotation about the camera's x, y, z, speed
+    wander = np.stack([np.sin(2 * np.pi * k / periods[a] + phases[a]).sum(1) for a in range(7)], 1)
+    wander *= np.sqrt(2.0 / 3.0)
+    target = np.asarray(target, float)
+    steps = np.maximum(1.0 + pace * wander[:-1, 6], 0.1)  # the walk from each frame to the next
+    progress = np.concatenate([[0.0], np.cumsum(steps)]) / max(steps.sum(), 1e-12)
+    angles = np.radians(start_deg + arc_deg * progress)
+    shake = rng.normal(0.0, 1.0, (count, 3))
+    poses = []
+    for j, a in enumerate(angles):
+        c = target + [radius * np.cos(a), radius * np.sin(a), height] + jitter * wander[j, :3]
+        R, _ = look_at(c, target)
+        turn = np.radians(jitter_deg) * wander[j, 3:6] + np.radians(shake_deg) * shake[j]
+        R = angle_axis_to_rotmat(turn) @ R  # tilt, pan, roll (camera x, y, z)
+        poses.append((R, -R @ c))
+    return poses
+
+
 def forward(
     count: int,
     start,
@@ -212,8 +260,6 @@ def tilt_series(angles_deg, distance: float, axis: str = "y", eucentric=(0.0, 0.
     At 0 degrees the camera looks straight down (-z) with image x along world x and image y along world -y,
     so the 0-degree image grid is the specimen's top view. `distance` puts the ray origins above the specimen.
     """
-    from ..geometry.rotation import angle_axis_to_rotmat
-
     axis_vec = {"x": [1.0, 0, 0], "y": [0, 1.0, 0]}[axis]
     R0 = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])
     p = np.asarray(eucentric, float)

@@ -2,7 +2,8 @@
 
 A mesh carries, per triangle, three UV pairs and the index of its texture, so one ray-casting scene can hold
 surfaces with different photographs. Builders cover what the catalog needs (quads, boxes, a room seen from
-inside, height fields for facades, terrain and SEM specimens, spheres) plus PLY/OBJ files from disk.
+inside, height fields for facades, terrain and SEM specimens, spheres, cylinders, and copies of any of them
+in a grid) plus PLY/OBJ files from disk.
 """
 
 from dataclasses import dataclass, field
@@ -93,9 +94,13 @@ def _rotation_z(deg: float) -> np.ndarray:
 
 
 def box(
-    center, size, textures: list[TextureSpec], yaw_deg: float = 0.0, inward: bool = False
+    center, size, textures: list[TextureSpec], yaw_deg: float = 0.0, inward: bool = False,
+    tile: float | None = None,
 ) -> TexturedMesh:
-    """An axis-aligned box turned by yaw about z; face k uses textures[k % len]. inward: normals inside."""
+    """An axis-aligned box turned by yaw about z; face k uses textures[k % len]. inward: normals inside.
+
+    tile: the texture repeats every `tile` scene units on each face (a moulded or tiled surface) instead of
+    stretching once over it."""
     c = np.asarray(center, dtype=float)
     hx, hy, hz = np.asarray(size, dtype=float) / 2
     R = _rotation_z(yaw_deg)
@@ -113,7 +118,8 @@ def box(
         o, u, v = np.asarray(o, float), np.asarray(u, float), np.asarray(v, float)
         if inward:
             o, u = o + u, -u
-        meshes.append(quad(c + R @ o, R @ u, R @ v, textures[k % len(textures)]))
+        repeat = (1.0, 1.0) if tile is None else (np.linalg.norm(u) / tile, np.linalg.norm(v) / tile)
+        meshes.append(quad(c + R @ o, R @ u, R @ v, textures[k % len(textures)], repeat))
     return merge(meshes)
 
 
@@ -142,6 +148,46 @@ def uv_sphere(center, radius: float, texture: TextureSpec, segments: int = 64) -
     vertex_uv = np.stack([LON.ravel() / (2 * np.pi), LAT.ravel() / np.pi], 1)
     return TexturedMesh(
         vertices, triangles, vertex_uv[triangles], np.zeros(len(triangles), np.int64), [texture]
+    )
+
+
+def cylinder(
+    base_center, radius: float, height: float, texture: TextureSpec, segments: int = 32
+) -> TexturedMesh:
+    """An upright (z) cylinder standing on `base_center`, with its top cap (a stud, a post, a can).
+
+    The side's texture wraps once around it, u around z and image rows downwards; the top cap shows the
+    texture's centred disc (the cylinder seen from above, as a planar projection of its x-y extent).
+    """
+    c = np.asarray(base_center, float)
+    angles = np.linspace(0.0, 2 * np.pi, segments + 1)
+    ring = np.stack([np.cos(angles), np.sin(angles), np.zeros_like(angles)], 1)
+    bottom, top = c + radius * ring, c + radius * ring + [0.0, 0.0, height]
+    vertices = np.concatenate([bottom, top, [c + [0.0, 0.0, height]]])
+    n = segments + 1
+    k = np.arange(segments)
+    side = np.concatenate([np.stack([k, k + 1, n + k + 1], 1), np.stack([k, n + k + 1, n + k], 1)])
+    cap = np.stack([n + k, n + k + 1, np.full(segments, 2 * n)], 1)  # counter-clockwise from above: up
+    vertex_uv = np.concatenate([np.stack([angles / (2 * np.pi), np.ones(n)], 1),
+                                np.stack([angles / (2 * np.pi), np.zeros(n)], 1), [[0.5, 0.5]]])
+    cap_uv = 0.5 + 0.5 * np.stack([np.cos(angles), -np.sin(angles)], 1)
+    cap_uvs = np.stack([cap_uv[k], cap_uv[k + 1], np.full((segments, 2), 0.5)], 1)
+    uvs = np.concatenate([vertex_uv[side], cap_uvs])
+    return TexturedMesh(vertices, np.concatenate([side, cap]), uvs,
+                        np.zeros(len(side) + segments, np.int64), [texture])
+
+
+def tile(mesh: TexturedMesh, offsets) -> TexturedMesh:
+    """Copies of `mesh` moved by each of `offsets` (N,3), sharing its textures: identical parts in a row or a
+    grid (studs on a brick, windows on a facade), whose repetition is exact as a moulded or built one is."""
+    offsets = np.asarray(offsets, float).reshape(-1, 3)
+    nv = len(mesh.vertices)
+    return TexturedMesh(
+        np.concatenate([mesh.vertices + o for o in offsets]),
+        np.concatenate([mesh.triangles + k * nv for k in range(len(offsets))]),
+        np.tile(mesh.uvs, (len(offsets), 1, 1)),
+        np.tile(mesh.texture_ids, len(offsets)),
+        list(mesh.textures),
     )
 
 

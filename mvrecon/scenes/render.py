@@ -27,6 +27,10 @@ class RenderSettings:
     light: direction the light travels, world frame; ambient: the unlit fraction.
     background: linear RGB of rays that hit nothing.
     noise_sigma: Gaussian sensor noise in 8-bit grey levels; vignetting: relative fall-off at the corners.
+    alpha: RGBA images: alpha is the share of a pixel's rays that hit a surface, colour the mean of those
+      rays (straight alpha) and 0 where no ray hits, as a renderer with a transparent film writes them (the
+      NeRF synthetic sets); the background colour and the noise are then not used outside the object.
+      Readers that drop alpha (mvrecon, COLMAP) see the object on black.
     """
 
     supersample: int = 2
@@ -36,6 +40,7 @@ class RenderSettings:
     background: tuple[float, float, float] = (0.55, 0.6, 0.65)
     noise_sigma: float = 1.0
     vignetting: float = 0.0
+    alpha: bool = False
 
 
 @dataclass
@@ -124,7 +129,8 @@ class Renderer:
         raise ValueError(f"unknown shading {s.shading!r}; expected lambertian or sem")
 
     def render(self, cam, pose, exposure: float = 1.0, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        """(image uint8 (H,W,3), z-depth float32 (H,W) with inf where no surface) of `cam` at pose (R, t).
+        """(image uint8 (H,W,3), or (H,W,4) with `settings.alpha`; z-depth float32 (H,W) with inf where no
+        surface) of `cam` at pose (R, t).
 
         Depth is cast through the pixel centres; the image averages the supersampled rays.
         """
@@ -150,9 +156,12 @@ class Renderer:
         hits = self._cast(world)
         d = world[:, 3:]
         colour = self.albedo(hits) * self.shade(hits, d)[:, None].astype(np.float32)
-        colour[~hits.valid] = s.background
         h, w, ss = cam.height, cam.width, s.supersample
+        colour[~hits.valid] = 0.0 if s.alpha else s.background
         image = colour.reshape(h, ss, w, ss, 3).mean(axis=(1, 3)) * exposure
+        if s.alpha:  # the mean of the rays that hit
+            coverage = hits.valid.reshape(h, ss, w, ss).mean(axis=(1, 3))
+            image /= np.maximum(coverage, 1e-12)[..., None]
         if s.vignetting:
             v, u = np.mgrid[0:h, 0:w]
             r2 = ((u + 0.5 - w / 2) ** 2 + (v + 0.5 - h / 2) ** 2) / ((w / 2) ** 2 + (h / 2) ** 2)
@@ -161,6 +170,9 @@ class Renderer:
         if s.noise_sigma > 0:
             image = image + np.random.default_rng(seed).normal(0.0, s.noise_sigma, image.shape)
         image = np.clip(np.round(image), 0, 255).astype(np.uint8)
+        if s.alpha:
+            image[coverage == 0] = 0
+            image = np.concatenate([image, np.round(255 * coverage).astype(np.uint8)[..., None]], axis=2)
 
         depth_hits = self._cast(world_rays(*rays.centres))
         depth = np.where(depth_hits.valid, depth_hits.t, np.inf).reshape(h, w).astype(np.float32)
