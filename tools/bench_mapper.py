@@ -88,7 +88,7 @@ EXPECTED_SETS = ("middlebury_templeRing", "middlebury_templeSparseRing", "strech
                  "imc_reichstag")
 DEFAULT_MODEL = "SIMPLE_RADIAL"
 AUC_MARGIN = 0.02  # mvrecon's AUC@5 may trail COLMAP's mapper by this much and pass
-ROW_FORMAT = 2  # a row kept in WORK with another format is measured again (from the runs kept there)
+ROW_FORMAT = 3  # a row kept in WORK with another format is measured again (from the runs kept there)
 SECTION = "## Mapper suite"
 log = logging.getLogger("mvrecon.bench_mapper")
 
@@ -242,9 +242,10 @@ def failed_figures(error: str) -> dict:
             "mapping_s": None, "model_sizes": [], "unregistered_reasons": {}}
 
 
-def engine_figures(result, reference: dict | None) -> dict:
+def engine_figures(result, reference: dict | None, ground_truth: bool = True) -> dict:
     """What the table shows of one engine's run: models, the largest model's images and points, AUC@1/5
-    against `reference` (name -> pose), mapping seconds, and the reasons for the images it left out."""
+    against `reference` (name -> pose), mapping seconds, and the reasons for the images it left out; when the
+    reference is the ground truth, also the share of the largest model's own pairs within 5 deg (`counted`)."""
     stages = result.report.get("stages", {})
     figures = {**failed_figures(result.error), "models": len(result.models),
                "mapping_s": (stages.get("mapping") or {}).get("wall_s"),
@@ -258,7 +259,7 @@ def engine_figures(result, reference: dict | None) -> dict:
         summary = accuracy_summary(poses, reference)
         figures.update({"auc@1": summary["auc@1"], "auc@5": summary["auc@5"]})
         own = {name: reference[name] for name in poses[0] if name in reference} if poses else {}
-        if len(own) >= 2:
+        if ground_truth and len(own) >= 2:
             errors = relative_pose_errors(poses[:1], own)
             figures["largest_pairs_within_5deg"] = float(np.mean(np.nan_to_num(errors, nan=180.0) < 5.0))
     reasons = Counter(v.get("reason") or v.get("status") for v in result.report.get("images", {}).values()
@@ -337,7 +338,7 @@ def measure_set(s: SuiteSet, seed: int, work: Path, code: Path, key: str, map_ar
     else:
         row["scored"], reference = "-", None
         row["notes"].append("no ground truth and no COLMAP model to score against")
-    row["mvrecon"], row["colmap"] = engine_figures(mv, reference), engine_figures(cm, gt)
+    row["mvrecon"], row["colmap"] = engine_figures(mv, reference, gt is not None), engine_figures(cm, gt)
     row["config_hash"] = mv.report.get("config_hash")
     if cm.error:
         row["notes"].append(f"COLMAP's run failed: {cm.error}")

@@ -375,7 +375,8 @@ class IncrementalMapper:
         most of its 2D-3D matches within 4 px after absolute pose. A two-view model built with a focal 3x off
         is skewed so that later images register wrongly and the BA cannot recover (a 100 deg lens: the
         guess was 768 px for 269, and 139 of 321 matches fitted). The guess is tried first and kept when half
-        the matches fit it, or when no other focal fits >= 10% more."""
+        the matches fit it, or when no other focal fits >= 10% more. Essential on wide_orbit (AUC@5 0.998,
+        0.860 without); within +-0.02 AUC@1 elsewhere (docs/benchmarks.md, "Mapper rules")."""
         cam_id = int(self.camera_of[init.image1])
         cam = model.cameras[cam_id]
         if cam.prior_trusted or int(self.camera_of[init.image2]) != cam_id:
@@ -430,7 +431,7 @@ class IncrementalMapper:
     def _grow(self, m: Reconstruction, bar) -> None:
         """Register images one at a time until none can be added: every candidate is tried, the best-scored
         first, and when none registers, a global refinement and one more round (COLMAP's incremental pipeline
-        does both; neutral on every shared set and catalog scene, docs/benchmarks.md).
+        does both; the same models on every shared set and catalog scene, docs/benchmarks.md).
 
         An image whose pose is ambiguous (repeated structure, sfm/register.py) waits while other images can
         be registered; once none can, the first of the waiting images is registered with the pose its
@@ -547,7 +548,8 @@ class IncrementalMapper:
         or |k| > 1, COLMAP's bogus-camera test) is undone and repeated with the distortion fixed, then with all
         intrinsics fixed: in a small model a guessed focal and the distortion trade off against each other
         (templeRing blurred: k1 -1.7 as the focal doubled), and dropping the images would not repair the
-        camera they share."""
+        camera they share. Fires only on the degraded temples: a plausible camera (blurred: f 1599, k1 0 for
+        the true 1520, 0; without: 1669, -1.26) for poses 0.004-0.024 lower in AUC@5 ("Mapper rules")."""
         cfg = self.config
         n = int(m.registered.sum())
         intrinsics = cfg.refine_intrinsics and n >= cfg.focal_min_images
@@ -573,8 +575,9 @@ class IncrementalMapper:
         (`triangulate.continue_points`), and a global BA pulls the loop together; the filters then drop the
         views it could not bring within 4 px. That BA optimises the points that gained views plus the usual
         well-spread subset: where there is no loop the new views are a few, and a BA of every point cost
-        several times the final one to settle them. Better or neutral wherever it fires on the shared sets,
-        the catalog and the degraded temples (docs/benchmarks.md)."""
+        several times the final one to settle them. Not neutral everywhere it fires (docs/benchmarks.md, "Mapper
+        rules"): AUC@5 up to +0.026 (imc_reichstag, templeSparseRing, blurred temple), down to -0.014 (noisy and
+        blurred temples)."""
         cfg = self.config
         first = m.obs_point.n
         if continue_points(m, self.tracks, cfg, loose=True, seed=cfg.seed) == 0:
@@ -614,7 +617,8 @@ class IncrementalMapper:
     def _drop_non_square_cameras(self, m: Reconstruction) -> None:
         """Deregister the images of cameras whose fx / fy ended more than 1.5x apart (`non_square_cameras`: wrong
         matches, not a lens), then refine what is left once more; COLMAP deregisters the images of bogus cameras
-        the same way (from 20 registered images on)."""
+        the same way (from 20 registered images on). It fires on no shared set or catalog scene at the
+        default settings, only once the focal search is switched off ("Mapper rules")."""
         bogus = filtering.non_square_cameras(m)
         if not bogus:
             return

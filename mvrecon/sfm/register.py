@@ -15,8 +15,8 @@ neighbour shares several times the tracks of a view that only sees the same text
 shares three quarters of that most, the views that could decide are not registered yet, and the image waits: the
 mapper registers the others first, and registers a waiting image with its best-supported pose only once nothing
 else can be registered (`IncrementalMapper._grow`), so waiting reorders registration but never keeps an image
-out of the model. Measured across the shared sets and the catalog (docs/benchmarks.md), it decides the fisheye
-scenes' tiled ground right and changes nothing elsewhere.
+out of the model. Measured on the shared sets, the catalog and degraded temples (docs/benchmarks.md, "Mapper
+rules"): essential on the 184 deg fisheye orbit (AUC@5 0.99, 0.51 without), within +-0.02 AUC@1 elsewhere.
 """
 
 import logging
