@@ -268,6 +268,26 @@ def engine_figures(result, reference: dict | None, ground_truth: bool = True) ->
     return figures
 
 
+def published_command(raw: list[str]) -> str:
+    """The call as the table shows it: without the folders of this machine (--work, --markdown), and with
+    --code's tree as CHECKOUT, a checkout of the commit the section names."""
+    shown, skip = [], False
+    for arg in raw:
+        if skip:
+            skip = False
+            continue
+        name = arg.split("=", 1)[0]
+        if name in ("--work", "--markdown"):
+            skip = "=" not in arg
+            continue
+        if name == "--code":
+            shown += ["--code", "CHECKOUT"]
+            skip = "=" not in arg
+            continue
+        shown.append(arg)
+    return "python tools/bench_mapper.py" + (" " + shlex.join(shown) if shown else "")
+
+
 def counted(figures: dict) -> int:
     """Images in the largest model; 0 when it holds no 3D point (`compare.summary_rows`' rule too), or when
     against ground truth most of its own image pairs are more than 5 deg off: registering images at wrong poses
@@ -440,8 +460,9 @@ def markdown_body(rows, skipped, command, version, seconds, machine) -> str:
     passed, earlier = sum(r["passed"] for r in rows), sum(bool(r.get("cached")) for r in rows)
     when = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     read_back = f" ({earlier} of the {len(rows)} rows measured earlier, read back)" if earlier else ""
+    checkout = " (CHECKOUT: a checkout of that commit)" if "--code CHECKOUT" in command else ""
     run = (f"`{command}`, finished {when}; this call took {seconds / 60:.0f} min{read_back}. mvrecon at "
-           f"{version}; pycolmap {pycolmap.__version__}; {machine['cpu']}, {machine['cores']} cores, "
+           f"{version}{checkout}; pycolmap {pycolmap.__version__}; {machine['cpu']}, {machine['cores']} cores, "
            f"{machine['memory_gb']} GB RAM, {machine['system']}, Python {machine['python']}.")
     text = (f"{wrap(run)}\n\n{wrap(HOW.format(margin=AUC_MARGIN))}\n\n{table(rows)}\n\n"
             f"{passed} of {len(rows)} rows pass.\n")
@@ -545,7 +566,7 @@ def main(argv=None) -> int:
     if failing:
         say("failing rows:\n" + "\n".join(failing))
     if args.markdown:
-        command = "python tools/bench_mapper.py" + (" " + shlex.join(raw) if raw else "")
+        command = published_command(raw)
         replaces = f"{SECTION}: mvrecon {version}"
         heading = replaces + (f" ({args.label})" if args.label else "")
         body = markdown_body(rows, skipped, command, version, seconds, machine_info())
