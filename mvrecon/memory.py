@@ -19,7 +19,18 @@ _PAGE = os.sysconf("SC_PAGE_SIZE")
 
 
 def main_peak_mb() -> float:
-    """This process's peak resident memory so far (MB); Linux reports ru_maxrss in KiB."""
+    """This process's peak resident memory so far (MB): the kernel's high-water mark of its own memory (VmHWM).
+
+    Not ru_maxrss: Linux carries that over an exec from the process that started this one, so mvrecon started
+    from a notebook or a test run holding 800 MB reported 800 MB for itself. ru_maxrss (KiB on Linux) serves
+    only where /proc is missing."""
+    try:
+        with open("/proc/self/status", "rb") as fh:
+            for line in fh:
+                if line.startswith(b"VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except (OSError, ValueError, IndexError):
+        pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 

@@ -217,6 +217,15 @@ def test_report_json_gives_the_peak_memory_of_the_run_and_its_workers(tmp_path):
     assert 0.85 * outside < total["peak_mem_mb"] < 1.15 * outside, (total, outside)
 
 
+def test_the_main_peak_is_the_run_s_own_not_that_of_the_process_that_started_it(tmp_path):
+    """Linux carries ru_maxrss over an exec: mvrecon started from a process holding 400 MB (a notebook, a test
+    run) reported 400 MB as its own peak, and the tree's peak with it. The main peak is the run's own."""
+    held = np.ones(50_000_000)  # 400 MB resident in the process that starts the run
+    done = _run(["-c", "from mvrecon.memory import main_peak_mb; print(main_peak_mb())"], tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert float(done.stdout) < 150 < held.nbytes / 2 ** 20, done.stdout
+
+
 def test_a_large_jpeg_is_decoded_reduced_and_its_keypoints_stay_in_full_size_pixels(tmp_path):
     """A photo the detector shrinks anyway is decoded at 1/2-1/8 of its size (memory per worker: 12000 x 9000
     at 1,816 MB instead of 2,108). libjpeg's reduced decode is a sharper low-pass than the detector's area
