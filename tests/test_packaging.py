@@ -41,7 +41,8 @@ def test_an_installed_package_finds_its_catalog(tmp_path):
     site = tmp_path / "site"
     shutil.copytree(ROOT / "mvrecon", site / "mvrecon", ignore=shutil.ignore_patterns("__pycache__"))
     shutil.copytree(ROOT / "scenes", site / "mvrecon" / "catalog")
-    code = "from mvrecon.scenes.catalog import CATALOG_DIR, list_scenes; print(CATALOG_DIR); print(*list_scenes())"
+    code = ("from mvrecon.scenes.catalog import CATALOG_DIR, list_scenes\n"
+            "print(CATALOG_DIR)\nprint(*list_scenes())")
     env = {**os.environ, "PYTHONPATH": str(site)}
     out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True,
                          check=True).stdout.splitlines()

@@ -135,8 +135,8 @@ def bundle_adjust(model, variable_images, config: MapperConfig, *, point_ids=Non
     fixed_cams = _constant_cameras(gtsam, model, window)
     points = np.unique(window.obs_pt)
     point_keys, xyz = _keys("l", points), model.xyz.data
-    for k, p in zip(point_keys, points.tolist()):  # `insert` would store a dynamic Vector, cast at every access
-        values.insertPoint3(k, xyz[p])
+    for k, p in zip(point_keys, points.tolist()):
+        values.insertPoint3(k, xyz[p])  # `insert` would store a dynamic Vector, cast at every access
     _add_views(gtsam, graph, model, window, config.huber_px, cal_kind, fixed_cams)
     _fix_gauge(gtsam, graph, model, window.variable, len(fixed_cams))
 
@@ -146,8 +146,9 @@ def bundle_adjust(model, variable_images, config: MapperConfig, *, point_ids=Non
     # (an LM iteration of templeRing's final BA: 98 ms median against 114)
     ordering = gtsam.Ordering([*point_keys, *_keys("x", optimised), *_keys("k", list(var_cams))])
     lam = config.ba_shared_initial_lambda if model.cameras_shared(optimised) else _CERES_LAMBDA
+    tolerance = relative_tolerance or config.ba_relative_tolerance
     result, used, initial, final = _optimize(gtsam, graph, values, optimizer or config.optimizer, iterations,
-                                             relative_tolerance or config.ba_relative_tolerance, ordering, lam)
+                                             tolerance, ordering, lam)
 
     focals = _write_back(gtsam, model, result, optimised, points, refined_cams, cal_kind)
     out = BundleResult(float(initial), float(final), used, time.perf_counter() - start, len(window.obs))
