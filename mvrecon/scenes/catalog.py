@@ -1,4 +1,4 @@
-"""The scene catalog: TOML entries shipped in `scenes/catalog/`, and `make_scene` that renders one on demand.
+"""The scene catalog: TOML entries in the top-level `scenes/` folder, and `make_scene` that renders one.
 
 A scene folder is complete when its `scene.json` says so and carries the hash of the TOML (plus the generator
 version) it was made from; asking again for the same scene into the same folder then returns at once, or,
@@ -15,7 +15,16 @@ from pathlib import Path
 from ..errors import InputError
 from ..io.files import made_folder, read_json_object, write_json
 
-CATALOG_DIR = Path(__file__).resolve().parent / "catalog"
+
+def _catalog_dir() -> Path:
+    """The folder of the catalog's TOML files: `mvrecon/catalog/` in an installed package (pyproject.toml maps
+    the top-level `scenes/` there), else `scenes/` beside the package in a checkout or an editable install."""
+    package = Path(__file__).resolve().parents[1]
+    installed = package / "catalog"
+    return installed if installed.is_dir() else package.parent / "scenes"
+
+
+CATALOG_DIR = _catalog_dir()
 GENERATOR_VERSION = "4"  # bump when a scene's files change, so cached scenes are rebuilt (4: calib.txt in mm)
 UNITS = {
     "perspective": "scene units (metres)",

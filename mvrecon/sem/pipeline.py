@@ -339,9 +339,30 @@ def run_sem(image_paths, out_dir, config: SemConfig = SemConfig(), gt_height=Non
         return _run(paths, out, config, ref, timings, t0, gt_height)
 
 
+@dataclass
+class _Joint:
+    """The joint solution of all images (`factorization.solve_tilt_series`) and the checks of its axis."""
+
+    obs: object  # the tracks it adjusted (`factorization.build_tracks`)
+    solution: object  # tilts, axis, drifts, points, RMS
+    axis_guess: float  # the best-matched pair's affine-F axis: the adjustment's start
+    axis_from_pairs: float  # the median affine-F axis of the pairs with parallax
+    axis_check: dict | None  # a given --axis against axis_from_pairs (`_check_given_axis`)
+
+
+@dataclass
+class _PointSets:
+    """The joint points and their ICP-merged union with the per-pair point sets, height outliers removed."""
+
+    anchor: np.ndarray  # the joint points, centred working pixels
+    anchor_outliers: np.ndarray  # per joint point: removed as a height outlier
+    merged: np.ndarray
+    merged_outliers: np.ndarray
+    pair_reports: list  # per pair point set: its images, points, outliers and ICP figures
+
+
 def _run(paths, out: Path, config: SemConfig, ref: int, timings: dict, t0: float, gt_height) -> dict:
     """run_sem after its argument checks, into the existing folder `out`."""
-    n = len(paths)
     report_warnings = []
 
     def warn(text):
@@ -357,107 +378,28 @@ def _run(paths, out: Path, config: SemConfig, ref: int, timings: dict, t0: float
     t = time.perf_counter()
     keypoints, pairs = _match_all(images, config)
     timings["match_s"] = time.perf_counter() - t
-    ranked = sorted((p for p in pairs if pairs[p]["verified"] > 0), key=lambda p: -pairs[p]["verified"])
-    if not ranked:
-        raise InputError(f"{paths[0].parent}: no image pair has verified matches "
-                         "(" + ", ".join(f"{i}-{j}: {v['matches']} raw" for (i, j), v in pairs.items()) + ")")
-    log.info("verified matches per pair: %s",
-             ", ".join(f"{i}-{j}: {pairs[(i, j)]['verified']}/{pairs[(i, j)]['matches']}" for i, j in pairs))
-    most = max(ranked, key=lambda p: pairs[p]["parallax_ratio"])
-    if pairs[most]["parallax_ratio"] < MIN_PARALLAX_RATIO:
-        (i, j), v = most, pairs[most]
-        raise InputError(f"{paths[i]}: the matches show no parallax: the largest, with {paths[j].name}, is "
-                         f"{v['parallax_px']:.3f} px beyond a common shift, {v['parallax_ratio']:.1f}x the matching "
-                         f"noise ({v['noise_px']:.3f} px; tilted views give {MIN_PARALLAX_RATIO:g}x or more); are "
-                         "these images of one tilt?")
-    _check_pairs_have_parallax(paths, keypoints, pairs, config.tilts_deg)
+    ranked = _ranked_pairs(paths, keypoints, pairs, config.tilts_deg)
 
-    # joint solution of all images: tilts (given or estimated), axis, drifts, points
     t = time.perf_counter()
-    axis_guess = tilt_axis_from_affine_fundamental(pairs[ranked[0]]["F"])
-    obs = build_tracks({p: pairs[p]["index"] for p in ranked}, [k - center for k in keypoints])
-    try:
-        solution = solve_tilt_series(obs, n, ref, tilts_deg=config.tilts_deg, axis_deg=config.axis_deg,
-                                     axis_guess_deg=axis_guess)
-    except ValueError as exc:
-        raise InputError(f"{paths[0].parent}: {exc}") from None
-    tilts, axis = solution.tilts_deg, solution.axis_deg
-    log.info("tilts %s deg about the axis at %.2f deg; joint adjustment RMS %.3f px over %d observations",
-             ", ".join(f"{x:.3f}" for x in tilts), axis, solution.rms_px, solution.observations_used)
-    axis_pairs = [p for p in ranked if pairs[p]["parallax_ratio"] >= MIN_PARALLAX_RATIO]
-    axis_from_pairs = _median_axis([pairs[p]["axis_deg"] for p in axis_pairs], axis_guess)
-    axis_check = None
-    if config.axis_deg is not None:
-        axis_check = _check_given_axis(config, obs, n, ref, solution, axis_from_pairs, len(axis_pairs), warn)
+    joint = _solve_joint(paths, keypoints, pairs, ranked, center, ref, config, warn)
     timings["joint_s"] = time.perf_counter() - t
 
-    # the paper's step: per-pair point sets from parallax, merged with ICP into the joint frame
     t = time.perf_counter()
-    anchor = solution.points[np.isfinite(solution.points).all(axis=1)]
-    anchor_outliers = height_outliers(anchor)
-    anchor = anchor[~anchor_outliers]
-    merged, pair_reports = [anchor], []
-    # pairs of equal tilts (a repeated exposure in a series) have no parallax to give heights: the next ones do
-    with_parallax = [(i, j) for i, j in ranked if abs(np.sin(np.radians(tilts[j] - tilts[i]))) >= 1e-9]
-    for i, j in with_parallax[:max(1, config.pairs)]:
-        idx = pairs[(i, j)]["index"]
-        cloud = heights_from_parallax(keypoints[i][idx[:, 0]], keypoints[j][idx[:, 1]], tilts[i], tilts[j],
-                                      axis, center)
-        outliers = height_outliers(cloud)
-        cloud = cloud[~outliers]
-        init = np.eye(4)
-        init[:3, 3] = np.median(anchor, axis=0) - np.median(cloud, axis=0)
-        result = icp(cloud, anchor, config.icp_method, config.icp, init)
-        merged.append(result.apply(cloud))
-        pair_reports.append({"pair": [i, j], "images": [paths[i].name, paths[j].name], "points": int(len(cloud)),
-                             "height_outliers": int(outliers.sum()), "icp": {"method": result.method, "iterations": result.iterations,
-                                     "rms_px": result.rms, "pairs": result.pairs, "seconds": result.seconds,
-                                     "translation_px": result.matrix[:3, 3].tolist()}})
+    sets = _merge_point_sets(paths, keypoints, pairs, ranked, joint.solution, center, config)
     timings["pairs_icp_s"] = time.perf_counter() - t
-    merged = np.vstack(merged)
-    merged_outliers = height_outliers(merged)
-    merged = merged[~merged_outliers]
 
     # height map on the reference grid (working resolution); with ground truth every map on the way is scored
     t = time.perf_counter()
-
-    def gridded(points):
-        cells = _cell_average(np.column_stack([points[:, :2] + center, points[:, 2]]), (h, w))
-        return grid_heights(cells[:, :2], cells[:, 2], (h, w))
-
-    sparse = "merged" if config.height_source == "merged" else "joint"
-    maps = {sparse: gridded(merged if sparse == "merged" else anchor)}
-    if not np.isfinite(maps[sparse]).any():
-        raise InputError(f"{paths[0].parent}: only {len(merged if sparse == 'merged' else anchor)} 3D points "
-                         "survived the outlier tests; too few for a height map")
-    if gt_height is not None:
-        other = "joint" if sparse == "merged" else "merged"
-        maps[other] = gridded(anchor if other == "joint" else merged)
-    height = maps[sparse]
-    dense_report = stereo_report = None
-    if config.height_source in ("dense", "stereo"):
-        start = fill_nearest(height)
-        if config.height_source == "stereo":
-            t_stereo = time.perf_counter()
-            span = (np.percentile(anchor[:, 2], 1), np.percentile(anchor[:, 2], 99))
-            matched, stereo_report = stereo_heights(images, tilts, axis, solution.shifts, ref, span, config.stereo)
-            maps["stereo_matching"] = matched
-            start = np.where(np.isfinite(matched), matched, start)
-            timings["stereo_s"] = time.perf_counter() - t_stereo
-        height = maps[config.height_source] = refine_heights(images, tilts, axis, solution.shifts, ref, start,
-                                                             config.dense_match)
-    if config.densify:
-        height, dense_report = _densify(images, ref, tilts, axis, solution, pairs, height, config.densify_matcher)
-        maps["densify"] = height
+    height, maps, dense_report, stereo_report = _height_maps(
+        paths, images, pairs, joint.solution, sets, center, ref, config, gt_height is not None, timings)
     timings["heightmap_s"] = time.perf_counter() - t
 
     unit = "um" if config.pixel_size_um else "px"
     to_unit = (config.pixel_size_um or 1.0) / factor  # working pixels -> micrometres (or input pixels)
     height_u = height * to_unit
-    merged_u = merged * to_unit
-    finite = np.isfinite(height_u)
-    line = _profile_line(config.profile, factor, axis, center, (h, w))
-    _write_outputs(out, images[ref], height_u, merged_u, merged, center, line, unit, to_unit)
+    line = _profile_line(config.profile, factor, joint.solution.axis_deg, center, (h, w))
+    _write_outputs(out, images[ref], height_u, sets.merged * to_unit, sets.merged, center, line, unit,
+                   to_unit)
     accuracy = None
     if gt_height is not None:
         truth = _to_working_grid(gt_height, (h, w))
@@ -473,29 +415,14 @@ def _run(paths, out: Path, config: SemConfig, ref: int, timings: dict, t0: float
         "pixel_size_um": config.pixel_size_um,
         "working_pixel_size": to_unit,
         "units": unit,
-        "tilts_deg": [float(x) for x in tilts],
-        "tilts_given": config.tilts_deg is not None,
-        "tilt_steps_deg": [float(x) for x in np.diff(tilts)],
-        "axis_deg": axis,
-        "axis_given": config.axis_deg is not None,
-        "axis_from_affine_F_deg": axis_guess,
-        "axis_from_pairs_deg": axis_from_pairs,
-        "axis_check": axis_check,
+        **_tilt_report(config, joint),
         "warnings": report_warnings,
         "keypoints": [int(len(k)) for k in keypoints],
         "pairs": [{"pair": [i, j], "matches": v["matches"], "verified": v["verified"],
                    **{k: v[k] for k in ("axis_deg", "parallax_px", "noise_px", "coherence") if k in v}}
                   for (i, j), v in pairs.items()],
-        "joint": {"rms_px": solution.rms_px, "observations": solution.observations_used,
-                  "tracks": int(obs.num_points), "points": int(len(anchor)),
-                  "drift_px": solution.shifts.tolist()},
-        "pair_point_sets": pair_reports,
-        "merged_points": int(len(merged)),
-        "height_outliers": {"joint": int(anchor_outliers.sum()), "merged": int(merged_outliers.sum())},
-        "height_map": {"valid_fraction": float(finite.mean()),
-                       "min": float(np.nanmin(height_u)) if finite.any() else None,
-                       "max": float(np.nanmax(height_u)) if finite.any() else None,
-                       "profile_line_px": [float(v / factor) for v in line]},
+        **_points_report(joint, sets),
+        "height_map": _height_map_report(height_u, line, factor),
         "dense": dense_report,
         "stereo": stereo_report,
         "accuracy": accuracy,
@@ -505,6 +432,159 @@ def _run(paths, out: Path, config: SemConfig, ref: int, timings: dict, t0: float
     }
     (out / "report.json").write_text(json.dumps(report, indent=1))
     return report
+
+
+def _ranked_pairs(paths, keypoints, pairs, tilts_deg) -> list[tuple[int, int]]:
+    """The pairs with verified matches, the most first. A series whose best pair shows no parallax (below
+    MIN_PARALLAX_RATIO), or with one view twice (`_check_pairs_have_parallax`), is refused."""
+    ranked = sorted((p for p in pairs if pairs[p]["verified"] > 0), key=lambda p: -pairs[p]["verified"])
+    if not ranked:
+        raise InputError(f"{paths[0].parent}: no image pair has verified matches "
+                         "(" + ", ".join(f"{i}-{j}: {v['matches']} raw" for (i, j), v in pairs.items()) + ")")
+    log.info("verified matches per pair: %s",
+             ", ".join(f"{i}-{j}: {pairs[(i, j)]['verified']}/{pairs[(i, j)]['matches']}" for i, j in pairs))
+    most = max(ranked, key=lambda p: pairs[p]["parallax_ratio"])
+    if pairs[most]["parallax_ratio"] < MIN_PARALLAX_RATIO:
+        (i, j), v = most, pairs[most]
+        raise InputError(f"{paths[i]}: the matches show no parallax: the largest, with {paths[j].name}, is "
+                         f"{v['parallax_px']:.3f} px beyond a common shift, {v['parallax_ratio']:.1f}x the "
+                         f"matching noise ({v['noise_px']:.3f} px; tilted views give "
+                         f"{MIN_PARALLAX_RATIO:g}x or more); are these images of one tilt?")
+    _check_pairs_have_parallax(paths, keypoints, pairs, tilts_deg)
+    return ranked
+
+
+def _solve_joint(paths, keypoints, pairs, ranked, center, ref: int, config: SemConfig, warn) -> _Joint:
+    """The joint solution of all images: tilts (given or estimated), axis, drifts and points from the tracks
+    of the verified matches; a given --axis is compared with the pairs' own estimate (`_check_given_axis`)."""
+    n = len(paths)
+    axis_guess = tilt_axis_from_affine_fundamental(pairs[ranked[0]]["F"])
+    obs = build_tracks({p: pairs[p]["index"] for p in ranked}, [k - center for k in keypoints])
+    try:
+        solution = solve_tilt_series(obs, n, ref, tilts_deg=config.tilts_deg, axis_deg=config.axis_deg,
+                                     axis_guess_deg=axis_guess)
+    except ValueError as exc:
+        raise InputError(f"{paths[0].parent}: {exc}") from None
+    log.info("tilts %s deg about the axis at %.2f deg; joint adjustment RMS %.3f px over %d observations",
+             ", ".join(f"{x:.3f}" for x in solution.tilts_deg), solution.axis_deg, solution.rms_px,
+             solution.observations_used)
+    axis_pairs = [p for p in ranked if pairs[p]["parallax_ratio"] >= MIN_PARALLAX_RATIO]
+    axis_from_pairs = _median_axis([pairs[p]["axis_deg"] for p in axis_pairs], axis_guess)
+    axis_check = None
+    if config.axis_deg is not None:
+        axis_check = _check_given_axis(config, obs, n, ref, solution, axis_from_pairs, len(axis_pairs), warn)
+    return _Joint(obs, solution, axis_guess, axis_from_pairs, axis_check)
+
+
+def _merge_point_sets(paths, keypoints, pairs, ranked, solution, center, config: SemConfig) -> _PointSets:
+    """The paper's step: point sets of the best-matched pairs from their parallax, each merged by ICP into the
+    frame of the joint points."""
+    tilts, axis = solution.tilts_deg, solution.axis_deg
+    anchor = solution.points[np.isfinite(solution.points).all(axis=1)]
+    anchor_outliers = height_outliers(anchor)
+    anchor = anchor[~anchor_outliers]
+    merged, pair_reports = [anchor], []
+    # pairs of equal tilts (a repeated exposure in a series) have no parallax to give heights: the next do
+    with_parallax = [(i, j) for i, j in ranked if abs(np.sin(np.radians(tilts[j] - tilts[i]))) >= 1e-9]
+    for i, j in with_parallax[:max(1, config.pairs)]:
+        idx = pairs[(i, j)]["index"]
+        cloud = heights_from_parallax(keypoints[i][idx[:, 0]], keypoints[j][idx[:, 1]], tilts[i], tilts[j],
+                                      axis, center)
+        outliers = height_outliers(cloud)
+        cloud = cloud[~outliers]
+        init = np.eye(4)
+        init[:3, 3] = np.median(anchor, axis=0) - np.median(cloud, axis=0)
+        result = icp(cloud, anchor, config.icp_method, config.icp, init)
+        merged.append(result.apply(cloud))
+        pair_reports.append({"pair": [i, j], "images": [paths[i].name, paths[j].name],
+                             "points": int(len(cloud)), "height_outliers": int(outliers.sum()),
+                             "icp": _icp_report(result)})
+    merged = np.vstack(merged)
+    merged_outliers = height_outliers(merged)
+    return _PointSets(anchor, anchor_outliers, merged[~merged_outliers], merged_outliers, pair_reports)
+
+
+def _icp_report(result) -> dict:
+    return {"method": result.method, "iterations": result.iterations, "rms_px": result.rms,
+            "pairs": result.pairs, "seconds": result.seconds, "translation_px": result.matrix[:3, 3].tolist()}
+
+
+def _gridded(points: np.ndarray, center, shape) -> np.ndarray:
+    """A height map on the working grid from centred points (one per cell, `_cell_average`)."""
+    cells = _cell_average(np.column_stack([points[:, :2] + center, points[:, 2]]), shape)
+    return grid_heights(cells[:, :2], cells[:, 2], shape)
+
+
+def _height_maps(paths, images, pairs, solution, sets: _PointSets, center, ref: int, config: SemConfig,
+                 scored: bool, timings: dict):
+    """(height map of config.height_source on the working grid, every map made on the way by name, dense
+    report, stereo report). "dense" and "stereo" refine a start at every pixel; `scored` (ground truth given)
+    also grids the sparse source not used, so that both are scored."""
+    tilts, axis = solution.tilts_deg, solution.axis_deg
+    shape = images[0].shape
+    points = {"joint": sets.anchor, "merged": sets.merged}
+    sparse = "merged" if config.height_source == "merged" else "joint"
+    maps = {sparse: _gridded(points[sparse], center, shape)}
+    if not np.isfinite(maps[sparse]).any():
+        raise InputError(f"{paths[0].parent}: only {len(points[sparse])} 3D points "
+                         "survived the outlier tests; too few for a height map")
+    if scored:
+        other = "joint" if sparse == "merged" else "merged"
+        maps[other] = _gridded(points[other], center, shape)
+    height = maps[sparse]
+    dense_report = stereo_report = None
+    if config.height_source in ("dense", "stereo"):
+        start = fill_nearest(height)
+        if config.height_source == "stereo":
+            t_stereo = time.perf_counter()
+            span = (np.percentile(sets.anchor[:, 2], 1), np.percentile(sets.anchor[:, 2], 99))
+            matched, stereo_report = stereo_heights(images, tilts, axis, solution.shifts, ref, span,
+                                                    config.stereo)
+            maps["stereo_matching"] = matched
+            start = np.where(np.isfinite(matched), matched, start)
+            timings["stereo_s"] = time.perf_counter() - t_stereo
+        height = maps[config.height_source] = refine_heights(images, tilts, axis, solution.shifts, ref, start,
+                                                             config.dense_match)
+    if config.densify:
+        height, dense_report = _densify(images, ref, tilts, axis, solution, pairs, height,
+                                        config.densify_matcher)
+        maps["densify"] = height
+    return height, maps, dense_report, stereo_report
+
+
+def _tilt_report(config: SemConfig, joint: _Joint) -> dict:
+    tilts = joint.solution.tilts_deg
+    return {
+        "tilts_deg": [float(x) for x in tilts],
+        "tilts_given": config.tilts_deg is not None,
+        "tilt_steps_deg": [float(x) for x in np.diff(tilts)],
+        "axis_deg": joint.solution.axis_deg,
+        "axis_given": config.axis_deg is not None,
+        "axis_from_affine_F_deg": joint.axis_guess,
+        "axis_from_pairs_deg": joint.axis_from_pairs,
+        "axis_check": joint.axis_check,
+    }
+
+
+def _points_report(joint: _Joint, sets: _PointSets) -> dict:
+    solution = joint.solution
+    return {
+        "joint": {"rms_px": solution.rms_px, "observations": solution.observations_used,
+                  "tracks": int(joint.obs.num_points), "points": int(len(sets.anchor)),
+                  "drift_px": solution.shifts.tolist()},
+        "pair_point_sets": sets.pair_reports,
+        "merged_points": int(len(sets.merged)),
+        "height_outliers": {"joint": int(sets.anchor_outliers.sum()),
+                            "merged": int(sets.merged_outliers.sum())},
+    }
+
+
+def _height_map_report(height_u: np.ndarray, line, factor: float) -> dict:
+    finite = np.isfinite(height_u)
+    return {"valid_fraction": float(finite.mean()),
+            "min": float(np.nanmin(height_u)) if finite.any() else None,
+            "max": float(np.nanmax(height_u)) if finite.any() else None,
+            "profile_line_px": [float(v / factor) for v in line]}
 
 
 def _to_working_grid(height, shape) -> np.ndarray:

@@ -97,6 +97,21 @@ def _pose3(gtsam, R, t):
     return gtsam.Pose3(gtsam.Rot3(Rt), -Rt @ np.asarray(t))
 
 
+@dataclass
+class _Window:
+    """What one bundle adjustment sees: the observations of its points, and which images' poses it moves."""
+
+    variable: np.ndarray  # per image of the model: its pose is a variable (registered and observed here)
+    obs: np.ndarray  # indices of the observations, and their image, point and keypoint
+    obs_img: np.ndarray
+    obs_pt: np.ndarray
+    obs_kp: np.ndarray
+
+    @property
+    def optimised(self) -> list[int]:
+        return np.flatnonzero(self.variable).tolist()
+
+
 def bundle_adjust(model, variable_images, config: MapperConfig, *, point_ids=None, refine_intrinsics=False,
                   refine_distortion=True, max_iterations=None, relative_tolerance=None,
                   optimizer=None) -> BundleResult:
@@ -104,9 +119,48 @@ def bundle_adjust(model, variable_images, config: MapperConfig, *, point_ids=Non
     intrinsics of cameras whose registered images are all variable (the focal only, without
     `refine_distortion`). Other registered images stay constant. `relative_tolerance` overrides the config's."""
     import gtsam
-    from gtsam.symbol_shorthand import K, L, X
 
     start = time.perf_counter()
+    window = _window(model, variable_images, point_ids)
+    if window is None:
+        return BundleResult(0.0, 0.0, 0, 0.0, 0)
+    optimised = window.optimised
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    var_cams = set(np.unique(model.camera_of[window.variable]).tolist())
+    refined_cams = _refined_cameras(model, window.variable, var_cams) if refine_intrinsics else set()
+    cal_kind = _add_calibrations(gtsam, graph, values, model, var_cams, refined_cams, refine_distortion)
+    for i in optimised:
+        values.insert(gtsam.symbol("x", i), _pose3(gtsam, model.R[i], model.t[i]))
+    fixed_cams = _constant_cameras(gtsam, model, window)
+    points = np.unique(window.obs_pt)
+    point_keys, xyz = _keys("l", points), model.xyz.data
+    for k, p in zip(point_keys, points.tolist()):
+        values.insertPoint3(k, xyz[p])  # `insert` would store a dynamic Vector, cast at every access
+    _add_views(gtsam, graph, model, window, config.huber_px, cal_kind, fixed_cams)
+    _fix_gauge(gtsam, graph, model, window.variable, len(fixed_cams))
+
+    iterations = max_iterations or config.global_ba_iterations
+    # points first (the Schur complement, and no COLAMD run per call), then poses, calibrations last: every
+    # reduced factor touches the calibration, so eliminating it before the poses joins them all at once
+    # (an LM iteration of templeRing's final BA: 98 ms median against 114)
+    ordering = gtsam.Ordering([*point_keys, *_keys("x", optimised), *_keys("k", list(var_cams))])
+    lam = config.ba_shared_initial_lambda if model.cameras_shared(optimised) else _CERES_LAMBDA
+    tolerance = relative_tolerance or config.ba_relative_tolerance
+    result, used, initial, final = _optimize(gtsam, graph, values, optimizer or config.optimizer, iterations,
+                                             tolerance, ordering, lam)
+
+    focals = _write_back(gtsam, model, result, optimised, points, refined_cams, cal_kind)
+    out = BundleResult(float(initial), float(final), used, time.perf_counter() - start, len(window.obs))
+    log.debug("BA %d images (%d constant), %d points, %d observations: cost %.4g -> %.4g in %d iterations, "
+              "%.3f s%s", len(optimised), len(fixed_cams), len(points), len(window.obs), out.initial_error,
+              out.final_error, used, out.seconds, "".join(f"; {f}" for f in focals))
+    return out
+
+
+def _window(model, variable_images, point_ids) -> _Window | None:
+    """The observations of `point_ids` (default: every point `variable_images` see) and the registered images
+    among `variable_images` that have one; None when there is nothing to optimise."""
     variable = np.zeros(len(model.image_ids), bool)
     variable[np.asarray(variable_images, dtype=np.int64)] = True
     variable &= model.registered
@@ -116,102 +170,94 @@ def bundle_adjust(model, variable_images, config: MapperConfig, *, point_ids=Non
     obs_img, obs_pt, obs_kp = model.obs_image.data[obs], model.obs_point.data[obs], model.obs_kp.data[obs]
     variable &= np.isin(np.arange(len(variable)), obs_img)  # a pose with no factor would be a singular variable
     if len(obs) == 0 or not variable.any():
-        return BundleResult(0.0, 0.0, 0, 0.0, 0)
-    optimised = np.flatnonzero(variable).tolist()
+        return None
+    return _Window(variable, obs, obs_img, obs_pt, obs_kp)
 
-    noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(config.huber_px),
-                                           gtsam.noiseModel.Isotropic.Sigma(2, 1.0))
-    graph = gtsam.NonlinearFactorGraph()
-    values = gtsam.Values()
 
-    reg = model.registered
-    var_cams = set(np.unique(model.camera_of[variable]).tolist())
-    refined_cams = set()
-    if refine_intrinsics:
-        for c in var_cams:
-            users = reg & (model.camera_of == c)
-            if np.all(variable[users]):
-                refined_cams.add(c)
+def _refined_cameras(model, variable, cameras) -> set:
+    """The cameras among `cameras` whose registered images are all variable: only theirs may be refined."""
+    return {c for c in cameras if np.all(variable[model.registered & (model.camera_of == c)])}
+
+
+def _add_calibrations(gtsam, graph, values, model, cameras, refined_cams, refine_distortion) -> dict:
+    """A calibration variable K(c) per camera of a variable image, held by a prior: loose on the entries that
+    may be refined (those of `refined_cams`; only the focal without `refine_distortion`), tight on the others.
+    Returns each camera's GTSAM calibration class name."""
     cal_kind = {}
-    for c in var_cams:
+    for c in cameras:
         cam = model.cameras[c]
         kind, vec, free = _calibration_layout(cam.model, cam.params)
         cal_kind[c] = kind
-        values.insert(K(c), _make_calibration(gtsam, kind, vec))
+        values.insert(gtsam.symbol("k", c), _make_calibration(gtsam, kind, vec))
         free = np.asarray(free) & (c in refined_cams)
         if not refine_distortion:
             free &= np.isin(np.arange(len(free)), _FOCAL_ENTRIES[kind])
         sig = np.where(free, _LOOSE, _TIGHT)
-        graph.add(getattr(gtsam, f"PriorFactor{kind}")(K(c), _make_calibration(gtsam, kind, vec),
-                                                       gtsam.noiseModel.Diagonal.Sigmas(sig)))
-    for i in optimised:
-        values.insert(X(i), _pose3(gtsam, model.R[i], model.t[i]))
+        prior = getattr(gtsam, f"PriorFactor{kind}")
+        graph.add(prior(gtsam.symbol("k", c), _make_calibration(gtsam, kind, vec),
+                        gtsam.noiseModel.Diagonal.Sigmas(sig)))
+    return cal_kind
 
-    # constant images: a fixed camera object each, factors on the point only
+
+def _constant_cameras(gtsam, model, window: _Window) -> dict:
+    """Image -> (calibration class name, fixed GTSAM camera) of each constant image the window observes."""
     fixed_cams = {}
-    for i in np.unique(obs_img[~variable[obs_img]]):
+    for i in np.unique(window.obs_img[~window.variable[window.obs_img]]):
         cam = model.camera(i)
         kind, vec, _ = _calibration_layout(cam.model, cam.params)
         fixed_cams[int(i)] = (kind, getattr(gtsam, f"PinholeCamera{kind}")(
             _pose3(gtsam, model.R[i], model.t[i]), _make_calibration(gtsam, kind, vec)))
+    return fixed_cams
 
-    points = np.unique(obs_pt)
-    xyz = model.xyz.data
-    point_keys = _keys("l", points)
-    for k, p in zip(point_keys, points.tolist()):  # `insert` would store a dynamic Vector, cast at every access
-        values.insertPoint3(k, xyz[p])
 
+def _add_views(gtsam, graph, model, window: _Window, huber_px: float, cal_kind: dict,
+               fixed_cams: dict) -> None:
+    """One factor per observation, in observation order: a view of a variable image from the model's cache
+    (building them was ~10% of a BA's time), one of a constant image on the point alone; list operations
+    rather than one Python loop doing it all, as a mapping adds ~100,000 factors."""
+    obs, obs_img, obs_pt = window.obs, window.obs_img, window.obs_pt
+    noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(huber_px),
+                                           gtsam.noiseModel.Isotropic.Sigma(2, 1.0))
     uv = np.empty((len(obs), 2))
     for i in np.unique(obs_img):
         m = obs_img == i
-        uv[m] = model.keypoints[i][obs_kp[m]]
-    # one factor per observation, in observation order: a view of a variable image from the model's cache
-    # (building them was ~10% of a BA's time), one of a constant image on the point alone; list operations
-    # rather than one Python loop doing it all, as a mapping adds ~100,000 factors
-    cache = model.ba_factor_cache(config.huber_px)
+        uv[m] = model.keypoints[i][window.obs_kp[m]]
+    cache = model.ba_factor_cache(huber_px)
     factors = [cache.get(o) for o in obs.tolist()]
-    var_obs = variable[obs_img].tolist()
+    var_obs = window.variable[obs_img].tolist()
     make = {c: getattr(gtsam, f"GeneralSFMFactor2{kind}") for c, kind in cal_kind.items()}
     tri = {kind: getattr(gtsam, f"TriangulationFactor{kind}") for kind in _KINDS}
     for row in [k for k, (f, var) in enumerate(zip(factors, var_obs)) if f is None or not var]:
         i, p = int(obs_img[row]), int(obs_pt[row])
         if var_obs[row]:
             c = int(model.camera_of[i])
-            factors[row] = cache[int(obs[row])] = make[c](uv[row], noise, X(i), L(p), K(c))
+            factors[row] = cache[int(obs[row])] = make[c](
+                uv[row], noise, gtsam.symbol("x", i), gtsam.symbol("l", p), gtsam.symbol("k", c))
         else:
             kind, camera = fixed_cams[i]
-            factors[row] = tri[kind](camera, uv[row], noise, L(p))
+            factors[row] = tri[kind](camera, uv[row], noise, gtsam.symbol("l", p))
     for f in factors:
         graph.add(f)
 
-    _fix_gauge(gtsam, graph, model, variable, len(fixed_cams), X)
 
-    iterations = max_iterations or config.global_ba_iterations
-    # points first (the Schur complement, and no COLAMD run per call), then poses, calibrations last: every
-    # reduced factor touches the calibration, so eliminating it before the poses joins them all at once
-    # (an LM iteration of templeRing's final BA: 98 ms median against 114)
-    ordering = gtsam.Ordering([*point_keys, *_keys("x", optimised), *_keys("k", list(var_cams))])
-    lam = config.ba_shared_initial_lambda if model.cameras_shared(optimised) else _CERES_LAMBDA
-    result, used, initial, final = _optimize(gtsam, graph, values, optimizer or config.optimizer, iterations,
-                                             relative_tolerance or config.ba_relative_tolerance, ordering, lam)
-
+def _write_back(gtsam, model, result, optimised: list[int], points, refined_cams: set,
+                cal_kind: dict) -> list[str]:
+    """Copy the optimised poses, points and refined calibrations into the model; returns a line per refined
+    camera's focal change (logged: a guessed focal walking far in the first BAs is what makes them take 50
+    iterations)."""
     for i in optimised:
-        pose = result.atPose3(X(i))
+        pose = result.atPose3(gtsam.symbol("x", i))
         R = np.asarray(pose.rotation().matrix()).T
         model.R[i] = R
         model.t[i] = -R @ np.asarray(pose.translation())
-    xyz[points] = gtsam.utilities.extractPoint3(result)  # every Point3 in the values, in key order = `points`
-    focals = []  # logged: a guessed focal walking far in the first BAs is what makes them take 50 iterations
+    model.xyz.data[points] = gtsam.utilities.extractPoint3(result)  # every Point3 in the values, in key order
+    focals = []
     for c in sorted(refined_cams):
         before = model.cameras[c].focal()
-        cal = getattr(result, f"at{cal_kind[c]}")(K(c))
+        cal = getattr(result, f"at{cal_kind[c]}")(gtsam.symbol("k", c))
         model.cameras[c].params = _params_from_calibration(model.cameras[c].model, cal)
         focals.append(f"camera {c} focal {before:.1f} -> {model.cameras[c].focal():.1f}")
-    out = BundleResult(float(initial), float(final), used, time.perf_counter() - start, len(obs))
-    log.debug("BA %d images (%d constant), %d points, %d observations: cost %.4g -> %.4g in %d iterations, "
-              "%.3f s%s", int(variable.sum()), len(fixed_cams), len(points), len(obs), out.initial_error,
-              out.final_error, used, out.seconds, "".join(f"; {f}" for f in focals))
-    return out
+    return focals
 
 
 def _optimize(gtsam, graph, values, kind: str, iterations: int, relative_tolerance: float, ordering,
@@ -250,7 +296,7 @@ def _optimize(gtsam, graph, values, kind: str, iterations: int, relative_toleran
         return _optimize(gtsam, graph, values, "lm", iterations, relative_tolerance, ordering, initial_lambda)
 
 
-def _fix_gauge(gtsam, graph, model, variable, num_fixed_images, X):
+def _fix_gauge(gtsam, graph, model, variable, num_fixed_images) -> None:
     """Anchor the similarity gauge when constant images do not (see the module docstring)."""
     if num_fixed_images >= 2:
         return
@@ -259,7 +305,8 @@ def _fix_gauge(gtsam, graph, model, variable, num_fixed_images, X):
         return
     if num_fixed_images == 0:
         first = order[0]
-        graph.add(gtsam.PriorFactorPose3(X(first), _pose3(gtsam, model.R[first], model.t[first]),
+        pose = _pose3(gtsam, model.R[first], model.t[first])
+        graph.add(gtsam.PriorFactorPose3(gtsam.symbol("x", first), pose,
                                          gtsam.noiseModel.Isotropic.Sigma(6, _TIGHT)))
         others = order[1:]
     else:
@@ -274,8 +321,8 @@ def _fix_gauge(gtsam, graph, model, variable, num_fixed_images, X):
     sig = np.full(6, _LOOSE)
     pair_alone = num_fixed_images == 0 and len(order) == 2  # soft only there: see the module docstring
     sig[3 + axis] = max(float(np.linalg.norm(baseline_in_cam)), _TIGHT) if pair_alone else _TIGHT
-    graph.add(gtsam.PriorFactorPose3(X(second), _pose3(gtsam, model.R[second], model.t[second]),
-                                     gtsam.noiseModel.Diagonal.Sigmas(sig)))
+    pose = _pose3(gtsam, model.R[second], model.t[second])
+    graph.add(gtsam.PriorFactorPose3(gtsam.symbol("x", second), pose, gtsam.noiseModel.Diagonal.Sigmas(sig)))
 
 
 @contextmanager
