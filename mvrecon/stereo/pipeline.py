@@ -16,7 +16,7 @@ from ..errors import InputError
 from ..io.files import made_folder, replace_whole, write_json
 from ..geometry.fundamental import RansacConfig, ransac_fundamental, sampson_distance
 from ..geometry.rectification import apply_homography, calibrated_rectification, fit_to_canvas, hartley_rectification
-from ..io.images import read_image, write_image
+from ..io.images import as_uint8, read_image, to_gray, write_image
 from ..io.pfm import read_pfm, write_pfm
 from ..io.stage_cache import Stages, code_digest, digest
 from .best import BestConfig, best_disparity
@@ -44,22 +44,6 @@ class StereoConfig:
     gee: GEEConfig = GEEConfig()
     sgbm: SGBMConfig = SGBMConfig()
     best: BestConfig = BestConfig()
-
-
-def as_uint8(image) -> np.ndarray:
-    """8-bit copy (16-bit images stretched by their maximum); the matchers here work on 8-bit data."""
-    img = np.asarray(image)
-    if img.dtype == np.uint8:
-        return img
-    top = float(np.nanmax(img)) if img.size else 1.0
-    return np.clip(img.astype(np.float32) * (255.0 / max(top, 1e-9)), 0, 255).round().astype(np.uint8)
-
-
-def to_gray(image) -> np.ndarray:
-    import cv2
-
-    img = as_uint8(image)
-    return cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img
 
 
 def sift_matches(left, right, ratio: float = 0.8, max_features: int = 8192) -> tuple[np.ndarray, np.ndarray]:
@@ -131,7 +115,7 @@ def read_pair(left_path, right_path) -> tuple[np.ndarray, np.ndarray]:
         raise InputError(f"{right_path}: size {right.shape[1]}x{right.shape[0]} differs from the left image's "
                          f"{left.shape[1]}x{left.shape[0]}; a stereo pair needs equal sizes")
     if left.ndim != right.ndim:
-        left, right = to_gray(left), to_gray(right)
+        left, right = to_gray(as_uint8(left)), to_gray(as_uint8(right))
     return as_uint8(left), as_uint8(right)
 
 
