@@ -12,21 +12,19 @@ tells which of COLMAP's cameras it cannot verify without a focal length (`colmap
 
 import os
 import sqlite3
-from contextlib import closing, contextmanager
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from .errors import InputError
+from .geometry.camera import CAMERA_MODEL_IDS, MODELS
 from .interrupts import ctrl_c_deferred
 from .io.files import require_room
+from .io.sqlite import connect_readonly
 
-# COLMAP's enumerations as pycolmap 4.2 numbers them (tests/test_io_formats.py checks both against pycolmap)
-CAMERA_MODEL_IDS = {"SIMPLE_PINHOLE": 0, "PINHOLE": 1, "SIMPLE_RADIAL": 2, "RADIAL": 3, "OPENCV": 4,
-                    "OPENCV_FISHEYE": 5, "FULL_OPENCV": 6, "FOV": 7, "SIMPLE_RADIAL_FISHEYE": 8, "RADIAL_FISHEYE": 9,
-                    "THIN_PRISM_FISHEYE": 10, "RAD_TAN_THIN_PRISM_FISHEYE": 11, "SIMPLE_DIVISION": 12, "DIVISION": 13,
-                    "SIMPLE_FISHEYE": 14, "FISHEYE": 15, "EUCM": 16, "EQUIRECTANGULAR": 17}
+# COLMAP's two-view configurations as pycolmap 4.2 numbers them (tests/test_io_formats.py checks them)
 TWO_VIEW_CONFIGS = {"UNDEFINED": 0, "DEGENERATE": 1, "CALIBRATED": 2, "UNCALIBRATED": 3, "PLANAR": 4,
                     "PANORAMIC": 5, "PLANAR_OR_PANORAMIC": 6, "WATERMARK": 7, "MULTIPLE": 8, "CALIBRATED_RIG": 9}
 _MODEL_NAMES = {v: k for k, v in CAMERA_MODEL_IDS.items()}
@@ -100,24 +98,6 @@ def colmap_blind_cameras(cameras: dict) -> list[int]:
     """The ids of the cameras (id -> CameraInfo) whose pairs COLMAP verifies none of: fisheyes without a trusted
     focal length (`colmap_needs_focal`)."""
     return [cid for cid, cam in sorted(cameras.items()) if not cam.prior_trusted and colmap_needs_focal(cam.model)]
-
-
-def connect_readonly(path):
-    """A read-only sqlite3 connection to the database file `path`, closed on leaving the `with` block; the
-    plain-SQL reads below need what pycolmap's reader skips or refuses."""
-    import sqlite3
-
-    path = Path(path).resolve()
-    uri = path.as_uri() + "?mode=ro"
-    if not os.access(path.parent, os.W_OK):
-        # a WAL database is read through a shared-memory file made next to it; in a folder that cannot be
-        # written (a read-only mount, another user's run) SQLite cannot make it, and nothing can change the file
-        wal = Path(f"{path}-wal")
-        if wal.is_file() and wal.stat().st_size > 0:
-            raise InputError(f"{path}: its last changes are still in {wal.name}, and its folder cannot be written "
-                             "to merge them; copy the folder to a writable place and run again")
-        uri += "&immutable=1"
-    return closing(sqlite3.connect(uri, uri=True))
 
 
 def pair_configurations(path) -> dict[str, int]:
@@ -327,8 +307,6 @@ def read_correspondences(path, min_inliers: int = 0, *, mapped: bool = True) -> 
 
 
 def _check_camera_models(path: Path, cameras: dict[int, CameraInfo]) -> None:
-    from .geometry.camera import MODELS
-
     for camera_id, cam in sorted(cameras.items()):
         if cam.model not in MODELS:
             raise InputError(f"{path}: camera {camera_id} is {cam.model}, which mvrecon's mapper does not model; "

@@ -10,7 +10,7 @@ from mvrecon import config as cfgmod
 from mvrecon.cameras import CameraConfig, focal_prior, group_cameras, parse_camera_params
 from mvrecon.errors import InputError
 from mvrecon.features.sift import SiftConfig, extract_sift
-from mvrecon.io.images import image_metadata, list_images, read_image, write_image
+from mvrecon.io.images import image_metadata, list_images, read_image, to_gray, write_image
 from mvrecon.matching.pairs import select_pairs
 from mvrecon.pipeline import FrontendConfig
 
@@ -56,6 +56,21 @@ def test_16_bit_grey_rgba_and_tiff_are_read(tmp_path):
     assert d.shape == (60, 80) and d.dtype == np.uint8
     names, skipped = list_images(tmp_path)
     assert names == ["c16.tif", "g16.png", "grey.jpg", "rgba.png"] and not skipped
+
+
+def test_one_grey_conversion_in_8_bits_and_in_float():
+    """to_gray's two forms weigh the channels alike (BT.601): the 8-bit grey is the float one rounded, within
+    OpenCV's fixed-point rounding; 16-bit data is stretched to the full 8 bits; alpha is ignored."""
+    rgb = np.random.default_rng(3).integers(0, 256, (40, 50, 3), dtype=np.uint8)
+    exact = rgb.astype(np.float64) @ [0.299, 0.587, 0.114]
+    assert np.abs(to_gray(rgb, np.float32) - exact).max() < 1e-3
+    assert np.abs(to_gray(rgb).astype(np.float64) - exact).max() <= 0.51
+    assert np.array_equal(to_gray(np.dstack([rgb, np.zeros((40, 50), np.uint8)])), to_gray(rgb))
+    deep = to_gray(rgb.astype(np.uint16) * 4)  # 10-bit data in 16 bits: stretched by the maximum of its grey
+    stretched = exact * 255 / exact.max()
+    assert deep.dtype == np.uint8 and deep.max() == 255 and np.abs(deep - stretched).max() <= 1
+    with pytest.raises(ValueError):
+        to_gray(rgb, np.float64)
 
 
 def test_sift_keypoints_follow_the_image_content_in_colmap_pixels():

@@ -179,9 +179,9 @@ def code_version(code: Path) -> str:
 def mapper_config_hash(code: Path, seed: int, map_args: list[str]) -> str:
     """The hash of the MapperConfig that `mvrecon map --seed SEED MAP_ARGS` of the tree `code` maps with; a
     bad flag in MAP_ARGS fails here, before any run."""
-    script = ("import sys; from mvrecon.cli import parse_args; "
+    script = ("import sys; from mvrecon.cli import parse_args; from mvrecon.config import config_hash; "
               "from mvrecon.commands.reconstruct import mapper_config; "
-              "print(mapper_config(parse_args(sys.argv[1:])).hash())")
+              "print(config_hash(mapper_config(parse_args(sys.argv[1:]))))")
     env, cwd = code_environment(code)
     proc = subprocess.run([sys.executable, "-c", script, "map", "-w", ".", "--seed", str(seed), *map_args],
                           capture_output=True, text=True, env=env, cwd=cwd)

@@ -28,6 +28,7 @@ def run(args) -> int:
     import logging
     from pathlib import Path
 
+    from ..config import config_hash
     from ..executor import StageClock
     from ..database import database_counts
     from ..errors import InputError
@@ -53,7 +54,7 @@ def run(args) -> int:
     if ours and earlier and earlier.get("counts") == counts and isinstance(earlier.get("stages"), dict):
         # the same database as the earlier report's: keep its front-end stages (times, memory)
         stages = {**{k: v for k, v in earlier["stages"].items() if k != "mapping"}, **clock.stages}
-    write_report(args.workspace, config_hash=config.hash(), seed=config.seed, summary=summary,
+    write_report(args.workspace, config_hash=config_hash(config), seed=config.seed, summary=summary,
                  stages=stages, total=stage, counts=counts,
                  database={"made_by": "mvrecon" if ours else "another tool (no mvrecon features record in "
                            "config.json)"})

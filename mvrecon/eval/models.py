@@ -5,64 +5,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from ..errors import InputError
-
-
-def load_reconstruction(path) -> pycolmap.Reconstruction:
-    """A COLMAP model folder (binary or text); an InputError names the folder when it holds no model or one
-    that pycolmap cannot read (a cut-off images.bin raises IndexError there, a garbled cameras.bin ValueError)."""
-    path = Path(path)
-    if not (path / "images.bin").exists() and not (path / "images.txt").exists():
-        raise InputError(f"{path}: no COLMAP model (images.bin or images.txt) here")
-    for name, check in (("points3D.bin", _points_problem), ("images.bin", _images_problem)):
-        if (path / name).is_file():
-            problem = check((path / name).read_bytes())
-            if problem:
-                raise InputError(f"{path}: cannot read this COLMAP model ({name}: {problem})")
-    try:
-        rec = pycolmap.Reconstruction(str(path))
-    except Exception as exc:
-        raise InputError(f"{path}: cannot read this COLMAP model ({type(exc).__name__}: {exc})") from None
-    for cam in rec.cameras.values():  # a cut-off cameras.bin reads as zeros
-        params = np.asarray(cam.params, float)
-        if not len(params) or not np.isfinite(params).all() or min(cam.focal_length_x, cam.focal_length_y) <= 0:
-            raise InputError(f"{path}: cannot read this COLMAP model (camera {cam.camera_id}: parameters "
-                             f"{params.tolist()})")
-    return rec
-
-
-def _points_problem(data: bytes) -> str | None:
-    """Whether points3D.bin's records add up to its size. pycolmap reads a file cut off mid-record as garbage
-    lengths and may allocate without end (a compare run hung for minutes), so the sizes are walked first:
-    count, then per point id, xyz, rgb, error (43 bytes), a track length and 8 bytes per track element."""
-    import struct
-
-    n, offset = struct.unpack_from("<Q", data, 0)[0] if len(data) >= 8 else 0, 8
-    for k in range(n):
-        if offset + 51 > len(data):
-            return f"cut off after {k} of {n} points"
-        offset += 51 + 8 * struct.unpack_from("<Q", data, offset + 43)[0]
-    return _ending(offset, len(data), n, "points")
-
-
-def _images_problem(data: bytes) -> str | None:
-    """The same for images.bin: per image id, rotation, translation, camera id (64 bytes), a name ending in a
-    zero byte, a count of 2D points and 24 bytes per point."""
-    import struct
-
-    n, offset = struct.unpack_from("<Q", data, 0)[0] if len(data) >= 8 else 0, 8
-    for k in range(n):
-        end = data.find(b"\0", offset + 64)
-        if end < 0 or end + 9 > len(data):
-            return f"cut off after {k} of {n} images"
-        offset = end + 9 + 24 * struct.unpack_from("<Q", data, end + 1)[0]
-    return _ending(offset, len(data), n, "images")
-
-
-def _ending(offset: int, size: int, n: int, what: str) -> str | None:
-    if offset > size:
-        return f"cut off in the last of its {n} {what}"
-    return f"{size - offset} bytes after its {n} {what}" if offset < size else None
+from ..io.colmap_model import load_reconstruction
 
 
 def poses(rec: pycolmap.Reconstruction) -> dict:

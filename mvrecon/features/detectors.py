@@ -35,9 +35,9 @@ class Detection:
 
 
 def _gray(image) -> np.ndarray:
-    from ..io.images import to_gray_uint8
+    from ..io.images import to_gray
 
-    return to_gray_uint8(np.asarray(image))
+    return to_gray(image)
 
 
 def _from_cv(kps) -> np.ndarray:

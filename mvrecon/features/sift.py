@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import bounded
-from ..io.images import to_gray_uint8
+from ..io.images import to_gray
 
 
 @dataclass(frozen=True)
@@ -51,7 +51,7 @@ def extract_sift(image: np.ndarray, config: SiftConfig = SiftConfig(), reduced: 
     pixels."""
     import cv2
 
-    gray = to_gray_uint8(image)
+    gray = to_gray(image)
     h, w = gray.shape[0] * reduced, gray.shape[1] * reduced
     factor = min(1.0, config.max_image_size / max(h, w))
     if factor < 1.0:

@@ -19,6 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..io.images import to_gray
+
 # Box layouts of the 9x9 filters (x0, y0, x1, y1, weight), the coordinates OpenCV and the paper use.
 _DXX = ((0, 2, 3, 7, 1), (3, 2, 6, 7, -2), (6, 2, 9, 7, 1))
 _DYY = ((2, 0, 7, 3, 1), (2, 3, 7, 6, -2), (2, 6, 7, 9, 1))
@@ -208,7 +210,7 @@ def surf(gray, config: SurfConfig = SurfConfig()) -> tuple[np.ndarray, np.ndarra
     float32 descriptors."""
     g = np.asarray(gray, dtype=np.float64)
     if g.ndim == 3:
-        g = g[..., :3] @ np.array([0.299, 0.587, 0.114])
+        g = to_gray(g, np.float32).astype(np.float64)
     ii = integral_image(g)
     kps = fast_hessian(g, config)
     angles = np.zeros(len(kps)) if config.upright else orientations(ii, kps)

@@ -403,17 +403,36 @@ def apply_orientation(image: np.ndarray, orientation: int) -> np.ndarray:
     return np.ascontiguousarray(op(image)) if op else image
 
 
-def to_gray_uint8(image: np.ndarray) -> np.ndarray:
-    """8-bit grey for feature detection. 16-bit images are stretched by their own maximum so that 10/12-bit
-    sensor data stored in 16 bits keeps its contrast instead of collapsing into the bottom 8 levels."""
+def as_uint8(image) -> np.ndarray:
+    """8-bit copy: 16-bit (or float) images stretched by their maximum, so 10/12-bit data keeps its contrast; the
+    matchers work on 8-bit data."""
+    img = np.asarray(image)
+    if img.dtype == np.uint8:
+        return img
+    top = float(np.nanmax(img)) if img.size else 1.0
+    return np.clip(img.astype(np.float32) * (255.0 / max(top, 1e-9)), 0, 255).round().astype(np.uint8)
+
+
+LUMA_WEIGHTS = (0.299, 0.587, 0.114)  # ITU-R BT.601, the weights of OpenCV's RGB2GRAY
+
+
+def to_gray(image: np.ndarray, dtype=np.uint8) -> np.ndarray:
+    """The image in grey, by the BT.601 weights, the one conversion every path uses (an alpha channel is ignored).
+
+    uint8 (for detection and matching): OpenCV's RGB2GRAY, then `as_uint8` (a 16-bit image stretched by the
+    maximum of its grey); 8-bit grey comes back as given. float32 (for costs that need sub-level differences):
+    the weighted sum in float32, unrounded, on the image's own scale."""
     import cv2
 
-    if image.ndim == 3:
-        image = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-    if image.dtype == np.uint16:
-        top = int(image.max())
-        image = (image.astype(np.float32) * (255.0 / max(top, 1))).round().astype(np.uint8)
-    return image
+    if dtype == np.float32:
+        img = np.asarray(image, dtype=np.float32)
+        return img[..., :3] @ np.array(LUMA_WEIGHTS, dtype=np.float32) if img.ndim == 3 else img
+    if dtype != np.uint8:
+        raise ValueError(f"to_gray gives uint8 or float32, not {np.dtype(dtype)}")
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img[..., :3], cv2.COLOR_RGB2GRAY)
+    return as_uint8(img)
 
 
 def colors_at(image: np.ndarray, xy: np.ndarray) -> np.ndarray:

@@ -16,16 +16,17 @@ COLMAP did (a COLMAP database mapped with `mvrecon map -o`, or a bare COLMAP mod
 
 import logging
 import shutil
+import sqlite3
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
 from ..errors import InputError
-from ..eval.models import load_reconstruction
-from .colmap_model import model_bytes
+from .colmap_model import load_reconstruction, model_bytes
 from .files import require_room, some_names
 from .images import TRANSPOSED, image_metadata, image_problem, read_image
+from .sqlite import connect_readonly
 
 
 def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -1, text: bool = False,
@@ -240,10 +241,6 @@ def database_frames(database, names) -> dict[str, bool]:
     mixed, where config.json (our features stage) or images.json would speak for the folder, and report.json is
     written by `map` for either. A COLMAP from before its affine keypoints (about 2018) wrote 4 columns too: its
     images are taken as mvrecon's, upright."""
-    import sqlite3
-
-    from ..database import connect_readonly
-
     if database is None or not Path(database).is_file():
         return {}
     try:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io.images import to_gray
 from ..progress import progress
 from . import cameras, meshes
 from .render import Hits, Renderer, RenderSettings
@@ -340,7 +341,7 @@ def _render_all(
     for k in progress(todo, desc="render", unit="image"):
         image, depth = renderer.render(cam, poses[k], exposure=float(exposures[k]), seed=seed * 7919 + k)
         if grey:
-            image = np.round(image.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32))
+            image = np.round(to_gray(image, np.float32))
             image = np.clip(image, 0, 255).astype(np.uint8)
         write_image(files[k][0], image)
         write_depth(files[k][1], depth)

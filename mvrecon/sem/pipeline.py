@@ -139,7 +139,7 @@ def _load(paths, max_size):
     """Grey images at working size and the downscale factor; two files with identical pixels are refused."""
     import cv2
 
-    from ..io.images import read_image, to_gray_uint8
+    from ..io.images import read_image, to_gray
     from ..io.stage_cache import digest
 
     images, seen = [], {}
@@ -150,7 +150,7 @@ def _load(paths, max_size):
             raise InputError(f"{p}: identical pixels to {seen[key]}; a tilt series needs one image per tilt, and "
                              "one view twice has no parallax")
         seen[key] = p
-        images.append(to_gray_uint8(image))
+        images.append(to_gray(image))
     odd = next((k for k, im in enumerate(images) if im.shape != images[0].shape), None)
     if odd is not None:
         (h0, w0), (h1, w1) = images[0].shape, images[odd].shape

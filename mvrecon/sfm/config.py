@@ -1,8 +1,6 @@
 """The mapper's settings: one frozen dataclass whose defaults follow COLMAP's incremental mapper."""
 
-import hashlib
-import json
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 from ..config import bounded
 
@@ -116,7 +114,3 @@ class MapperConfig:
     min_model_size: int = bounded(3, 2)
     max_models: int = bounded(10, 1)
     seed: int = bounded(0, 0)
-
-    def hash(self) -> str:
-        """Short stable hash of the settings, stored in reports and snapshots to refuse mixing configs."""
-        return hashlib.sha1(json.dumps(asdict(self), sort_keys=True).encode()).hexdigest()[:12]

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import config_hash
 from ..geometry.camera import num_distortion_terms
 from ..io.files import replace_whole
 from ..progress import progress
@@ -101,7 +102,7 @@ def _signature(corr, config: MapperConfig) -> tuple:
         inl = np.ascontiguousarray(p.inliers, np.int64)
         add("pair", int(p.image_id1), int(p.image_id2), p.config, inl.shape)
         h.update(inl.tobytes())
-    return (config.hash(), len(corr.images), len(corr.pairs), h.hexdigest())
+    return (config_hash(config), len(corr.images), len(corr.pairs), h.hexdigest())
 
 
 class IncrementalMapper:

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..io.images import to_gray
 from ..progress import progress
 
 
@@ -46,13 +47,6 @@ class BestConfig:
     median_sigma: float = 25.5
 
 
-def _gray(image) -> np.ndarray:
-    img = np.asarray(image, dtype=np.float32)
-    if img.ndim == 3:
-        img = img[..., :3] @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
-    return img
-
-
 def census_transform(gray, size=(9, 7)) -> np.ndarray:
     """uint64 bit string per pixel: bit k set where neighbour k is darker than the centre (reflected borders)."""
     w, h = size
@@ -79,7 +73,7 @@ def cost_volume(left, right, config: BestConfig) -> np.ndarray:
     Pixels whose match falls outside the right image (x - d < 0) get the cost against the right image's border
     column: a real comparison, so at the left edge the range d > x collapses onto it and can win there (wrong
     matches that `remove_speckles` and `clear_left_border` take out)."""
-    gl, gr = _gray(left), _gray(right)
+    gl, gr = to_gray(left, np.float32), to_gray(right, np.float32)
     cl, cr = census_transform(gl, config.census_size), census_transform(gr, config.census_size)
     gxl = np.gradient(gl, axis=1)
     gxr = np.gradient(gr, axis=1)
@@ -264,15 +258,13 @@ def weighted_median(disparity, guide, radius: int, sigma: float) -> np.ndarray:
     import cv2
 
     d = np.nan_to_num(np.asarray(disparity, dtype=np.float32), nan=0.0)
-    guide8 = np.clip(np.asarray(guide), 0, 255).astype(np.uint8)
-    if guide8.ndim == 3:
-        guide8 = cv2.cvtColor(guide8[..., :3], cv2.COLOR_RGB2GRAY)
+    guide8 = to_gray(np.clip(np.asarray(guide), 0, 255).astype(np.uint8))
     return cv2.ximgproc.weightedMedianFilter(guide8, d, radius, sigma)
 
 
 def best_disparity(left, right, config: BestConfig = BestConfig()) -> np.ndarray:
     """float32 disparity of the left image; NaN holes only when fill_holes is False."""
-    gray = _gray(left)
+    gray = to_gray(left, np.float32)
     aggregated = sgm_aggregate(cost_volume(left, right, config), gray, config)
     index_l = np.argmin(aggregated, axis=2)
     disp_l = _subpixel(aggregated, index_l) + config.min_disparity

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.files import replace_whole
+from ..io.images import as_uint8, to_gray
 from ..io.stage_cache import code_digest, digest
 from ..progress import progress
 
@@ -81,12 +82,6 @@ class StereoResult:
     rms_px: float
     per_pair_rms_px: dict[str, float]
     dropped_pairs: list[str]
-
-
-def _gray(image) -> np.ndarray:
-    from ..stereo.pipeline import to_gray
-
-    return to_gray(image)
 
 
 def detect_board_size(gray) -> tuple[int, int] | None:
@@ -216,7 +211,7 @@ def _detect_all(images: dict, board, stages=None) -> tuple[tuple[int, int], dict
     and taken from the record when an earlier run found them in the same pixels with the same code."""
     import cv2
 
-    grays = {n: _gray(img) for n, img in images.items()}
+    grays = {n: to_gray(as_uint8(img)) for n, img in images.items()}
     code = (code_digest(__name__), cv2.__version__) if stages is not None else None
     if board is None:
         sizes = {}

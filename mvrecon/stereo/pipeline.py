@@ -16,7 +16,7 @@ from ..errors import InputError
 from ..io.files import made_folder, replace_whole, write_json
 from ..geometry.fundamental import RansacConfig, ransac_fundamental, sampson_distance
 from ..geometry.rectification import apply_homography, calibrated_rectification, fit_to_canvas, hartley_rectification
-from ..io.images import read_image, write_image
+from ..io.images import as_uint8, read_image, to_gray, write_image
 from ..io.pfm import read_pfm, write_pfm
 from ..io.stage_cache import Stages, code_digest, digest
 from .best import BestConfig, best_disparity
@@ -44,22 +44,6 @@ class StereoConfig:
     gee: GEEConfig = GEEConfig()
     sgbm: SGBMConfig = SGBMConfig()
     best: BestConfig = BestConfig()
-
-
-def as_uint8(image) -> np.ndarray:
-    """8-bit copy (16-bit images stretched by their maximum); the matchers here work on 8-bit data."""
-    img = np.asarray(image)
-    if img.dtype == np.uint8:
-        return img
-    top = float(np.nanmax(img)) if img.size else 1.0
-    return np.clip(img.astype(np.float32) * (255.0 / max(top, 1e-9)), 0, 255).round().astype(np.uint8)
-
-
-def to_gray(image) -> np.ndarray:
-    import cv2
-
-    img = as_uint8(image)
-    return cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img
 
 
 def sift_matches(left, right, ratio: float = 0.8, max_features: int = 8192) -> tuple[np.ndarray, np.ndarray]:
@@ -131,7 +115,7 @@ def read_pair(left_path, right_path) -> tuple[np.ndarray, np.ndarray]:
         raise InputError(f"{right_path}: size {right.shape[1]}x{right.shape[0]} differs from the left image's "
                          f"{left.shape[1]}x{left.shape[0]}; a stereo pair needs equal sizes")
     if left.ndim != right.ndim:
-        left, right = to_gray(left), to_gray(right)
+        left, right = to_gray(as_uint8(left)), to_gray(as_uint8(right))
     return as_uint8(left), as_uint8(right)
 
 
@@ -314,29 +298,80 @@ def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=
         return _run(config, left_path, right_path, out, left, right, calib, camera, gt, mask, rectified)
 
 
+@dataclass
+class _Output:
+    """The folder of one run as its steps write it: the stage cache, the report, and the figures."""
+
+    out: Path
+    stages: Stages
+    report: dict
+    figures_code: str  # the figures module's source, read once rather than per figure
+
+    def warn(self, text: str) -> None:
+        """A result that is likely wrong says so: in the log and in report.json's "warnings"."""
+        log.warning("warning: %s", text)
+        self.report["warnings"].append(text)
+
+    def figure(self, name: str, key, draw) -> None:
+        """Figures take seconds (matplotlib): drawn again only when what they show changed."""
+        key = digest(key, self.figures_code)
+        self.stages.run(name, key, [name], lambda: replace_whole(self.out / name, draw))
+
+
+@dataclass
+class _Rectified:
+    """The pair in the frame the disparity is searched in, with the inlier matches moved there."""
+
+    left: np.ndarray
+    right: np.ndarray
+    p1: np.ndarray
+    p2: np.ndarray
+    geometry: dict | None  # focal, baseline, cx, cy, doffs when metric depth can be had
+    inside: np.ndarray  # pixels of the canvas inside the warped left image
+
+
 def _run(config: StereoConfig, left_path, right_path, out: Path, left, right, calib, camera, gt, mask,
          rectified: bool) -> dict:
     """run_stereo after its checks, into the existing folder `out` (an interrupted run keeps its stages there)."""
-    import cv2
-
     from . import figures
-    from .depth import disparity_to_depth, write_point_cloud
-    from .evaluate import error_map, evaluate
 
     stages = Stages(out)
     stages.path.parent.mkdir(parents=True, exist_ok=True)  # the matches and disparities are kept there too
     report: dict = {"left": str(left_path), "right": str(right_path), "method": config.method, "warnings": []}
+    run = _Output(out, stages, report, code_digest(figures.__name__))
+    x1, x2, F, inliers = _matches(config, run, left, right, left_path, right_path)
+    t0 = time.perf_counter()
+    rect = _rectify(left, right, F, x1[inliers], x2[inliers], calib, camera, rectified, report)
+    dy = np.abs(rect.p1[:, 1] - rect.p2[:, 1])
+    report["vertical_disparity_px"] = {"median": float(np.median(dy)), "p95": float(np.percentile(dy, 95)),
+                                       "max": float(dy.max())}
+    timings = {"matching_and_F": stages.seconds("matches"), "rectification": time.perf_counter() - t0}
+    for name, image in (("rectified_left.png", rect.left), ("rectified_right.png", rect.right)):
+        replace_whole(out / name, lambda tmp: write_image(tmp, _bgr(image)))
+    run.figure("rectified_pair.png", digest(rect.left, rect.right),
+               lambda path: figures.rectified_figure(path, rect.left, rect.right))
+    kind = ("calib" if calib is not None else "camera" if camera is not None else
+            "rectified" if rectified else "uncalibrated")
+    disparity, timings["disparity"] = _disparity(config, run, rect, calib, kind, left_path)
+    if rect.geometry is not None:
+        _depth_and_cloud(run, disparity, rect)
+    else:
+        log.info("no calibration given: disparity only (no metric depth without --calib or --camera)")
+    if gt is not None:
+        _score(config, run, disparity, gt, mask)
+    report["timings_s"] = timings
+    report["reused"] = stages.reused
+    report["config"] = asdict(config)
+    write_json(out / "report.json", report, indent=2, allow_nan=False)  # strict JSON: no NaN
+    return report
 
-    def warn(text):
-        """A result that is likely wrong says so: in the log and in report.json's "warnings"."""
-        log.warning("warning: %s", text)
-        report["warnings"].append(text)
 
-    figures_code = code_digest(figures.__name__)  # read once, not per figure
+def _matches(config: StereoConfig, run: _Output, left, right, left_path, right_path):
+    """SIFT matches and the fundamental matrix (x1, x2, F, inlier mask), found once per pair and code: their
+    counts and OpenCV's F for comparison go into the report, the epipolar figure into the folder."""
+    import cv2
 
-    def figure(name, key, draw):
-        """Figures take seconds (matplotlib): drawn again only when what they show changed."""
-        stages.run(name, digest(key, figures_code), [name], lambda: replace_whole(out / name, draw))
+    from . import figures
 
     def find_matches():
         x1, x2 = sift_matches(left, right, config.ratio, config.max_features)
@@ -363,118 +398,130 @@ def _run(config: StereoConfig, left_path, right_path, out: Path, left, right, ca
                 "our_F_sampson_median_px_of_its_inliers": float(np.median(
                     sampson_distance(F, x1[mask_cv.ravel() > 0], x2[mask_cv.ravel() > 0]))),
             }
-        replace_whole(out / ".stages" / "matches.npz", lambda tmp: np.savez(tmp, x1=x1, x2=x2, F=F, inliers=inliers))
+        replace_whole(run.out / ".stages" / "matches.npz",
+                      lambda tmp: np.savez(tmp, x1=x1, x2=x2, F=F, inliers=inliers))
         return part
 
     matches_key = digest(left, right, config.ratio, config.max_features, asdict(config.ransac),
-                       code_digest(__name__, "mvrecon.features.sift", "mvrecon.matching.matcher",
-                             "mvrecon.geometry.fundamental"), cv2.__version__)
-    report.update(stages.run("matches", matches_key, [".stages/matches.npz"], find_matches))
-    with np.load(out / ".stages" / "matches.npz") as saved:
+                         code_digest(__name__, "mvrecon.features.sift", "mvrecon.matching.matcher",
+                                     "mvrecon.geometry.fundamental"), cv2.__version__)
+    run.report.update(run.stages.run("matches", matches_key, [".stages/matches.npz"], find_matches))
+    with np.load(run.out / ".stages" / "matches.npz") as saved:
         x1, x2, F, inliers = saved["x1"], saved["x2"], saved["F"], saved["inliers"]
-    figure("matches_epipolar.png", matches_key,
-           lambda path: figures.matches_epipolar_figure(path, left, right, x1, x2, F, inliers))
-    xi1, xi2 = x1[inliers], x2[inliers]
+    run.figure("matches_epipolar.png", matches_key,
+               lambda path: figures.matches_epipolar_figure(path, left, right, x1, x2, F, inliers))
+    return x1, x2, F, inliers
 
-    t0 = time.perf_counter()
-    geometry = None
+
+def _rectify(left, right, F, xi1, xi2, calib, camera, rectified: bool, report: dict) -> _Rectified:
+    """The rectified pair: as given (calib.txt, or declared rectified), by the camera file's stereo
+    calibration, or by Hartley's homographies from F; how, in report["rectification"]."""
+    import cv2
+
     if calib is not None or (rectified and camera is None):  # Middlebury pairs come rectified
-        rect_l, rect_r, p1, p2 = left, right, xi1, xi2
-        inside = np.ones(left.shape[:2], bool)
+        geometry = None
         if calib is not None:  # calib.txt carries the rectified geometry
             geometry = {"focal": calib.focal, "baseline": calib.baseline, "cx": float(calib.cam0[0, 2]),
                         "cy": float(calib.cam0[1, 2]), "doffs": calib.doffs}
             report["rectification"] = "calibrated (calib.txt: input already rectified)"
         else:
             report["rectification"] = "none (input declared rectified)"
-    elif camera is not None:
+        return _Rectified(left, right, xi1, xi2, geometry, np.ones(left.shape[:2], bool))
+    if camera is not None:
         rect_l, rect_r, p1, p2, geometry, inside = _rectify_with_camera(left, right, camera, xi1, xi2)
         report["rectification"] = "calibrated (camera file)"
-    else:
-        h, w = left.shape[:2]
-        H1, H2 = hartley_rectification(F, xi1, xi2, (w, h))
-        frame = fit_to_canvas(H1, H2, (w, h), xi1, xi2)
-        size = (frame.width, frame.height)
-        rect_l = cv2.warpPerspective(left, frame.H1, size, flags=cv2.INTER_LINEAR)
-        rect_r = cv2.warpPerspective(right, frame.H2, size, flags=cv2.INTER_LINEAR)
-        inside = cv2.warpPerspective(np.ones((h, w), np.uint8), frame.H1, size, flags=cv2.INTER_NEAREST) > 0
-        p1, p2 = apply_homography(frame.H1, xi1), apply_homography(frame.H2, xi2)
-        report["rectification"] = "uncalibrated (Hartley)"
-        report["H1"], report["H2"] = frame.H1.tolist(), frame.H2.tolist()
-    dy = np.abs(p1[:, 1] - p2[:, 1])
-    report["vertical_disparity_px"] = {"median": float(np.median(dy)), "p95": float(np.percentile(dy, 95)),
-                                       "max": float(dy.max())}
-    timings = {"matching_and_F": stages.seconds("matches"), "rectification": time.perf_counter() - t0}
-    for name, image in (("rectified_left.png", rect_l), ("rectified_right.png", rect_r)):
-        replace_whole(out / name, lambda tmp: write_image(tmp, _bgr(image)))
-    figure("rectified_pair.png", digest(rect_l, rect_r), lambda path: figures.rectified_figure(path, rect_l, rect_r))
+        return _Rectified(rect_l, rect_r, p1, p2, geometry, inside)
+    h, w = left.shape[:2]
+    H1, H2 = hartley_rectification(F, xi1, xi2, (w, h))
+    frame = fit_to_canvas(H1, H2, (w, h), xi1, xi2)
+    size = (frame.width, frame.height)
+    rect_l = cv2.warpPerspective(left, frame.H1, size, flags=cv2.INTER_LINEAR)
+    rect_r = cv2.warpPerspective(right, frame.H2, size, flags=cv2.INTER_LINEAR)
+    inside = cv2.warpPerspective(np.ones((h, w), np.uint8), frame.H1, size, flags=cv2.INTER_NEAREST) > 0
+    report["rectification"] = "uncalibrated (Hartley)"
+    report["H1"], report["H2"] = frame.H1.tolist(), frame.H2.tolist()
+    p1, p2 = apply_homography(frame.H1, xi1), apply_homography(frame.H2, xi2)
+    return _Rectified(rect_l, rect_r, p1, p2, None, inside)
 
-    dmin, num = search_range(config, calib, p1[:, 0] - p2[:, 0], nonnegative=camera is None)
+
+def _disparity(config: StereoConfig, run: _Output, rect: _Rectified, calib, kind: str, left_path):
+    """The disparity of the rectified left image (NaN outside it and in holes) and the seconds it took:
+    searched in the range the matches (or calib.txt, or the config) give, found once per pair, range and code;
+    written as PFM, as PNG when it fits, and as a figure."""
+    import cv2
+
+    from . import figures
+
+    report = run.report
+    # disparities are not negative but with a camera file's rectification (never given with a calib.txt)
+    dmin, num = search_range(config, calib, rect.p1[:, 0] - rect.p2[:, 0], nonnegative=kind != "camera")
     report["disparity_range"] = [dmin, dmin + num]
-    kind = ("calib" if calib is not None else "camera" if camera is not None else
-            "rectified" if rectified else "uncalibrated")
-    report["match_disparities_px"], warnings = judge_matches(p1, p2, dmin, num, kind,
-                                                             geometry["doffs"] if geometry else 0.0)
+    report["match_disparities_px"], warnings = judge_matches(rect.p1, rect.p2, dmin, num, kind,
+                                                             rect.geometry["doffs"] if rect.geometry else 0.0)
     for text in warnings:
-        warn(text)
-    cached = out / ".stages" / f"disparity_{config.method}.pfm"
+        run.warn(text)
+    cached = run.out / ".stages" / f"disparity_{config.method}.pfm"
 
     def find_disparity():
         try:
-            disparity, extra = compute_disparity(rect_l, rect_r, config, dmin, num)
+            disparity, extra = compute_disparity(rect.left, rect.right, config, dmin, num)
         except MemoryError:
-            h, w = rect_l.shape[:2]
+            h, w = rect.left.shape[:2]
             raise InputError(f"{left_path}: not enough memory for {num} disparities of a {w}x{h} image; give a "
                              "smaller --num-disparities or smaller images") from None
         _save_pfm(cached, disparity)
         return extra
 
-    disparity_key = digest(rect_l, rect_r, config.method, asdict(getattr(config, config.method)), dmin, num,
-                         code_digest(f"{__package__}.{config.method}"), cv2.__version__)
-    report.update(stages.run(cached.stem, disparity_key, [cached.relative_to(out)], find_disparity))
+    disparity_key = digest(rect.left, rect.right, config.method, asdict(getattr(config, config.method)), dmin,
+                           num, code_digest(f"{__package__}.{config.method}"), cv2.__version__)
+    report.update(run.stages.run(cached.stem, disparity_key, [cached.relative_to(run.out)], find_disparity))
     disparity = _load_pfm(cached)
-    disparity[~inside] = np.nan  # canvas outside the warped left image has no disparity
-    timings["disparity"] = stages.seconds(cached.stem)
+    disparity[~rect.inside] = np.nan  # canvas outside the warped left image has no disparity
     report["invalid_percent"] = float(100 * np.mean(~np.isfinite(disparity)))
-    _save_pfm(out / "disparity.pfm", disparity)
-    report["disparity_png"] = _write_disparity_png(out / "disparity.png", disparity)
-    figure("disparity_view.png", digest(disparity, config.method), lambda path: figures.scalar_map_figure(
+    _save_pfm(run.out / "disparity.pfm", disparity)
+    report["disparity_png"] = _write_disparity_png(run.out / "disparity.png", disparity)
+    run.figure("disparity_view.png", digest(disparity, config.method), lambda path: figures.scalar_map_figure(
         path, disparity, f"disparity ({config.method})", "disparity (px)"))
+    return disparity, run.stages.seconds(cached.stem)
 
-    if geometry is not None:
-        depth = disparity_to_depth(disparity, geometry["focal"], geometry["baseline"], geometry["doffs"])
-        _save_pfm(out / "depth.pfm", depth)
-        figure("depth_view.png", digest(depth), lambda path: figures.scalar_map_figure(
-            path, depth, "depth Z = f B / (d + doffs)", "depth (baseline units)", cmap="viridis_r"))
-        finite = depth[np.isfinite(depth)]
-        max_depth = float(20 * np.median(finite)) if finite.size else None
 
-        def write_cloud(tmp):
-            report["points"] = write_point_cloud(tmp, depth, rect_l, geometry["focal"], geometry["cx"],
+def _depth_and_cloud(run: _Output, disparity, rect: _Rectified) -> None:
+    """Metric depth (PFM and figure) and the coloured point cloud, from a disparity with known geometry."""
+    from . import figures
+    from .depth import disparity_to_depth, write_point_cloud
+
+    geometry = rect.geometry
+    depth = disparity_to_depth(disparity, geometry["focal"], geometry["baseline"], geometry["doffs"])
+    _save_pfm(run.out / "depth.pfm", depth)
+    run.figure("depth_view.png", digest(depth), lambda path: figures.scalar_map_figure(
+        path, depth, "depth Z = f B / (d + doffs)", "depth (baseline units)", cmap="viridis_r"))
+    finite = depth[np.isfinite(depth)]
+    max_depth = float(20 * np.median(finite)) if finite.size else None
+
+    def write_cloud(tmp):
+        run.report["points"] = write_point_cloud(tmp, depth, rect.left, geometry["focal"], geometry["cx"],
                                                  geometry["cy"], max_depth)
-        replace_whole(out / "cloud.ply", write_cloud)
-        report["geometry"] = geometry
-    else:
-        log.info("no calibration given: disparity only (no metric depth without --calib or --camera)")
+    replace_whole(run.out / "cloud.ply", write_cloud)
+    run.report["geometry"] = geometry
 
-    if gt is not None:
-        if report["rectification"].startswith("uncalibrated"):
-            warn("ground truth is compared in the frame of the uncalibrated rectification; give --calib or "
+
+def _score(config: StereoConfig, run: _Output, disparity, gt, mask) -> None:
+    """Scores against the ground-truth disparity (report["metrics"]) and the error map, when frames agree."""
+    from . import figures
+    from .evaluate import error_map, evaluate
+
+    if run.report["rectification"].startswith("uncalibrated"):
+        run.warn("ground truth is compared in the frame of the uncalibrated rectification; give --calib or "
                  "--rectified for pairs that are already rectified")
-        if gt.shape == disparity.shape:
-            report["metrics"] = evaluate(disparity, gt, mask)
-            bad2 = report["metrics"]["all"]["bad-2"]
-            errors = error_map(disparity, gt)
-            title = f"{config.method}: bad-2.0 = {bad2:.2f} % (all, holes count as bad)"
-            figure("error_map.png", digest(errors, title),
-                   lambda path: figures.error_map_figure(path, errors, title))
-        else:
-            warn(f"rectified frame {disparity.shape} differs from the ground truth {gt.shape}: not evaluated")
-    report["timings_s"] = timings
-    report["reused"] = stages.reused
-    report["config"] = asdict(config)
-    write_json(out / "report.json", report, indent=2, allow_nan=False)  # strict JSON: no NaN
-    return report
+    if gt.shape != disparity.shape:
+        run.warn(f"rectified frame {disparity.shape} differs from the ground truth {gt.shape}: not evaluated")
+        return
+    run.report["metrics"] = evaluate(disparity, gt, mask)
+    bad2 = run.report["metrics"]["all"]["bad-2"]
+    errors = error_map(disparity, gt)
+    title = f"{config.method}: bad-2.0 = {bad2:.2f} % (all, holes count as bad)"
+    run.figure("error_map.png", digest(errors, title),
+               lambda path: figures.error_map_figure(path, errors, title))
 
 
 def _write_disparity_png(path: Path, disparity) -> bool:
