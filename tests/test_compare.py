@@ -553,7 +553,7 @@ def test_bad_mvrecon_args_are_refused_before_any_engine_runs(tmp_path, capsys):
         code = main(["compare", str(images), "-o", str(out), "--no-same-matches", "--timeout", "60", *extra])
         err = capsys.readouterr().err
         assert code == 2 and message in err and len(err.splitlines()) == 1, (extra, err)
-        assert not out.exists(), extra  # nothing ran (a misspelt flag used to let COLMAP run, then exit 0)
+        assert not out.exists(), extra  # nothing ran: a misspelt flag is caught before COLMAP's run
 
 
 def test_models_refuse_the_options_of_runs(runs, tmp_path, capsys):
