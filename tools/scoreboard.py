@@ -182,7 +182,7 @@ def main(argv=None) -> int:
     shared = sorted((n for n in shared_sets() if wanted(n)), key=lambda n: math.prod(pixels(DATA / n / "images")))
     # small catalog scenes, then the data sets from small to big, then the full-size catalog scenes
     quick = [n for n in catalog if "small" in n or "synthetic" in n]
-    plan = [(n, "catalog") for n in quick] + [(n, "../shared/data") for n in shared] \
+    plan = [(n, "catalog") for n in quick] + [(n, "public set") for n in shared] \
         + [(n, "catalog") for n in catalog if n not in quick]
     rows, skipped = [], []
     command = shown_command(args)
