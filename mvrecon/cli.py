@@ -30,7 +30,7 @@ from .progress import clear_line, set_enabled
 
 def _command_modules(only: str | None = None):
     """The command modules in `--help` order; with `only` (a command as typed), that one alone when it is one:
-    importing and describing every command took 8 ms of each run's single-core start-up (docs/speed-log.md)."""
+    importing and describing every command took 8 ms of each run's single-core start-up."""
     from . import commands
 
     names = [info.name for info in pkgutil.iter_modules(commands.__path__) if not info.name.startswith("_")]
@@ -196,7 +196,7 @@ def _end_process(code: int) -> None:
     """End this process with `code` as the interpreter's exit would, without its teardown: the exit
     handlers run (logging's flush, multiprocessing's clean-up, any a library registered) and every output is
     flushed, but the modules are not unloaded and the native libraries' destructors (GTSAM's, onnxruntime's,
-    pycolmap's) do not run. That teardown took 18 ms of each run (docs/speed-log.md, session 31), and nothing
+    pycolmap's) do not run. That teardown takes about 18 ms of a run, and nothing
     of the run's outputs depends on it: the commands close their files and databases themselves. While another
     thread still runs (a pool ending in the background is waited for), this returns and the interpreter's own
     exit waits for it; so it does under a profiler or a tracer (cProfile, coverage), which write their results

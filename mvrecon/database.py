@@ -6,7 +6,7 @@ COLMAP's pixel convention (top-left pixel centre at (0.5, 0.5)). The rest of mvr
 numpy arrays.
 
 pycolmap is not imported for any of this: its import took 0.11 s of CPU in every run, beside the feature workers on
-the cores they need (docs/speed-log.md, session 39). It is still what tests read our databases with, and what
+the cores they need. It is still what tests read our databases with, and what
 tells which of COLMAP's cameras it cannot verify without a focal length (`colmap_needs_focal`).
 """
 

@@ -99,8 +99,7 @@ def one_blas_thread() -> None:
     the user set OPENBLAS_NUM_THREADS. Each reads it when it loads, so call this before numpy is imported. An
     OpenBLAS makes its extra thread again after every fork (the feature workers, and OpenCV's copy as they import
     it), and the thread spins 0.1 s each time on the cores the stages need; no stage gains from it (their products
-    are small, or one per core already). templeSparseRing's reconstruct: 0.14 s less CPU, matching 0.03 s faster
-    (docs/speed-log.md, session 28)."""
+    are small, or one per core already). templeSparseRing's reconstruct takes 0.14 s less CPU with it."""
     if "OPENBLAS_NUM_THREADS" not in os.environ:
         os.environ["OPENBLAS_NUM_THREADS"] = "1"
         _set_here.add("OPENBLAS_NUM_THREADS")

@@ -69,9 +69,9 @@ def jobs(tmp_path):
 
 @pytest.mark.parametrize("method", ["fork", "forkserver"])
 def test_a_worker_that_dies_is_noticed_its_item_run_again_then_given_up(tmp_path, jobs, method):
-    """SIGKILL (what the out-of-memory killer sends) or SIGSEGV (a native crash) in a worker left the pool
-    waiting forever at 0% CPU. Now the item runs again in a fresh worker (6 dies once, then gives 36), and
-    an item whose worker dies twice gets `died`'s result with the reason (3 and 5); the others are unharmed.
+    """SIGKILL (what the out-of-memory killer sends) or SIGSEGV (a native crash) in a worker must not leave the
+    pool waiting forever: the item runs again in a fresh worker (6 dies once, then gives 36), and an item whose
+    worker dies twice gets `died`'s result with the reason (3 and 5); the others are unharmed.
     Workers are forked from a parent without OpenCV, else they come from the forkserver: both are covered."""
     script = textwrap.dedent(f"""
         import logging, sys
@@ -187,9 +187,9 @@ def test_a_run_whose_worker_dies_skips_that_image_with_the_reason_and_goes_on(tm
 
 
 def test_report_json_gives_the_peak_memory_of_the_run_and_its_workers(tmp_path):
-    """report.json's peak_mem_mb counted the main process only (304 MB for castle, where its processes held
-    1,531 MB): it is now the peak of the process and its workers, as measured from outside, and the main
-    process's own is peak_main_mem_mb."""
+    """report.json's peak_mem_mb is the peak of the process and its workers, as measured from outside (the main
+    process alone can be a fifth of it: 304 of 1,531 MB for castle), and the main process's own is
+    peak_main_mem_mb."""
     images = textured_views(tmp_path / "images")
     out = tmp_path / "out"
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")])}

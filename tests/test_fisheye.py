@@ -131,12 +131,11 @@ def fisheye_run(tmp_path_factory):
 
 
 def test_fisheye_scene_is_reconstructed_with_its_lens(fisheye_run):
-    """Measured on an AMD machine (AVX2), seeds 0-3: 12/12 registered, AUC@1 0.941-0.962, AUC@5 0.988-0.992,
-    median rotation error 0.025-0.039 deg, reprojection 0.16 px, focal 285.1-285.9. The final refinement runs LM
-    to 1e-5 for this four-term lens (MapperConfig.four_term_final_tolerance): at 1e-3 it stopped wherever the
-    seed's path left focal and k1..k4, 0.019-0.075 deg over seeds 0-7 here and 0.040-0.125 deg over seeds 0-3 on
-    an Intel machine (AVX-512). The default SIMPLE_RADIAL on the same images: AUC@1 0.50, 0.30 deg, 0.61 px;
-    OPENCV: AUC@5 0.12."""
+    """The catalog's fisheye scene with OPENCV_FISHEYE registers in one model with its lens recovered (seeds 0-3:
+    AUC@1 0.941-0.962, median rotation error 0.025-0.039 deg, focal 285.1-285.9). The final refinement runs LM to
+    1e-5 for this four-term lens (MapperConfig.four_term_final_tolerance): at 1e-3 it stops wherever the seed's
+    and the machine's path left focal and k1..k4 (up to 0.125 deg). The default SIMPLE_RADIAL on the same
+    images: AUC@1 0.50; OPENCV: AUC@5 0.12."""
     scene, run = fisheye_run
     models = sparse_models(run / "sparse")
     summary = accuracy_summary([poses(m) for m in models], load_ground_truth(scene / "gt" / "sparse"))
@@ -150,8 +149,8 @@ def test_fisheye_scene_is_reconstructed_with_its_lens(fisheye_run):
     assert abs(cam.focal_length_x - 285.0) < 0.01 * 285 and abs(cam.focal_length_y - 285.0) < 0.01 * 285
     assert abs(cam.params[4] - TRUTH[4]) < 0.015  # k1: 0.0446 measured (k2..k4 trade off against each other)
     # the lens as a whole: the recovered camera puts each true ray within 2 px of its pixel over the whole
-    # image (at the corners 0.43-1.14 px measured over seeds 0-3, median 0.09-0.39 px; at a final tolerance of
-    # 1e-3, 0.91-1.67 px on AMD and 1.36-2.44 px on Intel, seeds 0-3)
+    # image (at the corners 0.43-1.14 px over seeds 0-3, median 0.09-0.39 px; up to 2.44 px at a final
+    # tolerance of 1e-3)
     grid = np.stack(np.meshgrid(np.linspace(0.5, 639.5, 33), np.linspace(0.5, 479.5, 25)), -1).reshape(-1, 2)
     rays = camera.pixels_to_normalized(FISHEYE, TRUTH, grid)
     moved = np.linalg.norm(cam.img_from_cam(np.c_[rays, np.ones(len(rays))]) - grid, axis=1)
@@ -211,11 +210,10 @@ def wide_scene(tmp_path_factory):
                          ids=["guessed", "known"])
 def test_wide_fisheye_registers_every_view_in_its_place(wide_scene, tmp_path, params):
     """From the fourth image on, each view's 2D-3D matches fit a second pose one ground tile away (at several
-    steps with more inliers than the true pose), and the mapper put a block of 4-5 views there: 12/12, every
-    rotation within 0.12 deg, but AUC@5 0.51 (guessed focal) and 0.37 (known lens). Now the pose the image's
-    best-connected views support wins, and an image whose best-connected views are not registered yet waits.
-    Measured: AUC@5 0.989 and 0.988, median rotation error 0.04 deg (COLMAP's mapper on the same database
-    with the known lens: 0.990)."""
+    steps with more inliers than the true pose); taking the pose with the most inliers puts a block of 4-5 views
+    there (AUC@5 0.37-0.51). The pose the image's best-connected views support wins, and an image whose
+    best-connected views are not registered yet waits: AUC@5 0.989 and 0.988, median rotation error 0.04 deg
+    (COLMAP's mapper on the same database with the known lens: 0.990)."""
     run = tmp_path / "run"
     assert main(["-q", "reconstruct", str(wide_scene / "images"), "-o", str(run), "--camera-model", FISHEYE,
                  *params]) == 0

@@ -481,9 +481,9 @@ def test_wide_angle_lens_with_its_own_camera_model(wide_scene, tmp_path):
 def test_a_panorama_is_refused_not_reconstructed(tmp_path, caplog):
     """panorama_small: a camera turning in place (10 views from one point, 36 deg apart). No baseline, so no
     depth. With the focal guessed (768 px for 400) the essential matrix of a rotation fits a baseline to the
-    focal error: the mapper used to build a 3-image model with cameras 2.2 m apart (COLMAP's pipeline: 3 images
-    10 units apart). Now every pair a homography explains as a rotation, at a focal length the camera may
-    have, is refused as the initial pair, the run makes no model, and the reason says why."""
+    focal error (COLMAP's pipeline builds a model of 3 images 10 units apart). Every pair a homography
+    explains as a rotation, at a focal length the camera may have, is refused as the initial pair, the run
+    makes no model, and the reason says why."""
     from mvrecon.scenes import make_scene
 
     scene = make_scene("panorama_small", tmp_path / "scene")
@@ -553,8 +553,8 @@ def test_text_models_warn_about_image_names_with_spaces(demo, tmp_path, caplog):
 
 def test_copies_of_one_view_say_that_the_camera_did_not_move(demo, tmp_path, capsys):
     """Four copies of one view (a camera on a tripod, a time-lapse of a still scene): every match stays on its
-    pixel and is left out as printed on the images, so no pair verifies. The error line used to say that the
-    images do not overlap or lack texture."""
+    pixel and is left out as printed on the images, so no pair verifies. The error line says the camera did not
+    move, not that the images do not overlap or lack texture."""
     import shutil
 
     images = tmp_path / "still"

@@ -137,7 +137,7 @@ def test_loop_closure_takes_back_views_that_drift_pushed_past_4_px(scene, drift_
     else:
         assert back == 0
         # left without observations, the image is deregistered with a reason (a BA holding its pose as a
-        # variable with no factor used to stop the whole run with GTSAM's "ordering contains variables ...")
+        # variable with no factor would stop the whole run with GTSAM's "ordering contains variables ...")
         mapper._global_refine(m)
         assert not m.registered[i] and "lost all its 2D-3D matches" in mapper.reasons[i]
         assert m.registered.sum() == 7
@@ -436,9 +436,9 @@ def lined_up_views(groups, seed=0, noise_px=0.2):
 ])
 def test_without_an_initial_pair_each_image_says_what_its_best_pair_missed(xs, depths, points, noise_px,
                                                                            missed, caplog):
-    """No initial pair accepted, so no model was ever started: the images used to say "too few 2D-3D
-    matches: it shares no triangulated points with a model". Now each says what its best pair missed, and the
-    command's one error line (the most common reason) says it too."""
+    """No initial pair accepted, so no model was ever started: each image says what its best pair missed
+    (not a generic "too few 2D-3D matches", which would not tell the user what to change), and the command's one
+    error line (the most common reason) says it too."""
     from mvrecon.commands.reconstruct import no_model
 
     result = map_correspondences(lined_up_views([(xs, depths, points)], noise_px=noise_px))
@@ -490,10 +490,9 @@ def test_images_left_when_no_later_model_can_start_say_what_their_best_pair_miss
 def test_a_discarded_pair_is_not_built_again_and_the_bar_counts_each_image_once(monkeypatch):
     """Two separate pairs, each with a median angle over 16 deg, so each passes every angle threshold; each
     makes a 2-image model, under min_model_size 3: as no model reaches it, the first of the two is kept at the
-    end. The second pair used to be built again at every lower threshold (4 times: the same model, discarded
-    again), and the progress bar counted every build's images. With nothing changed since its model was
-    discarded (no model finished in between, the same cameras), a pair is not built again, and the bar counts
-    the images registered now (a discarded model's no longer; the kept pair's 2 at the end)."""
+    end. With nothing changed since its model was discarded (no model finished in between, the same cameras),
+    a pair is not built again at a lower threshold (it would make the same model), and the progress bar counts
+    the images registered at the moment (not a discarded model's; the kept pair's 2 at the end)."""
     from mvrecon.progress import Bar
 
     seeded, shown = [], []

@@ -102,8 +102,8 @@ def test_three_methods_on_motorcycle(motorcycle, motorcycle_best):
 
 def test_best_left_edge_band_is_filled_not_zero(motorcycle, motorcycle_best):
     """In columns 0-63 the search range 0..64 reaches outside the right image. Matches against its border columns
-    passed the left-right check there and were spread as disparity 0 (274 pixels, band bad-2 8.8 %; the ground
-    truth there is 7 px or more); now the band is cleared and filled from its right (measured 0 pixels, 2.7 %)."""
+    can pass the left-right check there and spread as disparity 0 where the ground truth is 7 px or more; the band
+    is cleared and filled from its right (0 pixels at 0, band bad-2 2.7 %)."""
     gt = motorcycle[2]
     band, gt_band = motorcycle_best[:, :64], gt[:, :64]
     known = np.isfinite(gt_band)
@@ -413,8 +413,8 @@ def test_the_same_image_twice_is_refused(tmp_path, capsys):
 
 def test_a_swapped_or_misaligned_pair_is_flagged(tmp_path, caplog):
     """Left and right exchanged: every match disparity is negative, calib.txt's range 0..ndisp misses them all (the
-    rendered pair: 58.6 % holes, exit 0, no word). Now a warning in the log and in report.json. With --rectified the
-    range clipped at 0 was empty and SGBM raised an OpenCV assertion. Rows that do not line up are flagged too;
+    rendered pair: 58.6 % holes), so a warning goes to the log and report.json. With --rectified the range clipped
+    at 0 keeps 16 disparities, so SGBM runs. Rows that do not line up are flagged too;
     the pair in the right order gets no warning."""
     import logging
 
@@ -500,8 +500,8 @@ def test_camera_file_warnings(tmp_path, caplog):
 
 
 def test_a_run_refused_after_the_matches_leaves_no_folder_it_made(tmp_path, capsys):
-    """The parallax check needs the matches, so it ran after OUT (and OUT/.stages) had been made: a refused run
-    left them behind. Now removed when this run made them; a folder the user made, or an earlier run's, stays."""
+    """The parallax check needs the matches, so it runs after OUT (and OUT/.stages) have been made: a refused run
+    removes them when it made them; a folder the user made, or an earlier run's, stays."""
     import cv2
 
     left, right = small_pair(tmp_path)

@@ -149,6 +149,16 @@ reports (`mvrecon compare`) hold every other number.
     path.write_text(text)
 
 
+def shown_command(args: argparse.Namespace) -> str:
+    """The command as the scoreboard's header shows it: the flags that decide what ran and how long a run may
+    take, not the folders it wrote to (--work, --out), which say nothing about the figures."""
+    flags = [f"--max-pixels {args.max_pixels:g}"] if args.max_pixels else []
+    flags.append(f"--timeout {args.timeout:g}")
+    flags += [f"{flag} {' '.join(names)}" for flag, names in (("--only", args.only), ("--skip", args.skip)) if names]
+    flags += ["--cached-only"] if args.cached_only else []
+    return "python tools/scoreboard.py " + " ".join(flags)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
@@ -172,10 +182,10 @@ def main(argv=None) -> int:
     shared = sorted((n for n in shared_sets() if wanted(n)), key=lambda n: math.prod(pixels(DATA / n / "images")))
     # small catalog scenes, then the data sets from small to big, then the full-size catalog scenes
     quick = [n for n in catalog if "small" in n or "synthetic" in n]
-    plan = [(n, "catalog") for n in quick] + [(n, "../shared/data") for n in shared] \
+    plan = [(n, "catalog") for n in quick] + [(n, "public set") for n in shared] \
         + [(n, "catalog") for n in catalog if n not in quick]
     rows, skipped = [], []
-    command = "python tools/scoreboard.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    command = shown_command(args)
     for k, (name, origin) in enumerate(plan):
         try:
             if origin == "catalog":

@@ -7,8 +7,8 @@ accepted when enough points triangulate with a median angle above the threshold.
 Thresholds are relaxed in turn (16 deg, then 8, 4, 2) so scenes without a wide baseline still start, as COLMAP
 relaxes its own. A pair that a homography explains and that is a rotation about the camera centre for a focal
 length the camera may have (`_rotation_fit`) is rejected first: with a guessed focal, the essential matrix of a
-camera turning in place fits a baseline to the focal error, and COLMAP's pipeline and our mapper used to build
-a model with cameras metres apart from a panorama. Other planar-with-no-baseline pairs fail the angle check.
+camera turning in place fits a baseline to the focal error, and a model with cameras metres apart would come
+out of a panorama (as COLMAP's pipeline builds one). Other planar-with-no-baseline pairs fail the angle check.
 It refuses panorama_small and changes no model where else it fires (templeSparseRing, toy_object_small).
 When no pair is accepted, `initial_pair_rejections` says what each pair missed (the mapper gives the nearest
 miss as the reason of the images that stay unregistered).
