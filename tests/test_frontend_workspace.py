@@ -151,15 +151,21 @@ def test_ctrl_c_inside_a_database_unit_waits_for_its_end(tmp_path):
     import signal
 
     path = tmp_path / "database.db"
-    with dbmod.open_database(path) as db:
-        camera = dbmod.write_camera(db, dbmod.CameraInfo(model="SIMPLE_RADIAL", width=64, height=48,
-                                                         params=np.array([60.0, 32, 24, 0])))
-        with pytest.raises(KeyboardInterrupt):
-            with dbmod.transaction(db, path, 0):
-                image_id = dbmod.write_image(db, "a.png", camera)
-                signal.raise_signal(signal.SIGINT)
-                dbmod.write_features(db, image_id, np.zeros((5, 4)), np.zeros((5, 128), np.uint8))
-        assert dbmod.has_features(db, image_id) and dbmod.num_keypoints(db, image_id) == 5
+    # Python's Ctrl-C handler, as in a terminal: a test run started in the background by a script (`cmd &`,
+    # nohup) inherits SIGINT ignored, and then rightly ignores the Ctrl-C below
+    interactive = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with dbmod.open_database(path) as db:
+            camera = dbmod.write_camera(db, dbmod.CameraInfo(model="SIMPLE_RADIAL", width=64, height=48,
+                                                             params=np.array([60.0, 32, 24, 0])))
+            with pytest.raises(KeyboardInterrupt):
+                with dbmod.transaction(db, path, 0):
+                    image_id = dbmod.write_image(db, "a.png", camera)
+                    signal.raise_signal(signal.SIGINT)
+                    dbmod.write_features(db, image_id, np.zeros((5, 4)), np.zeros((5, 128), np.uint8))
+            assert dbmod.has_features(db, image_id) and dbmod.num_keypoints(db, image_id) == 5
+    finally:
+        signal.signal(signal.SIGINT, interactive)
 
 
 def test_sigterm_stops_a_run_as_ctrl_c_does_and_the_rerun_continues(tmp_path):
