@@ -71,7 +71,7 @@ def run(args) -> int:
     from mvrecon.study.study import StudyConfig, breaking_points, run_study
 
     from mvrecon.errors import InputError
-    from mvrecon.pipeline import require_images
+    from mvrecon.stages.features import require_images
 
     listing = require_images(args.images)  # the images reconstruct takes: every cell is made from these
     images, out = Path(args.images).resolve(), Path(args.output).resolve()
