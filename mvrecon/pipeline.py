@@ -4,7 +4,8 @@ interrupted one resumes (each stage skips the work already in the database).
 
 Each stage is callable from Python, the CLI and tests alike, `stage(config, inputs, workspace) -> summary`:
 
-- `extract_features(config, image_dir, workspace)`: images -> cameras, keypoints, descriptors (stages/features.py).
+- `extract_features(config, image_dir, workspace)`: images -> cameras, keypoints, descriptors
+  (stages/features.py).
 - `match(config, workspace)`: pairs -> putative matches -> verified two-view geometries (stages/matching.py).
 - `map_workspace(config, workspace)`: verified pairs -> models (stages/mapping.py).
 """

@@ -1,8 +1,8 @@
 """The features stage: images -> cameras, keypoints and descriptors in the workspace's database.
 
-`extract_features(config, image_dir, workspace)` detects SIFT in every image not yet in the database, committing
-one image at a time, so an interrupted run loses at most the images in progress. The images are handed to a
-`executor.WorkerPool` (`_hand_out`): the place where another backend (a cluster) would take the jobs.
+`extract_features(config, image_dir, workspace)` detects SIFT in every image not yet in the database,
+committing one image at a time, so an interrupted run loses at most the images in progress. The images are
+handed to an `executor.WorkerPool` (`_hand_out`): the place where another backend (a cluster) would take them.
 """
 
 import logging
@@ -47,7 +47,8 @@ class FeatureSummary:
     def text(self) -> str:
         parts = [f"Features: {self.num_images} images ({self.num_extracted} extracted now, "
                  f"{self.num_images - self.num_extracted} already done) in {self.seconds:.1f} s, "
-                 f"{self.num_cameras} camera(s); keypoints per image: {stats_text(list(self.keypoints.values()))}."]
+                 f"{self.num_cameras} camera(s); keypoints per image: "
+                 f"{stats_text(list(self.keypoints.values()))}."]
         if self.failed:
             parts.append(f"{len(self.failed)} image(s) unreadable or not extracted, skipped: "
                          f"{', '.join(sorted(self.failed))}.")

@@ -1,4 +1,4 @@
-"""The mapping stage: the verified pairs in the workspace's database -> models in `sparse/N/` and `points.ply`.
+"""The mapping stage: the verified pairs in the workspace's database -> models in sparse/N/ and points.ply.
 
 `map_workspace(config, workspace)` runs the incremental mapper (sfm/incremental.py) through `_run_mapper`: the
 place where another mapper (a global one) plugs in. With `resume`, mapping continues from the workspace's
@@ -100,7 +100,7 @@ def _run_mapper(corr, config, snapshot: Path, resume: bool):
 
 
 def _write_models(ws: Workspace, models: list, image_dir, text: bool, keypoint_colors) -> None:
-    """`sparse/N/` and `points.ply` of `models`. The new models go to sparse.new/ and replace sparse/ only once
+    """sparse/N/ and points.ply of `models`. The new models go to sparse.new/ and replace sparse/ only once
     made: a failed re-map keeps the old model; with no model at all the earlier one stays too."""
     from ..io.colmap_model import warn_text_names, write_models, write_points_ply
 
