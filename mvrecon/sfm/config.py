@@ -5,6 +5,9 @@ import json
 from dataclasses import asdict, dataclass
 
 from ..config import bounded
+from ..errors import InputError
+
+OPTIMIZERS = ("lm", "sfm")  # MapperConfig.optimizer's choices
 
 
 @dataclass(frozen=True)
@@ -116,6 +119,12 @@ class MapperConfig:
     min_model_size: int = bounded(3, 2)
     max_models: int = bounded(10, 1)
     seed: int = bounded(0, 0)
+
+    def validate(self, source) -> None:
+        """An InputError naming `source` (the config file that set it) for an optimizer the mapper lacks."""
+        if self.optimizer not in OPTIMIZERS:
+            raise InputError(f"{source}: mapper optimizer must be one of {', '.join(OPTIMIZERS)}, "
+                             f"not {self.optimizer!r}")
 
     def hash(self) -> str:
         """Short stable hash of the settings, stored in reports and snapshots to refuse mixing configs."""
