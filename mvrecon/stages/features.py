@@ -231,13 +231,7 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
     # Without a database nothing is extracted yet: every image goes to the workers now, so that probing the
     # images and creating the database (which imports pycolmap) overlap SIFT instead of delaying it.
     results = _hand_out(pool, jobs) if redo or not ws.database_path.exists() else None
-    metas = {}
-    for name in names:
-        try:
-            metas[name] = image_metadata(folder / name)
-        except InputError as exc:
-            log.warning("skipping %s", exc)
-            failed[name] = str(exc)
+    metas = _probe(folder, names, failed)
     names = [n for n in names if n in metas]
     check_masks(masks, folder, metas)
     groups = group_cameras(names, metas, config.camera)
@@ -276,10 +270,8 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
                 with dbmod.transaction(db, ws.database_path, keypoints.nbytes + descriptors.nbytes):
                     if gi not in camera_ids:
                         camera_ids[gi] = dbmod.write_camera(db, groups[gi][0])
-                    image_id = existing[name].image_id if name in existing else \
-                        dbmod.write_image(db, name, camera_ids[gi])
-                    dbmod.write_features(db, image_id, keypoints, descriptors)
-                existing[name] = dbmod.ImageInfo(image_id=image_id, name=name, camera_id=camera_ids[gi])
+                    info = _store(db, name, existing.get(name), camera_ids[gi], keypoints, descriptors)
+                existing[name] = info
                 extracted += 1
                 if on_image is not None:
                     on_image(name)
@@ -291,3 +283,24 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
         _too_few(folder, len(counts), failed)
     return FeatureSummary(num_images=len(counts), num_extracted=extracted, keypoints=counts, failed=failed,
                           skipped=skipped, num_cameras=num_cameras, keypoint_colors=colors)
+
+
+def _probe(folder: Path, names: list[str], failed: dict[str, str]) -> dict:
+    """name -> image_metadata of each image whose header reads; the others added to `failed` with a warning."""
+    metas = {}
+    for name in names:
+        try:
+            metas[name] = image_metadata(folder / name)
+        except InputError as exc:
+            log.warning("skipping %s", exc)
+            failed[name] = str(exc)
+    return metas
+
+
+def _store(db, name: str, info: dbmod.ImageInfo | None, camera_id: int, keypoints: np.ndarray,
+           descriptors: np.ndarray) -> dbmod.ImageInfo:
+    """An image's keypoints and descriptors written to `db`, its row too when it has none (`info` None); its
+    row as it now is."""
+    image_id = info.image_id if info is not None else dbmod.write_image(db, name, camera_id)
+    dbmod.write_features(db, image_id, keypoints, descriptors)
+    return dbmod.ImageInfo(image_id=image_id, name=name, camera_id=camera_id)
