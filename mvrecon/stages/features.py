@@ -33,6 +33,8 @@ log = logging.getLogger(__name__)
 
 @dataclass(kw_only=True)
 class FeatureSummary:
+    """What the features stage did: the images with features, their keypoint counts, the ones skipped."""
+
     num_images: int  # images of the folder with features in the database
     num_extracted: int  # of which extracted in this run (the rest were already there)
     keypoints: dict[str, int]  # name -> keypoint count

@@ -18,6 +18,7 @@ from ..cameras import report_entry
 from ..config import to_dict
 from ..errors import InputError
 from ..matching.overlay import fixed_keypoints, same_view
+from ..sfm.config import MapperConfig
 from ..workspace import Workspace
 from .common import as_workspace, holding_workspace
 
@@ -26,6 +27,8 @@ log = logging.getLogger(__name__)
 
 @dataclass(kw_only=True)
 class MapSummary:
+    """What the mapping stage made: the models, each image's status, each model's figures."""
+
     models: list  # sfm.model.Reconstruction, largest first
     status: dict  # image name -> {"status", "model", "reason"}
     model_stats: list  # per model: registered, points, mean_track_length, mean_reprojection_error_px, cameras
@@ -48,12 +51,12 @@ class MapSummary:
 
 
 @holding_workspace
-def map_workspace(config, workspace, *, image_dir=None, text: bool = False, resume: bool = False,
+def map_workspace(config: MapperConfig, workspace, *, image_dir=None, text: bool = False, resume: bool = False,
                   overwrite: bool = False, keypoint_colors=None) -> MapSummary:
     """Run the incremental mapper on the workspace's database and write `sparse/N/` and `points.ply`.
 
-    `config` is a MapperConfig. With `resume`, mapping continues from the last snapshot in the workspace
-    (`snapshots/mapper.pkl`); without it mapping starts over. The points are coloured from `keypoint_colors`
+    With `resume`, mapping continues from the last snapshot in the workspace (`snapshots/mapper.pkl`);
+    without it mapping starts over. The points are coloured from `keypoint_colors`
     (FeatureSummary's) when it covers a model's images, otherwise from the images in `image_dir`.
     """
     start = time.perf_counter()

@@ -31,6 +31,8 @@ log = logging.getLogger(__name__)
 
 @dataclass(kw_only=True)
 class MatchSummary:
+    """What the matching stage did: the pairs selected and matched, the verified ones and their kinds."""
+
     num_images: int
     num_pairs: int  # pairs selected
     num_matched: int  # of which matched in this run (the rest were already there)
