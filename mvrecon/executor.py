@@ -167,7 +167,7 @@ def keep_freed_memory(one_arena: bool = False) -> None:
     stage: 15 ms faster). A no-op where the C library has no mallopt (not glibc).
 
     With `one_arena` (the feature workers) every thread allocates from the one heap. A worker's last image runs
-    on every core's OpenCV thread (pipeline._extraction_jobs), and the extra thread took a malloc arena of its
+    on every core's OpenCV thread (stages.features._extraction_jobs), and the extra thread took a malloc arena of its
     own, faulting in fresh memory while the main heap held the earlier images' free: herzjesu's features stage
     took 5.5-5.6 s instead of 4.9-5.1 s, and the process tree peaked 110 MB higher (docs/frontend.md). The
     mvrecon process keeps glibc's arenas: one arena there made templeSparseRing's run no faster."""

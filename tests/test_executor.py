@@ -265,7 +265,7 @@ def test_the_memory_estimate_of_an_image_is_what_a_worker_uses(tmp_path):
         _init_worker()
         from mvrecon.features.sift import SiftConfig, extraction_memory_mb
         from mvrecon.memory import main_peak_mb, rss_mb
-        from mvrecon.pipeline import _extract_job
+        from mvrecon.stages.features import _extract_job
         import os
         before = rss_mb([os.getpid()])
         name, result = _extract_job(("photo.png", "photo.png", SiftConfig(), None, 1))

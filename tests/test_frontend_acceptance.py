@@ -12,7 +12,9 @@ pycolmap = pytest.importorskip("pycolmap")
 
 from mvrecon.eval.metrics import align_and_compare  # noqa: E402
 from mvrecon.eval.models import poses  # noqa: E402
-from mvrecon.pipeline import FrontendConfig, extract_features, match  # noqa: E402
+from mvrecon.stages.common import FrontendConfig  # noqa: E402
+from mvrecon.stages.features import extract_features  # noqa: E402
+from mvrecon.stages.matching import match  # noqa: E402
 
 
 def synthetic_scene(folder, num_images=10, num_points=300):

@@ -12,7 +12,7 @@ from mvrecon.errors import InputError
 from mvrecon.features.sift import SiftConfig, extract_sift
 from mvrecon.io.images import image_metadata, list_images, read_image, to_gray, write_image
 from mvrecon.matching.pairs import select_pairs
-from mvrecon.pipeline import FrontendConfig
+from mvrecon.stages.common import FrontendConfig
 
 
 def pattern(h=60, w=80):

@@ -12,7 +12,11 @@ from mvrecon.cameras import CameraConfig
 from mvrecon.cli import main
 from mvrecon.errors import InputError
 from mvrecon.features.sift import SiftConfig
-from mvrecon.pipeline import FrontendConfig, extract_features, match
+from mvrecon.stages import features as features_stage
+from mvrecon.stages import matching as matching_stage
+from mvrecon.stages.common import FrontendConfig
+from mvrecon.stages.features import extract_features
+from mvrecon.stages.matching import match
 from mvrecon.workspace import Workspace
 
 
@@ -215,17 +219,15 @@ def test_parallel_extraction_numbers_images_in_name_order(tmp_path):
 def test_an_image_whose_probe_fails_is_skipped_though_its_early_job_succeeded(tmp_path, monkeypatch):
     """On a fresh workspace the images go to the workers before they are probed: an image whose header probe
     then fails must be reported and left out of the database, whatever its worker returned."""
-    import mvrecon.pipeline as pipeline
-
     images = textured_views(tmp_path / "images", count=3)
-    probe = pipeline.image_metadata
+    probe = features_stage.image_metadata
 
     def failing_probe(path):
         if path.name == "view01.png":
             raise InputError(f"{path}: cannot read image header (test)")
         return probe(path)
 
-    monkeypatch.setattr(pipeline, "image_metadata", failing_probe)
+    monkeypatch.setattr(features_stage, "image_metadata", failing_probe)
     summary = extract_features(FrontendConfig(workers=2, sift=SiftConfig(max_num_features=500)), images,
                                tmp_path / "ws")
     assert summary.num_images == 2 and summary.num_extracted == 2
@@ -549,9 +551,7 @@ def test_a_config_file_the_command_reads_nothing_of_is_named_in_a_warning(tmp_pa
 def test_exhaustive_matching_of_many_images_advises_a_linear_pair_selection(tmp_path, monkeypatch, caplog):
     """Exhaustive pairs grow with the square of the images (500 photos: 124,750 pairs), and nothing said that
     `retrieval:K` or `sequential:K` exists. Over the limit (lowered here to 4 images) one warning says so."""
-    from mvrecon import pipeline
-
-    monkeypatch.setattr(pipeline, "_MANY_FOR_EXHAUSTIVE", 4)
+    monkeypatch.setattr(matching_stage, "_MANY_FOR_EXHAUSTIVE", 4)
     config = FrontendConfig(workers=1, sift=SiftConfig(max_num_features=300))
     ws = tmp_path / "ws"
     extract_features(config, textured_views(tmp_path / "images"), ws)
@@ -805,7 +805,7 @@ def test_reconstruct_loads_the_later_stages_while_the_workers_extract(tmp_path, 
     import mvrecon.pipeline as pipeline
 
     calls = []
-    stamps = tmp_path / "out" / pipeline.STAMPS  # written when the features stage has ended
+    stamps = tmp_path / "out" / features_stage.STAMPS  # written when the features stage has ended
 
     def record():
         calls.append((threading.current_thread() is threading.main_thread(), stamps.exists()))
@@ -905,19 +905,17 @@ def test_the_last_images_of_a_pool_run_on_every_core_with_the_same_features(tmp_
     and descriptors on any number of threads, so a pool's database holds what one process extracts."""
     import cv2
 
-    from mvrecon import pipeline
-
     images = textured_views(tmp_path / "images", count=5, size=(480, 640))
     names = sorted(p.name for p in images.iterdir())
     config = FrontendConfig()
-    jobs = pipeline._extraction_jobs(images, names, config, {}, 2)
+    jobs = features_stage._extraction_jobs(images, names, config, {}, 2)
     assert [job[-1] for job in jobs] == [1, 1, 1, 2, 2]
-    assert [job[-1] for job in pipeline._extraction_jobs(images, names, config, {}, 1)] == [None] * 5
+    assert [job[-1] for job in features_stage._extraction_jobs(images, names, config, {}, 1)] == [None] * 5
     saved = cv2.getNumThreads()
     try:
-        one = pipeline._extract_job(jobs[0])
+        one = features_stage._extract_job(jobs[0])
         assert cv2.getNumThreads() == 1
-        two = pipeline._extract_job((*jobs[0][:-1], 2))
+        two = features_stage._extract_job((*jobs[0][:-1], 2))
         assert cv2.getNumThreads() == 2
     finally:
         cv2.setNumThreads(saved)

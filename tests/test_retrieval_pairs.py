@@ -15,7 +15,8 @@ from mvrecon.eval.metrics import accuracy_summary
 from mvrecon.eval.models import poses, sparse_models
 from mvrecon.matching.pairs import check_spec, select_pairs
 from mvrecon.matching.retrieval import nearest, similarities
-from mvrecon.pipeline import FrontendConfig, match
+from mvrecon.stages.common import FrontendConfig
+from mvrecon.stages.matching import match
 
 
 def orbit_descriptors(views=16, points=4000, seen=900, noise=8.0, seed=1) -> dict[str, np.ndarray]:

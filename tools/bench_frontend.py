@@ -44,7 +44,9 @@ def run_pycolmap(images: Path, work: Path, workers: int) -> tuple[float, float]:
 
 
 def run_ours(images: Path, work: Path, workers: int) -> tuple[float, float]:
-    from mvrecon.pipeline import FrontendConfig, extract_features, match
+    from mvrecon.stages.common import FrontendConfig
+    from mvrecon.stages.features import extract_features
+    from mvrecon.stages.matching import match
 
     config = FrontendConfig(workers=max(workers, 0))
     t0 = time.perf_counter()

@@ -163,7 +163,7 @@ def config_file(args: argparse.Namespace):
     """(FrontendConfig with the --config TOML file's front-end tables applied, the file's [mapper] table); the
     defaults and {} without a file. The front-end tables are checked whichever command reads the file (`map`
     uses only [mapper]): a misspelt table or an option outside its table is an InputError, not ignored."""
-    from ..pipeline import FrontendConfig
+    from ..stages.common import FrontendConfig
 
     if not getattr(args, "config", None):
         return FrontendConfig(), {}

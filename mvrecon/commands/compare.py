@@ -141,7 +141,7 @@ def run(args) -> int:
     config = CompareConfig(options=options, colmap_global=args.colmap_global,
                            same_matches=not args.no_same_matches, timeout_s=args.timeout)
     if args.images:
-        from ..pipeline import require_images
+        from ..stages.features import require_images
 
         check_mvrecon_args(options)
         listing = require_images(args.images)  # listed once: its warnings are printed once

@@ -25,7 +25,7 @@ def add_arguments(parser):
 def run(args) -> int:
     import logging
 
-    from ..pipeline import extract_features
+    from ..stages.features import extract_features
     from ._options import frontend_config_from_args, warn_if_config_unread
 
     warn_if_config_unread(args, "features", ("camera", "sift", "workers"))

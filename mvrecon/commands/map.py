@@ -33,7 +33,8 @@ def run(args) -> int:
     from ..database import database_counts
     from ..errors import InputError
     from ..io.files import read_json_object
-    from ..pipeline import map_workspace, write_report
+    from ..stages.mapping import map_workspace
+    from ..stages.report import write_report
     from ..workspace import Workspace
     from .reconstruct import mapper_config, no_model
 

@@ -23,7 +23,7 @@ def add_arguments(parser):
 def run(args) -> int:
     import logging
 
-    from ..pipeline import match
+    from ..stages.matching import match
     from ._options import frontend_config_from_args, warn_if_config_unread
 
     warn_if_config_unread(args, "match", ("pairs", "matcher", "verify", "workers"))

@@ -14,12 +14,12 @@ Examples:
 ORDER = 30
 ON_INTERRUPT = ("features and matches done are kept; rerun the same command to continue, with --resume "
                 "to continue mapping from its last snapshot too")
-OPTIMIZERS = ("lm", "sfm")
 
 
 def add_mapper_options(parser, *, standalone: bool = True) -> None:
     """Mapper flags shared by `reconstruct` and `map`; only the standalone `map` adds its own --config and
     --overwrite (`reconstruct` has them from the front end's options, and one --config file holds both)."""
+    from ..sfm.config import OPTIMIZERS
     from ._options import non_negative_int
 
     g = parser.add_argument_group("mapping")
@@ -42,7 +42,6 @@ def mapper_config(args, from_file=None):
     """MapperConfig = defaults < the [mapper] table of --config < flags given on the command line.
     `from_file`: what `config_file(args)` returned, when the caller has read the file already."""
     from ..config import with_overrides
-    from ..errors import InputError
     from ..sfm.config import MapperConfig
     from ._options import config_file
 
@@ -52,9 +51,7 @@ def mapper_config(args, from_file=None):
     if args.fix_intrinsics:
         flags["refine_intrinsics"] = False
     config = with_overrides(config, {k: v for k, v in flags.items() if v is not None}, source="command line")
-    if config.optimizer not in OPTIMIZERS:
-        raise InputError(f"{args.config}: mapper optimizer must be one of {', '.join(OPTIMIZERS)}, "
-                         f"not {config.optimizer!r}")
+    config.validate(args.config)
     return config
 
 

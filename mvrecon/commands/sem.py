@@ -102,12 +102,11 @@ def run(args) -> int:
         pixel_size = parse_length_um(args.pixel_size) if args.pixel_size is not None else None
     except ValueError as exc:
         raise InputError(str(exc)) from None
-    if args.max_size is not None and args.max_size < 16:
-        raise InputError(f"--max-size {args.max_size}: must be at least 16 pixels")
     config = SemConfig(tilts_deg=_floats(args.tilts, "--tilts") if args.tilts else None, axis_deg=axis,
                        pixel_size_um=pixel_size, max_size=args.max_size, reference=args.reference,
                        pairs=args.pairs, icp_method=args.icp, height_source=args.height_source, densify=args.densify,
                        profile=_floats(args.profile, "--profile", 4) if args.profile else None, icp=IcpConfig())
+    config.validate()
     _check_output_folder(args.output, args.images)
     gt = read_height_map(args.gt) if args.gt else None
     report = run_sem(resolve_images(args.images), args.output, config, gt)

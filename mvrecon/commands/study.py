@@ -65,13 +65,12 @@ def run(args) -> int:
     from pathlib import Path
 
     from mvrecon.cameras import CameraConfig, parse_camera_params
+    from mvrecon.errors import InputError
     from mvrecon.eval.runners import COLMAP_ENGINES, RunOptions, check_run_masks, colmap_fisheye_warning
+    from mvrecon.stages.features import require_images
     from mvrecon.study.degrade import Degradation
     from mvrecon.study.grid import AXES, Grid, parse_levels
     from mvrecon.study.study import StudyConfig, breaking_points, run_study
-
-    from mvrecon.errors import InputError
-    from mvrecon.pipeline import require_images
 
     listing = require_images(args.images)  # the images reconstruct takes: every cell is made from these
     images, out = Path(args.images).resolve(), Path(args.output).resolve()
@@ -81,12 +80,6 @@ def run(args) -> int:
     grid = Grid(levels)
     params = parse_camera_params(args.camera_params)
     CameraConfig(model=args.camera_model, params=params).validate()
-    if params and "downscale" in grid.levels and grid.degraded_levels("downscale"):
-        raise InputError(f"--camera-params with --downscale {args.downscale}: the params hold for the clean "
-                         "images' size, not for the smaller copies; study the downscale without --camera-params")
-    if args.masks and "downscale" in grid.levels and grid.degraded_levels("downscale"):
-        raise InputError(f"--masks with --downscale {args.downscale}: the masks fit the clean images' size, not "
-                         "the smaller copies; study the downscale without --masks")
     config = StudyConfig(images=Path(args.images), gt=Path(args.gt) if args.gt else None,
                          engines=tuple(e.strip() for e in args.engines.split(",") if e.strip()), seed=args.seed,
                          base=Degradation(motion_angle=args.motion_angle),
@@ -94,6 +87,7 @@ def run(args) -> int:
                                                 camera_params=params, seed=args.seed,
                                                 masks=str(Path(args.masks).resolve()) if args.masks else ""),
                          jobs=args.jobs, timeout_s=args.timeout)
+    config.check_grid(grid, args.downscale)
     log = logging.getLogger("mvrecon")
     masks_warning = check_run_masks(config.run_options, args.images, listing[0])  # raises on a mask that misfits
     if set(config.engines) & set(COLMAP_ENGINES):

@@ -525,7 +525,7 @@ def _fisheye_without_focal(cameras: dict) -> dict[int, str]:
 
 def _cameras(rec) -> list[dict]:
     """The cameras of a pycolmap model's registered images, as mvrecon's report.json lists them
-    (`pipeline.camera_entries`)."""
+    (`stages.mapping.camera_entries`)."""
     from ..cameras import report_entry
 
     cams = [(cid, rec.cameras[cid]) for cid in sorted({im.camera_id for im in rec.images.values() if im.has_pose})]

@@ -85,6 +85,11 @@ class SemConfig:
     dense_match: DenseMatchConfig = field(default_factory=DenseMatchConfig)
     stereo: StereoConfig = field(default_factory=StereoConfig)
 
+    def validate(self) -> None:
+        """An InputError for a `max_size` too small to find features in (below 16 pixels)."""
+        if self.max_size is not None and self.max_size < 16:
+            raise InputError(f"--max-size {self.max_size}: must be at least 16 pixels")
+
 
 def parse_length_um(text) -> float:
     """'0.05um', '50nm', '0.05 µm', '1e-3mm' or a bare number (micrometres) -> micrometres."""

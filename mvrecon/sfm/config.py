@@ -3,6 +3,9 @@
 from dataclasses import dataclass
 
 from ..config import bounded
+from ..errors import InputError
+
+OPTIMIZERS = ("lm", "sfm")  # MapperConfig.optimizer's choices
 
 
 @dataclass(frozen=True)
@@ -77,3 +80,9 @@ class MapperConfig:
     max_models: int = bounded(10, 1)
     # seeds every random choice (RANSAC), so equal inputs give equal models (COLMAP: random_seed)
     seed: int = bounded(0, 0)
+
+    def validate(self, source) -> None:
+        """An InputError naming `source` (the config file that set it) for an optimizer the mapper lacks."""
+        if self.optimizer not in OPTIMIZERS:
+            raise InputError(f"{source}: mapper optimizer must be one of {', '.join(OPTIMIZERS)}, "
+                             f"not {self.optimizer!r}")

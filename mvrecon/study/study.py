@@ -59,6 +59,20 @@ class StudyConfig:
         return {"images": str(Path(self.images).resolve()), "gt": str(Path(self.gt).resolve()) if self.gt else None,
                 "seed": self.seed, "base": self.base.to_dict(), "run_options": self.run_options.to_dict()}
 
+    def check_grid(self, grid: Grid, downscale: str | None = None) -> None:
+        """An InputError when `grid` makes smaller copies of the images while a run option holds for the clean
+        images' size only (camera params, masks). `downscale`: its levels as given (--downscale), for the
+        message."""
+        if "downscale" not in grid.levels or not grid.degraded_levels("downscale"):
+            return
+        if self.run_options.camera_params:
+            raise InputError(f"--camera-params with --downscale {downscale}: the params hold for the clean "
+                             "images' size, not for the smaller copies; study the downscale without "
+                             "--camera-params")
+        if self.run_options.masks:
+            raise InputError(f"--masks with --downscale {downscale}: the masks fit the clean images' size, "
+                             "not the smaller copies; study the downscale without --masks")
+
 
 def _runner(engine: str):
     """run(image_dir, out_dir, options, timeout) -> RunResult for an engine name."""

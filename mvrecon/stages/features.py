@@ -1,0 +1,308 @@
+"""The features stage: images -> cameras, keypoints and descriptors in the workspace's database.
+
+`extract_features(config, image_dir, workspace)` detects SIFT in every image not yet in the database,
+committing one image at a time, so an interrupted run loses at most the images in progress. The images are
+handed to an `executor.WorkerPool` (`_hand_out`): the place where another backend (a cluster) would take them.
+"""
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .. import database as dbmod
+from ..cameras import group_cameras
+from ..config import to_dict
+from ..errors import InputError
+from ..executor import WorkerPool
+from ..features.sift import extraction_memory_mb
+from ..io.files import read_json_object, some_names, write_json
+from ..io.images import IMAGE_EXTENSIONS, decoding_for_detection, image_metadata, list_images
+from ..io.masks import check_masks, find_masks, mask_path
+from ..progress import progress
+from ..workspace import Workspace
+from .common import FrontendConfig, as_workspace, stats_text, worker_count
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(kw_only=True)
+class FeatureSummary:
+    """What the features stage did: the images with features, their keypoint counts, the ones skipped."""
+
+    num_images: int  # images of the folder with features in the database
+    num_extracted: int  # of which extracted in this run (the rest were already there)
+    keypoints: dict[str, int]  # name -> keypoint count
+    failed: dict[str, str] = field(default_factory=dict)  # images unreadable or not extracted: name -> reason
+    skipped: dict[str, str] = field(default_factory=dict)  # every file left out (not an image, unreadable)
+    num_cameras: int = 0
+    seconds: float = 0.0
+    # name -> colours at its keypoints (io.images.colors_at), for the images extracted in this run: the
+    # models' point colours come from them instead of decoding the images again (see map_workspace)
+    keypoint_colors: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+
+    def text(self) -> str:
+        parts = [f"Features: {self.num_images} images ({self.num_extracted} extracted now, "
+                 f"{self.num_images - self.num_extracted} already done) in {self.seconds:.1f} s, "
+                 f"{self.num_cameras} camera(s); keypoints per image: "
+                 f"{stats_text(list(self.keypoints.values()))}."]
+        if self.failed:
+            parts.append(f"{len(self.failed)} image(s) unreadable or not extracted, skipped: "
+                         f"{', '.join(sorted(self.failed))}.")
+        others = len(set(self.skipped) - set(self.failed))
+        if others:
+            parts.append(f"{others} non-image file(s) skipped.")
+        return " ".join(parts)
+
+
+def _extract_job(job):
+    """Worker: (path, name, sift config, mask path or None, OpenCV threads or None to leave them) -> (name,
+    (keypoints, descriptors, keypoint colours)) or (name, error message)."""
+    from ..features.sift import extract_sift
+    from ..io.images import colors_at, read_image_for_detection
+
+    path, name, sift_config, mask, threads = job
+    try:
+        if threads is not None:
+            import cv2
+
+            if cv2.getNumThreads() != threads:
+                cv2.setNumThreads(threads)
+        # a large JPEG decoded at 1/2-1/8 of its size (bounded memory); its colours are sampled there too
+        image, reduced = read_image_for_detection(path, sift_config.max_image_size)
+        keypoints, descriptors = extract_sift(image, sift_config, reduced)
+        if mask is not None:
+            from ..io.masks import keypoints_outside_mask
+
+            full_shape = (image.shape[0] * reduced, image.shape[1] * reduced)
+            keep = keypoints_outside_mask(mask, path, keypoints, full_shape)
+            keypoints, descriptors = keypoints[keep], descriptors[keep]
+        return name, (keypoints, descriptors, colors_at(image, keypoints[:, :2] / reduced))
+    except InputError as exc:
+        return name, str(exc)
+    except Exception as exc:  # OpenCV or memory errors on one image must not stop the run
+        return name, f"{path}: {type(exc).__name__}: {exc}"
+
+
+def _hand_out(pool: WorkerPool, jobs: list[tuple]):
+    """`_extract_job`'s results for `jobs`, computed by `pool`: as many images at a time as the memory
+    available holds (`_extraction_memory_mb`), and an image whose worker died twice skipped with the
+    reason."""
+    return pool.map(_extract_job, jobs, name=lambda job: str(job[0]), cost=_extraction_memory_mb,
+                    died=lambda job, why: (job[1], f"{job[0]}: the worker extracting it died twice: {why}"))
+
+
+def _extraction_memory_mb(job) -> float:
+    """The memory a worker needs for `_extract_job(job)` (MB), from the image's header."""
+    path, _, sift_config, _, _ = job
+    width, height, reduced, _ = decoding_for_detection(path, sift_config.max_image_size)
+    return extraction_memory_mb(width, height, sift_config, reduced)
+
+
+def _extraction_jobs(folder: Path, names, config: FrontendConfig, masks: dict, workers: int) -> list[tuple]:
+    """`_extract_job`'s jobs. In a pool, each image runs on one OpenCV thread (a worker per core), except the
+    last `workers` images, which run on `workers` threads each: when a worker takes one of them no image is left
+    for the others, whose cores would stand idle until it ends (templeSparseRing: 20-65 ms of a core). OpenCV's
+    SIFT gives the same keypoints and descriptors on any number of threads (it sorts them). In-process
+    (`workers <= 1`) the threads are left as they are."""
+    tail = len(names) - workers
+    return [(folder / n, n, config.sift, masks.get(n), None if workers <= 1 else workers if k >= tail else 1)
+            for k, n in enumerate(names)]
+
+
+def require_images(folder) -> tuple[list[str], dict[str, str]]:
+    """`list_images(folder)`, or an InputError when fewer than 2 images are readable: checked before any work
+    (extraction here, the engines in compare and study)."""
+    names, skipped = list_images(folder)
+    if len(names) < 2:
+        _too_few(Path(folder), len(names), _unreadable(Path(folder), skipped))
+    return names, skipped
+
+
+def _unreadable(folder: Path, skipped: dict[str, str]) -> dict[str, str]:
+    """The image files among the skipped ones (not the other files), name -> "path: why"."""
+    return {n: f"{folder / n}: {r}" for n, r in skipped.items() if Path(n).suffix.lower() in IMAGE_EXTENSIONS}
+
+
+STAMPS = "images.json"  # in the workspace: name -> [size, mtime_ns] of every image file when features were read
+
+
+def image_stamps(folder: Path, names) -> dict[str, list[int]]:
+    """Size and modification time of each file: what tells a rerun that an image changed since it was read."""
+    out = {}
+    for name in names:
+        try:
+            st = (folder / name).stat()
+        except OSError:
+            continue
+        out[name] = [st.st_size, st.st_mtime_ns]
+    return out
+
+
+def _check_unchanged(folder: Path, ws: Workspace, extracted, now: dict[str, list[int]], masked=False) -> None:
+    """Refuse a workspace whose images (or masks) were replaced or removed since their features were extracted:
+    their keypoints would stand for pixels that are no longer there, and the model for images that are gone."""
+    before = read_json_object(ws.path / STAMPS) or {}
+    for name in sorted(extracted):
+        if name not in now:
+            raise InputError(f"{folder / name}: in the workspace {ws.path} but no longer in the folder; rerun "
+                             "with --overwrite to start over without it")
+        if name in before and before[name] != now[name]:
+            what = "the image or its mask" if masked else "size or time"
+            raise InputError(f"{folder / name}: changed since its features were extracted ({what}); rerun "
+                             "with --overwrite to start over")
+
+
+def _masks(config: FrontendConfig, names, stamps: dict) -> dict:
+    """name -> mask file of the images that have one in `config.masks` (io/masks.py), each mask's size and time
+    added to its image's stamp; a warning names the images without one."""
+    if not config.masks:
+        return {}
+    masks, missing = find_masks(config.masks, names)
+    for name, path in masks.items():
+        st = path.stat()
+        stamps[name] = stamps.get(name, []) + [st.st_size, st.st_mtime_ns]
+    if missing:
+        log.warning("%s: no mask for %d of %d images (%s, looked for %s): their features are taken everywhere",
+                    config.masks, len(missing), len(names), some_names(missing), mask_path(config.masks, missing[0]))
+    return masks
+
+
+def masks_folder(config: FrontendConfig) -> str:
+    """The masks folder as recorded (the features stage's record, reconstruct's hash): `masks` is out of the
+    config's hash, so that runs without masks keep their records."""
+    return str(Path(config.masks).resolve())
+
+
+def _too_few(folder: Path, usable: int, failed: dict[str, str]):
+    why = f" (skipped {'; '.join(failed.values())})" if failed else ""
+    raise InputError(f"{folder}: only {usable} usable image(s), need at least 2{why}")
+
+
+def extract_features(config: FrontendConfig, image_dir, workspace, *, overwrite: bool = False,
+                     on_image: Callable[[str], None] | None = None,
+                     before_changes: Callable[[], None] | None = None,
+                     alongside: Callable[[], None] | None = None) -> FeatureSummary:
+    """Detect SIFT in every image of `image_dir` not yet in the workspace; `on_image(name)` after each commit.
+    Refused settings or input raise InputError before anything in the workspace changes; `before_changes()` is
+    called just before the first change. `alongside()` runs in a thread of this process while the workers
+    extract (see pipeline.load_later_stages)."""
+    start = time.perf_counter()
+    ws = as_workspace(workspace)
+    # the pool starts first: its start overlaps the set-up in _extract_all
+    with ws.lock(), WorkerPool(worker_count(config)) as pool:
+        summary = _extract_all(config, Path(image_dir), ws, overwrite, on_image, pool, before_changes, alongside)
+    summary.seconds = time.perf_counter() - start
+    return summary
+
+
+@contextmanager
+def _in_thread(func: Callable[[], None] | None):
+    """`func()` in a thread for the duration of the block, which waits for it at its end."""
+    thread = None if func is None else threading.Thread(target=func, name=getattr(func, "__name__", None))
+    if thread is not None:
+        thread.start()
+    try:
+        yield
+    finally:
+        if thread is not None:
+            thread.join()
+
+
+def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite: bool,
+                 on_image: Callable[[str], None] | None, pool: WorkerPool,
+                 before_changes: Callable[[], None] | None = None,
+                 alongside: Callable[[], None] | None = None) -> FeatureSummary:
+    names, skipped = require_images(folder)
+    config.camera.validate()
+    failed = _unreadable(folder, skipped)
+    stamps = image_stamps(folder, [*names, *failed])
+    record = {"images": str(folder.resolve()), "camera": to_dict(config.camera), "sift": to_dict(config.sift)}
+    masks = _masks(config, names, stamps)
+    if config.masks:
+        record["masks"] = masks_folder(config)
+    # Everything that can refuse the run is checked before anything in the workspace is deleted or rewritten:
+    # the stage's config, a database this workspace has no record of (Workspace.check_stage), the cameras.
+    redo = bool(ws.check_stage("features", record, overwrite))
+    jobs = _extraction_jobs(folder, names, config, masks, pool.workers)
+    # Without a database nothing is extracted yet: every image goes to the workers now, so that probing the
+    # images and creating the database (which imports pycolmap) overlap SIFT instead of delaying it.
+    results = _hand_out(pool, jobs) if redo or not ws.database_path.exists() else None
+    metas = _probe(folder, names, failed)
+    names = [n for n in names if n in metas]
+    check_masks(masks, folder, metas)
+    groups = group_cameras(names, metas, config.camera)
+    if before_changes is not None:
+        before_changes()
+    if ws.begin_stage("features", record, overwrite):
+        for suffix in ("", "-wal", "-shm", "-journal"):
+            Path(f"{ws.database_path}{suffix}").unlink(missing_ok=True)
+    group_of = {name: gi for gi, (_, members) in enumerate(groups) for name in members}
+    extracted, colors = 0, {}
+    with dbmod.open_database(ws.database_path) as db:
+        existing = {info.name: info for info in dbmod.read_images(db).values()}
+        _check_unchanged(folder, ws, [n for n, info in existing.items() if dbmod.has_features(db, info.image_id)],
+                         stamps, masked=bool(masks))
+        camera_ids: dict[int, int] = {}
+        for name, info in existing.items():
+            if name in group_of:
+                camera_ids.setdefault(group_of[name], info.camera_id)
+        todo = [n for n in names if n not in existing or not dbmod.has_features(db, existing[n].image_id)]
+        wanted = set(todo)  # an image handed over early may have failed its probe since
+        if results is None:
+            jobs = _extraction_jobs(folder, [n for n in names if n in wanted], config, masks, pool.workers)
+            results = _hand_out(pool, jobs)
+        # started once the workers have their jobs and this thread has done its set-up: an import holds the
+        # GIL, which the pool's threads need to hand out the jobs
+        with _in_thread(alongside):
+            for name, result in progress(results, total=len(jobs), desc="features", unit="image"):
+                if name not in wanted:
+                    continue
+                if isinstance(result, str):
+                    log.warning("skipping %s", result)
+                    failed[name] = result
+                    continue
+                keypoints, descriptors, colors[name] = result
+                gi = group_of[name]
+                with dbmod.transaction(db, ws.database_path, keypoints.nbytes + descriptors.nbytes):
+                    if gi not in camera_ids:
+                        camera_ids[gi] = dbmod.write_camera(db, groups[gi][0])
+                    info = _store(db, name, existing.get(name), camera_ids[gi], keypoints, descriptors)
+                existing[name] = info
+                extracted += 1
+                if on_image is not None:
+                    on_image(name)
+        counts = {n: dbmod.num_keypoints(db, existing[n].image_id) for n in names if n in existing}
+        counts = {n: c for n, c in counts.items() if n not in failed}
+        num_cameras = len({existing[n].camera_id for n in counts})
+    write_json(ws.path / STAMPS, stamps)
+    if len(counts) < 2:
+        _too_few(folder, len(counts), failed)
+    return FeatureSummary(num_images=len(counts), num_extracted=extracted, keypoints=counts, failed=failed,
+                          skipped=skipped, num_cameras=num_cameras, keypoint_colors=colors)
+
+
+def _probe(folder: Path, names: list[str], failed: dict[str, str]) -> dict:
+    """name -> image_metadata of each image whose header reads; the others added to `failed` with a warning."""
+    metas = {}
+    for name in names:
+        try:
+            metas[name] = image_metadata(folder / name)
+        except InputError as exc:
+            log.warning("skipping %s", exc)
+            failed[name] = str(exc)
+    return metas
+
+
+def _store(db, name: str, info: dbmod.ImageInfo | None, camera_id: int, keypoints: np.ndarray,
+           descriptors: np.ndarray) -> dbmod.ImageInfo:
+    """An image's keypoints and descriptors written to `db`, its row too when it has none (`info` None); its
+    row as it now is."""
+    image_id = info.image_id if info is not None else dbmod.write_image(db, name, camera_id)
+    dbmod.write_features(db, image_id, keypoints, descriptors)
+    return dbmod.ImageInfo(image_id=image_id, name=name, camera_id=camera_id)

@@ -1,0 +1,209 @@
+"""The mapping stage: the verified pairs in the workspace's database -> models in sparse/N/ and points.ply.
+
+`map_workspace(config, workspace)` runs the incremental mapper (sfm/incremental.py) through `_run_mapper`: the
+place where another mapper (a global one) plugs in. With `resume`, mapping continues from the workspace's
+snapshot.
+"""
+
+import logging
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .. import database as dbmod
+from ..cameras import report_entry
+from ..config import to_dict
+from ..errors import InputError
+from ..matching.overlay import fixed_keypoints, same_view
+from ..sfm.config import MapperConfig
+from ..workspace import Workspace
+from .common import as_workspace, holding_workspace
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(kw_only=True)
+class MapSummary:
+    """What the mapping stage made: the models, each image's status, each model's figures."""
+
+    models: list  # sfm.model.Reconstruction, largest first
+    status: dict  # image name -> {"status", "model", "reason"}
+    model_stats: list  # per model: registered, points, mean_track_length, mean_reprojection_error_px, cameras
+    seconds: float = 0.0
+
+    def text(self) -> str:
+        n = sum(1 for s in self.status.values() if s["status"] == "registered")
+        parts = [f"Mapping: {n} of {len(self.status)} images registered in {len(self.models)} model(s) "
+                 f"in {self.seconds:.1f} s."]
+        for k, s in enumerate(self.model_stats):
+            parts.append(f"Model {k}: {s['registered']} images, {s['points']} points, mean track length "
+                         f"{s['mean_track_length']:.2f}, mean reprojection error "
+                         f"{s['mean_reprojection_error_px']:.3f} px.")
+        missing = {name: s["reason"] for name, s in self.status.items() if s["status"] != "registered"}
+        for name, reason in sorted(missing.items())[:20]:
+            parts.append(f"  {name}: {reason}")
+        if len(missing) > 20:
+            parts.append(f"  ... and {len(missing) - 20} more (see report.json)")
+        return "\n".join(parts)
+
+
+@holding_workspace
+def map_workspace(config: MapperConfig, workspace, *, image_dir=None, text: bool = False, resume: bool = False,
+                  overwrite: bool = False, keypoint_colors=None) -> MapSummary:
+    """Run the incremental mapper on the workspace's database and write `sparse/N/` and `points.ply`.
+
+    With `resume`, mapping continues from the last snapshot in the workspace (`snapshots/mapper.pkl`);
+    without it mapping starts over. The points are coloured from `keypoint_colors`
+    (FeatureSummary's) when it covers a model's images, otherwise from the images in `image_dir`.
+    """
+    start = time.perf_counter()
+    ws = as_workspace(workspace)
+    if not ws.database_path.is_file():
+        raise InputError(f"{ws.path}: no database.db here; run `mvrecon reconstruct IMAGES -o {ws.path}` "
+                         "first")
+    record, snapshot = to_dict(config), ws.snapshot_path
+    ws.check_stage("mapping", record, overwrite, hint=f"rerun with --overwrite to map again (`mvrecon map -o "
+                   f"{ws.path} --overwrite` redoes only the mapping), or use another workspace")
+    try:
+        stages = ws.stages()
+    except InputError:  # an unreadable config.json, which check_stage lets --overwrite map past
+        stages = {}
+    corr = dbmod.read_correspondences(ws.database_path)
+    if not corr.pairs:
+        raise NoVerifiedPairs(ws.database_path,
+                              _no_verified_pairs(ws, corr, matched_by_mvrecon="matching" in stages))
+    _warn_same_views(ws, corr)
+    if image_dir is None and not keypoint_colors:
+        image_dir = _recorded_images(stages)
+    if overwrite:  # --overwrite starts mapping over, --resume or not
+        snapshot.unlink(missing_ok=True)
+        resume = False
+    ws.begin_stage("mapping", record, overwrite)
+    result = _run_mapper(corr, config, snapshot, resume)
+    _write_models(ws, result.models, image_dir, text, keypoint_colors)
+    stats = []
+    for m in result.models:
+        s = m.stats()
+        stats.append({**{k: s[k] for k in ("registered", "points", "mean_track_length",
+                                           "mean_reprojection_error_px")}, "cameras": camera_entries(m)})
+    return MapSummary(models=result.models, status=result.status, model_stats=stats,
+                      seconds=time.perf_counter() - start)
+
+
+def _run_mapper(corr, config, snapshot: Path, resume: bool):
+    """The models of the correspondences `corr` (database.Correspondences), with each image's status: the
+    incremental mapper (sfm/incremental.py), the one mapper so far; a second one (global) is chosen here. Its
+    module loads only when mapping runs (GTSAM is heavy for the commands that never map)."""
+    from ..sfm.incremental import map_correspondences
+
+    return map_correspondences(corr, config, snapshot_path=snapshot, resume=resume)
+
+
+def _write_models(ws: Workspace, models: list, image_dir, text: bool, keypoint_colors) -> None:
+    """sparse/N/ and points.ply of `models`. The new models go to sparse.new/ and replace sparse/ only once
+    made: a failed re-map keeps the old model; with no model at all the earlier one stays too."""
+    from ..io.colmap_model import warn_text_names, write_models, write_points_ply
+
+    sparse, new = ws.path / "sparse", ws.path / "sparse.new"
+    shutil.rmtree(new, ignore_errors=True)
+    recs = write_models(models, new, image_dir=image_dir, text=text, keypoint_colors=keypoint_colors)
+    if recs:
+        old = ws.path / "sparse.old"
+        shutil.rmtree(old, ignore_errors=True)
+        if sparse.exists():
+            sparse.rename(old)
+        new.rename(sparse)
+        shutil.rmtree(old, ignore_errors=True)
+        write_points_ply(recs[0], ws.path / "points.ply")
+        if text:
+            warn_text_names([r.names for r in recs], sparse)
+    else:
+        shutil.rmtree(new, ignore_errors=True)
+        if sparse.exists():
+            log.warning("%s: no new model; the earlier model in sparse/ and points.ply is kept", ws.path)
+
+
+def camera_entries(model) -> list[dict]:
+    """The cameras of a model's registered images with their final parameters (COLMAP's order), as report.json
+    lists them: the refined intrinsics were only in sparse/N/cameras.bin."""
+    cams = [(cid, model.cameras[int(cid)]) for cid in np.unique(model.camera_of[model.registered])]
+    return [report_entry(cid, cam.model, cam.width, cam.height, cam.params) for cid, cam in cams]
+
+
+class NoVerifiedPairs(InputError):
+    """The database gives the mapper no verified pair; `reason` is why, without the path the error names (the
+    database, or the images of a `reconstruct` that removed the folder it made, database included)."""
+
+    def __init__(self, path, reason: str):
+        super().__init__(f"{path}: {reason}")
+        self.reason = reason
+
+
+def _no_verified_pairs(ws: Workspace, corr, *, matched_by_mvrecon: bool) -> str:
+    """Why a database gives the mapper no pair: none matched yet, or what the database marked the matched pairs,
+    with COLMAP's fisheye rule when that is the likely cause (COLMAP matched a fisheye camera without a focal
+    prior: it marks every such pair DEGENERATE, which looked like images without overlap)."""
+    head = f"no verified image pairs among {len(corr.images)} images; "
+    configs = dbmod.pair_configurations(ws.database_path)
+    if not configs:
+        with dbmod.open_database(ws.database_path) as db:
+            matched = dbmod.num_matched_pairs(db)
+        return head + (f"run `mvrecon match -o {ws.path}` first" if not matched else
+                       "the images do not overlap or have too little texture (nothing to reconstruct)")
+    total = sum(configs.values())
+    head += (f"its one matched pair is {next(iter(configs))}" if total == 1 else
+             f"all {total} matched pairs are {next(iter(configs))}" if len(configs) == 1 else
+             f"the {total} matched pairs are " + ", ".join(f"{n} {name}" for name, n in configs.items())) \
+        + ("" if matched_by_mvrecon else " in the database")
+    blind = dbmod.colmap_blind_cameras(corr.cameras)
+    if blind and not matched_by_mvrecon:
+        cid, model = blind[0], corr.cameras[blind[0]].model
+        return head + (f"; likely cause: {dbmod.COLMAP_FISHEYE_NOTE} and marks its pairs DEGENERATE (camera {cid} is "
+                       f"{model} without one): give it a focal prior when extracting (COLMAP's camera_params) and "
+                       f"match again, or run `mvrecon reconstruct IMAGES -o OUT --camera-model {model}`, whose "
+                       "verifier needs none")
+    if matched_by_mvrecon and _mostly_fixed(corr):
+        return head + (": most features stay on the same pixels of every image, whose matches are left out "
+                       "(matching/overlay.py): the camera did not move between the images (nothing to reconstruct)")
+    return head + ": the images do not overlap or have too little texture (nothing to reconstruct)"
+
+
+def _warn_same_views(ws: Workspace, corr) -> None:
+    """A warning naming the images that show one view (`overlay.same_view`: copies of one photo, or shots from a
+    camera that did not move), which the mapper registers at one pose without adding a viewpoint; from the
+    verified matches the mapper reads anyway (opensfm_lund's 238 pairs: 27 ms, beside the 63 ms of reading them)."""
+    group = {i: {i} for i in corr.images}
+    for p in corr.pairs:
+        a, b = group[p.image_id1], group[p.image_id2]
+        if a is not b and same_view(corr.keypoints[p.image_id1], corr.keypoints[p.image_id2], p.inliers):
+            a |= b
+            for i in b:
+                group[i] = a
+    groups = sorted({id(g): sorted(corr.images[i].name for i in g) for g in group.values() if len(g) > 1}.values())
+    if groups:
+        shown = "; ".join(" = ".join(names) for names in groups[:5]) + (
+            f"; and {len(groups) - 5} more groups" if len(groups) > 5 else "")
+        log.warning("%s: images that show one view (their matches stay on their pixels: copies of one photo, or "
+                    "shots from a camera that did not move), which a model places at one pose: %s", ws.path, shown)
+
+
+def _mostly_fixed(corr) -> bool:
+    """Whether most keypoints sit where half the images of their size have one: a camera that never moved."""
+    sizes = {i: (corr.cameras[info.camera_id].width, corr.cameras[info.camera_id].height)
+             for i, info in corr.images.items()}
+    fixed = fixed_keypoints(corr.keypoints, sizes)
+    return sum(int(m.sum()) for m in fixed.values()) > 0.5 * sum(len(m) for m in fixed.values())
+
+
+def _recorded_images(stages: dict):
+    """The image folder the workspace's features were extracted from, for the points' colours, when it still
+    exists; else None, with a warning that the colours are not sampled."""
+    folder = ((stages.get("features") or {}).get("config") or {}).get("images")
+    if isinstance(folder, str) and Path(folder).is_dir():
+        return folder
+    log.warning("point colours are not sampled (black): no image folder %s; pass --image-dir IMAGES to colour "
+                "them", "recorded for this workspace" if folder is None else f"at the recorded {folder}")
+    return None
