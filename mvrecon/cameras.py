@@ -79,7 +79,8 @@ class CameraConfig:
 def _refuse_fold(model: str, params, size: tuple[int, int] | None, where: str) -> None:
     """InputError when trusted params make the lens fold over inside the image: past the radius where the
     distorted radius stops growing with the ray's angle, two rays share a pixel and the image farther out has
-    no ray, so a run with them failed late with no reason given (OPENCV_FISHEYE 285,285,320,240,-2,0,0,0 folds 78 px out)."""
+    no ray, so a run with them failed late with no reason given (OPENCV_FISHEYE 285,285,320,240,-2,0,0,0 folds
+    78 px out)."""
     fx, fy, cx, cy, _ = camera_model.split(model, params)
     w, h = size if size is not None else (0.0, 0.0)
     corner = max(np.hypot((u - cx) / fx, (v - cy) / fy) for u in (0.0, w) for v in (0.0, h))

@@ -27,7 +27,6 @@ from .io.files import ESCAPE, hold_folder
 from .progress import clear_line, set_enabled
 
 
-
 def _command_modules(only: str | None = None):
     """The command modules in `--help` order; with `only` (a command as typed), that one alone when it is one:
     importing and describing every command took 8 ms of each run's single-core start-up."""
@@ -55,7 +54,8 @@ def _command_in(argv: list[str]) -> str | None:
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     """The parser of every command, or of the command `only` alone (`_command_modules`); an unknown one gets
     every command, so that argparse's error lists them."""
-    parser = argparse.ArgumentParser(prog="mvrecon", description="Structure from motion in Python, validated against COLMAP.")
+    parser = argparse.ArgumentParser(prog="mvrecon",
+                                     description="Structure from motion in Python, validated against COLMAP.")
     parser.add_argument("--version", action="version", version=f"mvrecon {__version__}")
     # -v/-q are accepted before the command too (`mvrecon -q reconstruct ...`); own dests, as a subcommand's
     # defaults would overwrite the same dest

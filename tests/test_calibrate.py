@@ -11,8 +11,14 @@ import pytest
 
 from mvrecon.cli import main
 from mvrecon.geometry.rotation import angle_axis_to_rotmat
-from mvrecon.stereo.calibrate import (CalibrationConfig, calibrate_mono, calibrate_stereo, read_camera_toml,
-                                      stereo_pairs, write_camera_toml)
+from mvrecon.stereo.calibrate import (
+    CalibrationConfig,
+    calibrate_mono,
+    calibrate_stereo,
+    read_camera_toml,
+    stereo_pairs,
+    write_camera_toml,
+)
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 XIMEA = DATA / "calib_stereo_chessboard_ximea"

@@ -190,7 +190,8 @@ def fisheye_model(folder: Path, images: Path, max_angle_deg: float) -> tuple[Pat
     rays = np.c_[rays, np.ones(len(rays))]
     rays = rays[np.degrees(np.arccos(1 / np.linalg.norm(rays, axis=1))) <= max_angle_deg]
     xyz = 5.0 * rays / np.linalg.norm(rays, axis=1)[:, None]
-    poses = [pycolmap.Rigid3d(pycolmap.Rotation3d(), [0.0, 0, 0]), pycolmap.Rigid3d(pycolmap.Rotation3d(), [-0.2, 0, 0])]
+    poses = [pycolmap.Rigid3d(pycolmap.Rotation3d(), [0.0, 0, 0]),
+             pycolmap.Rigid3d(pycolmap.Rotation3d(), [-0.2, 0, 0])]
     xy = [cam.img_from_cam(xyz + pose.translation) for pose in poses]
     keep = np.all([np.isfinite(p).all(1) & (p >= 0).all(1) & (p[:, 0] < 640) & (p[:, 1] < 480) for p in xy], axis=0)
     rec = pycolmap.Reconstruction()

@@ -19,12 +19,18 @@ import pytest
 from mvrecon.cli import main
 from mvrecon.errors import InputError
 from mvrecon.eval import ground_truth as G
-from mvrecon.eval.compare import (Comparison, CompareConfig, compare_images, compare_models, evaluate,
-                                  summary_rows)
+from mvrecon.eval.compare import CompareConfig, Comparison, compare_images, compare_models, evaluate, summary_rows
 from mvrecon.eval.metrics import accuracy_summary, camera_center
 from mvrecon.eval.report import format_value, write_report
-from mvrecon.eval.runners import (RunOptions, _wait_measuring_memory, code_environment, load_run, run_colmap,
-                                  run_colmap_on_database, run_mvrecon_map)
+from mvrecon.eval.runners import (
+    RunOptions,
+    _wait_measuring_memory,
+    code_environment,
+    load_run,
+    run_colmap,
+    run_colmap_on_database,
+    run_mvrecon_map,
+)
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 OPTS = RunOptions(camera_mode="single")
@@ -545,7 +551,8 @@ def test_bad_mvrecon_args_are_refused_before_any_engine_runs(tmp_path, capsys):
     out = tmp_path / "r"
     for extra, message in ((["--mvrecon-args=--bogus"], "--mvrecon-args: unrecognized arguments: --bogus"),
                            (["--mvrecon-args", "--bogus"], "--mvrecon-args: unrecognized arguments: --bogus"),
-                           (["--mvrecon-args", "--max-features 0"], "--mvrecon-args: --max-features: must be at least 1"),
+                           (["--mvrecon-args", "--max-features 0"],
+                            "--mvrecon-args: --max-features: must be at least 1"),
                            (["--mvrecon-args", "--seed 3"], "--seed would make mvrecon's run differ from COLMAP's"),
                            (["--mvrecon-args", "-o elsewhere"], "-o/--output is compare's to choose"),
                            (["--mvrecon-args", f"--config {tmp_path / 'none.toml'}"], "none.toml"),

@@ -7,8 +7,14 @@ import numpy as np
 import pytest
 
 from mvrecon.cli import main
-from mvrecon.features.detectors import (DETECTORS, detect, repeatability, synthetic_homography, verified_inliers,
-                                        warp_repeatability)
+from mvrecon.features.detectors import (
+    DETECTORS,
+    detect,
+    repeatability,
+    synthetic_homography,
+    verified_inliers,
+    warp_repeatability,
+)
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 CONES = DATA / "stereo_middlebury2003_cones_gray"

@@ -14,7 +14,6 @@ import numpy as np
 import psutil
 import pytest
 from PIL import Image
-
 from test_frontend_workspace import textured_views
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

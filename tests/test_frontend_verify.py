@@ -6,9 +6,9 @@ import pytest
 from mvrecon.database import CameraInfo
 from mvrecon.features.sift import extract_sift
 from mvrecon.geometry import camera as camera_model
+from mvrecon.geometry.fundamental import sampson_distance
 from mvrecon.geometry.rotation import angle_axis_to_rotmat
 from mvrecon.matching.matcher import MatcherConfig, match_descriptors
-from mvrecon.geometry.fundamental import sampson_distance
 from mvrecon.matching.verify import VerifyConfig, f_iterations, verify_pair
 
 K = [800.0, 320.0, 240.0, 0.0]

@@ -6,10 +6,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mvrecon.geometry.fundamental import (RansacConfig, eight_point, epipoles, ransac_fundamental,
-                                          sampson_distance)
-from mvrecon.geometry.rectification import (apply_homography, calibrated_rectification, fit_to_canvas,
-                                            hartley_rectification)
+from mvrecon.geometry.fundamental import RansacConfig, eight_point, epipoles, ransac_fundamental, sampson_distance
+from mvrecon.geometry.rectification import (
+    apply_homography,
+    calibrated_rectification,
+    fit_to_canvas,
+    hartley_rectification,
+)
 from mvrecon.geometry.rotation import angle_axis_to_rotmat
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"

@@ -4,7 +4,6 @@ that COLMAP's mapper registers on the same database registered, and poses within
 The figures in the docstrings are mvrecon's and COLMAP's mapper on mvrecon's database
 (`python tools/bench_mapper.py --only toy_object_small,video_orbit_small,facade_small`)."""
 
-import pytest
 
 from mvrecon.cli import main
 from mvrecon.eval.ground_truth import load_ground_truth

@@ -5,8 +5,13 @@ import numpy as np
 from mvrecon.database import PairGeometry
 from mvrecon.geometry.absolute_pose import pnp_ransac, refine_pose_and_focal, rival_poses
 from mvrecon.geometry.rotation import angle_axis_to_rotmat, rotation_error_deg, vector_angle_deg
-from mvrecon.geometry.triangulation import (max_triangulation_angle_deg, reaches_triangulation_angle, refine_points,
-                                           triangulate_dlt, two_view_midpoints)
+from mvrecon.geometry.triangulation import (
+    max_triangulation_angle_deg,
+    reaches_triangulation_angle,
+    refine_points,
+    triangulate_dlt,
+    two_view_midpoints,
+)
 from mvrecon.geometry.two_view import focal_from_fundamental, relative_pose
 from mvrecon.sfm.tracks import build_tracks
 

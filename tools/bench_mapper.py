@@ -76,8 +76,13 @@ from mvrecon.eval.compare import machine_info  # noqa: E402
 from mvrecon.eval.ground_truth import find_ground_truth, load_ground_truth_for  # noqa: E402
 from mvrecon.eval.metrics import accuracy_summary, relative_pose_errors  # noqa: E402
 from mvrecon.eval.models import load_reconstruction  # noqa: E402
-from mvrecon.eval.runners import (RunOptions, code_environment, refuse_other_settings,  # noqa: E402
-                                  run_colmap_on_database, run_mvrecon_map)
+from mvrecon.eval.runners import (  # noqa: E402
+    RunOptions,
+    code_environment,
+    refuse_other_settings,
+    run_colmap_on_database,
+    run_mvrecon_map,
+)
 from mvrecon.geometry.camera import MODELS  # noqa: E402
 from mvrecon.io.images import list_images  # noqa: E402
 from mvrecon.progress import clear_line, progress  # noqa: E402
@@ -447,7 +452,8 @@ COLMAP = no ground truth, mvrecon's AUC against COLMAP's largest model (COLMAP's
 relative-pose AUC over all image pairs, a pair with an unregistered image or split across models counting 180
 deg. *mapping s*: the wall time of the mapping stage (reading the database, mapping, writing the models).
 *target*: mvrecon's largest model holds at least as many images as COLMAP's (a model without 3D points, or
-with ground truth one where most of its own image pairs are more than 5 deg off, counting as none), and with ground truth its AUC@5 is at least COLMAP's - {margin}."""
+with ground truth one where most of its own image pairs are more than 5 deg off, counting as none), and with
+ground truth its AUC@5 is at least COLMAP's - {margin}."""
 
 
 def wrap(text: str) -> str:

@@ -33,10 +33,10 @@ from mvrecon.commands._options import join_option_value  # noqa: E402
 from mvrecon.commands.compare import check_mvrecon_args  # noqa: E402
 from mvrecon.errors import InputError  # noqa: E402
 from mvrecon.eval.ground_truth import find_ground_truth, load_ground_truth_for  # noqa: E402
-from mvrecon.io.images import list_images  # noqa: E402
 from mvrecon.eval.metrics import AUC_THRESHOLDS, accuracy_summary  # noqa: E402
 from mvrecon.eval.models import model_stats  # noqa: E402
 from mvrecon.eval.runners import RunOptions, run_colmap, run_mvrecon  # noqa: E402
+from mvrecon.io.images import list_images  # noqa: E402
 
 
 def _basename_poses(result):

@@ -68,7 +68,8 @@ def main() -> int:
         cv_on_ours = np.median(sampson_distance(F_cv, x1[inl], x2[inl]))
         ours_on_cv = np.median(sampson_distance(F, x1[m_cv], x2[m_cv]))
         print(f"F: {len(x1)} matches; ours {inl.sum()} inliers, median Sampson {ours:.3f} px; OpenCV {m_cv.sum()} "
-              f"inliers; OpenCV's F on our inliers {cv_on_ours:.3f} px; our F on OpenCV's inliers {ours_on_cv:.3f} px\n")
+              f"inliers; OpenCV's F on our inliers {cv_on_ours:.3f} px; "
+              f"our F on OpenCV's inliers {ours_on_cv:.3f} px\n")
         methods = {
             "gee (paper, alpha 3)": lambda: gee_disparity(left, right, GEEConfig(num_disparities=ndisp)).disparity,
             "gee (no removal)": lambda: gee_disparity(left, right, GEEConfig(num_disparities=ndisp,

@@ -53,8 +53,13 @@ def run(args) -> int:
     from mvrecon.errors import InputError
     from mvrecon.io.images import list_images, read_image
     from mvrecon.io.stage_cache import Stages
-    from mvrecon.stereo.calibrate import (CalibrationConfig, calibrate_mono, calibrate_stereo, stereo_pairs,
-                                          write_camera_toml)
+    from mvrecon.stereo.calibrate import (
+        CalibrationConfig,
+        calibrate_mono,
+        calibrate_stereo,
+        stereo_pairs,
+        write_camera_toml,
+    )
 
     from ._options import check_output_file
 

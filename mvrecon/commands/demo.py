@@ -75,12 +75,12 @@ def run(args) -> int:
     import math
     from pathlib import Path
 
+    from ..cameras import CameraConfig
     from ..eval.compare import jsonable
     from ..eval.ground_truth import load_ground_truth
     from ..eval.metrics import accuracy_summary
     from ..eval.models import model_stats, poses, sparse_models
     from ..io.files import write_json
-    from ..cameras import CameraConfig
     from ..pipeline import FrontendConfig, ReconstructConfig, reconstruct
     from ..scenes import make_scene
     from ..sfm.config import MapperConfig

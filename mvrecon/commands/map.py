@@ -29,9 +29,9 @@ def run(args) -> int:
     from pathlib import Path
 
     from ..config import config_hash
-    from ..executor import StageClock
     from ..database import database_counts
     from ..errors import InputError
+    from ..executor import StageClock
     from ..io.files import read_json_object
     from ..stages.mapping import map_workspace
     from ..stages.report import write_report

@@ -25,8 +25,15 @@ from ..errors import InputError
 from ..io.files import printable_name
 from ..io.images import IMAGE_EXTENSIONS, list_images
 from . import metrics as M
-from .runners import (RunOptions, RunResult, load_run, refuse_other_settings, run_colmap, run_colmap_on_database,
-                      run_mvrecon)
+from .runners import (
+    RunOptions,
+    RunResult,
+    load_run,
+    refuse_other_settings,
+    run_colmap,
+    run_colmap_on_database,
+    run_mvrecon,
+)
 
 log = logging.getLogger("mvrecon.eval.compare")
 

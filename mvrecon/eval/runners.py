@@ -34,8 +34,8 @@ from ..config import diff
 from ..database import database_counts
 from ..errors import InputError
 from ..executor import StageClock, describe_death, user_environment
-from ..memory import INTERVAL_S, PeakSampler, process_tree
 from ..io.files import read_json_object, some_names
+from ..memory import INTERVAL_S, PeakSampler, process_tree
 
 log = logging.getLogger("mvrecon.eval.runners")
 

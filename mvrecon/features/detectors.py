@@ -184,4 +184,5 @@ def measure(name: str, image, H) -> tuple[Detection, dict]:
     time of the detection alone), repeatability under the warp H (0..1) and implementation."""
     det = detect(name, image)
     return det, {"keypoints": len(det.keypoints), "detect_s": det.seconds,
-                 "repeatability": warp_repeatability(name, image, H, keypoints=det.keypoints), "implementation": det.implementation}
+                 "repeatability": warp_repeatability(name, image, H, keypoints=det.keypoints),
+                 "implementation": det.implementation}

@@ -1,4 +1,5 @@
-"""Binary little-endian PLY point clouds with optional colours and normals, readable by Open3D, MeshLab, CloudCompare."""
+"""Binary little-endian PLY point clouds with optional colours and normals, readable by Open3D, MeshLab and
+CloudCompare."""
 
 import numpy as np
 

@@ -105,8 +105,8 @@ def metric_upgrade(M) -> np.ndarray:
         m1, m2 = M[2 * i], M[2 * i + 1]
         rows += [_quadric_row(m1, m1), _quadric_row(m2, m2), _quadric_row(m1, m2)]
         rhs += [1.0, 1.0, 0.0]
-    l = np.linalg.lstsq(np.array(rows), np.array(rhs), rcond=None)[0]
-    L = np.array([[l[0], l[1], l[2]], [l[1], l[3], l[4]], [l[2], l[4], l[5]]])
+    q = np.linalg.lstsq(np.array(rows), np.array(rhs), rcond=None)[0]
+    L = np.array([[q[0], q[1], q[2]], [q[1], q[3], q[4]], [q[2], q[4], q[5]]])
     w, V = np.linalg.eigh(L)
     w = np.maximum(w, 1e-9 * w.max())
     return V * np.sqrt(w)
@@ -122,8 +122,8 @@ def tilts_from_factorization(W, reference: int, axis_deg: float | None = None) -
     """(tilts_deg relative to `reference`, axis_deg) from a complete measurement matrix W (2F,P), centred pixels.
 
     The relative rotations R_i R_ref^T of the metric cameras all turn about the tilt axis; the axis is their mean
-    rotation vector projected into the image plane (or `axis_deg` when given). The depth-reversal ambiguity is resolved by the convention
-    that tilts increase along the image order.
+    rotation vector projected into the image plane (or `axis_deg` when given). The depth-reversal ambiguity is
+    resolved by the convention that tilts increase along the image order.
     """
     M, _, _ = affine_factorization(W)
     Q = metric_upgrade(M)
@@ -279,8 +279,8 @@ def solve_tilt_series(obs: Observations, num_images: int, reference: int, tilts_
     """Cameras and points of a tilt series from its tracks, estimating whatever of tilts and axis is not given.
 
     Unknown tilts need >= 3 images and tracks seen in all of them (the factorisation's complete measurement
-    matrix); an unknown axis with known tilts starts from `axis_guess_deg` (e.g. from the affine F). Observations with a residual above `outlier_px` after the first adjustment are dropped and the
-    adjustment rerun.
+    matrix); an unknown axis with known tilts starts from `axis_guess_deg` (e.g. from the affine F). Observations
+    with a residual above `outlier_px` after the first adjustment are dropped and the adjustment rerun.
     """
     fit_tilts, fit_axis = tilts_deg is None, axis_deg is None
     if fit_tilts:

@@ -22,8 +22,12 @@ from ..io.files import made_folder
 from ..matching.matcher import MatcherConfig
 from ..progress import progress
 from ..stereo.sgbm import SGBMConfig
-from .affine import (AffineRansacConfig, affine_epipolar_error, ransac_affine_fundamental,
-                     tilt_axis_from_affine_fundamental)
+from .affine import (
+    AffineRansacConfig,
+    affine_epipolar_error,
+    ransac_affine_fundamental,
+    tilt_axis_from_affine_fundamental,
+)
 from .dense import DenseMatchConfig, fill_nearest, refine_heights
 from .factorization import build_tracks, solve_tilt_series
 from .heightmap import grid_heights, height_accuracy, height_outliers, profile

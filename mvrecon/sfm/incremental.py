@@ -31,8 +31,7 @@ from .initialize import evaluate_pair, find_initial_pair, initial_pair_rejection
 from .model import Camera, Reconstruction
 from .register import correspondences_2d3d, rank_candidates, register_image
 from .tracks import build_tracks
-from .triangulate import (continue_points, refine_existing_points, retriangulate, tracks_of_image,
-                          triangulate_tracks)
+from .triangulate import continue_points, refine_existing_points, retriangulate, tracks_of_image, triangulate_tracks
 
 log = logging.getLogger("mvrecon.sfm")
 SNAPSHOT_VERSION = 4  # 2: small models kept as candidates (1 dropped them); 3: only the largest of them;

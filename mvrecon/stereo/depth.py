@@ -1,4 +1,5 @@
-"""Depth from disparity and the coloured point cloud: Z = f * B / (d + doffs), X = (x - cx) Z / f, Y = (y - cy) Z / f."""
+"""Depth from disparity and the coloured point cloud: Z = f * B / (d + doffs), X = (x - cx) Z / f,
+Y = (y - cy) Z / f."""
 
 import numpy as np
 

@@ -2,7 +2,8 @@
 rectification -> disparity (gee | sgbm | best) -> depth, point cloud, figures, and scores against ground truth.
 
 `run_stereo(config, left_path, right_path, out_dir, ...)` is what `mvrecon stereo` calls; it returns the report
-dict it also writes to `out_dir/report.json`. A rerun into the same folder reuses the stages already done (`io.stage_cache`).
+dict it also writes to `out_dir/report.json`. A rerun into the same folder reuses the stages already done
+(`io.stage_cache`).
 """
 
 import logging
@@ -13,9 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..io.files import made_folder, replace_whole, write_json
 from ..geometry.fundamental import RansacConfig, ransac_fundamental, sampson_distance
 from ..geometry.rectification import apply_homography, calibrated_rectification, fit_to_canvas, hartley_rectification
+from ..io.files import made_folder, replace_whole, write_json
 from ..io.images import as_uint8, read_image, to_gray, write_image
 from ..io.pfm import read_pfm, write_pfm
 from ..io.stage_cache import Stages, code_digest, digest
