@@ -22,8 +22,8 @@ from mvrecon.scenes.textures import TextureSpec
 
 
 @pytest.fixture(scope="module")
-def small_scene(tmp_path_factory):
-    return make_scene("object_orbit_small", tmp_path_factory.mktemp("object_orbit_small"))
+def small_scene(object_orbit_small):
+    return object_orbit_small
 
 
 @pytest.fixture(scope="module")

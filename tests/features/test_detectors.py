@@ -15,8 +15,8 @@ from mvrecon.features.detectors import (
     verified_inliers,
     warp_repeatability,
 )
+from tests.helpers import DATA
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 CONES = DATA / "stereo_middlebury2003_cones_gray"
 
 

@@ -19,8 +19,8 @@ from mvrecon.stereo.calibrate import (
     stereo_pairs,
     write_camera_toml,
 )
+from tests.helpers import DATA
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 XIMEA = DATA / "calib_stereo_chessboard_ximea"
 
 K_TRUE = np.array([[620.0, 0, 318.0], [0, 615.0, 244.0], [0, 0, 1]])

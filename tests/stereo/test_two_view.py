@@ -14,8 +14,8 @@ from mvrecon.stereo.calib import StereoCalib, read_calib, write_calib
 from mvrecon.stereo.evaluate import disparity_metrics, evaluate
 from mvrecon.stereo.gee import GEEConfig, gee_disparity
 from mvrecon.stereo.sgbm import SGBMConfig, sgbm_disparity
+from tests.helpers import DATA
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 MOTO = DATA / "stereo_middlebury2014_motorcycle_quarter"
 CONES = DATA / "stereo_middlebury2003_cones_gray"
 

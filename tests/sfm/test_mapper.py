@@ -16,6 +16,7 @@ from mvrecon.sfm import bundle, incremental, triangulate
 from mvrecon.sfm.config import MapperConfig
 from mvrecon.sfm.incremental import map_correspondences
 from mvrecon.sfm.triangulate import continue_points, retriangulate
+from tests.helpers import DATA
 
 
 def synthetic_database(path, num_images=8, num_points=600, noise_px=0.5, seed=0, num_rigs=1):
@@ -645,7 +646,7 @@ def test_the_bar_ends_at_the_registered_images(monkeypatch):
     assert bars[0].total == 6 and bars[0].n == 4
 
 
-TEMPLE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "middlebury_templeRing"
+TEMPLE = DATA / "middlebury_templeRing"
 
 
 def _reconstruct(images, out):

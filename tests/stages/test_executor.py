@@ -14,9 +14,11 @@ import numpy as np
 import psutil
 import pytest
 from PIL import Image
-from test_frontend_workspace import textured_views
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from tests import helpers
+from tests.helpers import textured_views
+
+ROOT = str(helpers.ROOT)
 
 
 def _run(args, tmp_path, env=None, timeout=180) -> subprocess.CompletedProcess:

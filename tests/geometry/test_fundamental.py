@@ -1,7 +1,6 @@
 """Eight-point F, Sampson distance, RANSAC, epipoles and rectification against exact synthetic geometry, and our F
 against OpenCV's on a real pair."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,8 +13,7 @@ from mvrecon.geometry.rectification import (
     hartley_rectification,
 )
 from mvrecon.geometry.rotation import angle_axis_to_rotmat
-
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+from tests.helpers import DATA
 
 
 def two_view(n=200, seed=0, rvec=(0.05, -0.2, 0.03), t=(-1.0, 0.1, 0.2)):

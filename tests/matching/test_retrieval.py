@@ -117,11 +117,8 @@ def test_few_images_or_images_without_descriptors_fall_back_to_exhaustive(caplog
 
 
 @pytest.fixture(scope="module")
-def orbit_runs(tmp_path_factory):
-    from mvrecon.scenes import make_scene
-
-    root = tmp_path_factory.mktemp("retrieval")
-    scene = make_scene("object_orbit_small", root / "scene")
+def orbit_runs(object_orbit_small, tmp_path_factory):
+    root, scene = tmp_path_factory.mktemp("retrieval"), object_orbit_small
     runs = {}
     for spec in ("exhaustive", "retrieval:3"):
         out = root / spec.replace(":", "")

@@ -3,7 +3,6 @@
 import html
 import json
 import shutil
-from pathlib import Path
 
 import pytest
 
@@ -13,8 +12,9 @@ from mvrecon.io.images import list_images
 from mvrecon.study.degrade import Degradation, degrade_image
 from mvrecon.study.grid import Cell, Grid, parse_levels
 from mvrecon.study.study import breaking_points, read_csv
+from tests.helpers import DATA as SHARED_DATA
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "middlebury_templeRing"
+DATA = SHARED_DATA / "middlebury_templeRing"
 GT = DATA / "templeR_par.txt"
 
 

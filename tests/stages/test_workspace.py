@@ -18,20 +18,7 @@ from mvrecon.stages.common import FrontendConfig
 from mvrecon.stages.features import extract_features
 from mvrecon.stages.matching import match
 from mvrecon.workspace import Workspace
-
-
-def textured_views(folder, count=6, size=(240, 320)):
-    """Overlapping crops of one blurred-noise texture: every pair shares content, SIFT finds it quickly."""
-    import cv2
-
-    rng = np.random.default_rng(0)
-    h, w = size
-    noise = (rng.random((h + 20 * count, w + 30 * count, 3)) * 255).astype(np.uint8)
-    texture = cv2.GaussianBlur(noise, (0, 0), 1.5)
-    folder.mkdir(parents=True, exist_ok=True)
-    for i in range(count):
-        Image.fromarray(texture[12 * i:12 * i + h, 20 * i:20 * i + w]).save(folder / f"view{i:02d}.png")
-    return folder
+from tests.helpers import textured_views
 
 
 class Stop(Exception):

@@ -31,8 +31,8 @@ from mvrecon.eval.runners import (
     run_colmap_on_database,
     run_mvrecon_map,
 )
+from tests.helpers import DATA, ROOT
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 OPTS = RunOptions(camera_mode="single")
 
 
@@ -228,7 +228,7 @@ def test_mvrecons_mapper_alone_on_a_database(runs, tmp_path):
     ws = tmp_path / "ws"
     ws.mkdir()
     shutil.copyfile(colmap.out_dir / "database.db", ws / "database.db")
-    root = Path(__file__).resolve().parents[1]
+    root = ROOT
     run = run_mvrecon_map(ws, OPTS, image_dir=images, code=root)
     assert run.error is None and run.engine == "mvrecon-map"
     assert [m.num_reg_images() for m in run.models] == [8] and set(run.report["stages"]) == {"mapping"}
@@ -243,7 +243,7 @@ def test_code_environment_imports_mvrecon_from_the_tree_given(tmp_path, monkeypa
     tree = tmp_path / "other"
     (tree / "mvrecon").mkdir(parents=True)
     (tree / "mvrecon" / "__init__.py").write_text("TREE = 'other'\n")
-    monkeypatch.chdir(Path(__file__).resolve().parents[1])
+    monkeypatch.chdir(ROOT)
     env, cwd = code_environment(tree)
     out = subprocess.run([sys.executable, "-c", "import mvrecon; print(getattr(mvrecon, 'TREE', 'this one'))"],
                          env=env, cwd=cwd, capture_output=True, text=True)
