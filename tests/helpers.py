@@ -24,3 +24,9 @@ def textured_views(folder: Path, count: int = 6, size: tuple[int, int] = (240, 3
     for i in range(count):
         Image.fromarray(texture[12 * i:12 * i + h, 20 * i:20 * i + w]).save(folder / f"view{i:02d}.png")
     return folder
+
+
+def pattern(h: int = 60, w: int = 80) -> np.ndarray:
+    """An asymmetric RGB gradient: any flip or rotation changes it."""
+    y, x = np.mgrid[0:h, 0:w]
+    return np.stack([x * 3 % 256, y * 4 % 256, (x + 2 * y) % 256], axis=-1).astype(np.uint8)

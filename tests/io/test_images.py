@@ -1,4 +1,4 @@
-"""Images in (discovery, decoding, EXIF), camera grouping and focal priors, pair selection, config machinery."""
+"""Images in: discovery, decoding, EXIF orientation, the grey conversion, truncated and odd files."""
 
 import logging
 
@@ -6,19 +6,10 @@ import numpy as np
 import pytest
 from PIL import ExifTags, Image
 
-from mvrecon import config as cfgmod
-from mvrecon.cameras import CameraConfig, focal_prior, group_cameras, parse_camera_params
 from mvrecon.errors import InputError
 from mvrecon.features.sift import SiftConfig, extract_sift
 from mvrecon.io.images import image_metadata, list_images, read_image, to_gray, write_image
-from mvrecon.matching.pairs import select_pairs
-from mvrecon.stages.common import FrontendConfig
-
-
-def pattern(h=60, w=80):
-    """An asymmetric RGB gradient: any flip or rotation changes it."""
-    y, x = np.mgrid[0:h, 0:w]
-    return np.stack([x * 3 % 256, y * 4 % 256, (x + 2 * y) % 256], axis=-1).astype(np.uint8)
+from tests.helpers import pattern
 
 
 @pytest.mark.parametrize("orientation,expected", [
@@ -71,43 +62,6 @@ def test_one_grey_conversion_in_8_bits_and_in_float():
     assert deep.dtype == np.uint8 and deep.max() == 255 and np.abs(deep - stretched).max() <= 1
     with pytest.raises(ValueError):
         to_gray(rgb, np.float64)
-
-
-def test_sift_keypoints_follow_the_image_content_in_colmap_pixels():
-    """A textured image and its copy shifted by (7, 3) px: matched keypoints differ by exactly that shift, and
-    shrinking the image for detection maps keypoints back to full resolution."""
-    rng = np.random.default_rng(0)
-    base = (rng.random((260, 340)) * 255).astype(np.uint8)
-    import cv2
-
-    base = cv2.GaussianBlur(base, (0, 0), 2.0)
-    shifted = np.zeros_like(base)
-    shifted[3:, 7:] = base[:-3, :-7]
-    for config in (SiftConfig(), SiftConfig(max_image_size=170)):
-        k1, d1 = extract_sift(base, config)
-        k2, d2 = extract_sift(shifted, config)
-        from mvrecon.matching.matcher import match_descriptors
-
-        m = match_descriptors(d1, d2)
-        assert len(m) > 50
-        delta = k2[m[:, 1], :2] - k1[m[:, 0], :2]
-        assert np.median(np.abs(delta - [7, 3]), axis=0).max() < (0.05 if config.max_image_size > 340 else 0.5)
-        assert d1.dtype == np.uint8 and d1.shape[1] == 128 and k1.shape[1] == 4
-
-
-@pytest.mark.parametrize("peak", [0.02 / 3, 0.04 / 3])
-def test_peak_threshold_is_colmaps_test_on_the_interpolated_dog_peak(peak):
-    """COLMAP (VLFeat) keeps an extremum whose interpolated |DoG| (OpenCV's `response`) reaches
-    peak_threshold: extract_sift keeps exactly the keypoints of a low-threshold OpenCV run whose response
-    reaches it (the scaling of OpenCV's contrastThreshold once kept only those reaching twice the value)."""
-    import cv2
-    import skimage.data
-
-    image = skimage.data.camera()
-    keypoints, _ = extract_sift(image, SiftConfig(peak_threshold=peak))
-    loose = cv2.SIFT_create(nfeatures=0, contrastThreshold=0.1 * peak * 3).detect(image, None)
-    responses = np.array([k.response for k in loose])
-    assert len(keypoints) == int((responses >= peak).sum()) > 500
 
 
 def test_listing_is_recursive_and_reports_non_images_and_corrupt_files(tmp_path, caplog):
@@ -359,93 +313,3 @@ def test_jpegs_with_a_thumbnail_or_data_after_their_end_are_whole(tmp_path):
     first_picture = (tmp_path / "pair.mpo").read_bytes()
     (tmp_path / "pair.mpo").write_bytes(first_picture[:len(first_picture) // 4])
     assert image_problem(tmp_path / "pair.mpo") is not None
-
-
-def test_focal_priors_and_camera_grouping(tmp_path):
-    sub = tmp_path / "left"
-    sub.mkdir()
-    Image.fromarray(pattern(60, 80)).save(tmp_path / "noexif.jpg")
-    exif = Image.Exif()
-    exif[0x010F], exif[0x0110] = "Cam", "X1"
-    exif.get_ifd(0x8769)[0xA405] = 28  # FocalLengthIn35mmFilm
-    exif.get_ifd(0x8769)[0x920A] = 4.0  # FocalLength
-    for name in ("a.jpg", "b.jpg", "left/c.jpg"):
-        Image.fromarray(pattern(60, 80)).save(tmp_path / name, exif=exif)
-    Image.fromarray(pattern(60, 80)).save(tmp_path / "plain.jpg")
-    Image.fromarray(pattern(40, 80)).save(tmp_path / "small.jpg")
-    names = ["a.jpg", "b.jpg", "noexif.jpg", "left/c.jpg", "plain.jpg", "small.jpg"]
-    metas = {n: image_metadata(tmp_path / n) for n in names}
-    assert metas["a.jpg"].focal_35mm == 28 and metas["a.jpg"].make == "Cam"
-    assert focal_prior(metas["a.jpg"]) == (pytest.approx(28 / 36 * 80), True)
-    assert focal_prior(metas["plain.jpg"]) == (pytest.approx(1.2 * 80), False)
-
-    auto = group_cameras(names, metas, CameraConfig())
-    assert sorted(sorted(m) for _, m in auto) == [["a.jpg", "b.jpg", "left/c.jpg"], ["noexif.jpg", "plain.jpg"],
-                                                  ["small.jpg"]]
-    exif_camera = next(c for c, m in auto if "a.jpg" in m)
-    assert exif_camera.prior_trusted and exif_camera.params[0] == pytest.approx(28 / 36 * 80)
-    folders = group_cameras(names[:5], metas, CameraConfig(mode="per-folder"))
-    assert sorted(len(m) for _, m in folders) == [1, 4]
-    assert len(group_cameras(names, metas, CameraConfig(mode="per-image"))) == 6
-    with pytest.raises(InputError, match="needs images of one size"):
-        group_cameras(names, metas, CameraConfig(mode="single"))
-    known = group_cameras(names[:2], metas, CameraConfig(model="PINHOLE", params=parse_camera_params("50,51,40,30")))
-    assert known[0][0].prior_trusted and list(known[0][0].params) == [50, 51, 40, 30]
-    # known intrinsics of one size given to images of two: the other size's principal point would be off centre
-    for mode in ("auto", "per-image"):
-        with pytest.raises(InputError, match=r"^small.jpg: is 80x40 but a.jpg is 80x60, and --camera-params"):
-            group_cameras(names, metas, CameraConfig(mode=mode, model="PINHOLE", params=(50, 51, 40, 30)))
-    with pytest.raises(InputError, match="PINHOLE takes 4 parameters"):
-        CameraConfig(model="PINHOLE", params=(1.0, 2.0)).validate()
-
-
-def test_pair_selection(tmp_path):
-    names = [f"f{i:02d}.jpg" for i in range(6)]
-    assert len(select_pairs("exhaustive", names)) == 15
-    seq = select_pairs("sequential:2", names)
-    assert seq[:3] == [("f00.jpg", "f01.jpg"), ("f00.jpg", "f02.jpg"), ("f01.jpg", "f02.jpg")] and len(seq) == 9
-    pairs_file = tmp_path / "pairs.txt"
-    pairs_file.write_text("# my pairs\nf00.jpg f03.jpg\nf03.jpg f00.jpg\n\nf01.jpg f05.jpg  # comment\n")
-    assert select_pairs(str(pairs_file), names) == [("f00.jpg", "f03.jpg"), ("f01.jpg", "f05.jpg")]
-    pairs_file.write_text("f00.jpg f03.jpg\nf00.jpg nope.jpg\n")
-    with pytest.raises(InputError, match=r"pairs.txt:2: unknown image 'nope.jpg'"):
-        select_pairs(str(pairs_file), names)
-    with pytest.raises(InputError, match="positive integer"):
-        select_pairs("sequential:x", names)
-
-
-def test_config_hash_overrides_and_diff(tmp_path):
-    base = FrontendConfig()
-    assert cfgmod.config_hash(base) == cfgmod.config_hash(FrontendConfig(workers=7))  # workers do not change results
-    toml = tmp_path / "c.toml"
-    toml.write_text('pairs = "sequential:3"\n[sift]\nmax_num_features = 1000\n')
-    changed = cfgmod.with_overrides(base, cfgmod.load_toml(toml), source=str(toml))
-    assert changed.sift.max_num_features == 1000 and changed.pairs == "sequential:3"
-    assert cfgmod.config_hash(changed) != cfgmod.config_hash(base)
-    assert cfgmod.diff(cfgmod.to_dict(base), cfgmod.to_dict(changed)) == [
-        "pairs: exhaustive -> sequential:3", "sift.max_num_features: 8192 -> 1000"]
-    toml.write_text("[sift]\nmax_features = 1\n")
-    with pytest.raises(InputError, match="unknown option 'max_features' in SiftConfig"):
-        cfgmod.with_overrides(base, cfgmod.load_toml(toml), source=str(toml))
-
-
-@pytest.mark.parametrize("precise", [False, True])
-def test_sift_keypoints_sit_on_blob_centres_without_bias(precise):
-    """Gaussian blobs at known sub-pixel centres (COLMAP convention), small to large: our keypoints find them
-    without a shift at every scale. OpenCV's own coordinates are 0.25 px off with its default upsampling."""
-    rng = np.random.default_rng(0)
-    h, w = 480, 640
-    ys, xs = np.mgrid[0:h, 0:w] + 0.5  # COLMAP: the top-left pixel's centre is (0.5, 0.5)
-    for low, high, count in ((1.2, 3.0, 120), (5.0, 9.0, 25)):
-        centres = np.column_stack([rng.uniform(40, w - 40, count), rng.uniform(40, h - 40, count)])
-        sigmas = rng.uniform(low, high, count)
-        blobs = sum(np.exp(-((xs - cx) ** 2 + (ys - cy) ** 2) / (2 * s * s)) for (cx, cy), s in zip(centres, sigmas))
-        image = (40 + 180 * np.clip(blobs, 0, 1)).astype(np.uint8)
-        kp, _ = extract_sift(image, SiftConfig(precise_upscale=precise))
-        d = np.linalg.norm(kp[:, None, :2] - centres[None], axis=2)
-        nearest = d.argmin(axis=1)
-        close = d[np.arange(len(kp)), nearest] < 1.0
-        off = kp[close, :2] - centres[nearest[close]]
-        assert close.sum() > count
-        assert np.all(np.abs(off.mean(axis=0)) < 0.04), (low, off.mean(axis=0))
-        assert np.sqrt((off ** 2).mean()) < 0.12
