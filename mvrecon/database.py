@@ -24,7 +24,7 @@ from .interrupts import ctrl_c_deferred
 from .io.files import require_room
 from .io.sqlite import connect_readonly
 
-# COLMAP's two-view configurations as pycolmap 4.2 numbers them (tests/test_io_formats.py checks them)
+# COLMAP's two-view configurations as pycolmap 4.2 numbers them (tests/io/test_formats.py checks them)
 TWO_VIEW_CONFIGS = {"UNDEFINED": 0, "DEGENERATE": 1, "CALIBRATED": 2, "UNCALIBRATED": 3, "PLANAR": 4,
                     "PANORAMIC": 5, "PLANAR_OR_PANORAMIC": 6, "WATERMARK": 7, "MULTIPLE": 8, "CALIBRATED_RIG": 9}
 _MODEL_NAMES = {v: k for k, v in CAMERA_MODEL_IDS.items()}

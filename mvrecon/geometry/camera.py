@@ -21,7 +21,7 @@ PARAM_NAMES = {
 }
 MODELS = tuple(PARAM_NAMES)
 # COLMAP's camera model ids as pycolmap 4.2 numbers them, in database blobs and model files alike
-# (tests/test_io_formats.py checks them against pycolmap)
+# (tests/io/test_formats.py checks them against pycolmap)
 CAMERA_MODEL_IDS = {"SIMPLE_PINHOLE": 0, "PINHOLE": 1, "SIMPLE_RADIAL": 2, "RADIAL": 3, "OPENCV": 4,
                     "OPENCV_FISHEYE": 5, "FULL_OPENCV": 6, "FOV": 7, "SIMPLE_RADIAL_FISHEYE": 8, "RADIAL_FISHEYE": 9,
                     "THIN_PRISM_FISHEYE": 10, "RAD_TAN_THIN_PRISM_FISHEYE": 11, "SIMPLE_DIVISION": 12, "DIVISION": 13,

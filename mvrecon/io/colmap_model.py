@@ -2,7 +2,7 @@
 
 Only registered images go into a model (each with a trivial rig and frame, as COLMAP 3.12+ stores them), with
 all their keypoints as 2D points so point2D indices stay the database's keypoint indices. The five .bin files are
-byte for byte what pycolmap's `write_binary` wrote for the same model (tests/test_io_formats.py holds them to
+byte for byte what pycolmap's `write_binary` wrote for the same model (tests/io/test_formats.py holds them to
 it): importing pycolmap cost about 110 ms of CPU in every run, and building its reconstruction point by point
 11 ms for 1700 points. Only the text files (--text) still come from pycolmap, which reads the binary folder back.
 Point colours come from the colours at the keypoints that feature extraction sampled, or else from the images

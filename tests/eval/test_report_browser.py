@@ -3,7 +3,7 @@ summary table shows exactly the numbers of metrics.json, and the WebGL 3D view d
 
 Chromium is driven over the DevTools protocol on a pipe (fds 3 and 4, NUL-separated JSON), so no websocket client
 and no network port are needed. Run by hand to get a screenshot to look at:
-    python tests/test_report_browser.py REPORT/index.html shot.png
+    python tests/eval/test_report_browser.py REPORT/index.html shot.png
 """
 
 import base64

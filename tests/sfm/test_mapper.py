@@ -176,8 +176,8 @@ def test_a_four_term_lens_gets_a_final_refinement_run_to_a_tighter_tolerance(tmp
                                                                              final_tolerance):
     """A finished model's final refinement runs LM to four_term_final_tolerance (1e-5) when a camera has four
     distortion terms, whose shallow valley the 1e-3 of growth leaves where the seed's path stopped (the fisheye
-    scene's rotation error spread over 0.019-0.075 deg with seeds; test_fisheye.py has the accuracy); lenses of
-    fewer terms keep ba_relative_tolerance."""
+    scene's rotation error spread over 0.019-0.075 deg with seeds; tests/geometry/test_fisheye.py has the
+    accuracy); lenses of fewer terms keep ba_relative_tolerance."""
     path = tmp_path / "database.db"
     synthetic_database(path)
     if lens == "OPENCV":

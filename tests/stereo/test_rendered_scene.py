@@ -1,5 +1,5 @@
 """The catalog's rendered stereo scene (Middlebury layout: im0/im1, calib.txt, disp0GT.pfm, mask0nocc.png):
-`best` disparity and depth against its ground truth (the full CLI run is tested on Middlebury in test_stereo.py)."""
+`best` disparity and depth against its ground truth (the full CLI run is tested on Middlebury in test_two_view.py)."""
 
 import numpy as np
 import pytest
