@@ -8,6 +8,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pycolmap
 from PIL import Image
 
 ROOT = Path(__file__).resolve().parents[1]  # the repository: pyproject.toml, mvrecon/, tests/
@@ -30,3 +31,20 @@ def pattern(h: int = 60, w: int = 80) -> np.ndarray:
     """An asymmetric RGB gradient: any flip or rotation changes it."""
     y, x = np.mgrid[0:h, 0:w]
     return np.stack([x * 3 % 256, y * 4 % 256, (x + 2 * y) % 256], axis=-1).astype(np.uint8)
+
+
+def synthetic_scene(root: Path) -> tuple[Path, Path]:
+    """8 images (640x480) of a pycolmap synthetic scene and its ground-truth model; made once per folder."""
+    images, gt = root / "images", root / "gt" / "sparse"
+    if not (gt / "images.bin").exists():
+        images.mkdir(parents=True, exist_ok=True)
+        gt.mkdir(parents=True, exist_ok=True)
+        pycolmap.set_random_seed(0)
+        rec = pycolmap.synthesize_dataset(pycolmap.SyntheticDatasetOptions(
+            num_rigs=1, num_frames_per_rig=8, num_points3D=300, camera_width=640, camera_height=480,
+            camera_params=[1200.0, 320.0, 240.0, 0.0]))
+        image_options = pycolmap.SyntheticImageOptions()
+        image_options.feature_patch_radius = 8  # apart enough for SIFT to tell the blobs apart
+        pycolmap.synthesize_images(image_options, rec, str(images))
+        rec.write(str(gt))
+    return images, gt

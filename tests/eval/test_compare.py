@@ -31,7 +31,7 @@ from mvrecon.eval.runners import (
     run_colmap_on_database,
     run_mvrecon_map,
 )
-from tests.helpers import DATA, ROOT
+from tests.helpers import DATA, ROOT, synthetic_scene
 
 OPTS = RunOptions(camera_mode="single")
 
@@ -43,35 +43,9 @@ def data_set(name) -> Path:
     return path
 
 
-def synthetic_scene(root: Path):
-    """8 images (640x480) of a pycolmap synthetic scene and its ground-truth model; made once per folder."""
-    images, gt = root / "images", root / "gt" / "sparse"
-    if not (gt / "images.bin").exists():
-        images.mkdir(parents=True, exist_ok=True)
-        gt.mkdir(parents=True, exist_ok=True)
-        pycolmap.set_random_seed(0)
-        rec = pycolmap.synthesize_dataset(pycolmap.SyntheticDatasetOptions(
-            num_rigs=1, num_frames_per_rig=8, num_points3D=300, camera_width=640, camera_height=480,
-            camera_params=[1200.0, 320.0, 240.0, 0.0]))
-        image_options = pycolmap.SyntheticImageOptions()
-        image_options.feature_patch_radius = 8  # apart enough for SIFT to tell the blobs apart
-        pycolmap.synthesize_images(image_options, rec, str(images))
-        rec.write(str(gt))
-    return images, gt
-
-
-def shared_runs(tmp_path_factory):
-    """COLMAP end to end and COLMAP on that database, once per test session (the runners cache finished runs)."""
-    root = tmp_path_factory.getbasetemp() / "compare-shared"
-    images, gt = synthetic_scene(root)
-    colmap = run_colmap(images, root / "runs" / "colmap", OPTS)  # where compare_images(images, root) looks
-    same = run_colmap_on_database(colmap.out_dir / "database.db", root / "colmap-on-colmap-db", images, OPTS)
-    return images, gt, colmap, same
-
-
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
-    return shared_runs(tmp_path_factory)
+def runs(colmap_runs):
+    return colmap_runs
 
 
 # --- ground truth -------------------------------------------------------------------------------------------

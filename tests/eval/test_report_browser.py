@@ -165,18 +165,17 @@ def inspect_page(page: Path, full_shot: Path | None = None) -> dict:
 
 
 @pytest.fixture(scope="module")
-def report(tmp_path_factory):
+def report(colmap_runs, tmp_path_factory):
     """A real comparison page: COLMAP, and COLMAP on that database, on a small synthetic scene against its GT."""
-    from test_compare import shared_runs
-
     from mvrecon.eval.compare import compare_models
     from mvrecon.eval.report import write_report
 
-    images, gt, colmap, same = shared_runs(tmp_path_factory)
+    images, gt, colmap, same = colmap_runs
     comparison = compare_models([colmap.out_dir, same.out_dir], gt=gt)
     return write_report(comparison, tmp_path_factory.mktemp("browser") / "report")
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium not found on PATH (the Makefile's test target installs it)")
 def test_page_in_headless_chromium(report):
     from mvrecon.eval import figures

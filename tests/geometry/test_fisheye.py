@@ -130,6 +130,7 @@ def fisheye_run(tmp_path_factory):
     return scene, run
 
 
+@pytest.mark.slow
 def test_fisheye_scene_is_reconstructed_with_its_lens(fisheye_run):
     """The catalog's fisheye scene with OPENCV_FISHEYE registers in one model with its lens recovered (seeds 0-3:
     AUC@1 0.941-0.962, median rotation error 0.025-0.039 deg, focal 285.1-285.9). The final refinement runs LM to
@@ -157,6 +158,7 @@ def test_fisheye_scene_is_reconstructed_with_its_lens(fisheye_run):
     assert moved.max() < 2.0 and np.median(moved) < 1.0
 
 
+@pytest.mark.slow
 def test_fisheye_export_is_undistorted_to_pinhole(fisheye_run, tmp_path):
     from scipy.ndimage import map_coordinates
 
@@ -206,6 +208,7 @@ def wide_scene(tmp_path_factory):
     return make_scene(str(root / "wide.toml"), root / "scene")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("params", [[], ["--camera-params", ",".join(f"{v:g}" for v in WIDE)]],
                          ids=["guessed", "known"])
 def test_wide_fisheye_registers_every_view_in_its_place(wide_scene, tmp_path, params):
@@ -243,6 +246,7 @@ def test_non_square_cameras_are_implausible():
     assert degenerate_cameras(m) == []  # the focal and distortion bounds pass them all
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("model", ["FULL_OPENCV", "FOV", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE",
                                    "THIN_PRISM_FISHEYE"])
 def test_map_refuses_a_camera_model_it_does_not_model(fisheye_run, tmp_path, capsys, model):
