@@ -4,6 +4,7 @@ that COLMAP's mapper registers on the same database registered, and poses within
 The figures in the docstrings are mvrecon's and COLMAP's mapper on mvrecon's database
 (`python tools/bench_mapper.py --only toy_object_small,video_orbit_small,facade_small`)."""
 
+import pytest
 
 from mvrecon.cli import main
 from mvrecon.eval.ground_truth import load_ground_truth
@@ -20,6 +21,7 @@ def _reconstruct(name, tmp_path):
     return len(models), accuracy_summary([poses(m) for m in models], load_ground_truth(scene / "gt" / "sparse"))
 
 
+@pytest.mark.slow
 def test_an_object_on_a_transparent_background_ends_in_one_model(tmp_path):
     """toy_object_small: RGBA views of a brick toy (identical bricks and studs) on a hemisphere, read on black.
     27 of 30 views register in one model, as with COLMAP's mapper; the other three share too few matches with
@@ -29,6 +31,7 @@ def test_an_object_on_a_transparent_background_ends_in_one_model(tmp_path):
     assert summary["auc@5"] >= 0.7
 
 
+@pytest.mark.slow
 def test_a_handheld_portrait_video_ends_in_one_model(tmp_path):
     """video_orbit_small: 24 portrait frames of a hand-held walk around a toy on a cluttered table (repeating
     wallpaper, alike cupboard doors), uneven pace and shake. All 24 in one model (AUC@5 0.98 measured, COLMAP's
@@ -38,6 +41,7 @@ def test_a_handheld_portrait_video_ends_in_one_model(tmp_path):
     assert summary["auc@1"] >= 0.8 and summary["auc@5"] >= 0.95
 
 
+@pytest.mark.slow
 def test_a_facade_with_identical_windows_ends_in_one_model(tmp_path):
     """facade_small: a street facade with a grid of 27 identical windows and sills, walked along by hand. All
     24 views in one model (AUC@5 0.80 measured, COLMAP's mapper 0.69). With the brick wall repeating at the
