@@ -317,7 +317,6 @@ def test_retriangulation_retries_failed_tracks_only_after_a_change(scene, monkey
     assert (m.point_of_track[tracks] >= 0).sum() > 0.95 * len(pids)
 
 
-@pytest.mark.slow
 def test_resume_continues_from_the_snapshot(tmp_path, monkeypatch, caplog):
     path = tmp_path / "database.db"
     gt = synthetic_database(path, num_images=10, num_points=400, seed=1)
@@ -746,7 +745,6 @@ def test_two_view_bundle_adjustment_of_the_temple_converges_without_crawling(tmp
     assert np.allclose(m.R[first], R0, atol=1e-9) and np.allclose(m.t[first], t0, atol=1e-9)
 
 
-@pytest.mark.slow
 def test_reichstag_cameras_keep_their_accuracy(tmp_path):
     """imc_reichstag: ten photos from ten cameras, each focal refined from its own guess. The soft scale prior
     of the initial pair's BA, applied to every BA without constant images, sent these focal BAs to higher

@@ -181,7 +181,6 @@ def test_cli_on_middlebury_motorcycle(tmp_path):
     np.testing.assert_allclose(png[png > 0] / 256, pfm[png > 0], atol=1 / 512 + 1e-6)
 
 
-@pytest.mark.slow
 def test_a_rerun_reuses_the_stages_done(tmp_path, capsys, monkeypatch, motorcycle):
     """Ctrl-C during the last figure, then the same command: the SIFT matches, the disparity and the figures done
     are reused and the outputs are those of an uninterrupted run; another setting, method or input is recomputed."""
@@ -412,7 +411,6 @@ def test_the_same_image_twice_is_refused(tmp_path, capsys):
     assert main(["stereo", str(left), str(right), "-o", str(out), "-q", "--method", "sgbm"]) == 0  # 6 px: fine
 
 
-@pytest.mark.slow
 def test_a_swapped_or_misaligned_pair_is_flagged(tmp_path, caplog):
     """Left and right exchanged: every match disparity is negative, calib.txt's range 0..ndisp misses them all (the
     rendered pair: 58.6 % holes), so a warning goes to the log and report.json. With --rectified the range clipped
@@ -459,7 +457,6 @@ def small_camera(path, t=(-1, 0, 0), right_cx: float = 120.0) -> Path:
     return Path(path)
 
 
-@pytest.mark.slow
 def test_camera_file_warnings(tmp_path, caplog):
     """--camera: the warnings of `judge_matches` for a rig file, in the log and in report.json. The pair in the rig's
     order gets none; swapped, its sign is judged on d + doffs; a file of a rig with a vertical baseline, or rows 5 px
