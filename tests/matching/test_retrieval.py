@@ -127,7 +127,6 @@ def orbit_runs(object_orbit_small, tmp_path_factory):
     return scene, runs
 
 
-@pytest.mark.slow
 def test_retrieval_on_an_orbit_matches_fewer_pairs_with_the_accuracy_of_exhaustive(orbit_runs):
     scene, runs = orbit_runs
     gt = load_ground_truth(scene / "gt" / "sparse")
@@ -143,7 +142,6 @@ def test_retrieval_on_an_orbit_matches_fewer_pairs_with_the_accuracy_of_exhausti
     assert acc["retrieval:3"]["auc@5"] >= acc["exhaustive"]["auc@5"] - 0.02
 
 
-@pytest.mark.slow
 def test_retrieval_ranks_the_orbit_neighbours_first_and_another_k_is_another_config(orbit_runs):
     _, runs = orbit_runs
     ws = runs["retrieval:3"]

@@ -174,7 +174,6 @@ def test_textures_are_rich_enough_for_sift(small_scene):
     assert min(counts) > 1500, counts
 
 
-@pytest.mark.slow
 def test_pycolmap_reconstructs_the_small_scene(small_scene, tmp_path):
     from mvrecon.scenes.validate import colmap_reconstruct, compare_with_ground_truth
 

@@ -227,7 +227,6 @@ def _scene_height_rms_percent(root, out):
     return 100 * np.sqrt(np.mean(r ** 2)) / (np.nanmax(gt) - np.nanmin(gt))
 
 
-@pytest.mark.slow
 def test_scene_known_tilts_end_to_end(sem_scene, tmp_path):
     root, images, tilts, meta = sem_scene
     out = tmp_path / "known"
@@ -251,7 +250,6 @@ def test_scene_known_tilts_end_to_end(sem_scene, tmp_path):
     assert report["warnings"] == [] and report["axis_check"]["difference_deg"] < 0.5, report["axis_check"]
 
 
-@pytest.mark.slow
 def test_scene_given_axis_contradicting_the_matches_is_warned(sem_scene, tmp_path, caplog):
     """--axis x on a series tilted about y: the heights come out 26 % of the range off (0.61 % with y), exit 0.
     The log and report.json say so, with the matches' axis and both adjustment RMS figures."""
@@ -273,7 +271,6 @@ def test_scene_given_axis_contradicting_the_matches_is_warned(sem_scene, tmp_pat
     assert [r.getMessage() for r in caplog.records if r.levelname == "WARNING"] == [f"warning: {warning}"]
 
 
-@pytest.mark.slow
 def test_scene_estimated_tilts_end_to_end(sem_scene, tmp_path):
     root, images, tilts, meta = sem_scene
     out = tmp_path / "estimated"
@@ -288,7 +285,6 @@ def test_scene_estimated_tilts_end_to_end(sem_scene, tmp_path):
     assert _scene_height_rms_percent(root, out) < 1.0
 
 
-@pytest.mark.slow
 def test_scene_stereo_height_source(sem_scene, tmp_path):
     """--height-source stereo: semi-global matching of the pairs (reference, other view), refined like dense."""
     root, images, tilts, meta = sem_scene
@@ -307,7 +303,6 @@ def test_scene_stereo_height_source(sem_scene, tmp_path):
     assert abs(_scene_height_rms_percent(root, out) - final["rms_percent_of_range"]) < 1e-3
 
 
-@pytest.mark.slow
 def test_scene_height_source_option(sem_scene, tmp_path, capsys):
     root, images, tilts, meta = sem_scene
     out = tmp_path / "joint"
