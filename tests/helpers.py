@@ -12,7 +12,7 @@ import pycolmap
 from PIL import Image
 
 ROOT = Path(__file__).resolve().parents[1]  # the repository: pyproject.toml, mvrecon/, tests/
-DATA = ROOT.parent / "shared" / "data"  # the public image sets, read in place; tests skip when a set is absent
+DATA = ROOT.parent / "shared" / "data"  # the public image sets, read in place; tests skip without them
 
 
 def textured_views(folder: Path, count: int = 6, size: tuple[int, int] = (240, 320)) -> Path:

@@ -14,5 +14,6 @@ def colmap_runs(tmp_path_factory):
     images, gt = synthetic_scene(root)
     options = RunOptions(camera_mode="single")  # test_compare's OPTS
     colmap = run_colmap(images, root / "runs" / "colmap", options)  # where compare_images(images, root) looks
-    same = run_colmap_on_database(colmap.out_dir / "database.db", root / "colmap-on-colmap-db", images, options)
+    database = colmap.out_dir / "database.db"
+    same = run_colmap_on_database(database, root / "colmap-on-colmap-db", images, options)
     return images, gt, colmap, same
