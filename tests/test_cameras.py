@@ -1,4 +1,4 @@
-"""Camera grouping and focal priors: EXIF focal lengths, the grouping modes, known intrinsics and their checks."""
+"""Camera grouping and focal priors: EXIF focal lengths, the grouping modes, known intrinsics checked."""
 
 
 import pytest

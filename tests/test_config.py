@@ -1,4 +1,4 @@
-"""Config machinery: the config hash (workers do not change it), TOML overrides, their diff and unknown options."""
+"""Config machinery: the config hash (workers do not change it), TOML overrides, diffs, unknown options."""
 
 
 import pytest
