@@ -10,7 +10,6 @@ second run into it stops in one line instead of breaking both. Command modules i
 import argparse
 import contextlib
 import errno
-import gc
 import importlib
 import io
 import logging
@@ -22,6 +21,7 @@ import threading
 
 from . import __version__, zlib_order
 from .errors import DiskFull, InputError
+from .executor import wait_for_ended_pools
 from .interrupts import STOPPING, keep_handlers_after_import
 from .io.files import ESCAPE, hold_folder
 from .progress import clear_line, set_enabled
@@ -185,45 +185,11 @@ def _in_fresh_process(argv) -> int:
 
 
 def entry_point() -> int:
-    """The `mvrecon` process (its console script, `python -m mvrecon.cli`): `main()`, then the process ends
-    without the interpreter's teardown (`_end_process`). A caller of `main()` gets its exit code back."""
+    """The `mvrecon` process (its console script, `python -m mvrecon.cli`): `main()`, and the pools' workers
+    waited for before the interpreter exits."""
     code = main()
-    _end_process(code)
-    return code
-
-
-def _end_process(code: int) -> None:
-    """End this process with `code` as the interpreter's exit would, without its teardown: the exit
-    handlers run (logging's flush, multiprocessing's clean-up, any a library registered) and every output is
-    flushed, but the modules are not unloaded and the native libraries' destructors (GTSAM's, onnxruntime's,
-    pycolmap's) do not run. That teardown takes about 18 ms of a run, and nothing
-    of the run's outputs depends on it: the commands close their files and databases themselves. While another
-    thread still runs (a pool ending in the background is waited for), this returns and the interpreter's own
-    exit waits for it; so it does under a profiler or a tracer (cProfile, coverage), which write their results
-    after `main` returns."""
-    import atexit
-
-    from .executor import wait_for_ended_pools
-
     wait_for_ended_pools()
-    if sys.getprofile() is not None or sys.gettrace() is not None:
-        return
-    me = threading.current_thread()
-    if any(t is not me and not t.daemon and t.is_alive() for t in threading.enumerate()):
-        return
-    atexit._run_exitfuncs()
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError):  # a reader that has gone, or a closed stream: nothing more can be said
-            pass
-    try:
-        import ctypes
-
-        ctypes.CDLL(None).fflush(None)  # what native libraries printed through C's stdio
-    except (OSError, AttributeError):
-        pass
-    os._exit(code)
+    return code
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -274,12 +240,6 @@ def _run(argv) -> int:
         if _interrupt.is_set():  # Ctrl-C inside a C extension's import surfaces as its own ImportError/RuntimeError
             return _interrupted(args._module)
         raise
-    finally:
-        if argv is None:
-            # the `mvrecon` process (not a caller passing argv) ends now: the interpreter's exit then skips a
-            # garbage collection over everything the run loaded (0.1 s of a 4 s `reconstruct` of the temples);
-            # objects are still released by reference counting, and the commands closed their files
-            gc.freeze()
 
 
 if __name__ == "__main__":

@@ -842,50 +842,6 @@ def test_a_drained_pool_ends_its_workers_while_the_caller_goes_on(monkeypatch):
     assert not any(alive(pid) for pid in pids) and not executor._ending
 
 
-def test_the_mvrecon_process_ends_without_the_interpreters_teardown(tmp_path):
-    """The teardown after a run (unloading the modules, GTSAM's, onnxruntime's and pycolmap's destructors) took
-    18 ms of each `reconstruct`; the `mvrecon` process skips it. Its output and exit code are kept, and the exit
-    handlers run. A caller of `main()` gets the code back, and a thread still running is waited for."""
-    import subprocess
-    import sys
-
-    # the witness: a reference cycle left by an exit handler, which only the teardown's garbage collection frees
-    script = ("import atexit, gc, os, sys, threading, time\nfrom pathlib import Path\nimport mvrecon.cli as cli\n"
-              "class Witness:\n"
-              "    def __del__(self, write=os.write):\n"
-              "        write(1, b'torn down\\n')\n"
-              "def leave_a_cycle():\n"
-              "    gc.disable()\n"
-              "    witness = Witness()\n"
-              "    witness.me = witness\n"
-              "atexit.register(leave_a_cycle)\n"
-              "atexit.register(print, 'exit handlers ran')\n"
-              "mode, path = sys.argv[1:]\n"
-              "sys.argv[1:] = ['reconstruct', path, '-o', path + '-out'] if mode == 'bad' else ['scene', 'list']\n"
-              "print('main returned', cli.main([*sys.argv[1:]]))\n"
-              "if mode == 'thread':  # still sleeping when the command has ended\n"
-              "    threading.Thread(target=lambda: (time.sleep(3), Path(path).touch())).start()\n"
-              "sys.exit(cli.entry_point())")
-    flag = tmp_path / "thread-done"
-
-    def run(*argv):
-        return subprocess.run([sys.executable, "-c", script, *argv], capture_output=True, text=True, timeout=120)
-
-    out = run("list", str(flag))
-    lines = out.stdout.splitlines()
-    assert out.returncode == 0 and "main returned 0" in lines, (out.stdout, out.stderr)
-    listed = lines.index("main returned 0")
-    assert lines[:listed] == lines[listed + 1:-1] and len(lines[:listed]) > 5  # the scene list, twice
-    assert lines[-1] == "exit handlers ran" and "torn down" not in out.stdout
-
-    out = run("bad", str(tmp_path / "missing"))
-    assert out.returncode == 2 and out.stdout.splitlines()[-1] == "exit handlers ran", (out.stdout, out.stderr)
-    assert out.stderr.count("mvrecon: error:") == 2 and "torn down" not in out.stdout
-
-    out = run("thread", str(flag))
-    assert out.returncode == 0 and flag.exists() and "torn down" in out.stdout, out.stdout
-
-
 def test_the_last_images_of_a_pool_run_on_every_core_with_the_same_features(tmp_path):
     """A worker taking one of the last images leaves no image for the others, whose cores stood idle until it
     ended: those images run on as many OpenCV threads as there are workers. OpenCV's SIFT gives the same keypoints
