@@ -8,6 +8,7 @@ second run into it stops in one line instead of breaking both. Command modules i
 """
 
 import argparse
+import codecs
 import contextlib
 import errno
 import importlib
@@ -16,12 +17,14 @@ import logging
 import os
 import pkgutil
 import signal
+import subprocess
 import sys
 import threading
+from pathlib import Path
 
-from . import __version__, zlib_order
+from . import __version__, commands, zlib_order
 from .errors import DiskFull, InputError
-from .executor import wait_for_ended_pools
+from .executor import keep_freed_memory, one_blas_thread, wait_for_ended_pools
 from .interrupts import STOPPING, keep_handlers_after_import
 from .io.files import ESCAPE, hold_folder
 from .progress import clear_line, set_enabled
@@ -30,8 +33,6 @@ from .progress import clear_line, set_enabled
 def _command_modules(only: str | None = None):
     """The command modules in `--help` order; with `only` (a command as typed), that one alone when it is one:
     importing and describing every command took 8 ms of each run's single-core start-up."""
-    from . import commands
-
     names = [info.name for info in pkgutil.iter_modules(commands.__path__) if not info.name.startswith("_")]
     wanted = None if only is None else only.replace("-", "_")
     if wanted in names:
@@ -114,8 +115,6 @@ def main(argv=None) -> int:
     if zlib_order.TAKEN_OVER:  # pycolmap was imported first: a PNG written here would abort this process
         return _in_fresh_process(argv)
     if argv is None:  # the `mvrecon` process itself, before numpy is loaded
-        from .executor import keep_freed_memory, one_blas_thread
-
         one_blas_thread()
         keep_freed_memory()
     # file names that are not UTF-8 printed as \xNN, as the log lines name them (a UTF-8 terminal's strict
@@ -143,10 +142,6 @@ def _in_fresh_process(argv) -> int:
     over (`zlib_order`); returns its exit code. Its output goes where this process's does (through this process
     when a stream has no file descriptor: a notebook's), and Ctrl-C or SIGTERM here stops it as it would this
     run: it has a process group of its own, so that it gets the signal once, from here."""
-    import codecs
-    import subprocess
-    from pathlib import Path
-
     argv = sys.argv[1:] if argv is None else [os.fspath(a) for a in argv]
     env = dict(os.environ)  # the same mvrecon package, wherever this process found it
     env["PYTHONPATH"] = os.pathsep.join(filter(None, (str(Path(__file__).resolve().parents[1]),
@@ -195,7 +190,7 @@ def entry_point() -> int:
 def parse_args(argv=None) -> argparse.Namespace:
     """The command line (sys.argv by default) parsed, with `--mvrecon-args "--upright"` read as a value that starts
     with a dash (`commands._options.DASHED_VALUES`), which argparse alone refuses."""
-    from .commands._options import DASHED_VALUES, join_option_value
+    from .commands._options import DASHED_VALUES, join_option_value  # numpy: after one_blas_thread
 
     argv = sys.argv[1:] if argv is None else list(argv)
     for option in DASHED_VALUES:

@@ -10,8 +10,10 @@ and oversubscription only adds contention) and keeps the memory it frees for its
 """
 
 import ctypes
+import fcntl
 import logging
 import multiprocessing
+import multiprocessing.connection
 import os
 import resource
 import signal
@@ -22,6 +24,7 @@ from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from multiprocessing import forkserver
 
 from .memory import PeakSampler, available_mb, main_peak_mb
 
@@ -128,8 +131,6 @@ def _get_context():
 def _ensure_forkserver() -> None:
     """Start the forkserver unless it runs (again, if it has died). It inherits the environment at its start;
     BLAS reads these when numpy is first imported."""
-    from multiprocessing import forkserver
-
     saved = {k: os.environ.get(k) for k in _SINGLE_THREAD_ENV}
     os.environ.update(_SINGLE_THREAD_ENV)
     try:
@@ -147,11 +148,9 @@ def _init_worker():
     KeyboardInterrupt itself printed a traceback, and could leave the pool waiting for it forever). The pool ends
     its workers with SIGTERM: they end quietly, not through a handler a library set in the parent (glog's, once
     pycolmap is loaded, prints a stack dump)."""
-    import signal
-
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    import cv2
+    import cv2  # here, in the worker: the parent forks its workers while it has not loaded OpenCV
 
     cv2.setNumThreads(1)
     keep_freed_memory(one_arena=True)
@@ -188,8 +187,6 @@ def _widen_pipe(conn) -> None:
     The kernel caps the size at /proc/sys/fs/pipe-max-size (1 MB by default); elsewhere than Linux this is a
     no-op."""
     try:
-        import fcntl
-
         with open("/proc/sys/fs/pipe-max-size") as f:
             size = min(_RESULT_PIPE_BYTES, int(f.read()))
         fcntl.fcntl(conn.fileno(), fcntl.F_SETPIPE_SZ, size)
@@ -465,8 +462,6 @@ class WorkerPool:
 
     def _watch(self) -> None:
         """The pool's thread: take the workers' results, notice their ends, hand out the jobs left."""
-        from multiprocessing.connection import wait
-
         try:
             while True:
                 with self._lock:
@@ -475,7 +470,7 @@ class WorkerPool:
                     owner = {}
                     for w in self._live:
                         owner[w.results] = owner[w.process.sentinel] = w
-                ready = wait([*owner, self._wake_r])
+                ready = multiprocessing.connection.wait([*owner, self._wake_r])
                 for handle in ready:
                     if handle == self._wake_r:
                         os.read(self._wake_r, 4096)
