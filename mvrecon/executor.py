@@ -4,8 +4,7 @@ Processes rather than threads because SIFT and RANSAC hold the GIL in their Pyth
 native code then takes down one worker, not the run: the pool notices a worker's end at once, runs its item
 again in a fresh worker, and gives it up with the reason if that worker dies too (WorkerPool). While the
 parent has not loaded OpenCV, workers are plain forks (instant, modules inherited). Once it has, they come
-from a `forkserver` that preloaded the heavy modules, because forking a process whose OpenCV thread pool is
-running can deadlock. Each worker runs its native libraries single-threaded (the pool already uses every core,
+from a `forkserver`, because forking a process whose OpenCV thread pool is running can deadlock. Each worker runs its native libraries single-threaded (the pool already uses every core,
 and oversubscription only adds contention) and keeps the memory it frees for its next item.
 """
 
@@ -30,7 +29,6 @@ from .memory import PeakSampler, available_mb, main_peak_mb
 
 log = logging.getLogger(__name__)
 
-_PRELOAD = ["numpy", "cv2", "mvrecon.features.sift"]  # what extraction workers need; no pycolmap
 _SINGLE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 _set_here: set[str] = set()  # the variables one_blas_thread added to this process's environment
 _context = None
@@ -122,7 +120,6 @@ def _get_context():
         return multiprocessing.get_context("fork")
     if _context is None:
         ctx = multiprocessing.get_context("forkserver")
-        ctx.set_forkserver_preload(_PRELOAD)
         _ensure_forkserver()
         _context = ctx
     return _context
