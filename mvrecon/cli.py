@@ -24,10 +24,11 @@ from pathlib import Path
 
 from . import __version__, commands, zlib_order
 from .errors import DiskFull, InputError
-from .executor import keep_freed_memory, one_blas_thread, wait_for_ended_pools
+from .executor import one_blas_thread, wait_for_ended_pools
 from .interrupts import STOPPING, keep_handlers_after_import
 from .io.files import ESCAPE, hold_folder
 from .progress import clear_line, set_enabled
+from .startup import keep_freed_memory
 
 
 def _command_modules(only: str | None = None):

@@ -4,8 +4,9 @@ Processes rather than threads because SIFT and RANSAC hold the GIL in their Pyth
 native code then takes down one worker, not the run: the pool notices a worker's end at once, runs its item
 again in a fresh worker, and gives it up with the reason if that worker dies too (WorkerPool). While the
 parent has not loaded OpenCV, workers are plain forks (instant, modules inherited). Once it has, they come
-from a `forkserver`, because forking a process whose OpenCV thread pool is running can deadlock. Each worker runs its native libraries single-threaded (the pool already uses every core,
-and oversubscription only adds contention) and keeps the memory it frees for its next item.
+from a `forkserver`, because forking a process whose OpenCV thread pool is running can deadlock. Each worker
+runs its native libraries single-threaded (the pool already uses every core, and oversubscription only adds
+contention) and keeps the memory it frees for its next item (startup.keep_freed_memory).
 """
 
 import ctypes
@@ -26,6 +27,7 @@ from dataclasses import dataclass
 from multiprocessing import forkserver
 
 from .memory import PeakSampler, available_mb, main_peak_mb
+from .startup import keep_freed_memory
 
 log = logging.getLogger(__name__)
 
@@ -34,7 +36,6 @@ _set_here: set[str] = set()  # the variables one_blas_thread added to this proce
 _context = None
 _closed_workers_cpu = 0.0  # seconds used by the workers of closed pools (cpu_seconds)
 _ending: list[threading.Thread] = []  # threads ending drained pools (WorkerPool.__exit__)
-_M_TRIM_THRESHOLD, _M_MMAP_MAX, _M_ARENA_MAX = -1, -4, -8  # glibc's mallopt parameters
 _RESULT_PIPE_BYTES = 1 << 20
 
 
@@ -151,30 +152,6 @@ def _init_worker():
 
     cv2.setNumThreads(1)
     keep_freed_memory(one_arena=True)
-
-
-def keep_freed_memory(one_arena: bool = False) -> None:
-    """This process keeps the memory it frees for its next item instead of handing it back to the kernel.
-    SIFT allocates and frees its scale space on every image (about 1 GB for a 3072 x 2048 photo, 80 MB for
-    640 x 480), and glibc maps large blocks on their own and unmaps them when freed, or trims the heap's free top:
-    each image then faulted all of that memory in again. herzjesu's features stage took 5.8-5.9 s instead of
-    7.3-8.8 s, with the same peak memory (docs/frontend.md). The `mvrecon` process does the same: matching
-    prepares each image's descriptors and their products in blocks of a few MB (templeSparseRing's matching
-    stage: 15 ms faster). A no-op where the C library has no mallopt (not glibc).
-
-    With `one_arena` (the feature workers) every thread allocates from the one heap. A worker's last image runs
-    on every core's OpenCV thread (stages.features._extraction_jobs), and the extra thread took a malloc arena of its
-    own, faulting in fresh memory while the main heap held the earlier images' free: herzjesu's features stage
-    took 5.5-5.6 s instead of 4.9-5.1 s, and the process tree peaked 110 MB higher (docs/frontend.md). The
-    mvrecon process keeps glibc's arenas: one arena there made templeSparseRing's run no faster."""
-    try:
-        mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError):
-        return
-    mallopt(_M_MMAP_MAX, 0)  # large blocks from the heap too, where freed memory is reused
-    mallopt(_M_TRIM_THRESHOLD, 2**31 - 1)  # and the heap never trimmed (the largest value mallopt takes)
-    if one_arena:
-        mallopt(_M_ARENA_MAX, 1)
 
 
 def _widen_pipe(conn) -> None:
@@ -536,7 +513,7 @@ class WorkerPool:
         global _closed_workers_cpu
         if self._thread is None:
             return False
-        # a last sample while the workers live: their memory only grows (keep_freed_memory), so it holds their
+        # a last sample while the workers live: their memory only grows (startup.keep_freed_memory), so it holds their
         # peaks even when the sampler's thread, on a loaded machine, has not run since they started
         _tree.sample()
         with self._lock:
