@@ -39,9 +39,9 @@ def keep_freed_memory(one_arena: bool = False) -> None:
 
 def load_later_stages() -> None:
     """Import what matching and mapping need, and make the matcher's session, while the feature workers run:
-    between the stages this is 0.15-0.2 s
-    on one core. Imported by name, so that this module stays at the bottom of the layers. A library that fails
-    to load here fails again where it is needed, with its error reported there."""
+    between the stages this is 0.15-0.2 s on one core. Imported by name, so that this module stays at the bottom
+    of the layers. A library that fails to load here fails again where it is needed, with its error reported
+    there."""
     try:
         # numpy.ma: the initial pair's np.median imports it
         for name in ("cv2", "gtsam", "numpy.ma", "mvrecon.io.colmap_model", "mvrecon.sfm.incremental"):
