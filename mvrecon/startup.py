@@ -1,13 +1,13 @@
 """The two start-up measures that make a whole `reconstruct` measurably faster, kept here together.
 
-Each was kept because removing it slowed a whole `reconstruct` of the shared temple sets by more than 5% (medians
-of alternated runs before and after, in docs/benchmarks.md): the feature workers and the `mvrecon` process keep
-the memory they free (`keep_freed_memory`, glibc's mallopt), so that SIFT's scale space and matching's blocks are
-not faulted in again for every image; and the libraries of the later stages load in a thread while the workers
-extract (`load_later_stages`), rather than on one core between the stages. The other start-up measures
-(skipping the interpreter's teardown, freezing the garbage collector at exit, preloading the forkserver) saved
-less than that and are gone. The matcher's onnxruntime product (matching/int_product.py) is no start-up measure:
-it makes the matching stage itself about a third faster.
+Each was kept because removing it slowed a whole `reconstruct` of templeSparseRing by more than 5% (medians of
+alternated runs before and after, in docs/benchmarks.md; on the larger templeRing less): the feature workers
+and the `mvrecon` process keep the memory they free (`keep_freed_memory`, glibc's mallopt), so that SIFT's
+scale space and matching's blocks are not faulted in again for every image; and the libraries of the later
+stages load in a thread while the workers extract (`load_later_stages`), rather than on one core between the
+stages. The other start-up measures (skipping the interpreter's teardown, freezing the garbage collector at
+exit, preloading the forkserver) saved less than that and are gone. The matcher's onnxruntime product
+(matching/int_product.py) is no start-up measure: it makes the matching stage itself about a third faster.
 """
 
 import ctypes
