@@ -8,30 +8,32 @@ second run into it stops in one line instead of breaking both. Command modules i
 """
 
 import argparse
+import codecs
 import contextlib
 import errno
-import gc
 import importlib
 import io
 import logging
 import os
 import pkgutil
 import signal
+import subprocess
 import sys
 import threading
+from pathlib import Path
 
-from . import __version__, zlib_order
+from . import __version__, commands, zlib_order
 from .errors import DiskFull, InputError
+from .executor import one_blas_thread, wait_for_ended_pools
 from .interrupts import STOPPING, keep_handlers_after_import
 from .io.files import ESCAPE, hold_folder
 from .progress import clear_line, set_enabled
+from .startup import keep_freed_memory
 
 
 def _command_modules(only: str | None = None):
     """The command modules in `--help` order; with `only` (a command as typed), that one alone when it is one:
     importing and describing every command took 8 ms of each run's single-core start-up."""
-    from . import commands
-
     names = [info.name for info in pkgutil.iter_modules(commands.__path__) if not info.name.startswith("_")]
     wanted = None if only is None else only.replace("-", "_")
     if wanted in names:
@@ -114,8 +116,6 @@ def main(argv=None) -> int:
     if zlib_order.TAKEN_OVER:  # pycolmap was imported first: a PNG written here would abort this process
         return _in_fresh_process(argv)
     if argv is None:  # the `mvrecon` process itself, before numpy is loaded
-        from .executor import keep_freed_memory, one_blas_thread
-
         one_blas_thread()
         keep_freed_memory()
     # file names that are not UTF-8 printed as \xNN, as the log lines name them (a UTF-8 terminal's strict
@@ -143,10 +143,6 @@ def _in_fresh_process(argv) -> int:
     over (`zlib_order`); returns its exit code. Its output goes where this process's does (through this process
     when a stream has no file descriptor: a notebook's), and Ctrl-C or SIGTERM here stops it as it would this
     run: it has a process group of its own, so that it gets the signal once, from here."""
-    import codecs
-    import subprocess
-    from pathlib import Path
-
     argv = sys.argv[1:] if argv is None else [os.fspath(a) for a in argv]
     env = dict(os.environ)  # the same mvrecon package, wherever this process found it
     env["PYTHONPATH"] = os.pathsep.join(filter(None, (str(Path(__file__).resolve().parents[1]),
@@ -185,51 +181,17 @@ def _in_fresh_process(argv) -> int:
 
 
 def entry_point() -> int:
-    """The `mvrecon` process (its console script, `python -m mvrecon.cli`): `main()`, then the process ends
-    without the interpreter's teardown (`_end_process`). A caller of `main()` gets its exit code back."""
+    """The `mvrecon` process (its console script, `python -m mvrecon.cli`): `main()`, and the pools' workers
+    waited for before the interpreter exits."""
     code = main()
-    _end_process(code)
-    return code
-
-
-def _end_process(code: int) -> None:
-    """End this process with `code` as the interpreter's exit would, without its teardown: the exit
-    handlers run (logging's flush, multiprocessing's clean-up, any a library registered) and every output is
-    flushed, but the modules are not unloaded and the native libraries' destructors (GTSAM's, onnxruntime's,
-    pycolmap's) do not run. That teardown takes about 18 ms of a run, and nothing
-    of the run's outputs depends on it: the commands close their files and databases themselves. While another
-    thread still runs (a pool ending in the background is waited for), this returns and the interpreter's own
-    exit waits for it; so it does under a profiler or a tracer (cProfile, coverage), which write their results
-    after `main` returns."""
-    import atexit
-
-    from .executor import wait_for_ended_pools
-
     wait_for_ended_pools()
-    if sys.getprofile() is not None or sys.gettrace() is not None:
-        return
-    me = threading.current_thread()
-    if any(t is not me and not t.daemon and t.is_alive() for t in threading.enumerate()):
-        return
-    atexit._run_exitfuncs()
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError):  # a reader that has gone, or a closed stream: nothing more can be said
-            pass
-    try:
-        import ctypes
-
-        ctypes.CDLL(None).fflush(None)  # what native libraries printed through C's stdio
-    except (OSError, AttributeError):
-        pass
-    os._exit(code)
+    return code
 
 
 def parse_args(argv=None) -> argparse.Namespace:
     """The command line (sys.argv by default) parsed, with `--mvrecon-args "--upright"` read as a value that starts
     with a dash (`commands._options.DASHED_VALUES`), which argparse alone refuses."""
-    from .commands._options import DASHED_VALUES, join_option_value
+    from .commands._options import DASHED_VALUES, join_option_value  # numpy: after one_blas_thread
 
     argv = sys.argv[1:] if argv is None else list(argv)
     for option in DASHED_VALUES:
@@ -274,12 +236,6 @@ def _run(argv) -> int:
         if _interrupt.is_set():  # Ctrl-C inside a C extension's import surfaces as its own ImportError/RuntimeError
             return _interrupted(args._module)
         raise
-    finally:
-        if argv is None:
-            # the `mvrecon` process (not a caller passing argv) ends now: the interpreter's exit then skips a
-            # garbage collection over everything the run loaded (0.1 s of a 4 s `reconstruct` of the temples);
-            # objects are still released by reference counting, and the commands closed their files
-            gc.freeze()
 
 
 if __name__ == "__main__":

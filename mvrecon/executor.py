@@ -4,14 +4,16 @@ Processes rather than threads because SIFT and RANSAC hold the GIL in their Pyth
 native code then takes down one worker, not the run: the pool notices a worker's end at once, runs its item
 again in a fresh worker, and gives it up with the reason if that worker dies too (WorkerPool). While the
 parent has not loaded OpenCV, workers are plain forks (instant, modules inherited). Once it has, they come
-from a `forkserver` that preloaded the heavy modules, because forking a process whose OpenCV thread pool is
-running can deadlock. Each worker runs its native libraries single-threaded (the pool already uses every core,
-and oversubscription only adds contention) and keeps the memory it frees for its next item.
+from a `forkserver`, because forking a process whose OpenCV thread pool is running can deadlock. Each worker
+runs its native libraries single-threaded (the pool already uses every core, and oversubscription only adds
+contention) and keeps the memory it frees for its next item (startup.keep_freed_memory).
 """
 
 import ctypes
+import fcntl
 import logging
 import multiprocessing
+import multiprocessing.connection
 import os
 import resource
 import signal
@@ -22,18 +24,18 @@ from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from multiprocessing import forkserver
 
 from .memory import PeakSampler, available_mb, main_peak_mb
+from .startup import keep_freed_memory
 
 log = logging.getLogger(__name__)
 
-_PRELOAD = ["numpy", "cv2", "mvrecon.features.sift"]  # what extraction workers need; no pycolmap
 _SINGLE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 _set_here: set[str] = set()  # the variables one_blas_thread added to this process's environment
 _context = None
 _closed_workers_cpu = 0.0  # seconds used by the workers of closed pools (cpu_seconds)
 _ending: list[threading.Thread] = []  # threads ending drained pools (WorkerPool.__exit__)
-_M_TRIM_THRESHOLD, _M_MMAP_MAX, _M_ARENA_MAX = -1, -4, -8  # glibc's mallopt parameters
 _RESULT_PIPE_BYTES = 1 << 20
 
 
@@ -119,7 +121,6 @@ def _get_context():
         return multiprocessing.get_context("fork")
     if _context is None:
         ctx = multiprocessing.get_context("forkserver")
-        ctx.set_forkserver_preload(_PRELOAD)
         _ensure_forkserver()
         _context = ctx
     return _context
@@ -128,8 +129,6 @@ def _get_context():
 def _ensure_forkserver() -> None:
     """Start the forkserver unless it runs (again, if it has died). It inherits the environment at its start;
     BLAS reads these when numpy is first imported."""
-    from multiprocessing import forkserver
-
     saved = {k: os.environ.get(k) for k in _SINGLE_THREAD_ENV}
     os.environ.update(_SINGLE_THREAD_ENV)
     try:
@@ -147,38 +146,12 @@ def _init_worker():
     KeyboardInterrupt itself printed a traceback, and could leave the pool waiting for it forever). The pool ends
     its workers with SIGTERM: they end quietly, not through a handler a library set in the parent (glog's, once
     pycolmap is loaded, prints a stack dump)."""
-    import signal
-
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    import cv2
+    import cv2  # here, in the worker: the parent forks its workers while it has not loaded OpenCV
 
     cv2.setNumThreads(1)
     keep_freed_memory(one_arena=True)
-
-
-def keep_freed_memory(one_arena: bool = False) -> None:
-    """This process keeps the memory it frees for its next item instead of handing it back to the kernel.
-    SIFT allocates and frees its scale space on every image (about 1 GB for a 3072 x 2048 photo, 80 MB for
-    640 x 480), and glibc maps large blocks on their own and unmaps them when freed, or trims the heap's free top:
-    each image then faulted all of that memory in again. herzjesu's features stage took 5.8-5.9 s instead of
-    7.3-8.8 s, with the same peak memory (docs/frontend.md). The `mvrecon` process does the same: matching
-    prepares each image's descriptors and their products in blocks of a few MB (templeSparseRing's matching
-    stage: 15 ms faster). A no-op where the C library has no mallopt (not glibc).
-
-    With `one_arena` (the feature workers) every thread allocates from the one heap. A worker's last image runs
-    on every core's OpenCV thread (stages.features._extraction_jobs), and the extra thread took a malloc arena of its
-    own, faulting in fresh memory while the main heap held the earlier images' free: herzjesu's features stage
-    took 5.5-5.6 s instead of 4.9-5.1 s, and the process tree peaked 110 MB higher (docs/frontend.md). The
-    mvrecon process keeps glibc's arenas: one arena there made templeSparseRing's run no faster."""
-    try:
-        mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError):
-        return
-    mallopt(_M_MMAP_MAX, 0)  # large blocks from the heap too, where freed memory is reused
-    mallopt(_M_TRIM_THRESHOLD, 2**31 - 1)  # and the heap never trimmed (the largest value mallopt takes)
-    if one_arena:
-        mallopt(_M_ARENA_MAX, 1)
 
 
 def _widen_pipe(conn) -> None:
@@ -188,8 +161,6 @@ def _widen_pipe(conn) -> None:
     The kernel caps the size at /proc/sys/fs/pipe-max-size (1 MB by default); elsewhere than Linux this is a
     no-op."""
     try:
-        import fcntl
-
         with open("/proc/sys/fs/pipe-max-size") as f:
             size = min(_RESULT_PIPE_BYTES, int(f.read()))
         fcntl.fcntl(conn.fileno(), fcntl.F_SETPIPE_SZ, size)
@@ -465,8 +436,6 @@ class WorkerPool:
 
     def _watch(self) -> None:
         """The pool's thread: take the workers' results, notice their ends, hand out the jobs left."""
-        from multiprocessing.connection import wait
-
         try:
             while True:
                 with self._lock:
@@ -475,7 +444,7 @@ class WorkerPool:
                     owner = {}
                     for w in self._live:
                         owner[w.results] = owner[w.process.sentinel] = w
-                ready = wait([*owner, self._wake_r])
+                ready = multiprocessing.connection.wait([*owner, self._wake_r])
                 for handle in ready:
                     if handle == self._wake_r:
                         os.read(self._wake_r, 4096)
@@ -544,7 +513,7 @@ class WorkerPool:
         global _closed_workers_cpu
         if self._thread is None:
             return False
-        # a last sample while the workers live: their memory only grows (keep_freed_memory), so it holds their
+        # a last sample while the workers live: their memory only grows (startup.keep_freed_memory), so it holds their
         # peaks even when the sampler's thread, on a loaded machine, has not run since they started
         _tree.sample()
         with self._lock:

@@ -5,7 +5,7 @@ One definition serves report.json and `mvrecon compare`'s runners alike: the pea
 largest sum of the resident memory (RSS) of its processes, sampled every `INTERVAL_S` by a `PeakSampler`, and
 never less than the main process's own peak (`main_peak_mb`, the kernel's exact high-water mark, which a
 sample can miss). RSS counts a page shared by two processes (a forked worker's copy of its parent's libraries)
-in both, as `ps` and `top` do. The feature workers keep the memory they free (executor.keep_freed_memory), so
+in both, as `ps` and `top` do. The feature workers keep the memory they free (startup.keep_freed_memory), so
 their RSS only grows and sampling does not miss their peaks.
 """
 

@@ -10,24 +10,23 @@ Each stage is callable from Python, the CLI and tests alike, `stage(config, inpu
 - `map_workspace(config, workspace)`: verified pairs -> models (stages/mapping.py).
 """
 
-import importlib
 import logging
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from . import database as dbmod
 from .config import config_hash, to_dict
 from .errors import DiskFull, InputError
 from .executor import StageClock
+from .io.colmap_model import write_text_models
 from .sfm.config import MapperConfig
 from .stages.common import FrontendConfig
 from .stages.features import extract_features, masks_folder
 from .stages.mapping import NoVerifiedPairs, map_workspace
 from .stages.matching import match
 from .stages.report import finished_report, write_report
+from .startup import load_later_stages
 from .workspace import Workspace
 
 log = logging.getLogger(__name__)
@@ -39,22 +38,6 @@ class ReconstructConfig:
 
     frontend: FrontendConfig = FrontendConfig()
     mapper: MapperConfig = MapperConfig()
-
-
-def load_later_stages() -> None:
-    """Import what matching and mapping need, and make the matcher's onnxruntime session, while the feature
-    workers run. Between the stages, on one core, this took 0.15-0.2 s of a 2.1 s templeSparseRing run; beside
-    the workers, on a core they share, it costs them half of that (docs/frontend.md). A library that fails to
-    load here fails again where it is needed, with its error reported there."""
-    try:
-        # numpy.ma: the initial pair's np.median imports it (8 ms of the mapping, on its one core)
-        for name in ("cv2", "gtsam", "numpy.ma", "mvrecon.io.colmap_model", "mvrecon.sfm.incremental"):
-            importlib.import_module(name)
-        from .matching.int_product import int_product
-
-        int_product(np.zeros((1, 128), np.uint8), np.zeros((128, 1), np.int8))  # makes its session
-    except Exception:  # noqa: BLE001
-        pass
 
 
 def reconstruct(config: ReconstructConfig, image_dir, out_dir, *, text: bool = False, resume: bool = False,
@@ -76,8 +59,6 @@ def reconstruct(config: ReconstructConfig, image_dir, out_dir, *, text: bool = F
     if finished is not None:
         log.info("%s: finished run with the same config and images found; not redone", out)
         if text:
-            from .io.colmap_model import write_text_models
-
             log.info("%s: wrote the text model of %d model(s)", out, write_text_models(out / "sparse"))
         return finished
     kept = report_path.read_bytes() if report_path.is_file() and not overwrite else None

@@ -191,7 +191,7 @@ def extract_features(config: FrontendConfig, image_dir, workspace, *, overwrite:
     """Detect SIFT in every image of `image_dir` not yet in the workspace; `on_image(name)` after each commit.
     Refused settings or input raise InputError before anything in the workspace changes; `before_changes()` is
     called just before the first change. `alongside()` runs in a thread of this process while the workers
-    extract (see pipeline.load_later_stages)."""
+    extract (see startup.load_later_stages)."""
     start = time.perf_counter()
     ws = as_workspace(workspace)
     # the pool starts first: its start overlaps the set-up in _extract_all

@@ -17,6 +17,7 @@ from .. import database as dbmod
 from ..cameras import report_entry
 from ..config import to_dict
 from ..errors import InputError
+from ..io.colmap_model import warn_text_names, write_models, write_points_ply
 from ..matching.overlay import fixed_keypoints, same_view
 from ..sfm.config import MapperConfig
 from ..workspace import Workspace
@@ -105,8 +106,6 @@ def _run_mapper(corr, config, snapshot: Path, resume: bool):
 def _write_models(ws: Workspace, models: list, image_dir, text: bool, keypoint_colors) -> None:
     """sparse/N/ and points.ply of `models`. The new models go to sparse.new/ and replace sparse/ only once
     made: a failed re-map keeps the old model; with no model at all the earlier one stays too."""
-    from ..io.colmap_model import warn_text_names, write_models, write_points_ply
-
     sparse, new = ws.path / "sparse", ws.path / "sparse.new"
     shutil.rmtree(new, ignore_errors=True)
     recs = write_models(models, new, image_dir=image_dir, text=text, keypoint_colors=keypoint_colors)
