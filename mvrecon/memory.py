@@ -24,14 +24,8 @@ def main_peak_mb() -> float:
     Not ru_maxrss: Linux carries that over an exec from the process that started this one, so mvrecon started
     from a notebook or a test run holding 800 MB reported 800 MB for itself. ru_maxrss (KiB on Linux) serves
     only where /proc is missing."""
-    try:
-        with open("/proc/self/status", "rb") as fh:
-            for line in fh:
-                if line.startswith(b"VmHWM:"):
-                    return int(line.split()[1]) / 1024.0
-    except (OSError, ValueError, IndexError):
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    peak = _proc_mb("/proc/self/status", b"VmHWM:")
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0 if peak is None else peak
 
 
 def rss_mb(pids: Iterable[int]) -> float:
@@ -61,16 +55,24 @@ def process_tree(pid: int) -> list[int]:
 def available_mb() -> float:
     """Memory the kernel can give without swapping (MB): free memory plus caches it can drop (MemAvailable,
     what psutil.virtual_memory().available reads; read here directly, as importing psutil took 0.1-0.5 s)."""
-    try:
-        with open("/proc/meminfo", "rb") as fh:
-            for line in fh:
-                if line.startswith(b"MemAvailable:"):
-                    return int(line.split()[1]) / 1024.0
-    except (OSError, ValueError, IndexError):
-        pass
+    available = _proc_mb("/proc/meminfo", b"MemAvailable:")
+    if available is not None:
+        return available
     import psutil  # not Linux
 
     return psutil.virtual_memory().available / 2 ** 20
+
+
+def _proc_mb(path: str, key: bytes) -> float | None:
+    """The value (MB) of the line `key` of a /proc file that gives it in kB, or None where there is none."""
+    try:
+        with open(path, "rb") as fh:
+            for line in fh:
+                if line.startswith(key):
+                    return int(line.split()[1]) / 1024.0
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
 
 
 class PeakSampler:
