@@ -24,7 +24,7 @@ LEGACY = "config.json"  # where an older mvrecon kept the stages' configs, in a 
 
 
 class Workspace:
-    def __init__(self, path):
+    def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
 
     @property

@@ -58,7 +58,7 @@ class Record:
     file is there but is not a record (edited by hand, or another tool's): its valid entries are kept, and a
     caller that cannot redo its work without knowing what it was made with refuses it."""
 
-    def __init__(self, folder, name: str = "record.json"):
+    def __init__(self, folder: str | Path, name: str = "record.json") -> None:
         self.out = Path(folder)
         self.path = self.out / FOLDER / name
         data = read_json_object(self.path)
