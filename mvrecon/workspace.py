@@ -1,23 +1,30 @@
-"""The workspace folder of one run: `database.db` (COLMAP's schema) and `config.json` (each stage's config + hash).
+"""The workspace folder of one run: `database.db` (COLMAP's schema) and the record of its stages
+(`.stages/record.json`, an `io.record.Record`: each stage's config, keyed on its `config.config_hash`).
 
 Results are only reused when they were made with the same settings. Each stage (features, matching, later
-mapping) records its config dict and hash when it starts; a rerun with the same config resumes, a different one is
-refused with a message that names the differing fields, unless `overwrite` is set. Overwriting a stage also drops
-the record of every stage recorded after it, because their results were built on the old one; the caller clears
-the matching database tables (`begin_stage` returns the names of the stages it dropped).
+mapping) records its config when it starts; a rerun with the same config resumes, a different one is refused
+with a message that names the differing fields, unless `overwrite` is set. Overwriting a stage also drops the
+record of every stage recorded after it, because their results were built on the old one; the caller clears
+the matching database tables (`begin_stage` returns the names of the stages it dropped). A workspace whose
+record is damaged, or written by an older mvrecon (`config.json`), is refused the same way: `overwrite` starts
+it over.
 """
 
+from contextlib import AbstractContextManager
 from pathlib import Path
 
-from . import config as cfgmod
+from .config import config_hash
 from .errors import InputError
-from .io.files import hold_folder, read_json_object, write_json
+from .io.files import hold_folder
+from .io.record import FOLDER as RECORD_FOLDER
+from .io.record import Record
 
 REDO = "rerun with --overwrite to recompute, or use another workspace"  # what a refused stage config advises
+LEGACY = "config.json"  # where an older mvrecon kept the stages' configs, in a format no longer read
 
 
 class Workspace:
-    def __init__(self, path):
+    def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
 
     @property
@@ -25,8 +32,9 @@ class Workspace:
         return self.path / "database.db"
 
     @property
-    def config_path(self) -> Path:
-        return self.path / "config.json"
+    def record_path(self) -> Path:
+        """The record of the stages run (`io.record.Record`)."""
+        return self.path / RECORD_FOLDER / "record.json"
 
     @property
     def snapshot_path(self) -> Path:
@@ -39,25 +47,32 @@ class Workspace:
         self.path.mkdir(parents=True, exist_ok=True)
         return self
 
-    def lock(self):
+    def lock(self) -> AbstractContextManager[Path]:
         """Hold the workspace for the block against another mvrecon process (`io.files.hold_folder`)."""
         return hold_folder(self.path)
 
+    def _record(self) -> Record:
+        return Record(self.path)
+
+    def _checked_record(self) -> Record:
+        """The record, or an InputError when it cannot tell what the results were made with."""
+        record = self._record()
+        if record.damaged or any(record.config(name) is None for name in record.names()):
+            raise InputError(f"{record.path}: not a valid workspace record (use --overwrite to start the "
+                             "workspace over)")
+        legacy = self.path / LEGACY
+        if not record.path.exists() and legacy.is_file():
+            raise InputError(f"{legacy}: a workspace of an older mvrecon version, whose record is not read any "
+                             "more; rerun with --overwrite to start the workspace over, or use another workspace")
+        return record
+
     def stages(self) -> dict:
         """{stage: {"hash": ..., "config": {...}}} in the order the stages were first run."""
-        if not self.config_path.is_file():
-            return {}
-        data = read_json_object(self.config_path)
-        stages = data.get("stages", {}) if data is not None else None
-        if isinstance(stages, dict) and all(isinstance(r, dict) and isinstance(r.get("hash"), str)
-                                            and isinstance(r.get("config"), dict) for r in stages.values()):
-            return stages
-        raise InputError(f"{self.config_path}: not a valid workspace config (use --overwrite to start the "
-                         "workspace over)")
+        record = self._checked_record()
+        return {name: {"hash": record.key(name), "config": record.config(name)} for name in record.names()}
 
     def stage_config(self, stage: str) -> dict | None:
-        record = self.stages().get(stage)
-        return None if record is None else record["config"]
+        return self._checked_record().config(stage)
 
     def require_stage(self, stage: str, hint: str) -> dict:
         """The stored config of a stage that must have run already; otherwise an InputError with `hint`."""
@@ -72,46 +87,47 @@ class Workspace:
         this stage, say)."""
         return self._plan(stage, config, overwrite, hint)[1]
 
-    def _plan(self, stage: str, config: dict, overwrite: bool, hint: str = REDO) -> tuple[dict, list[str]]:
+    def _plan(self, stage: str, config: dict, overwrite: bool,
+              hint: str = REDO) -> tuple[Record | None, list[str]]:
+        """(the record, the stages to drop): refuses a different config unless `overwrite`; no record when the
+        one there cannot be read (and `overwrite` starts it over)."""
         try:
-            stages, dropped = self.stages(), []
+            record, dropped = self._checked_record(), []
         except InputError:
             if not overwrite:
                 raise
-            stages, dropped = {}, [stage]  # no record of what the results were made with: --overwrite redoes them
-        if stage == "features" and stage not in stages and self.database_path.exists():
+            return None, [stage]  # no record of what the results were made with: --overwrite redoes them
+        names = record.names()
+        if stage == "features" and stage not in names and self.database_path.exists():
             # features in a database this workspace has no record of (another tool's): what is recorded after
             # them (a `map -w` of that database) was made from it, so --overwrite redoes it all
             if not overwrite:
                 raise InputError(f"{self.database_path}: a database without mvrecon's record of how its features "
                                  f"were made (another tool's, say); map it with `mvrecon map -o {self.path}`, or "
                                  "rerun with --overwrite to start over")
-            return {}, [stage, *stages]
-        names = list(stages)
-        new_hash = cfgmod.config_hash(config)
-        if stage in stages:
-            if stages[stage]["hash"] == new_hash and not overwrite:
-                return stages, []
+            return record, [stage, *names]
+        if stage in names:
+            changes = record.differences(stage, config)
+            if not changes and not overwrite:
+                return record, []
             if not overwrite:
-                changes = cfgmod.diff(stages[stage]["config"], config)
                 raise InputError(f"{self.path}: made with a different {stage} config ({'; '.join(changes)}); "
                                  f"{hint}")
             dropped = names[names.index(stage):]
-            for name in dropped:
-                del stages[name]
-        return stages, dropped
+        return record, dropped
 
     def begin_stage(self, stage: str, config: dict, overwrite: bool = False) -> list[str]:
         """Record `config` for `stage`. Returns the stages (this one and later ones) whose results must be cleared:
         [] when resuming with the same config or starting fresh, and refuses a different config unless overwrite.
         Redoing a stage before mapping also deletes the mapper's snapshot: it was mapped from the old results."""
         self.create()
-        stages, dropped = self._plan(stage, config, overwrite)
+        record, dropped = self._plan(stage, config, overwrite)
         if dropped and stage != "mapping":
             self.snapshot_path.unlink(missing_ok=True)
-        stages[stage] = {"hash": cfgmod.config_hash(config), "config": config}
-        self._write(stages)
+        if record is None:  # --overwrite past a record that could not be read
+            record = self._record()
+            record.clear()
+            (self.path / LEGACY).unlink(missing_ok=True)
+        record.drop(*dropped)
+        record.put(stage, config_hash(config), config=config)
         return dropped
-
-    def _write(self, stages: dict) -> None:
-        write_json(self.config_path, {"stages": stages}, indent=2)

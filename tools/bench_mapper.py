@@ -86,6 +86,7 @@ from mvrecon.eval.runners import (  # noqa: E402
 from mvrecon.geometry.camera import MODELS  # noqa: E402
 from mvrecon.io.images import list_images  # noqa: E402
 from mvrecon.progress import clear_line, progress  # noqa: E402
+from mvrecon.workspace import Workspace  # noqa: E402
 
 # the shared sets the suite is meant to cover: one missing on disk is named, not silently absent
 EXPECTED_SETS = ("middlebury_templeRing", "middlebury_templeSparseRing", "strecha_fountain_P11",
@@ -344,8 +345,10 @@ def measure_set(s: SuiteSet, seed: int, work: Path, code: Path, key: str, map_ar
     workspace = folder / "mvrecon" / run_name
     forget_other_run("mvrecon-map", workspace / "database.db", workspace, ours)
     workspace.mkdir(parents=True, exist_ok=True)
-    for name in ("database.db", "config.json"):  # the map run's own copy: a workspace holds one database
-        shutil.copyfile(db.parent / name, workspace / name)
+    # the map run's own copy of the database and the workspace's record: a workspace holds one database
+    shutil.copyfile(db, workspace / "database.db")
+    Workspace(workspace).record_path.parent.mkdir(exist_ok=True)
+    shutil.copyfile(Workspace(db.parent).record_path, Workspace(workspace).record_path)
     bar.set_postfix_str(f"{s.name} seed {seed}: mvrecon map")
     mv = run_mvrecon_map(workspace, ours, image_dir=s.images, code=code, timeout=timeout)
     (workspace / "database.db").unlink(missing_ok=True)

@@ -92,8 +92,9 @@ def _fmt(metric, value, role="engine"):
 
 def finished(report_dir: Path) -> bool:
     """Whether every engine run of a scene's comparison finished (or timed out) earlier."""
-    metas = [report_dir / "runs" / e / "runner.json" for e in ("mvrecon", "colmap", "colmap-same-matches")]
-    return all(m.is_file() and json.loads(m.read_text()).get("finished") for m in metas)
+    from mvrecon.eval.runners import run_meta
+
+    return all(run_meta(report_dir / "runs" / e).get("finished") for e in ("mvrecon", "colmap", "colmap-same-matches"))
 
 
 def table_row(name: str, origin: str, m: dict, work: Path) -> tuple[str, str]:

@@ -52,7 +52,7 @@ def run(args) -> int:
 
     from mvrecon.errors import InputError
     from mvrecon.io.images import list_images, read_image
-    from mvrecon.io.stage_cache import Stages
+    from mvrecon.io.record import Record
     from mvrecon.stereo.calibrate import (
         CalibrationConfig,
         calibrate_mono,
@@ -69,7 +69,7 @@ def run(args) -> int:
     names, _ = list_images(folder)
     check_output_file(args.output, [folder / n for n in names])
     out = Path(args.output)
-    stages = Stages(out.parent, f"calibrate-{out.stem}.json")  # the corners earlier runs for this file found
+    stages = Record(out.parent, f"calibrate-{out.stem}.json")  # the corners earlier runs for this file found
     images = {}
     for name in names:  # a board image that cannot be decoded is left out, as a view without a board is
         try:

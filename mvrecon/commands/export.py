@@ -1,7 +1,7 @@
 """Export a reconstruction: undistorted images + PINHOLE model for nerfstudio / Gaussian splatting.
 
 Reads OUT/sparse/0 (or --model) of a `mvrecon reconstruct` run, takes the images from the run's image folder
-(recorded in OUT/config.json) or --image-dir, and writes DIR/images/ and DIR/sparse/0/. The run's folder is held
+(recorded in OUT/.stages/record.json) or --image-dir, and writes DIR/images/ and DIR/sparse/0/. The run's folder is held
 while it is read: while another run writes it (a `reconstruct --overwrite`, a `map`), the export is refused
 instead of reading a half-made model.
 

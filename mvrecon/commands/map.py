@@ -18,7 +18,8 @@ def add_arguments(parser) -> None:
     add_workspace(parser, "folder holding database.db (a run's output folder, or a COLMAP workspace)")
     parser.add_argument("--image-dir", default=None,
                         help="images, only used to colour the points (default: the image folder recorded in "
-                             "config.json, if it still exists; else the points stay black, with a warning)")
+                             "the workspace's record, if it still exists; else the points stay black, with a "
+                             "warning)")
     from .reconstruct import add_mapper_options
 
     add_mapper_options(parser)
@@ -49,7 +50,7 @@ def run(args) -> int:
     counts = database_counts(f"{args.workspace}/database.db")
     try:
         ours = Workspace(args.workspace).stage_config("features") is not None
-    except InputError:  # an unreadable config.json that --overwrite mapped past
+    except InputError:  # an unreadable record that --overwrite mapped past
         ours = False
     stages = clock.stages
     if ours and earlier and earlier.get("counts") == counts and isinstance(earlier.get("stages"), dict):
@@ -58,6 +59,6 @@ def run(args) -> int:
     write_report(args.workspace, config_hash=config_hash(config), seed=config.seed, summary=summary,
                  stages=stages, total=stage, counts=counts,
                  database={"made_by": "mvrecon" if ours else "another tool (no mvrecon features record in "
-                           "config.json)"})
+                           "the workspace)"})
     logging.getLogger("mvrecon").info("%s", summary.text())
     return 0 if summary.models else no_model(args.workspace, summary.status)

@@ -9,11 +9,12 @@
   run another source tree of mvrecon (an earlier commit's checkout) than the one imported here.
 
 Each run happens in a subprocess so its wall time and peak memory are its own and a crash cannot take the caller
-down. A finished OUT (its `runner.json` says so, with the same options) is read back instead of rerun, and so is a
-run that timed out (rerunning would only time out again); a run that failed otherwise is retried next time. OUT
-with a run made with other options is refused, so numbers from different settings never mix; the options that
-count are those the engine's result depends on (`RunOptions.identity`: COLMAP's own runs ignore `mvrecon_args`).
-Delete OUT to rerun after changing an engine.
+down. Each OUT keeps the record of its run (`io.record.Record`, OUT/.stages/runner.json: the run's identity as
+its config, and a report of whether it finished, its wall time, peak memory, error and command; `run_meta`). A
+finished OUT is read back instead of rerun, and so is a run that timed out (rerunning would only time out again);
+a run that failed otherwise is retried next time. OUT with a run made with other options is refused, so numbers
+from different settings never mix; the options that count are those the engine's result depends on
+(`RunOptions.identity`: COLMAP's own runs ignore `mvrecon_args`). Delete OUT to rerun after changing an engine.
 """
 
 import argparse
@@ -30,17 +31,20 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from ..config import diff
+from ..config import config_hash, diff
 from ..database import database_counts
 from ..errors import InputError
 from ..executor import StageClock, describe_death, user_environment
 from ..io.files import read_json_object, some_names
+from ..io.record import Record
 from ..memory import INTERVAL_S, PeakSampler, process_tree
 
 log = logging.getLogger("mvrecon.eval.runners")
 
 CAMERA_MODES = ("auto", "single", "per-folder", "per-image")
 COLMAP_ENGINES = ("colmap", "colmap-global")  # COLMAP end to end: never sees mvrecon's extra flags
+RUN = "run"  # the piece of work a run folder's record holds
+RECORD = "runner.json"  # the record of a run, in OUT/.stages (an older mvrecon kept it in OUT itself)
 
 
 @dataclass(frozen=True)
@@ -203,7 +207,7 @@ def code_environment(code) -> tuple[dict[str, str], str | None]:
 
 def _drop_if_database_changed(database_path: Path, out_dir: Path, options: RunOptions) -> str:
     """The database's sha256, after deleting a finished run of COLMAP on an earlier content of it (mvrecon's run
-    redone after its folder was deleted, say): the run's identity holds the database's path, so its runner.json
+    redone after its folder was deleted, say): the run's identity holds the database's path, so its record
     keeps the content's hash too (the copy it mapped is no witness: COLMAP writes to it). A run with other options
     is refused first, as always; one from before the hash was kept cannot be judged and is kept."""
     import hashlib
@@ -217,7 +221,7 @@ def _drop_if_database_changed(database_path: Path, out_dir: Path, options: RunOp
     return content
 
 
-def load_run(out_dir, engine: str | None = None) -> RunResult:
+def load_run(out_dir: str | Path, engine: str | None = None) -> RunResult:
     """A finished engine folder (ours or any OUT with report.json and sparse/), without running anything."""
     from .models import sparse_models
 
@@ -231,7 +235,7 @@ def load_run(out_dir, engine: str | None = None) -> RunResult:
         raise InputError(f"{report_path}: not valid JSON ({exc})") from None
     if not isinstance(report, dict):
         raise InputError(f"{report_path}: not a run report (a JSON object)")
-    meta = _read_json(out_dir / "runner.json")
+    meta = run_meta(out_dir)
     total = report.get("total", {})
     return RunResult(engine=engine or report.get("engine", "unknown"), out_dir=out_dir, report=report,
                      models=sparse_models(out_dir / "sparse"),
@@ -241,11 +245,11 @@ def load_run(out_dir, engine: str | None = None) -> RunResult:
                                      float(total.get("peak_mem_mb") or 0.0)) or float("nan"))
 
 
-def forget_if_failed(out_dir) -> bool:
+def forget_if_failed(out_dir: str | Path) -> bool:
     """Delete a run folder whose run failed (a crash, a timeout), so that the next call runs it again; True if
     it did. Failed runs are otherwise results like any other (`--retry-failed` of compare and study)."""
     out_dir = Path(out_dir)
-    if not _read_json(out_dir / "runner.json").get("error"):
+    if not run_meta(out_dir).get("error"):
         return False
     shutil.rmtree(out_dir)
     return True
@@ -256,12 +260,24 @@ def _read_json(path) -> dict:
     return read_json_object(path) or {}
 
 
-def refuse_other_settings(engine: str, source, out_dir, options: RunOptions) -> dict:
-    """The runner.json of OUT_DIR ({} when none), after refusing a run in it made with settings other than what
-    `engine` on `source` with `options` would run: a caller running several engines checks every folder this way
-    before the first one starts. Options an earlier run recorded that no longer count for `engine` are ignored."""
+def run_meta(out_dir: str | Path) -> dict:
+    """What the record of the run in OUT_DIR says: its identity (engine, source, options) and report (finished,
+    wall_s, peak_tree_mem_mb, error, command, attempts, ...); {} when OUT_DIR holds no record of a run."""
+    record = Record(out_dir, RECORD)
+    identity = record.config(RUN)
+    return {} if identity is None else {**identity, **record.report(RUN)}
+
+
+def refuse_other_settings(engine: str, source: str | Path, out_dir: str | Path, options: RunOptions) -> dict:
+    """`run_meta(out_dir)`, after refusing a run in it made with settings other than what `engine` on `source`
+    with `options` would run: a caller running several engines checks every folder this way before the first one
+    starts. Options an earlier run recorded that no longer count for `engine` are ignored. A run recorded by an
+    older mvrecon version (OUT/runner.json) is refused too: what it was made with is not read any more."""
     identity = _identity(engine, Path(source), options)
-    meta = _read_json(Path(out_dir) / "runner.json")
+    meta = run_meta(out_dir)
+    if not meta and (Path(out_dir) / RECORD).is_file():
+        raise InputError(f"{out_dir}: holds a run recorded by an older mvrecon version ({RECORD}); delete it to "
+                         "run it again, or use another folder")
     if meta:
         old = {k: meta.get(k) for k in identity}
         if isinstance(old["options"], dict):
@@ -284,12 +300,12 @@ def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout,
     if not source.exists():
         raise InputError(f"{source}: not found")
     identity = _identity(engine, source, options)
-    meta_path = out_dir / "runner.json"
     meta = refuse_other_settings(engine, source, out_dir, options)
     if meta.get("finished"):
         return _result(engine, out_dir, meta)
     out_dir.mkdir(parents=True, exist_ok=True)
-    meta_path.write_text(json.dumps({**identity, **(record or {}), "finished": False}, indent=1))
+    run_record = Record(out_dir, RECORD)  # started, not finished: a rerun with other settings is refused
+    run_record.put(RUN, config_hash(identity), {**(record or {}), "finished": False}, config=identity)
     _cache_bytecode()
     log.debug("running %s on %s -> %s", engine, source, out_dir)
     wall, peaks = 0.0, []
@@ -323,11 +339,11 @@ def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout,
         else:
             error = f"the process running it died twice: {describe_death(code)}"
     timed_out = error is not None and error.startswith("timed out")
-    meta = {**identity, **(record or {}), "finished": error is None or timed_out, "wall_s": wall,
-            "peak_tree_mem_mb": max(peaks) if peaks else None, "error": error, "command": cmd,
-            "attempts": attempt}
-    meta_path.write_text(json.dumps(meta, indent=1))
-    return _result(engine, out_dir, meta)
+    report = {**(record or {}), "finished": error is None or timed_out, "wall_s": wall,
+              "peak_tree_mem_mb": max(peaks) if peaks else None, "error": error, "command": cmd,
+              "attempts": attempt}
+    run_record.put(RUN, config_hash(identity), report, wall, config=identity)
+    return _result(engine, out_dir, {**identity, **report})
 
 
 def _ran_without_model(out_dir: Path, code: int) -> bool:

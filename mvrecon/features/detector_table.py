@@ -17,7 +17,7 @@ import numpy as np
 from ..errors import InputError
 from ..io.files import replace_whole
 from ..io.images import list_images, read_image
-from ..io.stage_cache import Stages, code_digest, digest
+from ..io.record import Record, code_digest, digest
 from ..progress import progress
 from . import detectors
 
@@ -140,7 +140,7 @@ def measure_table(config: DetectorTableConfig, paths: list[Path], out: Path) -> 
     InputError."""
     import cv2  # OpenCV loads only when a table is measured
 
-    stages = Stages(out.parent, f"detectors-{out.stem}.json")  # what earlier runs into this table finished
+    stages = Record(out.parent, f"detectors-{out.stem}.json")  # what earlier runs into this table finished
     settings = {"angle": config.angle, "scale": config.scale, "opencv": cv2.__version__,
                 "code": code_digest(*detectors.CODE)}
     table = DetectorTable(config=config, paths=paths, cache_path=stages.path)
@@ -167,7 +167,7 @@ def measure_table(config: DetectorTableConfig, paths: list[Path], out: Path) -> 
     return table
 
 
-def _image_row(config: DetectorTableConfig, stages: Stages, table: DetectorTable, path: Path, image,
+def _image_row(config: DetectorTableConfig, stages: Record, table: DetectorTable, path: Path, image,
                key: str, held: dict) -> dict:
     """One image's row: each detector's figures, reused or measured (and kept); with pairs, the detections
     made are held for the pair."""
@@ -191,7 +191,7 @@ def _image_row(config: DetectorTableConfig, stages: Stages, table: DetectorTable
     return row
 
 
-def _pair_row(config: DetectorTableConfig, stages: Stages, table: DetectorTable, first: tuple,
+def _pair_row(config: DetectorTableConfig, stages: Record, table: DetectorTable, first: tuple,
               second: tuple, keys: dict, held: dict) -> dict:
     """One pair's row: each detector's verified inliers between its (path, image) `first` and `second`."""
     (a, image_a), (b, image_b) = first, second

@@ -238,9 +238,9 @@ def database_frames(database, names) -> dict[str, bool]:
     Told by the keypoints table: COLMAP writes 6 columns per keypoint (x, y and the affine shape a11 a12 a21 a22),
     mvrecon 4 (x, y, scale, orientation; `database.write_features`). This travels with the features themselves,
     image by image: it still holds when a COLMAP database was copied into a workspace of ours, or the two were
-    mixed, where config.json (our features stage) or images.json would speak for the folder, and report.json is
-    written by `map` for either. A COLMAP from before its affine keypoints (about 2018) wrote 4 columns too: its
-    images are taken as mvrecon's, upright."""
+    mixed, where the workspace's record (our features stage) or images.json would speak for the folder, and
+    report.json is written by `map` for either. A COLMAP from before its affine keypoints (about 2018) wrote 4
+    columns too: its images are taken as mvrecon's, upright."""
     if database is None or not Path(database).is_file():
         return {}
     try:

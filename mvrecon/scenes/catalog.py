@@ -1,8 +1,10 @@
 """The scene catalog: TOML entries in the top-level `scenes/` folder, and `make_scene` that renders one.
 
-A scene folder is complete when its `scene.json` says so and carries the hash of the TOML (plus the generator
-version) it was made from; asking again for the same scene into the same folder then returns at once, or,
-after an interruption, renders only the views still missing.
+A scene folder's record (`io.record.Record`, SCENE/.stages/record.json) keeps two pieces keyed on the hash of the
+TOML (plus the generator version) they were made from: "views", recorded before the first view is rendered, and
+"scene", once the scene is complete (its report is scene.json's content). Asking again for the same scene into the
+same folder then returns at once, or, after an interruption, renders only the views still missing; `scene.json`
+describes the scene (name, kind, units, views) and marks the folder as a scene's.
 """
 
 import hashlib
@@ -14,6 +16,7 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..io.files import made_folder, read_json_object, write_json
+from ..io.record import Record
 
 
 def _catalog_dir() -> Path:
@@ -73,7 +76,7 @@ def read_scene_info(out_dir) -> dict | None:
     return read_json_object(Path(out_dir) / "scene.json")
 
 
-def make_scene(name: str, out_dir) -> Path:
+def make_scene(name: str, out_dir: str | Path) -> Path:
     """Render catalog scene `name` (or a .toml path) into out_dir and return out_dir.
 
     Deterministic: the same TOML gives the same bytes. Cached: when out_dir already holds the complete scene
@@ -86,11 +89,11 @@ def make_scene(name: str, out_dir) -> Path:
 
     entry, digest, path = load_entry(name)
     out = Path(out_dir)
-    info = read_scene_info(out)
-    if info and info.get("hash") == digest and info.get("complete"):
+    record = Record(out)
+    if record.get("scene", digest, ["scene.json"]) is not None:
         log.info("%s: scene %s is up to date", out, entry.get("name", path.stem))
         return out
-    if info is None and not (out / "scene.json").exists() and out.is_dir() and any(out.iterdir()):
+    if not (out / "scene.json").exists() and not record.path.exists() and out.is_dir() and any(out.iterdir()):
         raise InputError(f"{out}: holds files but no scene.json, so it is not a scene folder; refusing to "
                          "overwrite it (choose an empty or new folder)")
     kind = entry.get("kind", "perspective")
@@ -100,8 +103,9 @@ def make_scene(name: str, out_dir) -> Path:
         check_entry(entry)  # before anything is removed, made or rendered
     except ValueError as exc:
         raise InputError(f"{path}: {exc}") from None
-    # an interrupted run of the same entry: keep its views (written whole: see `resumable` below)
-    resume = bool(info) and info.get("hash") == digest and info.get("resumable") is True
+    # an interrupted run of the same entry: keep its views (each written whole)
+    resume = record.key("views") == digest
+    record.drop("scene", *(() if resume else ("views",)))
     for item in () if resume else _OWNED:  # remove what an older version of this scene left behind
         target = out / item
         if target.is_dir():
@@ -122,14 +126,15 @@ def make_scene(name: str, out_dir) -> Path:
     bad_entry = (ValueError, KeyError, TypeError)
     try:  # a folder this call made holds nothing a rerun of a corrected TOML reuses
         with made_folder(out, removed_on=bad_entry):
-            # only this version marks a folder resumable: an older one may have left a cut-off image
-            _write_json(out / "scene.json", {**meta, "resumable": True})
+            _write_json(out / "scene.json", meta)
+            record.put("views", digest)  # the views rendered from now on are of this entry
             details = KINDS[kind](entry, path.parent, out)
     except bad_entry as exc:
         raise InputError(f"{path}: {type(exc).__name__}: {exc}") from None
     meta.update(details)
     meta["complete"] = True
     _write_json(out / "scene.json", meta)
+    record.put("scene", digest, meta, time.perf_counter() - start)
     log.info("%s: made scene %s (%s) in %.1f s", out, scene_name, kind, time.perf_counter() - start)
     return out
 

@@ -149,7 +149,7 @@ def _load(paths, max_size):
     import cv2
 
     from ..io.images import read_image, to_gray
-    from ..io.stage_cache import digest
+    from ..io.record import digest
 
     images, seen = [], {}
     for p in paths:

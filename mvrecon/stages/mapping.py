@@ -70,7 +70,7 @@ def map_workspace(config: MapperConfig, workspace, *, image_dir=None, text: bool
                    f"{ws.path} --overwrite` redoes only the mapping), or use another workspace")
     try:
         stages = ws.stages()
-    except InputError:  # an unreadable config.json, which check_stage lets --overwrite map past
+    except InputError:  # an unreadable record, which check_stage lets --overwrite map past
         stages = {}
     corr = dbmod.read_correspondences(ws.database_path)
     if not corr.pairs:

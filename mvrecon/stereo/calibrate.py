@@ -6,7 +6,7 @@ views far above the median are dropped before the final solve, because one blurr
 intrinsics. Results go to a small TOML file (`camera.toml`) in COLMAP's OPENCV model and pixel convention (top-left
 pixel centre at (0.5, 0.5)); `mvrecon stereo --camera` reads it, and its `colmap_params` string is what
 `--camera-model OPENCV --camera-params` takes. The board search is most of the time (85 % on the ximea set): given
-a `Stages` record, each image's corners are kept as they are found, and a rerun finds only the missing ones.
+an `io.record.Record`, each image's corners are kept as they are found, and a rerun finds only the missing ones.
 """
 
 import base64
@@ -21,7 +21,7 @@ import numpy as np
 from ..errors import InputError
 from ..io.files import replace_whole
 from ..io.images import as_uint8, to_gray
-from ..io.stage_cache import code_digest, digest
+from ..io.record import code_digest, digest
 from ..progress import progress
 
 log = logging.getLogger("mvrecon.calibrate")
@@ -199,7 +199,7 @@ def _unpack(packed) -> np.ndarray | None:
 
 
 def _once(stages, name: str, key_parts, make) -> dict:
-    """make() (a JSON-able dict), or what an earlier run recorded for the same inputs in `stages` (a Stages)."""
+    """make() (a JSON-able dict), or what an earlier run recorded for the same inputs in `stages` (a Record)."""
     if stages is None:
         return make()
     return stages.run(name, digest(*key_parts), (), make)
@@ -207,7 +207,7 @@ def _once(stages, name: str, key_parts, make) -> dict:
 
 def _detect_all(images: dict, board, stages=None) -> tuple[tuple[int, int], dict]:
     """Board size (given or the most common detected one) and {name: corners} for the views where it is found.
-    With `stages` (an io.stage_cache.Stages), each image's board search and corners are recorded as they are found
+    With `stages` (an io.record.Record), each image's board search and corners are recorded as they are found
     and taken from the record when an earlier run found them in the same pixels with the same code."""
     import cv2
 
@@ -238,7 +238,7 @@ def _detect_all(images: dict, board, stages=None) -> tuple[tuple[int, int], dict
 
 
 def calibrate_mono(images: dict, config: CalibrationConfig = CalibrationConfig(), stages=None) -> MonoResult:
-    """images: {name: array}. All images must share one size. stages: an `io.stage_cache.Stages` that keeps each
+    """images: {name: array}. All images must share one size. stages: an `io.record.Record` that keeps each
     image's corners for a rerun (None: nothing kept)."""
     sizes = {}  # (h, w) -> the first image of that size, an example to find
     for name, img in images.items():

@@ -3,7 +3,7 @@ rectification -> disparity (gee | sgbm | best) -> depth, point cloud, figures, a
 
 `run_stereo(config, left_path, right_path, out_dir, ...)` is what `mvrecon stereo` calls; it returns the report
 dict it also writes to `out_dir/report.json`. A rerun into the same folder reuses the stages already done
-(`io.stage_cache`).
+(`io.record`).
 """
 
 import logging
@@ -19,7 +19,7 @@ from ..geometry.rectification import apply_homography, calibrated_rectification,
 from ..io.files import made_folder, replace_whole, write_json
 from ..io.images import as_uint8, read_image, to_gray, write_image
 from ..io.pfm import read_pfm, write_pfm
-from ..io.stage_cache import Stages, code_digest, digest
+from ..io.record import Record, code_digest, digest
 from .best import BestConfig, best_disparity
 from .calib import check_image_size, read_calib
 from .gee import GEEConfig, gee_disparity
@@ -304,7 +304,7 @@ class _Output:
     """The folder of one run as its steps write it: the stage cache, the report, and the figures."""
 
     out: Path
-    stages: Stages
+    stages: Record
     report: dict
     figures_code: str  # the figures module's source, read once rather than per figure
 
@@ -336,7 +336,7 @@ def _run(config: StereoConfig, left_path, right_path, out: Path, left, right, ca
     """run_stereo after its checks, into the existing folder `out` (an interrupted run keeps its stages there)."""
     from . import figures
 
-    stages = Stages(out)
+    stages = Record(out)
     stages.path.parent.mkdir(parents=True, exist_ok=True)  # the matches and disparities are kept there too
     report: dict = {"left": str(left_path), "right": str(right_path), "method": config.method, "warnings": []}
     run = _Output(out, stages, report, code_digest(figures.__name__))

@@ -19,6 +19,7 @@ import pytest
 from mvrecon.cameras import CameraConfig, group_cameras
 from mvrecon.cli import main
 from mvrecon.errors import InputError
+from mvrecon.eval.runners import run_meta
 from mvrecon.io.images import image_metadata
 
 SCENE = "fisheye_orbit_small"
@@ -99,9 +100,9 @@ def test_study_passes_camera_params_to_both_engines(tmp_path, caplog, capsys):
     with caplog.at_level("WARNING"):
         assert main(args + ["--camera-params", "80,80,80,60,0.01,0,0,0"]) == 0  # the runs time out: failed cells
     for engine in ("mvrecon", "colmap"):
-        meta = json.loads((tmp_path / "s" / "runs" / engine / "clean" / "runner.json").read_text())
+        meta = run_meta(tmp_path / "s" / "runs" / engine / "clean")
         assert meta["options"]["camera_params"] == [80, 80, 80, 60, 0.01, 0, 0, 0], engine
-    command = json.loads((tmp_path / "s" / "runs" / "mvrecon" / "clean" / "runner.json").read_text())["command"]
+    command = run_meta(tmp_path / "s" / "runs" / "mvrecon" / "clean")["command"]
     assert command[command.index("--camera-params") + 1] == "80,80,80,60,0.01,0,0,0" and "--fix-intrinsics" in command
     assert not [r for r in caplog.records if COLMAP_FISHEYE_NOTE in r.getMessage()]
     # without them COLMAP cannot take part, which is said before anything runs

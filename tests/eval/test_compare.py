@@ -17,6 +17,7 @@ import pycolmap
 import pytest
 
 from mvrecon.cli import main
+from mvrecon.config import config_hash
 from mvrecon.errors import InputError
 from mvrecon.eval import ground_truth as G
 from mvrecon.eval.compare import CompareConfig, Comparison, compare_images, compare_models, evaluate, summary_rows
@@ -27,10 +28,13 @@ from mvrecon.eval.runners import (
     _wait_measuring_memory,
     code_environment,
     load_run,
+    refuse_other_settings,
     run_colmap,
     run_colmap_on_database,
+    run_meta,
     run_mvrecon_map,
 )
+from mvrecon.io.record import Record
 from tests.helpers import DATA, ROOT, synthetic_scene
 
 OPTS = RunOptions(camera_mode="single")
@@ -164,9 +168,10 @@ def test_other_mvrecon_args_reuse_colmaps_run_and_refuse_mvrecons(runs, tmp_path
     # a run recorded with mvrecon's flags among its options (as every run was before) is reused too
     old = tmp_path / "old-colmap"
     shutil.copytree(colmap.out_dir, old)
-    meta = json.loads((old / "runner.json").read_text())
-    meta["options"]["mvrecon_args"] = ["--max-features", "2000"]
-    (old / "runner.json").write_text(json.dumps(meta))
+    record = Record(old, "runner.json")
+    identity = record.config("run")
+    identity["options"]["mvrecon_args"] = ["--max-features", "2000"]
+    record.put("run", config_hash(identity), record.report("run"), record.seconds("run"), config=identity)
     assert run_colmap(images, old, upright).wall_s == colmap.wall_s
     # what COLMAP does see still counts; the run on mvrecon's database depends on mvrecon's flags
     with pytest.raises(InputError, match=r"options.seed: 0 -> 1"):
@@ -207,8 +212,28 @@ def test_mvrecons_mapper_alone_on_a_database(runs, tmp_path):
     assert run.error is None and run.engine == "mvrecon-map"
     assert [m.num_reg_images() for m in run.models] == [8] and set(run.report["stages"]) == {"mapping"}
     assert accuracy_summary(run.poses, G.load_ground_truth(gt))["auc@5"] > 0.95
-    assert json.loads((ws / "runner.json").read_text())["code"] == str(root)
+    assert run_meta(ws)["code"] == str(root)
     assert run_mvrecon_map(ws, OPTS, image_dir=images, code=root).wall_s == run.wall_s
+
+
+def test_a_run_folder_records_its_run_and_an_older_record_is_refused(tmp_path):
+    """A run's record says what it was made with; a folder with the runner.json of an older mvrecon is refused
+    before anything runs (what it was made with is not read any more), not rerun over."""
+    images = tmp_path / "images"
+    images.mkdir()
+    out = tmp_path / "run"
+    identity = {"engine": "colmap", "source": str(images.resolve()), "options": OPTS.identity("colmap")}
+    Record(out, "runner.json").put("run", config_hash(identity), {"finished": True, "wall_s": 2.5}, 2.5,
+                                   config=identity)
+    assert refuse_other_settings("colmap", images, out, OPTS) == {**identity, "finished": True, "wall_s": 2.5}
+    with pytest.raises(InputError, match=r"other settings \(options.seed: 0 -> 3\)"):
+        refuse_other_settings("colmap", images, out, RunOptions(camera_mode="single", seed=3))
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "runner.json").write_text(json.dumps({**identity, "finished": True}))
+    with pytest.raises(InputError, match="older mvrecon version"):
+        run_colmap(images, old, OPTS)
+    assert run_meta(old) == {} and sorted(p.name for p in old.iterdir()) == ["runner.json"]
 
 
 def test_code_environment_imports_mvrecon_from_the_tree_given(tmp_path, monkeypatch):
@@ -231,7 +256,7 @@ def test_compare_again_with_other_mvrecon_args(tmp_path, capsys):
     args = ["-q", "compare", str(images), "-o", str(out), "--timeout", "0.01"]
     assert main(args + ["--no-same-matches"]) == 1
     capsys.readouterr()
-    colmap_meta = (out / "runs" / "colmap" / "runner.json").read_text()
+    colmap_meta = (out / "runs" / "colmap" / ".stages" / "runner.json").read_text()
     # mvrecon's run was made with other flags: refused, as any run with other settings
     assert main(args + ["--no-same-matches", "--mvrecon-args", "--upright"]) == 2
     err = capsys.readouterr().err
@@ -239,15 +264,14 @@ def test_compare_again_with_other_mvrecon_args(tmp_path, capsys):
     shutil.rmtree(out / "runs" / "mvrecon")
     assert main(args + ["--no-same-matches", "--mvrecon-args", "--upright"]) == 1  # 2 before: colmap refused
     assert "holds a run" not in capsys.readouterr().err
-    assert (out / "runs" / "colmap" / "runner.json").read_text() == colmap_meta  # reused, not rerun
-    meta = json.loads((out / "runs" / "mvrecon" / "runner.json").read_text())
+    assert (out / "runs" / "colmap" / ".stages" / "runner.json").read_text() == colmap_meta  # reused, not rerun
+    meta = run_meta(out / "runs" / "mvrecon")
     assert meta["command"][-1] == "--upright"
     # every run folder is checked before any engine starts: a stale same-matches run stops mvrecon's rerun
     same = out / "runs" / "colmap-same-matches"
-    same.mkdir()
-    (same / "runner.json").write_text(json.dumps({
-        "engine": "colmap-same-matches", "source": str((out / "runs" / "mvrecon" / "database.db").resolve()),
-        "options": OPTS.to_dict() | {"camera_mode": "auto"}, "finished": True}))
+    identity = {"engine": "colmap-same-matches", "source": str((out / "runs" / "mvrecon" / "database.db").resolve()),
+                "options": OPTS.to_dict() | {"camera_mode": "auto"}}
+    Record(same, "runner.json").put("run", config_hash(identity), {"finished": True}, config=identity)
     shutil.rmtree(out / "runs" / "mvrecon")
     assert main(args + ["--mvrecon-args", "--max-features 2000"]) == 2
     err = capsys.readouterr().err
@@ -516,7 +540,7 @@ def test_mvrecon_args_in_the_documented_form_reach_mvrecons_run(tmp_path):
     out = tmp_path / "r"
     assert main(["-q", "compare", str(images), "-o", str(out), "--no-same-matches", "--timeout", "0.01",
                  "--mvrecon-args", "--upright"]) == 1
-    meta = json.loads((out / "runs" / "mvrecon" / "runner.json").read_text())
+    meta = run_meta(out / "runs" / "mvrecon")
     assert meta["command"][-1] == "--upright" and meta["options"]["mvrecon_args"] == ["--upright"]
 
 

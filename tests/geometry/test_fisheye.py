@@ -16,6 +16,7 @@ from mvrecon.eval.metrics import accuracy_summary
 from mvrecon.eval.models import model_stats, poses, sparse_models
 from mvrecon.geometry import camera
 from mvrecon.geometry.rotation import angle_axis_to_rotmat
+from mvrecon.workspace import Workspace
 
 FISHEYE = "OPENCV_FISHEYE"
 TRUTH = [285.0, 285.0, 320.0, 240.0, 0.05, -0.01, 0.002, -0.0005]  # fisheye_orbit_small's lens
@@ -125,7 +126,7 @@ def fisheye_run(tmp_path_factory):
     root = tmp_path_factory.mktemp("fisheye")
     assert main(["-q", "demo", "-o", str(root), "--scene", "fisheye_orbit_small", "--camera-model", FISHEYE]) == 0
     scene, run = root / "scene", root / "run"
-    assert json.loads((run / "config.json").read_text())["stages"]["features"]["config"]["camera"]["model"] == FISHEYE
+    assert Workspace(run).stage_config("features")["camera"]["model"] == FISHEYE
     assert json.loads((root / "accuracy.json").read_text())["registered"] == 12
     return scene, run
 

@@ -3,6 +3,7 @@ geometry, the catalog is deterministic and cached, COLMAP reconstructs a small s
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 
@@ -312,9 +313,27 @@ texture = { photo = "coffee", size = 128 }
 
 
 def _files(folder):
+    """The scene's files and bytes; its record (.stages/, with the seconds the work took) is not the scene's."""
     return {
-        p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()
+        p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*"))
+        if p.is_file() and ".stages" not in p.relative_to(folder).parts
     }
+
+
+def test_a_scene_made_by_an_older_version_is_made_again(tmp_path):
+    """A complete scene.json without the record (an older mvrecon's scene) is not taken as up to date: the
+    scene is rendered again, to the same bytes."""
+    toml = tmp_path / "tiny.toml"
+    toml.write_text(TINY)
+    made = _files(make_scene(str(toml), tmp_path / "a"))
+    old = tmp_path / "a"
+    shutil.rmtree(old / ".stages")
+    (old / "images" / "0000.png").write_bytes(b"older")
+    make_scene(str(toml), old)
+    assert _files(old) == made and json.loads((old / "scene.json").read_text())["complete"] is True
+    stamp = (old / "images" / "0000.png").stat().st_mtime_ns
+    make_scene(str(toml), old)  # recorded now: up to date
+    assert (old / "images" / "0000.png").stat().st_mtime_ns == stamp
 
 
 def test_make_scene_is_deterministic_and_cached(tmp_path):

@@ -302,7 +302,7 @@ def test_an_engine_run_that_is_killed_runs_once_more_then_fails_with_the_reason(
     """The runs of `compare` and `study` are processes of their own: one killed (by the out-of-memory killer,
     say) is run once more, as the feature pool does with an image, and after a second death the run fails with
     the reason, where it said "exit code -9" and the last line of its log."""
-    from mvrecon.eval.runners import run_mvrecon
+    from mvrecon.eval.runners import run_meta, run_mvrecon
 
     images = textured_views(tmp_path / "images")
     (tmp_path / "sitecustomize.py").write_text(DYING_RUN)
@@ -311,7 +311,7 @@ def test_an_engine_run_that_is_killed_runs_once_more_then_fails_with_the_reason(
     monkeypatch.setenv("DEATHS", "1")
     once = run_mvrecon(images, tmp_path / "once", timeout=180)
     assert once.error is None and len(once.models[0].images) == 6
-    assert json.loads((tmp_path / "once" / "runner.json").read_text())["attempts"] == 2
+    assert run_meta(tmp_path / "once")["attempts"] == 2
     monkeypatch.setenv("DEATHS", "4")  # two marks are there already: the next two runs die
     twice = run_mvrecon(images, tmp_path / "twice", timeout=180)
     assert twice.error == "the process running it died twice: signal 9 (SIGKILL), probably out of memory"

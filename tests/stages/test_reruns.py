@@ -13,6 +13,7 @@ from PIL import Image
 
 from mvrecon.cli import main
 from mvrecon.io.ply import read_ply_points
+from mvrecon.workspace import Workspace
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +39,7 @@ def camera_models(sparse_dir):
 
 def test_redone_features_drop_the_mapper_snapshot(base, tmp_path):
     # the snapshot of the SIMPLE_RADIAL run was resumed after the features were redone with PINHOLE: the model
-    # kept the old camera while database.db and config.json said PINHOLE
+    # kept the old camera while database.db and the workspace's record said PINHOLE
     images, ws = copy_run(base, tmp_path)
     assert main(["-q", "reconstruct", str(images), "-o", str(ws), "--camera-model", "PINHOLE", "--overwrite",
                  "--resume"]) == 0
@@ -81,7 +82,7 @@ def test_a_refused_camera_setup_changes_nothing(base, tmp_path, capsys):
     assert {p.name: p.read_bytes() for p in ws.iterdir() if p.is_file()} == before
     fresh = tmp_path / "fresh"
     assert main(["-q", "features", str(sizes), "-w", str(fresh), "--camera-mode", "single"]) == 2
-    assert not (fresh / "config.json").exists()
+    assert not Workspace(fresh).record_path.exists()
     assert main(["-q", "features", str(sizes), "-w", str(fresh)]) == 0
 
 
@@ -110,20 +111,21 @@ def test_changed_mapper_settings_are_refused_and_a_failed_remap_keeps_the_model(
 
 def test_a_database_without_our_record_is_refused(base, tmp_path, capsys):
     # reconstruct mapped the features and matches of a database it had no record of (COLMAP's, or one whose
-    # config.json was lost) and recorded its own SIFT settings for them
+    # record was lost) and recorded its own SIFT settings for them
     images, ws = copy_run(base, tmp_path)
-    (ws / "config.json").unlink()
+    record = Workspace(ws).record_path
+    record.unlink()
     database = (ws / "database.db").read_bytes()
     assert main(["-q", "reconstruct", str(images), "-o", str(ws)]) == 2
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and "without mvrecon's record" in err and "mvrecon map -o" in err
-    assert (ws / "database.db").read_bytes() == database and not (ws / "config.json").exists()
+    assert (ws / "database.db").read_bytes() == database and not record.exists()
     # mapped as advised, then started over: the mapping record of the foreign database is not kept (it stayed,
     # ahead of the new features, and refused a later `map` with other settings for a config never mapped)
     assert main(["-q", "map", "-w", str(ws)]) == 0
-    assert list(json.loads((ws / "config.json").read_text())["stages"]) == ["mapping"]
+    assert list(json.loads(record.read_text())) == ["mapping"]
     assert main(["-q", "reconstruct", str(images), "-o", str(ws), "--overwrite"]) == 0
-    assert list(json.loads((ws / "config.json").read_text())["stages"]) == ["features", "matching", "mapping"]
+    assert list(json.loads(record.read_text())) == ["features", "matching", "mapping"]
     assert main(["-q", "map", "-w", str(ws), "--seed", "1"]) == 2  # refused against this run's own mapping
     assert "(seed: 0 -> 1)" in capsys.readouterr().err
 
@@ -153,9 +155,9 @@ def test_map_colours_the_points_from_the_recorded_folder_or_says_why_not(base, t
     assert main(["-q", "map", "-w", str(ws), "--overwrite"]) == 0
     _, rgb = read_ply_points(ws / "points.ply")
     assert rgb.any()  # was all black without --image-dir
-    config = json.loads((ws / "config.json").read_text())
-    config["stages"]["features"]["config"]["images"] = str(tmp_path / "moved")
-    (ws / "config.json").write_text(json.dumps(config))
+    record = json.loads(Workspace(ws).record_path.read_text())
+    record["features"]["config"]["images"] = str(tmp_path / "moved")
+    Workspace(ws).record_path.write_text(json.dumps(record))
     with caplog.at_level(logging.WARNING):
         assert main(["-q", "map", "-w", str(ws), "--overwrite"]) == 0
     assert "point colours are not sampled" in caplog.text and "--image-dir" in caplog.text

@@ -415,10 +415,10 @@ def test_cli_skips_corrupt_and_non_image_files(tmp_path, capsys, caplog):
                                   "itself\n")
     code, out = run_cli(["match", "-w", str(ws)], capsys)  # so the default pairs are no "different config"
     assert code == 0 and "1 verified pairs" in summary_lines(caplog, "Matching:")[0]
-    for damaged in ('{"stages": {"features": {}}}', '{"stages": []}', '{"stag'):  # one line; --overwrite redoes
-        (ws / "config.json").write_text(damaged)
+    for damaged in ('{"features": {}}', '{"features": {"key": "0"}}', '[]', '{"feat'):  # --overwrite redoes
+        Workspace(ws).record_path.write_text(damaged)
         code, out = run_cli(["match", "-w", str(ws)], capsys)
-        assert code == 2 and "config.json: not a valid workspace config (use --overwrite" in out.err, damaged
+        assert code == 2 and "record.json: not a valid workspace record (use --overwrite" in out.err, damaged
     code, out = run_cli(["features", str(images), "-w", str(ws), "--overwrite", "-q"], capsys)
     assert code == 0 and summary_lines(caplog, "Features:") == [] and out.out == ""  # -q: warnings only
     code, out = run_cli(["match", "-w", str(ws), "-q"], capsys)

@@ -112,8 +112,8 @@ def test_study_report_is_self_contained_with_breaking_points(study_with_gt):
 
 def test_wider_grid_reuses_finished_cells_and_other_settings_are_refused(study_with_gt, tiny_scene, capsys):
     def finished_runs():
-        return {str(p.parent.relative_to(study_with_gt)): p.stat().st_mtime_ns
-                for p in (study_with_gt / "runs").glob("*/*/runner.json")}
+        return {str(p.parent.parent.relative_to(study_with_gt)): p.stat().st_mtime_ns
+                for p in (study_with_gt / "runs").glob("*/*/.stages/runner.json")}
 
     before = finished_runs()
     assert sorted(before) == [f"runs/{e}/{c}" for e in ("colmap", "mvrecon") for c in ("blur-3", "clean", "noise-30")]
