@@ -9,12 +9,19 @@ instead of redefining flags, so the same words mean the same thing everywhere. T
 
 import argparse
 import dataclasses
+import logging
 import math
+import os
+import tempfile
+from collections.abc import Iterable
+from pathlib import Path
 
 from ..cameras import CAMERA_MODES, CameraConfig, parse_camera_params
 from ..config import check_tables, load_toml, with_field, with_overrides
 from ..errors import InputError
 from ..geometry.camera import MODELS
+from ..matching.pairs import check_spec
+from ..stages.common import FrontendConfig
 
 
 def _number(kind, low=None, low_open: bool = False):
@@ -39,13 +46,9 @@ positive_float = _number(float, 0.0, low_open=True)
 finite_float = _number(float)  # an angle, say: nan or inf would run on into meaningless results
 
 
-def check_output_file(path, inputs) -> None:
+def check_output_file(path: Path | str, inputs: Iterable[Path | str]) -> None:
     """Refuse, before the work, an output file that is a folder, would replace one of `inputs`, or cannot be
     written (its folder is made if missing): a bad -o should not cost the whole computation (calibrate, detectors)."""
-    import os
-    import tempfile
-    from pathlib import Path
-
     out = Path(path)
     if out.is_dir():
         raise InputError(f"{out}: is a folder; give a file name to write")
@@ -159,12 +162,10 @@ def flag_name(dest: str) -> str:
     return _FLAG_NAMES.get(dest, "--" + dest.replace("_", "-"))
 
 
-def config_file(args: argparse.Namespace):
+def config_file(args: argparse.Namespace) -> tuple[FrontendConfig, dict]:
     """(FrontendConfig with the --config TOML file's front-end tables applied, the file's [mapper] table); the
     defaults and {} without a file. The front-end tables are checked whichever command reads the file (`map`
     uses only [mapper]): a misspelt table or an option outside its table is an InputError, not ignored."""
-    from ..stages.common import FrontendConfig
-
     if not getattr(args, "config", None):
         return FrontendConfig(), {}
     tables = load_toml(args.config)
@@ -182,8 +183,6 @@ def config_file(args: argparse.Namespace):
 def warn_if_config_unread(args: argparse.Namespace, command: str, reads: tuple[str, ...]) -> None:
     """A warning when the --config file holds none of the tables or keys `command` reads (`reads`): a file of
     [mapper] settings given to `features` was taken without a word, as if its settings had been applied."""
-    import logging
-
     if not getattr(args, "config", None):
         return
 
@@ -197,11 +196,10 @@ def warn_if_config_unread(args: argparse.Namespace, command: str, reads: tuple[s
             "read them", args.config, command, ", ".join(map(shown, sorted(keys))), ", ".join(map(shown, reads)))
 
 
-def frontend_config_from_args(args: argparse.Namespace, from_file=None):
+def frontend_config_from_args(args: argparse.Namespace,
+                              from_file: tuple[FrontendConfig, dict] | None = None) -> FrontendConfig:
     """FrontendConfig = defaults < --config TOML < flags given on the command line. `from_file`: what
     `config_file(args)` returned, when the caller has read the file already."""
-    from ..matching.pairs import check_spec
-
     config = (from_file or config_file(args))[0]
     # each value checked where the user gave it: a flag is named as typed ("--max-features: must be at least
     # 1, got 0"), a value of the --config file by the file, table and key
@@ -230,7 +228,7 @@ def frontend_config_from_args(args: argparse.Namespace, from_file=None):
 DASHED_VALUES = ("--mvrecon-args",)  # options whose value is itself a list of flags
 
 
-def join_option_value(argv, option: str) -> list[str]:
+def join_option_value(argv: list[str], option: str) -> list[str]:
     """`OPTION VALUE` as `OPTION=VALUE` in argv (up to a `--`), so that a VALUE starting with a dash is the
     option's value: argparse takes a lone `--upright` for an unknown option and stops at `--mvrecon-args
     "--upright"` (the documented form) with "expected one argument"; only values with a space got through."""

@@ -15,13 +15,21 @@ A rerun for the same camera file continues: each image's corners are kept as the
 the images not searched yet are.
 """
 
+import argparse
+import logging
+from pathlib import Path
+
+from ..errors import InputError
+from ..io.images import list_images, read_image
+from ..io.record import Record
+from ..stereo.calibrate import CalibrationConfig, calibrate_mono, calibrate_stereo, stereo_pairs, write_camera_toml
+from ._options import check_output_file, positive_float
+
 ORDER = 62
 ON_INTERRUPT = "the corners found are kept next to the camera file (in .stages); rerun the same command to continue"
 
 
-def add_arguments(parser) -> None:
-    from ._options import positive_float
-
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("images", help="folder with the chessboard images")
     parser.add_argument("-o", "--output", required=True, help="camera file to write (TOML)")
     parser.add_argument("--pattern", choices=("chessboard",), default="chessboard",
@@ -33,8 +41,6 @@ def add_arguments(parser) -> None:
 
 
 def _board(text: str):
-    from mvrecon.errors import InputError
-
     if text == "auto":
         return None
     try:
@@ -46,23 +52,7 @@ def _board(text: str):
     return cols, rows
 
 
-def run(args) -> int:
-    import logging
-    from pathlib import Path
-
-    from mvrecon.errors import InputError
-    from mvrecon.io.images import list_images, read_image
-    from mvrecon.io.record import Record
-    from mvrecon.stereo.calibrate import (
-        CalibrationConfig,
-        calibrate_mono,
-        calibrate_stereo,
-        stereo_pairs,
-        write_camera_toml,
-    )
-
-    from ._options import check_output_file
-
+def run(args: argparse.Namespace) -> int:
     log = logging.getLogger("mvrecon.calibrate")
     config = CalibrationConfig(board=_board(args.size), square=args.square)
     folder = Path(args.images)

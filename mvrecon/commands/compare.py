@@ -16,16 +16,29 @@ says so at its top. GT: a COLMAP model folder, a Middlebury *_par.txt, a Strecha
 folder or an IMC calibration/ folder. Writes REPORT/index.html (self-contained), metrics.json and metrics.csv.
 """
 
+import argparse
+import dataclasses
+import logging
+import shlex
+import sys
+from pathlib import Path
+
+from ..cameras import CAMERA_MODES, CameraConfig, parse_camera_params
+from ..errors import InputError
+from ..eval.compare import CompareConfig, compare_images, compare_models
+from ..eval.report import format_value, other_models_text, write_report
+from ..eval.runners import RunOptions, check_run_masks, colmap_fisheye_warning, forget_if_failed, reconstruct_args
+from ..geometry.camera import MODELS
+from ..stages.features import require_images
+from . import reconstruct
+from ._options import config_file, flag_name, frontend_config_from_args, non_negative_int, positive_float
+
 ORDER = 60
 HOLDS_OUTPUT = True  # its -o folder is held against a second run (`io.files.hold_folder`)
 ON_INTERRUPT = "finished runs are kept; rerun the same command to continue"
 
 
-def add_arguments(parser) -> None:
-    from ..cameras import CAMERA_MODES
-    from ..geometry.camera import MODELS
-    from ._options import non_negative_int, positive_float
-
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("images", nargs="?", help="folder of images (omit with --models)")
     parser.add_argument("-o", "--output", required=True, help="report folder (index.html, metrics.json/.csv, runs/)")
     parser.add_argument("--gt", help="ground truth: COLMAP model folder, *_par.txt, gt_dense_cameras/, calibration/")
@@ -61,20 +74,12 @@ RUN_ONLY = ("colmap_global", "no_same_matches", "camera_mode", "camera_model", "
             "mvrecon_args", "timeout", "retry_failed")  # the dests only a run on IMAGES uses
 
 
-def check_mvrecon_args(options) -> None:
+def check_mvrecon_args(options: RunOptions) -> None:
     """Refuse, before any engine runs, extra flags that `mvrecon reconstruct` would reject (a misspelt one
     failed mvrecon's run only after COLMAP's, and compare still exited 0) and flags that would override what
     compare sets for both engines (the comparison would no longer be like for like). The flags are parsed by
     reconstruct's own parser, in the very command `run_mvrecon` runs, and their values checked as reconstruct
     checks them (bounds, a --config file)."""
-    import argparse
-    import dataclasses
-
-    from ..errors import InputError
-    from ..eval.runners import reconstruct_args
-    from . import reconstruct
-    from ._options import config_file, flag_name, frontend_config_from_args
-
     if not options.mvrecon_args:
         return
 
@@ -105,19 +110,7 @@ def check_mvrecon_args(options) -> None:
         raise InputError(f"--mvrecon-args: {exc}") from None
 
 
-def run(args) -> int:
-    import logging
-    import shlex
-    import sys
-    from pathlib import Path
-
-    from ..cameras import CameraConfig, parse_camera_params
-    from ..errors import InputError
-    from ..eval.compare import CompareConfig, compare_images, compare_models
-    from ..eval.report import format_value, other_models_text, write_report
-    from ..eval.runners import RunOptions, check_run_masks, colmap_fisheye_warning, forget_if_failed
-    from ._options import flag_name
-
+def run(args: argparse.Namespace) -> int:
     if bool(args.images) == bool(args.models):
         raise InputError("give either IMAGES or --models A B (not both, not neither)")
     if args.labels and not args.models:
@@ -141,8 +134,6 @@ def run(args) -> int:
     config = CompareConfig(options=options, colmap_global=args.colmap_global,
                            same_matches=not args.no_same_matches, timeout_s=args.timeout)
     if args.images:
-        from ..stages.features import require_images
-
         check_mvrecon_args(options)
         listing = require_images(args.images)  # listed once: its warnings are printed once
         for warning in (check_run_masks(options, args.images, listing[0]),

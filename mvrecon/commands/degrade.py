@@ -14,14 +14,18 @@ A rerun of an interrupted command continues: images finished with the same setti
 recorded in OUTPUT/.mvrecon-degrade.json; other settings need another output folder).
 """
 
+import argparse
+import logging
+
+from ..study.degrade import Degradation, degrade_folder
+from ._options import non_negative_int
+
 ORDER = 60
 HOLDS_OUTPUT = True  # its -o folder is held against a second run (`io.files.hold_folder`)
 ON_INTERRUPT = "finished images are kept; rerun the same command to continue"
 
 
-def add_arguments(parser) -> None:
-    from ._options import non_negative_int
-
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("images",
                         help="an image folder (JPEG, PNG, TIFF, BMP, PNM; sub-folders too) or a single image")
     parser.add_argument("-o", "--output", required=True,
@@ -45,20 +49,14 @@ def add_arguments(parser) -> None:
     parser.add_argument("--seed", type=non_negative_int, default=0, help="random seed of the noise (default 0)")
 
 
-def degradation_from_args(args):
-    from mvrecon.study.degrade import Degradation
-
+def degradation_from_args(args: argparse.Namespace) -> Degradation:
     return Degradation(downscale=args.downscale, blur_sigma=args.blur, motion_length=args.motion,
                        motion_angle=args.motion_angle, brightness=args.brightness, poisson_peak=args.poisson,
                        noise_sigma=args.noise, gamma=args.gamma, sharpen_amount=args.sharpen,
                        sharpen_radius=args.sharpen_radius, jpeg_quality=args.jpeg)
 
 
-def run(args) -> int:
-    import logging
-
-    from mvrecon.study.degrade import degrade_folder
-
+def run(args: argparse.Namespace) -> int:
     deg = degradation_from_args(args)
     written = degrade_folder(args.images, args.output, deg, seed=args.seed)
     logging.getLogger("mvrecon").info("%d images -> %s (%s; order %s)", len(written), args.output, deg.describe(),

@@ -14,6 +14,26 @@ Example:
   mvrecon demo -o out/demo_fisheye --scene fisheye_orbit_small --camera-model OPENCV_FISHEYE
 """
 
+import argparse
+import logging
+import math
+from pathlib import Path
+
+from ..cameras import CameraConfig
+from ..errors import InputError
+from ..eval.compare import jsonable
+from ..eval.ground_truth import load_ground_truth
+from ..eval.metrics import accuracy_summary
+from ..eval.models import load_reconstruction, model_stats, poses, sparse_models
+from ..geometry.camera import MODELS
+from ..io.files import write_json
+from ..pipeline import FrontendConfig, ReconstructConfig, reconstruct
+from ..scenes import make_scene
+from ..scenes.catalog import load_entry
+from ..sfm.config import MapperConfig
+from ._options import non_negative_int
+from .reconstruct import no_model
+
 ORDER = 1
 HOLDS_OUTPUT = True  # its -o folder is held against a second run (`io.files.hold_folder`)
 ON_INTERRUPT = "features, matches and the mapping snapshot are kept; rerun the same command to continue"
@@ -25,11 +45,7 @@ KINDS = ("perspective", "colmap_synthetic")  # scene kinds `reconstruct` is for 
 OTHER_COMMANDS = {"stereo": "mvrecon stereo", "sem_tilt": "mvrecon sem"}  # the command for each other kind
 
 
-def add_arguments(parser) -> None:
-    from ..cameras import CameraConfig
-    from ..geometry.camera import MODELS
-    from ._options import non_negative_int
-
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--output", default="out/demo", help="output folder (default: out/demo)")
     parser.add_argument("--scene", default=SCENE,
                         help=f"catalog scene to use, a perspective one (`mvrecon scene list`; default: {SCENE})")
@@ -45,9 +61,6 @@ def add_arguments(parser) -> None:
 def check_scene_kind(name: str) -> None:
     """Refuse, before rendering, a scene demo cannot reconstruct: a stereo pair or an SEM tilt series ran to the
     end with 0 images registered (stereo) or failed after the whole reconstruction (SEM: no gt/sparse)."""
-    from ..errors import InputError
-    from ..scenes.catalog import load_entry
-
     kind = load_entry(name)[0].get("kind", "perspective")
     if kind not in KINDS:
         other = OTHER_COMMANDS.get(kind)
@@ -56,13 +69,9 @@ def check_scene_kind(name: str) -> None:
                          f"{' or '.join(KINDS)} in `mvrecon scene list`){instead}")
 
 
-def scene_model_hint(name: str, scene, model: str) -> str | None:
+def scene_model_hint(name: str, scene: Path | str, model: str) -> str | None:
     """The line naming the scene's own camera model when the demo reconstructs with another one (without it
     fisheye_orbit_small ran SIMPLE_RADIAL, AUC@1 0.50 against 0.91, with no word); None when they agree."""
-    from pathlib import Path
-
-    from ..eval.models import load_reconstruction
-
     truth = sorted({cam.model.name for cam in load_reconstruction(Path(scene) / "gt" / "sparse").cameras.values()})
     if len(truth) != 1 or truth[0] == model:
         return None
@@ -70,22 +79,7 @@ def scene_model_hint(name: str, scene, model: str) -> str | None:
             f"--camera-model {truth[0]} fits the scene")
 
 
-def run(args) -> int:
-    import logging
-    import math
-    from pathlib import Path
-
-    from ..cameras import CameraConfig
-    from ..eval.compare import jsonable
-    from ..eval.ground_truth import load_ground_truth
-    from ..eval.metrics import accuracy_summary
-    from ..eval.models import model_stats, poses, sparse_models
-    from ..io.files import write_json
-    from ..pipeline import FrontendConfig, ReconstructConfig, reconstruct
-    from ..scenes import make_scene
-    from ..sfm.config import MapperConfig
-    from .reconstruct import no_model
-
+def run(args: argparse.Namespace) -> int:
     check_scene_kind(args.scene)
     log = logging.getLogger("mvrecon")
     out = Path(args.output)

@@ -14,13 +14,18 @@ A rerun into the same table continues: each image's (and pair's) figures per det
 only the missing ones are computed; reused figures keep the times measured then, and the log names them.
 """
 
+import argparse
+import logging
+from pathlib import Path
+
+from ..features.detector_table import DetectorTableConfig, collect_images, measure_table, write_table
+from ._options import check_output_file, finite_float, positive_float
+
 ORDER = 64
 ON_INTERRUPT = "the images done are kept next to the table (in .stages); rerun the same command to continue"
 
 
-def add_arguments(parser) -> None:
-    from ._options import finite_float, positive_float
-
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("inputs", nargs="+", help="image files and/or folders of images")
     parser.add_argument("-o", "--output", required=True, help="markdown table to write (a .csv is written too)")
     parser.add_argument("--pairs", action="store_true", help="consecutive images form pairs (A, B)")
@@ -32,19 +37,7 @@ def add_arguments(parser) -> None:
                         help="zoom of the repeatability warp (default 0.8)")
 
 
-def run(args) -> int:
-    import logging
-    from pathlib import Path
-
-    from mvrecon.features.detector_table import (
-        DetectorTableConfig,
-        collect_images,
-        measure_table,
-        write_table,
-    )
-
-    from ._options import check_output_file
-
+def run(args: argparse.Namespace) -> int:
     config = DetectorTableConfig(detectors=args.detectors, angle=args.angle, scale=args.scale,
                                  pairs=args.pairs)
     config.validate()

@@ -10,14 +10,21 @@ Example:
   ns-train splatfacto colmap --data out/splat     (nerfstudio)
 """
 
+import argparse
+import logging
+from pathlib import Path
+
+from ..errors import InputError
+from ..io.undistort import export_undistorted
+from ..workspace import Workspace
+from ._options import positive_int
+
 ORDER = 32
 HOLDS_OUTPUT = True  # its -o folder is held against a second run (`io.files.hold_folder`)
 ON_INTERRUPT = "the export is written aside and moved into place when complete; rerun the same command"
 
 
-def add_arguments(parser) -> None:
-    from ._options import positive_int
-
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run", help="output folder of `mvrecon reconstruct` (holds sparse/0)")
     parser.add_argument("--undistort", action="store_true",
                         help="write undistorted images and a PINHOLE model: the only export so far, so the "
@@ -31,14 +38,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--text", action="store_true", help="also write the model as text")
 
 
-def run(args) -> int:
-    import logging
-    from pathlib import Path
-
-    from ..errors import InputError
-    from ..io.undistort import export_undistorted
-    from ..workspace import Workspace
-
+def run(args: argparse.Namespace) -> int:
     run_dir = Path(args.run)
     if not run_dir.is_dir():
         raise InputError(f"{run_dir}: no such run folder (the output folder of `mvrecon reconstruct`)")

@@ -7,13 +7,24 @@ different config is refused unless --overwrite.
 example:  mvrecon features photos/ -o work/
 """
 
+import argparse
+import logging
+
+from ..stages.features import extract_features
+from ._options import (
+    add_camera_options,
+    add_feature_options,
+    add_run_options,
+    add_workspace,
+    frontend_config_from_args,
+    warn_if_config_unread,
+)
+
 ORDER = 10
 ON_INTERRUPT = "the images done are kept in the workspace; rerun the same command to continue"
 
 
-def add_arguments(parser):
-    from ._options import add_camera_options, add_feature_options, add_run_options, add_workspace
-
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("images", help="folder of images (searched recursively)")
     add_workspace(parser, "workspace folder (created if missing)")
     add_camera_options(parser)
@@ -22,12 +33,7 @@ def add_arguments(parser):
                                         "max_num_features = 4096")
 
 
-def run(args) -> int:
-    import logging
-
-    from ..stages.features import extract_features
-    from ._options import frontend_config_from_args, warn_if_config_unread
-
+def run(args: argparse.Namespace) -> int:
     warn_if_config_unread(args, "features", ("camera", "sift", "workers"))
     summary = extract_features(frontend_config_from_args(args), args.images, args.workspace,
                                overwrite=args.overwrite)

@@ -8,37 +8,35 @@ Example:
   mvrecon map -o out/ --image-dir images/
 """
 
+import argparse
+import logging
+from pathlib import Path
+
+from ..config import config_hash
+from ..database import database_counts
+from ..errors import InputError
+from ..executor import StageClock
+from ..io.files import read_json_object
+from ..stages.mapping import map_workspace
+from ..stages.report import write_report
+from ..workspace import Workspace
+from ._options import add_workspace
+from .reconstruct import add_mapper_options, mapper_config, no_model
+
 ORDER = 31
 ON_INTERRUPT = "rerun the same command with --resume to continue mapping from its last snapshot"
 
 
-def add_arguments(parser) -> None:
-    from ._options import add_workspace
-
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_workspace(parser, "folder holding database.db (a run's output folder, or a COLMAP workspace)")
     parser.add_argument("--image-dir", default=None,
                         help="images, only used to colour the points (default: the image folder recorded in "
                              "the workspace's record, if it still exists; else the points stay black, with a "
                              "warning)")
-    from .reconstruct import add_mapper_options
-
     add_mapper_options(parser)
 
 
-def run(args) -> int:
-    import logging
-    from pathlib import Path
-
-    from ..config import config_hash
-    from ..database import database_counts
-    from ..errors import InputError
-    from ..executor import StageClock
-    from ..io.files import read_json_object
-    from ..stages.mapping import map_workspace
-    from ..stages.report import write_report
-    from ..workspace import Workspace
-    from .reconstruct import mapper_config, no_model
-
+def run(args: argparse.Namespace) -> int:
     config = mapper_config(args)
     if args.image_dir is not None and not Path(args.image_dir).is_dir():
         raise InputError(f"{args.image_dir}: no such image folder (--image-dir)")

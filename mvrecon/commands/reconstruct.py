@@ -11,17 +11,27 @@ Examples:
   mvrecon reconstruct images/ -o out/ --camera-model PINHOLE --camera-params 1520,1520,302,246 --text
 """
 
+import argparse
+import logging
+import re
+from collections import Counter
+from pathlib import Path
+
+from ..config import with_overrides
+from ..errors import InputError
+from ..pipeline import ReconstructConfig, reconstruct
+from ..sfm.config import OPTIMIZERS, MapperConfig
+from ..stages.common import FrontendConfig
+from ._options import add_frontend_options, add_workspace, config_file, frontend_config_from_args, non_negative_int
+
 ORDER = 30
 ON_INTERRUPT = ("features and matches done are kept; rerun the same command to continue, with --resume "
                 "to continue mapping from its last snapshot too")
 
 
-def add_mapper_options(parser, *, standalone: bool = True) -> None:
+def add_mapper_options(parser: argparse.ArgumentParser, *, standalone: bool = True) -> None:
     """Mapper flags shared by `reconstruct` and `map`; only the standalone `map` adds its own --config and
     --overwrite (`reconstruct` has them from the front end's options, and one --config file holds both)."""
-    from ..sfm.config import OPTIMIZERS
-    from ._options import non_negative_int
-
     g = parser.add_argument_group("mapping")
     g.add_argument("--seed", type=non_negative_int, default=None,
                    help="random seed: equal inputs and seed give equal models (default 0)")
@@ -38,13 +48,10 @@ def add_mapper_options(parser, *, standalone: bool = True) -> None:
         g.add_argument("--overwrite", action="store_true", help="start mapping over even with a snapshot")
 
 
-def mapper_config(args, from_file=None):
+def mapper_config(args: argparse.Namespace,
+                  from_file: tuple[FrontendConfig, dict] | None = None) -> MapperConfig:
     """MapperConfig = defaults < the [mapper] table of --config < flags given on the command line.
     `from_file`: what `config_file(args)` returned, when the caller has read the file already."""
-    from ..config import with_overrides
-    from ..sfm.config import MapperConfig
-    from ._options import config_file
-
     table = (from_file or config_file(args))[1]
     config = with_overrides(MapperConfig(), table, source=f"{args.config}: mapper")
     flags = {"seed": args.seed, "optimizer": args.optimizer}
@@ -55,23 +62,14 @@ def mapper_config(args, from_file=None):
     return config
 
 
-def add_arguments(parser) -> None:
-    from ._options import add_frontend_options, add_workspace
-
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("images", help="folder of images (searched recursively)")
     add_workspace(parser, "output folder (the workspace)", dest="output")
     add_frontend_options(parser)
     add_mapper_options(parser, standalone=False)
 
 
-def run(args) -> int:
-    import logging
-    from pathlib import Path
-
-    from ..errors import InputError
-    from ..pipeline import ReconstructConfig, reconstruct
-    from ._options import config_file, frontend_config_from_args
-
+def run(args: argparse.Namespace) -> int:
     if not Path(args.images).is_dir():
         raise InputError(f"{args.images}: not a folder of images")
     from_file = config_file(args)  # read once for both configs
@@ -88,12 +86,9 @@ def run(args) -> int:
     return 0
 
 
-def no_model(out, status: dict) -> int:
+def no_model(out: Path | str, status: dict) -> int:
     """Exit code 1 and one error line when mapping made no model: the input was readable (bad input exits 2
     earlier), but the run failed. `status`: image name -> {"status", "reason", ...}, as in report.json."""
-    import logging
-    from collections import Counter
-
     reasons = [s["reason"] for s in status.values()]
     kinds = [_reason_kind(r) for r in reasons]
     kind, count = Counter(kinds).most_common(1)[0]
@@ -107,6 +102,4 @@ def no_model(out, status: dict) -> int:
 def _reason_kind(reason: str) -> str:
     """A reason without its image pair and figures, so that reasons are counted by kind: each image of a
     panorama names its own best pair and figures, and as whole strings the most common covered 2 of 10."""
-    import re
-
     return re.sub(r"\d+(\.\d+)?", "#", re.sub(r"\([^()]* / [^()]*\)", "(...)", reason))

@@ -5,23 +5,25 @@ mvrecon scene make NAME -o DIR          render scene NAME (or a path to a .toml)
                                         resumed after Ctrl-C
 """
 
+import argparse
+
+from ..errors import InputError
+from ..scenes import list_scenes, make_scene
+from ..scenes.catalog import load_entry, read_scene_info
+
 ORDER = 80
 HOLDS_OUTPUT = True  # its -o folder is held against a second run (`io.files.hold_folder`)
 ON_INTERRUPT = "the views rendered are kept; rerun the same command to continue"
 
 
-def add_arguments(parser) -> None:
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("action", choices=("list", "make"), help="list the catalog, or make (render) a scene")
     parser.add_argument("name", nargs="?", help="make: a catalog name (`mvrecon scene list`) or a .toml path")
     parser.add_argument("-o", "--output",
                         help="make: output folder (created; reused when up to date, continued after Ctrl-C)")
 
 
-def run(args) -> int:
-    from ..errors import InputError
-    from ..scenes import list_scenes, make_scene
-    from ..scenes.catalog import load_entry, read_scene_info
-
+def run(args: argparse.Namespace) -> int:
     if args.action == "list":
         for name in list_scenes():
             entry = load_entry(name)[0]

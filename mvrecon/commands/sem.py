@@ -13,13 +13,23 @@ estimate is warned about; one view given twice (the same file, identical pixels,
 also as one pair inside a longer series) and a tilt of 90 deg or more either way are refused.
 """
 
+import argparse
+import logging
+import math
+from pathlib import Path
+
+from ..errors import InputError
+from ..sem.heightmap import read_height_map
+from ..sem.icp import IcpConfig
+from ..sem.parallax import parse_axis
+from ..sem.pipeline import SemConfig, parse_length_um, resolve_images, run_sem
+from ._options import positive_int
+
 ORDER = 70
 HOLDS_OUTPUT = True  # its -o folder is held against a second run (`io.files.hold_folder`)
 
 
-def add_arguments(parser) -> None:
-    from ._options import positive_int
-
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("images", nargs="+", help="tilt-series images (files in tilt order, or a folder)")
     parser.add_argument("-o", "--output", required=True, help="output folder")
     tilts = parser.add_mutually_exclusive_group(required=True)
@@ -58,10 +68,6 @@ def add_arguments(parser) -> None:
 
 
 def _floats(text: str, option: str, count: int | None = None) -> tuple:
-    import math
-
-    from mvrecon.errors import InputError
-
     try:
         values = tuple(float(v) for v in text.replace(" ", "").split(",") if v != "")
     except ValueError:
@@ -76,10 +82,6 @@ def _floats(text: str, option: str, count: int | None = None) -> tuple:
 def _check_output_folder(output, inputs) -> None:
     """Refuse an output folder that is an input's folder or inside an input folder: the height map and figures
     written there would join the tilt series of the next run (a folder is listed with its subfolders)."""
-    from pathlib import Path
-
-    from mvrecon.errors import InputError
-
     out = Path(output).resolve()
     for item in inputs:
         p = Path(item).resolve()
@@ -88,15 +90,7 @@ def _check_output_folder(output, inputs) -> None:
             raise InputError(f"{output}: the output folder must be outside the image folder {folder}")
 
 
-def run(args) -> int:
-    import logging
-
-    from mvrecon.errors import InputError
-    from mvrecon.sem.heightmap import read_height_map
-    from mvrecon.sem.icp import IcpConfig
-    from mvrecon.sem.parallax import parse_axis
-    from mvrecon.sem.pipeline import SemConfig, parse_length_um, resolve_images, run_sem
-
+def run(args: argparse.Namespace) -> int:
     try:
         axis = parse_axis(args.axis) if args.axis is not None else None
         pixel_size = parse_length_um(args.pixel_size) if args.pixel_size is not None else None

@@ -12,15 +12,23 @@ calibration), error_map.png (with --gt), report.json. A rerun into the same OUT 
 with the same inputs and settings (SIFT matches and F, each method's disparity, the figures; kept in OUT/.stages).
 """
 
+import argparse
+import logging
+from dataclasses import replace
+
+from ..geometry.fundamental import RansacConfig
+from ..stereo.evaluate import format_table
+from ..stereo.gee import GEEConfig
+from ..stereo.pipeline import StereoConfig, run_stereo
+from ._options import positive_float, positive_int
+
 ORDER = 60
 HOLDS_OUTPUT = True  # its -o folder is held against a second run (`io.files.hold_folder`)
 ON_INTERRUPT = ("the matches, disparities and figures done are kept in the output folder; rerun the same command "
                 "to continue")
 
 
-def add_arguments(parser) -> None:
-    from ._options import positive_float, positive_int
-
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("left", help="left image (the reference view)")
     parser.add_argument("right", help="right image")
     parser.add_argument("-o", "--output", required=True, help="output folder")
@@ -47,15 +55,7 @@ def add_arguments(parser) -> None:
                         help="gee: reliability tolerance; estimates above alpha * mean energy are removed (default 3)")
 
 
-def run(args) -> int:
-    import logging
-    from dataclasses import replace
-
-    from mvrecon.geometry.fundamental import RansacConfig
-    from mvrecon.stereo.evaluate import format_table
-    from mvrecon.stereo.gee import GEEConfig
-    from mvrecon.stereo.pipeline import StereoConfig, run_stereo
-
+def run(args: argparse.Namespace) -> int:
     gee = {k: v for k, v in (("window", args.gee_window), ("smoothing_iterations", args.gee_iterations),
                              ("alpha", args.gee_alpha)) if v is not None}
     config = StereoConfig(method=args.method, min_disparity=args.min_disparity,

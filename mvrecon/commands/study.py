@@ -11,18 +11,29 @@ Example:
   mvrecon study images/ -o study/ --noise 0,5,10,20,40 --blur 0,1,2,4 --jpeg 95,75,50,25,10 --gt templeR_par.txt
 """
 
+import argparse
+import logging
+import shlex
+import sys
+from pathlib import Path
+
+from ..cameras import CAMERA_MODES, CameraConfig, parse_camera_params
+from ..errors import InputError
+from ..eval.runners import COLMAP_ENGINES, RunOptions, check_run_masks, colmap_fisheye_warning
+from ..geometry.camera import MODELS
+from ..stages.features import require_images
+from ..study.config import StudyConfig
+from ..study.degrade import Degradation
+from ..study.grid import AXES, Grid, parse_levels
+from ..study.study import breaking_points, run_study
+from ._options import non_negative_int, positive_float
+
 ORDER = 61
 HOLDS_OUTPUT = True  # its -o folder is held against a second run (`io.files.hold_folder`)
 ON_INTERRUPT = "finished cells are kept; rerun the same command to continue"
 
 
-def add_arguments(parser) -> None:
-    from mvrecon.study.grid import AXES
-
-    from ..cameras import CAMERA_MODES
-    from ..geometry.camera import MODELS
-    from ._options import non_negative_int, positive_float
-
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("images", help="folder of the clean images (searched with its sub-folders, as reconstruct "
                                        "searches it)")
     parser.add_argument("-o", "--output", required=True, metavar="STUDY", help="study folder (created; reused)")
@@ -58,20 +69,7 @@ def add_arguments(parser) -> None:
                         help="rerun cells whose engine run failed or timed out before (else failures are kept)")
 
 
-def run(args) -> int:
-    import logging
-    import shlex
-    import sys
-    from pathlib import Path
-
-    from mvrecon.cameras import CameraConfig, parse_camera_params
-    from mvrecon.errors import InputError
-    from mvrecon.eval.runners import COLMAP_ENGINES, RunOptions, check_run_masks, colmap_fisheye_warning
-    from mvrecon.stages.features import require_images
-    from mvrecon.study.degrade import Degradation
-    from mvrecon.study.grid import AXES, Grid, parse_levels
-    from mvrecon.study.study import StudyConfig, breaking_points, run_study
-
+def run(args: argparse.Namespace) -> int:
     listing = require_images(args.images)  # the images reconstruct takes: every cell is made from these
     images, out = Path(args.images).resolve(), Path(args.output).resolve()
     if out == images or images in out.parents:  # its degraded copies would count as images of the clean run

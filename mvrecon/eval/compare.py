@@ -14,17 +14,25 @@ the page and the files cannot disagree.
 
 import logging
 import math
+import os
 import platform
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
+import psutil
+import pycolmap
 
+from ..database import database_counts
 from ..errors import InputError
 from ..io.files import printable_name
 from ..io.images import IMAGE_EXTENSIONS, list_images
+from ..progress import progress
 from . import metrics as M
+from .ground_truth import load_ground_truth_for
+from .models import load_reconstruction, model_stats, reconstruction_from_poses, sparse_models
 from .runners import (
     RunOptions,
     RunResult,
@@ -98,7 +106,8 @@ class Comparison:
     geometry: dict  # engine or "ground truth" -> Geometry, for the 3D view
 
 
-def compare_images(image_dir, report_dir, gt=None, config: CompareConfig = CompareConfig(), *,
+def compare_images(image_dir: Path | str, report_dir: Path | str, gt: Path | str | None = None,
+                   config: CompareConfig = CompareConfig(), *,
                    listing: tuple[list[str], dict[str, str]] | None = None) -> Comparison:
     """Run mvrecon, pycolmap (and the same-matches run) on IMAGE_DIR into REPORT_DIR/runs/ and measure them.
 
@@ -106,9 +115,6 @@ def compare_images(image_dir, report_dir, gt=None, config: CompareConfig = Compa
     (its warnings are then printed once). Image files that cannot be read are named, with the reason, in the
     metrics' "skipped_images": no engine sees them, and a report that left them out would look complete.
     """
-    from ..progress import progress
-    from .ground_truth import load_ground_truth_for
-
     image_dir, report_dir = Path(image_dir), Path(report_dir)
     names, skipped = listing if listing is not None else list_images(image_dir)
     skipped = {n: r for n, r in skipped.items() if Path(n).suffix.lower() in IMAGE_EXTENSIONS}
@@ -146,16 +152,14 @@ def compare_images(image_dir, report_dir, gt=None, config: CompareConfig = Compa
                     gt_source=str(gt) if gt else None, skipped=skipped)
 
 
-def compare_models(paths, gt=None, labels=None, config: CompareConfig = CompareConfig()) -> Comparison:
+def compare_models(paths: list[Path | str], gt: Path | str | None = None, labels: list[str] | None = None,
+                   config: CompareConfig = CompareConfig()) -> Comparison:
     """Compare models that already exist: run folders (report.json + sparse/), sparse/ folders or model folders.
 
     Without ground truth the LAST model is the reference, so two are needed; with it one model is scored
     against it. The images counted are those any model or report lists (an image no model holds and no report
     names cannot be known).
     """
-    from .ground_truth import load_ground_truth_for
-    from .models import load_reconstruction, sparse_models
-
     paths = [Path(p) for p in paths]
     if len(paths) < 2 and gt is None:
         raise InputError("--models: give at least two models to compare, or one with --gt")
@@ -200,7 +204,8 @@ def _folder_label(path: Path) -> str:
     return parts[-1] if parts else str(path)
 
 
-def evaluate(runs: list[RunResult], image_names, gt_poses=None, config: CompareConfig = CompareConfig(), *,
+def evaluate(runs: list[RunResult], image_names: Iterable[str], gt_poses: dict | None = None,
+             config: CompareConfig = CompareConfig(), *,
              title: str = "", source: str = "", gt_source: str | None = None,
              reference_engine: str | None = "colmap", skipped: dict[str, str] | None = None) -> Comparison:
     """Metrics of every run against the reference (ground truth, else `reference_engine`'s largest model).
@@ -236,13 +241,14 @@ def evaluate(runs: list[RunResult], image_names, gt_poses=None, config: CompareC
     return Comparison(metrics=jsonable(metrics), geometry=geometry)
 
 
-def model_sizes(run: RunResult, image_names) -> list[int]:
+def model_sizes(run: RunResult, image_names: Iterable[str]) -> list[int]:
     """How many of `image_names` each model of the run holds, largest model first ([] for a run without one)."""
     names = set(image_names)
     return [len(names.intersection(m)) for m in run.poses]
 
 
-def choose_reference(runs: list[RunResult], image_names, default: str | None) -> tuple[str | None, str]:
+def choose_reference(runs: list[RunResult], image_names: list[str],
+                     default: str | None) -> tuple[str | None, str]:
     """Without ground truth: the engine whose largest model every other is scored against, and the note the
     report shows at its top when that is not `default` (COLMAP's, or the last of --models) or there is none.
 
@@ -280,8 +286,6 @@ def choose_reference(runs: list[RunResult], image_names, default: str | None) ->
 
 
 def _evaluate_run(run: RunResult, role: str, image_names, ref_poses: dict, config: CompareConfig):
-    from .models import model_stats
-
     models = run.poses
     largest_rec = run.models[0] if run.models else None
     stats = model_stats(largest_rec) if largest_rec is not None else {}
@@ -350,8 +354,6 @@ def _evaluate_run(run: RunResult, role: str, image_names, ref_poses: dict, confi
 
 def _counts(run: RunResult) -> dict:
     """Front-end counts from the run's database when it has one (the same counting for every engine)."""
-    from ..database import database_counts
-
     db = run.out_dir / "database.db"
     if db.is_file():
         return database_counts(db)
@@ -360,10 +362,6 @@ def _counts(run: RunResult) -> dict:
 
 def _pycolmap_disagreement(est_poses: dict, ref_poses: dict, al, inlier_fraction: float) -> float | None:
     """Largest distance (% of extent) between camera centres placed by our Sim3 and by pycolmap's."""
-    import pycolmap
-
-    from .models import reconstruction_from_poses
-
     src, tgt = reconstruction_from_poses(est_poses), reconstruction_from_poses(ref_poses)
     sim = pycolmap.align_reconstructions_via_proj_centers(src, tgt, inlier_fraction * al.scene_extent)
     if sim is None:
@@ -437,10 +435,6 @@ def summary_rows(engines: dict) -> list[dict]:
 
 
 def machine_info() -> dict:
-    import os
-
-    import psutil
-
     cpu = platform.processor() or platform.machine()
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -457,7 +451,7 @@ def _finite(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
-def jsonable(obj):
+def jsonable(obj: object) -> object:
     """Plain JSON types; NaN and inf become None (JSON has no NaN, and JavaScript would choke on it)."""
     if isinstance(obj, dict):
         return {str(k): jsonable(v) for k, v in obj.items()}

@@ -6,6 +6,7 @@ files hold. The 3D view is a plotly figure with plotly.js inlined: a real WebGL 
 
 import io
 import math
+from collections.abc import Iterable
 
 import numpy as np
 
@@ -16,7 +17,7 @@ ENGINE_COLORS = {"mvrecon": "#1f77b4", "colmap": "#ff7f0e", "colmap-global": "#9
 _EXTRA_COLORS = ("#d62728", "#17becf", "#8c564b", "#e377c2", "#bcbd22", "#7f7f7f")
 
 
-def engine_colors(names) -> dict:
+def engine_colors(names: Iterable[str]) -> dict:
     """A stable colour per engine: the usual engines keep theirs, others (e.g. --models labels) take the rest."""
     out, extra = {}, iter(_EXTRA_COLORS * 4)
     for n in names:
@@ -27,17 +28,17 @@ def engine_colors(names) -> dict:
 def _png(fig) -> bytes:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # noqa: PLC0415 - matplotlib: figures only
 
     plt.close(fig)
     return buf.getvalue()
 
 
 def _pyplot():
-    import matplotlib
+    import matplotlib  # noqa: PLC0415 - matplotlib: figures only
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # noqa: PLC0415 - matplotlib: figures only
 
     return plt
 
@@ -96,7 +97,7 @@ def _log_axis(ax, values) -> None:
     """A log x axis over the data (errors of 0.01-0.1 deg sit in a tenth of a decade, invisible on a fixed
     range), ticked at 1-2-5 per decade (or per decade, over many) as plain numbers: matplotlib's own minor
     labels ("2x10^-2 3x10^-2 ...") ran into each other."""
-    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter  # noqa: PLC0415 - figures only
 
     ax.set_xscale("log")
     positive = [v for v in values if v is not None and v > 0 and math.isfinite(v)]
@@ -215,8 +216,8 @@ def _without_far_outliers(points) -> np.ndarray:
 def scene_3d_html(geometry: dict, extent: float | None = None) -> str:
     """A plotly 3D view of the aligned models: a frustum per camera and the points, one legend entry per model
     (click to hide or show; ground-truth points start hidden), with plotly.js inlined so the page works offline."""
-    import plotly.graph_objects as go
-    import plotly.io as pio
+    import plotly.graph_objects as go  # noqa: PLC0415 - plotly: the 3D view only
+    import plotly.io as pio  # noqa: PLC0415 - plotly: the 3D view only
 
     colors = engine_colors(geometry)
     centres = np.array([c[1] for g in geometry.values() for c in g.cameras.values()]).reshape(-1, 3)

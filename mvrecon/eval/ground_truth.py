@@ -7,12 +7,14 @@ The HDF5 files are tiny and contiguous, so a small reader here avoids a dependen
 """
 
 import struct
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
 from ..geometry.rotation import quat_to_rotmat
+from .models import load_reconstruction, poses
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".JPG", ".JPEG", ".PNG", ".TIF", ".TIFF")
 
@@ -31,7 +33,7 @@ class GroundTruth(dict):
         self.source = str(source)
         self.kind = kind
 
-    def subset(self, names) -> "GroundTruth":
+    def subset(self, names: Iterable[str]) -> "GroundTruth":
         """Only the given images (e.g. the 19 templeRing images present out of the 47 the par file lists)."""
         keep = [n for n in names if n in self]
         return GroundTruth({n: self[n] for n in keep}, intrinsics={n: self.intrinsics[n] for n in keep
@@ -39,7 +41,7 @@ class GroundTruth(dict):
                            points=self.points, source=self.source, kind=self.kind)
 
 
-def load_ground_truth_for(path, names) -> GroundTruth:
+def load_ground_truth_for(path: Path | str, names: Iterable[str]) -> GroundTruth:
     """Ground truth restricted to `names` (the images of the run): pairs of images that are not in the set
     must not count as failures. InputError when fewer than two of the names are in the ground truth."""
     gt = load_ground_truth(path)
@@ -50,7 +52,7 @@ def load_ground_truth_for(path, names) -> GroundTruth:
     return sub
 
 
-def load_ground_truth(path) -> GroundTruth:
+def load_ground_truth(path: Path | str) -> GroundTruth:
     """Read ground truth from any supported file or folder; InputError names the path when nothing fits."""
     path = Path(path)
     if not path.exists():
@@ -71,7 +73,7 @@ def load_ground_truth(path) -> GroundTruth:
                      "Strecha gt_dense_cameras/, IMC calibration/)")
 
 
-def find_ground_truth(dataset_dir) -> Path | None:
+def find_ground_truth(dataset_dir: Path | str) -> Path | None:
     """The ground truth of a data set folder (catalog scene or `../shared/data/<set>`), or None when it has none."""
     d = Path(dataset_dir)
     for candidate in (d / "gt" / "sparse", d / "gt" / "sparse" / "0", d / "colmap_ground_truth",
@@ -83,17 +85,15 @@ def find_ground_truth(dataset_dir) -> Path | None:
     return pars[0] if pars else None
 
 
-def load_colmap_model(path) -> GroundTruth:
+def load_colmap_model(path: Path | str) -> GroundTruth:
     """A COLMAP model (binary or text): poses of registered images, their K, and the model's 3D points."""
-    from .models import load_reconstruction, poses
-
     rec = load_reconstruction(path)
     intrinsics = {im.name: np.asarray(im.camera.calibration_matrix()) for im in rec.images.values() if im.has_pose}
     points = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
     return GroundTruth(poses(rec), intrinsics=intrinsics, points=points, source=path, kind="colmap")
 
 
-def load_middlebury_par(path) -> GroundTruth:
+def load_middlebury_par(path: Path | str) -> GroundTruth:
     """Middlebury multi-view `*_par.txt`: a count line, then `name k11..k33 r11..r33 t1 t2 t3` (P = K[R t])."""
     path = Path(path)
     lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
@@ -112,7 +112,7 @@ def load_middlebury_par(path) -> GroundTruth:
     return GroundTruth(out, intrinsics=intrinsics, source=path, kind="middlebury")
 
 
-def load_strecha_cameras(folder) -> GroundTruth:
+def load_strecha_cameras(folder: Path | str) -> GroundTruth:
     """Strecha `<image>.camera` files: K (3 lines), distortion, R camera-to-world (3 lines), centre C, size."""
     folder = Path(folder)
     out, intrinsics = {}, {}
@@ -130,7 +130,7 @@ def load_strecha_cameras(folder) -> GroundTruth:
     return GroundTruth(out, intrinsics=intrinsics, source=folder, kind="strecha")
 
 
-def load_imc_calibration(folder) -> GroundTruth:
+def load_imc_calibration(folder: Path | str) -> GroundTruth:
     """IMC `calibration_<stem>.h5` files (K, R, T); names get the extension of the image found next door."""
     folder = Path(folder)
     images = folder.parent / "images"
@@ -156,7 +156,7 @@ def _nearest_rotation(M) -> np.ndarray:
 
 # --- a reader for small HDF5 files: superblock v0/v1, one root group of contiguous or compact numeric datasets ---
 
-def read_small_hdf5(path) -> dict[str, np.ndarray]:
+def read_small_hdf5(path: Path | str) -> dict[str, np.ndarray]:
     """Datasets in the root group of a small HDF5 file (what h5py writes for a few small arrays)."""
     path = Path(path)
     buf = path.read_bytes()

@@ -4,6 +4,7 @@ Poses are plain dicts `image name -> (R, t)` with R, t the world-to-camera rotat
 (COLMAP's cam_from_world), so the same functions serve pycolmap models, our own model and ground-truth files.
 """
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from itertools import combinations
 
@@ -12,15 +13,16 @@ import numpy as np
 from ..geometry.rotation import rotation_error_deg, vector_angle_deg
 from ..geometry.sim3 import Sim3, ransac_umeyama
 
+Pose = tuple[np.ndarray, np.ndarray]  # (R, t) world-to-camera
 AUC_THRESHOLDS = (0.5, 1.0, 5.0, 10.0)
 FAILED_DEG = 180.0  # error given to a pair that is unregistered or split across models
 
 
-def camera_center(R, t) -> np.ndarray:
+def camera_center(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return -np.asarray(R).T @ np.asarray(t)
 
 
-def pose_auc(errors_deg, thresholds=AUC_THRESHOLDS) -> dict[float, float]:
+def pose_auc(errors_deg: Iterable[float], thresholds: Iterable[float] = AUC_THRESHOLDS) -> dict[float, float]:
     """Area under the cumulative error curve up to each threshold, normalised to [0, 1] (COLMAP's benchmark)."""
     errors = np.sort(np.asarray(errors_deg, dtype=float))
     if errors.size == 0:
@@ -36,7 +38,7 @@ def pose_auc(errors_deg, thresholds=AUC_THRESHOLDS) -> dict[float, float]:
     return out
 
 
-def relative_pose_error_deg(pose_i, pose_j, gt_i, gt_j) -> float:
+def relative_pose_error_deg(pose_i: Pose, pose_j: Pose, gt_i: Pose, gt_j: Pose) -> float:
     """max(rotation error, translation-direction error) of the relative pose i->j against ground truth."""
     def relative(a, b):
         R = b[0] @ a[0].T

@@ -5,6 +5,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from ..geometry.rotation import rotmat_to_quat
 from ..io.colmap_model import load_reconstruction
 
 
@@ -26,7 +27,7 @@ def model_stats(rec: pycolmap.Reconstruction) -> dict:
             "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()) if n_points else float("nan")}
 
 
-def sparse_models(sparse_dir) -> list[pycolmap.Reconstruction]:
+def sparse_models(sparse_dir: Path | str) -> list[pycolmap.Reconstruction]:
     """All models under `sparse/` (folders 0, 1, ...), largest first."""
     sparse_dir = Path(sparse_dir)
     dirs = sorted((d for d in sparse_dir.iterdir() if d.is_dir() and d.name.isdigit()), key=lambda d: int(d.name)) \
@@ -38,8 +39,6 @@ def sparse_models(sparse_dir) -> list[pycolmap.Reconstruction]:
 def reconstruction_from_poses(poses_by_name: dict, width: int = 2, height: int = 2) -> pycolmap.Reconstruction:
     """A camera-only pycolmap model of plain poses, so ground truth in any format meets pycolmap's own tools
     (e.g. `align_reconstructions_via_proj_centers`). Intrinsics are placeholders; only poses carry meaning."""
-    from ..geometry.rotation import rotmat_to_quat
-
     rec = pycolmap.Reconstruction()
     cam = pycolmap.Camera(model="SIMPLE_PINHOLE", width=width, height=height, params=[1.0, width / 2, height / 2])
     cam.camera_id = 1

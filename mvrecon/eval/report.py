@@ -11,11 +11,12 @@ from pathlib import Path
 
 from ..io.files import printable_name, write_json
 from . import figures
+from .compare import ACCURACY_KEYS, Comparison
 
 INTEGER_METRICS = {"registered", "components", "points", "verified_pairs", "alignment_inliers"}
 
 
-def format_value(metric: str, value) -> str:
+def format_value(metric: str, value: object) -> str:
     """How a metric's value is printed in the page ("—" when there is none)."""
     if value is None:
         return "—"
@@ -37,7 +38,7 @@ def other_models_text(summary: dict) -> str:
     return "".join(f" + {k}" for k in summary.get("registered_other_models") or ())
 
 
-def write_report(comparison, report_dir) -> Path:
+def write_report(comparison: Comparison, report_dir: Path | str) -> Path:
     """Write index.html, metrics.json and metrics.csv into REPORT_DIR; returns the page's path."""
     report_dir = Path(report_dir)
     report_dir.mkdir(parents=True, exist_ok=True)
@@ -49,7 +50,7 @@ def write_report(comparison, report_dir) -> Path:
     return page
 
 
-def write_csv(m: dict, path) -> None:
+def write_csv(m: dict, path: Path | str) -> None:
     """Long format, one number per line: section (summary, stage, image), engine, item, metric, value; and a
     "skipped" line per image file no engine could read, with the reason as its value."""
     with open(path, "w", newline="") as f:
@@ -91,7 +92,7 @@ def _summary_table(m: dict) -> str:
         for n in engines:
             value = row["values"].get(n)
             text = format_value(row["metric"], value)
-            if value is None and m["engines"][n]["role"] == "reference" and row["metric"] in _accuracy_metrics():
+            if value is None and m["engines"][n]["role"] == "reference" and row["metric"] in ACCURACY_KEYS:
                 text = "ref"
             win = n in row["winners"]
             others = other_models_text(m["engines"][n]["summary"]) if row["metric"] == "registered" else ""
@@ -104,12 +105,6 @@ def _summary_table(m: dict) -> str:
                     f"<span class='muted'>{arrow}</span></th>{''.join(cells)}</tr>")
     return (f"<table id='summary' class='grid'><thead><tr><th>metric</th>{head}</tr></thead>"
             f"<tbody>{''.join(body)}</tbody></table>")
-
-
-def _accuracy_metrics():
-    from .compare import ACCURACY_KEYS
-
-    return ACCURACY_KEYS
 
 
 def _unregistered(m: dict) -> str:
@@ -175,7 +170,7 @@ img{max-width:100%;border:1px solid #eee;margin:8px 0}
 """
 
 
-def render_html(comparison) -> str:
+def render_html(comparison: Comparison) -> str:
     m = comparison.metrics
     ref = m["reference"]
     machine = m["machine"]

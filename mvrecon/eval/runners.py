@@ -18,6 +18,8 @@ from different settings never mix; the options that count are those the engine's
 """
 
 import argparse
+import compileall
+import hashlib
 import json
 import logging
 import os
@@ -31,13 +33,26 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import pycolmap
+
+from .. import __version__
+from ..cameras import CameraConfig, focal_prior, group_cameras, report_entry
 from ..config import config_hash, diff
-from ..database import database_counts
+from ..database import (
+    COLMAP_FISHEYE_NOTE,
+    colmap_blind_cameras,
+    colmap_needs_focal,
+    database_counts,
+    read_correspondences,
+)
 from ..errors import InputError
 from ..executor import StageClock, describe_death, user_environment
 from ..io.files import read_json_object, some_names
+from ..io.images import image_metadata, list_images
+from ..io.masks import check_masks, find_masks
 from ..io.record import Record
 from ..memory import INTERVAL_S, PeakSampler, process_tree
+from .models import model_stats, poses, sparse_models
 
 log = logging.getLogger("mvrecon.eval.runners")
 
@@ -94,20 +109,15 @@ class RunResult:
     @property
     def poses(self) -> list[dict]:
         """name -> (R, t) per model, largest first: what `eval.metrics` takes."""
-        from .models import poses
-
         return [poses(m) for m in self.models]
 
 
-def check_run_masks(options: RunOptions, image_dir, names) -> str | None:
+def check_run_masks(options: RunOptions, image_dir: Path | str, names: list[str]) -> str | None:
     """Refuse, before any run, a mask that does not fit its image (io/masks.py); the line saying which images have
     no mask, or None: pycolmap 4.2 leaves such an image out of its runs, where mvrecon takes its features
     everywhere."""
     if not options.masks:
         return None
-    from ..io.images import image_metadata
-    from ..io.masks import check_masks, find_masks
-
     masks, missing = find_masks(options.masks, names)
     check_masks(masks, Path(image_dir), {n: image_metadata(Path(image_dir) / n) for n in masks})
     if not missing:
@@ -116,14 +126,10 @@ def check_run_masks(options: RunOptions, image_dir, names) -> str | None:
             "of its runs, mvrecon takes their features everywhere")
 
 
-def colmap_fisheye_warning(options: RunOptions, image_dir, names) -> str | None:
+def colmap_fisheye_warning(options: RunOptions, image_dir: Path | str, names: list[str]) -> str | None:
     """The line saying that COLMAP's runs will register no image, said before any run: COLMAP marks every pair
     of a fisheye camera without a focal-length prior DEGENERATE, and gets a prior only from --camera-params or an
     image's EXIF focal length; None when it has one for every image, or the model is not one of its fisheyes."""
-    from ..cameras import focal_prior
-    from ..database import COLMAP_FISHEYE_NOTE, colmap_needs_focal
-    from ..io.images import image_metadata
-
     if options.camera_params or not colmap_needs_focal(options.camera_model):
         return None
     if all(focal_prior(image_metadata(Path(image_dir) / name))[1] for name in names):
@@ -132,7 +138,8 @@ def colmap_fisheye_warning(options: RunOptions, image_dir, names) -> str | None:
             "runs will register no image; give --camera-params to compare with it")
 
 
-def run_mvrecon(image_dir, out_dir, options: RunOptions = RunOptions(), timeout: float | None = None) -> RunResult:
+def run_mvrecon(image_dir: Path | str, out_dir: Path | str, options: RunOptions = RunOptions(),
+                timeout: float | None = None) -> RunResult:
     """`mvrecon reconstruct IMAGE_DIR -o OUT_DIR` with the options' camera settings and seed.
 
     Known intrinsics (`camera_params`) are held fixed, as `run_colmap` holds them in COLMAP's bundle adjustment."""
@@ -140,7 +147,7 @@ def run_mvrecon(image_dir, out_dir, options: RunOptions = RunOptions(), timeout:
     return _run("mvrecon", cmd, Path(image_dir), Path(out_dir), options, timeout)
 
 
-def reconstruct_args(image_dir, out_dir, options: RunOptions) -> list[str]:
+def reconstruct_args(image_dir: Path | str, out_dir: Path | str, options: RunOptions) -> list[str]:
     """The `mvrecon` arguments of `run_mvrecon` (`reconstruct IMAGES -o OUT ...`, the extra flags last): one
     place, so that `--mvrecon-args` can be checked against the very command that will run."""
     args = ["reconstruct", str(image_dir), "-o", str(out_dir), "-q", "--seed", str(options.seed),
@@ -152,8 +159,8 @@ def reconstruct_args(image_dir, out_dir, options: RunOptions) -> list[str]:
     return args + list(options.mvrecon_args)
 
 
-def run_colmap(image_dir, out_dir, options: RunOptions = RunOptions(), global_mapper: bool = False,
-               timeout: float | None = None) -> RunResult:
+def run_colmap(image_dir: Path | str, out_dir: Path | str, options: RunOptions = RunOptions(),
+               global_mapper: bool = False, timeout: float | None = None) -> RunResult:
     """pycolmap end to end on the CPU: extract_features, match_exhaustive, incremental (or global) mapping."""
     engine = "colmap-global" if global_mapper else "colmap"
     cmd = [sys.executable, "-m", "mvrecon.eval.runners", "colmap", str(image_dir), str(out_dir),
@@ -161,8 +168,9 @@ def run_colmap(image_dir, out_dir, options: RunOptions = RunOptions(), global_ma
     return _run(engine, cmd, Path(image_dir), Path(out_dir), options, timeout)
 
 
-def run_colmap_on_database(database_path, out_dir, image_dir=None, options: RunOptions = RunOptions(),
-                           timeout: float | None = None) -> RunResult:
+def run_colmap_on_database(database_path: Path | str, out_dir: Path | str,
+                           image_dir: Path | str | None = None,
+                           options: RunOptions = RunOptions(), timeout: float | None = None) -> RunResult:
     """COLMAP's incremental mapper on a copy of another engine's database (the original is left untouched).
 
     `image_dir` only serves to colour the points.
@@ -177,8 +185,9 @@ def run_colmap_on_database(database_path, out_dir, image_dir=None, options: RunO
     return _run("colmap-same-matches", cmd, database_path, out_dir, options, timeout, {"database_sha256": content})
 
 
-def run_mvrecon_map(workspace, options: RunOptions = RunOptions(), image_dir=None, code=None,
-                    timeout: float | None = None) -> RunResult:
+def run_mvrecon_map(workspace: Path | str, options: RunOptions = RunOptions(),
+                    image_dir: Path | str | None = None,
+                    code: Path | str | None = None, timeout: float | None = None) -> RunResult:
     """`mvrecon map -w WORKSPACE` on the database.db already in it, with the options' seed and extra flags
     (`mvrecon_args`, here `map`'s mapper flags): mvrecon's mapper alone, as `run_colmap_on_database` runs COLMAP's.
 
@@ -193,7 +202,7 @@ def run_mvrecon_map(workspace, options: RunOptions = RunOptions(), image_dir=Non
                 {"code": str(Path(code).resolve()) if code else ""}, tree=code)
 
 
-def code_environment(code) -> tuple[dict[str, str], str | None]:
+def code_environment(code: Path | str | None) -> tuple[dict[str, str], str | None]:
     """(environment, working directory) that make `python -m mvrecon...` import mvrecon from the source tree
     `code`, or the user's environment and the caller's directory when `code` is None: `-m` puts the working
     directory first on the path, before PYTHONPATH, so a run started from another checkout would import that one."""
@@ -210,8 +219,6 @@ def _drop_if_database_changed(database_path: Path, out_dir: Path, options: RunOp
     redone after its folder was deleted, say): the run's identity holds the database's path, so its record
     keeps the content's hash too (the copy it mapped is no witness: COLMAP writes to it). A run with other options
     is refused first, as always; one from before the hash was kept cannot be judged and is kept."""
-    import hashlib
-
     meta = refuse_other_settings("colmap-same-matches", database_path, out_dir, options)
     with open(database_path, "rb") as fh:
         content = hashlib.file_digest(fh, "sha256").hexdigest()
@@ -223,8 +230,6 @@ def _drop_if_database_changed(database_path: Path, out_dir: Path, options: RunOp
 
 def load_run(out_dir: str | Path, engine: str | None = None) -> RunResult:
     """A finished engine folder (ours or any OUT with report.json and sparse/), without running anything."""
-    from .models import sparse_models
-
     out_dir = Path(out_dir)
     report_path = out_dir / "report.json"
     if not report_path.is_file():
@@ -357,8 +362,6 @@ def _cache_bytecode() -> None:
     as an installed application does. Python caches byte code itself on a first run, unless
     PYTHONDONTWRITEBYTECODE is set (as on the machines here): then every run compiled the ~60 modules it imports
     again, 0.1-0.2 s of each timed run of mvrecon and some of each pycolmap run (its runner is mvrecon code)."""
-    import compileall
-
     compileall.compile_dir(Path(__file__).resolve().parents[1], quiet=2)
 
 
@@ -404,8 +407,6 @@ def _result(engine, out_dir: Path, meta: dict) -> RunResult:
 # --- the COLMAP side, run inside the subprocess ---------------------------------------------------------------
 
 def _colmap_main(image_dir: Path, out_dir: Path, options: dict, global_mapper: bool) -> None:
-    import pycolmap
-
     pycolmap.set_random_seed(int(options["seed"]))
     db = out_dir / "database.db"
     if db.exists():
@@ -444,8 +445,6 @@ def _colmap_main(image_dir: Path, out_dir: Path, options: dict, global_mapper: b
 
 
 def _colmap_db_main(database: Path, out_dir: Path, options: dict, image_dir: Path | None) -> None:
-    import pycolmap
-
     pycolmap.set_random_seed(int(options["seed"]))
     db = out_dir / "database.db"
     shutil.copyfile(database, db)
@@ -461,17 +460,12 @@ def _camera_groups(image_dir: Path) -> list[list[str]]:
     COLMAP's own CameraMode.AUTO gives every image without EXIF focal length a camera of its own (19 cameras for
     templeRing's 19 PNGs), while mvrecon shares one; grouping the same way keeps "same camera settings" true.
     """
-    from ..cameras import CameraConfig, group_cameras
-    from ..io.images import image_metadata, list_images
-
     names, _ = list_images(image_dir)
     metas = {n: image_metadata(image_dir / n) for n in names}
     return [members for _, members in group_cameras(names, metas, CameraConfig(mode="auto"))]
 
 
 def _map(db: Path, image_dir, out_dir: Path, options: dict, global_mapper: bool) -> list:
-    import pycolmap
-
     with tempfile.TemporaryDirectory(dir=out_dir, prefix="mapper-") as tmp:
         if global_mapper:
             opts = pycolmap.GlobalPipelineOptions()
@@ -488,10 +482,6 @@ def _map(db: Path, image_dir, out_dir: Path, options: dict, global_mapper: bool)
 
 
 def _write_outputs(out_dir: Path, engine: str, options: dict, models: list, db: Path, stages: StageClock) -> None:
-    from .. import __version__
-    from ..database import read_correspondences
-    from .models import model_stats
-
     sparse = out_dir / "sparse"
     if sparse.exists():
         shutil.rmtree(sparse)
@@ -533,8 +523,6 @@ def _write_outputs(out_dir: Path, engine: str, options: dict, models: list, db: 
 
 def _fisheye_without_focal(cameras: dict) -> dict[int, str]:
     """camera_id -> the reason none of its images registers, for the cameras COLMAP verifies no pair of."""
-    from ..database import COLMAP_FISHEYE_NOTE, colmap_blind_cameras
-
     return {cid: f"{COLMAP_FISHEYE_NOTE} (camera {cid} is {cameras[cid].model} without one); give --camera-params "
                  "to compare with it" for cid in colmap_blind_cameras(cameras)}
 
@@ -542,19 +530,15 @@ def _fisheye_without_focal(cameras: dict) -> dict[int, str]:
 def _cameras(rec) -> list[dict]:
     """The cameras of a pycolmap model's registered images, as mvrecon's report.json lists them
     (`stages.mapping.camera_entries`)."""
-    from ..cameras import report_entry
-
     cams = [(cid, rec.cameras[cid]) for cid in sorted({im.camera_id for im in rec.images.values() if im.has_pose})]
     return [report_entry(cid, cam.model.name, cam.width, cam.height, cam.params) for cid, cam in cams]
 
 
 def _pycolmap_version() -> str:
-    import pycolmap
-
     return pycolmap.__version__
 
 
-def main(argv=None) -> int:
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m mvrecon.eval.runners",
                                      description="The COLMAP side of a comparison (used by run_colmap*).")
     parser.add_argument("mode", choices=("colmap", "colmap-db"))

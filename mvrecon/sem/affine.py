@@ -33,7 +33,7 @@ def _as_matrix(normal: np.ndarray, offset: float) -> np.ndarray:
     return np.array([[0.0, 0.0, a], [0.0, 0.0, b], [c, d, offset]])
 
 
-def affine_fundamental(x1, x2) -> np.ndarray:
+def affine_fundamental(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """Gold Standard affine F (H&Z alg. 14.1) from >= 4 correspondences; F is scaled so (a,b,c,d) is a unit vector."""
     x1, x2 = np.asarray(x1, dtype=float), np.asarray(x2, dtype=float)
     if len(x1) < 4 or x1.shape != x2.shape:
@@ -45,14 +45,15 @@ def affine_fundamental(x1, x2) -> np.ndarray:
     return _as_matrix(normal, -float(normal @ mean))
 
 
-def affine_epipolar_error(F, x1, x2) -> np.ndarray:
+def affine_epipolar_error(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """Geometric (reprojection) error in pixels of each correspondence: its distance to the 4D constraint plane."""
     normal = np.array([F[0, 2], F[1, 2], F[2, 0], F[2, 1]])
     X = np.hstack([np.asarray(x2, dtype=float), np.asarray(x1, dtype=float)])
     return np.abs(X @ normal + F[2, 2]) / np.linalg.norm(normal)
 
 
-def ransac_affine_fundamental(x1, x2, config: AffineRansacConfig = AffineRansacConfig()):
+def ransac_affine_fundamental(x1: np.ndarray, x2: np.ndarray, config: AffineRansacConfig = AffineRansacConfig()
+                              ) -> tuple[np.ndarray | None, np.ndarray]:
     """(F, inlier mask): minimal 4-point samples, scored by inlier count, refit by Gold Standard on the inliers.
 
     Returns (None, all-False mask) when fewer than `config.min_inliers` correspondences agree.
@@ -86,7 +87,7 @@ def ransac_affine_fundamental(x1, x2, config: AffineRansacConfig = AffineRansacC
     return F, best_mask
 
 
-def tilt_axis_from_affine_fundamental(F) -> float:
+def tilt_axis_from_affine_fundamental(F: np.ndarray) -> float:
     """In-plane tilt axis (deg from image +x towards +y, in [0, 180)) of a pure eucentric tilt pair.
 
     Tilting moves points only across the axis, so the constraint reads a.x2 - a.x1 = const for the axis direction

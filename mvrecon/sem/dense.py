@@ -12,7 +12,9 @@ tilt-dependent brightness (edges and slopes glow differently at each tilt) and t
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
+from scipy import ndimage
 
 from ..progress import progress
 from .parallax import tilt_rotation
@@ -42,8 +44,6 @@ class DenseMatchConfig:
 
 
 def _normalise(image, sigma: float, blur: float):
-    import cv2
-
     im = image.astype(np.float32)
     if blur > 0:
         im = cv2.GaussianBlur(im, (0, 0), blur)
@@ -59,8 +59,6 @@ def _plane_prediction(weight, heights, sigma: float) -> np.ndarray:
 
     The window's moments about each pixel are separable filters with kernels g(t), t g(t) and t^2 g(t), so the
     3x3 normal equations of every pixel come from nine filterings and are solved by Cramer's rule."""
-    import cv2
-
     radius = int(np.ceil(3 * sigma))
     t = np.arange(-radius, radius + 1, dtype=np.float32)
     g = np.exp(-0.5 * (t / sigma) ** 2)
@@ -84,15 +82,14 @@ def _plane_prediction(weight, heights, sigma: float) -> np.ndarray:
     return np.where(ok, num / np.where(ok, det, 1.0), mean).astype(np.float32)
 
 
-def refine_heights(images, tilts_deg, axis_deg: float, shifts, reference: int, start,
+def refine_heights(images: list[np.ndarray], tilts_deg: np.ndarray, axis_deg: float, shifts: np.ndarray,
+                   reference: int, start: np.ndarray,
                    config: DenseMatchConfig = DenseMatchConfig()) -> np.ndarray:
     """Height map (same grid as `start`, the 0-degree grid in reference pixels; NaN where too few views see a
     pixel) refined from `start` (NaN-free) by least-squares matching of every view against the reference.
 
     shifts: per-image drift (pixels) of the joint solution, whose gauge the heights share.
     """
-    import cv2
-
     h, w = start.shape
     centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
     ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
@@ -143,10 +140,8 @@ def refine_heights(images, tilts_deg, axis_deg: float, shifts, reference: int, s
     return np.where(seen >= config.min_views, heights, np.nan)
 
 
-def fill_nearest(height) -> np.ndarray:
+def fill_nearest(height: np.ndarray) -> np.ndarray:
     """NaN pixels (outside the sparse points' hull) take the nearest valid height: a start for `refine_heights`."""
-    from scipy import ndimage
-
     height = np.asarray(height, dtype=np.float32)
     missing = ~np.isfinite(height)
     if missing.all():

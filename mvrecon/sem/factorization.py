@@ -8,6 +8,7 @@ rotations then give the tilt axis and angles, which seed a least-squares adjustm
 (tilts, axis, per-image drift and points) with a robust loss. World frame, units and signs: see `parallax.py`.
 """
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -79,7 +80,7 @@ def build_tracks(pair_matches: dict, centred_keypoints: list) -> Observations:
     return Observations(image=image, point=track, uv=uv)
 
 
-def affine_factorization(W) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def affine_factorization(W: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Tomasi-Kanade: W (2F,P) rows u_0, v_0, u_1, ... -> (M (2F,3), S (3,P), t (2F,)) with W ~ M S + t."""
     W = np.asarray(W, dtype=float)
     t = W.mean(axis=1)
@@ -94,7 +95,7 @@ def _quadric_row(a, b) -> np.ndarray:
                      a[1] * b[1], a[1] * b[2] + a[2] * b[1], a[2] * b[2]])
 
 
-def metric_upgrade(M) -> np.ndarray:
+def metric_upgrade(M: np.ndarray) -> np.ndarray:
     """Q (3x3) making every camera M_i Q an orthographic projection at unit scale (orthonormal rows).
 
     Solves linearly for L = Q Q^T from |m1 L m1| = |m2 L m2| = 1 and m1 L m2 = 0 per view, then factors L.
@@ -118,7 +119,8 @@ def _closest_rotation(rows2) -> np.ndarray:
     return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
 
 
-def tilts_from_factorization(W, reference: int, axis_deg: float | None = None) -> tuple[np.ndarray, float]:
+def tilts_from_factorization(W: np.ndarray, reference: int,
+                             axis_deg: float | None = None) -> tuple[np.ndarray, float]:
     """(tilts_deg relative to `reference`, axis_deg) from a complete measurement matrix W (2F,P), centred pixels.
 
     The relative rotations R_i R_ref^T of the metric cameras all turn about the tilt axis; the axis is their mean
@@ -145,7 +147,8 @@ def _rotations(tilts_deg, axis_deg) -> np.ndarray:
     return np.array([tilt_rotation(axis_deg, t) for t in tilts_deg])
 
 
-def triangulate_tracks(obs: Observations, tilts_deg, axis_deg: float, shifts) -> np.ndarray:
+def triangulate_tracks(obs: Observations, tilts_deg: np.ndarray, axis_deg: float,
+                       shifts: np.ndarray) -> np.ndarray:
     """Linear least-squares points (P,3) from all observations of each track, cameras known."""
     A = _rotations(tilts_deg, axis_deg)[:, :2, :][obs.image]  # (K,2,3)
     b = obs.uv - np.asarray(shifts)[obs.image]
@@ -194,8 +197,9 @@ def _camera_jacobian(obs: Observations, tilts, axis, X, free, fit_tilts, fit_axi
     return np.stack(cols, axis=-1) if cols else np.zeros((K, 2, 0))
 
 
-def adjust(obs: Observations, tilts_deg, axis_deg: float, shifts, points, reference: int,
-           fit_tilts: bool, fit_axis: bool, huber_px: float = 1.0, max_iterations: int = 50):
+def adjust(obs: Observations, tilts_deg: np.ndarray, axis_deg: float, shifts: np.ndarray, points: np.ndarray,
+           reference: int, fit_tilts: bool, fit_axis: bool, huber_px: float = 1.0,
+           max_iterations: int = 50) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, float]:
     """Least-squares adjustment of all observations: Levenberg-Marquardt with the points eliminated (Schur
     complement), Huber weights on pixel residuals (iteratively reweighted).
 
@@ -274,7 +278,8 @@ def adjust(obs: Observations, tilts_deg, axis_deg: float, shifts, points, refere
     return tilts, float(axis % 180.0), d, X, residual(tilts, axis, d, X)
 
 
-def solve_tilt_series(obs: Observations, num_images: int, reference: int, tilts_deg=None, axis_deg=None,
+def solve_tilt_series(obs: Observations, num_images: int, reference: int,
+                      tilts_deg: Sequence[float] | None = None, axis_deg: float | None = None,
                       axis_guess_deg: float = 90.0, outlier_px: float = 3.0) -> TiltSolution:
     """Cameras and points of a tilt series from its tracks, estimating whatever of tilts and axis is not given.
 

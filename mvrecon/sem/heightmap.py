@@ -8,14 +8,16 @@ see `parallax.py`.
 from pathlib import Path
 
 import numpy as np
+import tifffile
+from scipy.interpolate import LinearNDInterpolator
+from scipy.ndimage import map_coordinates
+from scipy.spatial import cKDTree
 
 from ..errors import InputError
 
 
-def grid_heights(xy, heights, shape) -> np.ndarray:
+def grid_heights(xy: np.ndarray, heights: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """float32 (H,W) map from scattered points: xy (N,2) in grid pixels (x = column), NaN outside their hull."""
-    from scipy.interpolate import LinearNDInterpolator
-
     h, w = shape
     xy = np.asarray(xy, dtype=float)
     if len(xy) < 3:
@@ -25,10 +27,9 @@ def grid_heights(xy, heights, shape) -> np.ndarray:
     return interp(gx, gy).astype(np.float32)
 
 
-def profile(height_map, start, end, samples: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+def profile(height_map: np.ndarray, start: tuple[float, float], end: tuple[float, float],
+            samples: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(distance along the line in pixels, heights) sampled bilinearly from (x0, y0) to (x1, y1); NaN propagates."""
-    from scipy.ndimage import map_coordinates
-
     (x0, y0), (x1, y1) = start, end
     length = float(np.hypot(x1 - x0, y1 - y0))
     n = samples or max(2, int(np.ceil(length)) + 1)
@@ -40,7 +41,8 @@ def profile(height_map, start, end, samples: int | None = None) -> tuple[np.ndar
     return t * length, np.where(nan, np.nan, values)
 
 
-def height_outliers(points, neighbours: int = 12, threshold_px: float = 3.0, mad_factor: float = 6.0) -> np.ndarray:
+def height_outliers(points: np.ndarray, neighbours: int = 12, threshold_px: float = 3.0,
+                    mad_factor: float = 6.0) -> np.ndarray:
     """Mask of points whose height disagrees with the median of their `neighbours` nearest neighbours in the image
     plane by more than max(threshold_px, mad_factor * 1.4826 * MAD) of those differences.
 
@@ -48,8 +50,6 @@ def height_outliers(points, neighbours: int = 12, threshold_px: float = 3.0, mad
     the axis, which is exactly the direction the constraint cannot see) and becomes a height spike amplified by
     1 / sin(tilt difference): about 11x for a 5 degree pair. Such spikes are isolated, so a local median finds them.
     """
-    from scipy.spatial import cKDTree
-
     points = np.asarray(points, dtype=float)
     if len(points) <= neighbours:
         return np.zeros(len(points), dtype=bool)
@@ -60,7 +60,7 @@ def height_outliers(points, neighbours: int = 12, threshold_px: float = 3.0, mad
     return diff > limit
 
 
-def height_accuracy(estimate, truth) -> dict:
+def height_accuracy(estimate: np.ndarray, truth: np.ndarray) -> dict:
     """Height map against ground truth on the same grid (NaN = no value in either): `coverage` is the share of
     the pixels with a true height that have an estimate, and the errors are over those covered pixels after
     removing the median offset (nothing in a tilt series fixes the absolute level): RMS, 99th percentile of the
@@ -78,7 +78,7 @@ def height_accuracy(estimate, truth) -> dict:
             "p99": p99, "rms_percent_of_range": 100 * rms / span, "p99_percent_of_range": 100 * p99 / span}
 
 
-def read_height_map(path) -> np.ndarray:
+def read_height_map(path: Path | str) -> np.ndarray:
     """float32 height map from .npy or 32-bit TIFF (what `mvrecon sem` and `mvrecon scene make` write), NaN where
     unknown; a missing, unreadable or non-2D file is an InputError."""
     path = Path(path)
@@ -88,8 +88,6 @@ def read_height_map(path) -> np.ndarray:
         if path.suffix.lower() == ".npy":
             height = np.load(path, allow_pickle=False)
         elif path.suffix.lower() in (".tif", ".tiff"):
-            import tifffile
-
             height = tifffile.imread(path)
         else:
             raise ValueError("expected a .npy or .tif height map")

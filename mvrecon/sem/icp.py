@@ -44,11 +44,12 @@ class IcpResult:
     seconds: float
     method: str
 
-    def apply(self, points) -> np.ndarray:
+    def apply(self, points: np.ndarray) -> np.ndarray:
         return np.asarray(points, dtype=float) @ self.matrix[:3, :3].T + self.matrix[:3, 3]
 
 
-def nearest_brute_force(queries, targets, chunk_elements: int = 2_000_000) -> tuple[np.ndarray, np.ndarray]:
+def nearest_brute_force(queries: np.ndarray, targets: np.ndarray,
+                        chunk_elements: int = 2_000_000) -> tuple[np.ndarray, np.ndarray]:
     """(index, distance) of each query's nearest target by exhaustive comparison: O(N*M), float64.
 
     |q - t|^2 = |q|^2 - 2 q.t + |t|^2, and |q|^2 does not change a row's argmin, so one matrix product of
@@ -81,7 +82,8 @@ class KDTreeSearch:
         return idx.numpy()[:, 0].astype(np.int64), np.sqrt(d2.numpy()[:, 0])
 
 
-def icp(source, target, method: str = "kdtree", config: IcpConfig = IcpConfig(), init=None) -> IcpResult:
+def icp(source: np.ndarray, target: np.ndarray, method: str = "kdtree", config: IcpConfig = IcpConfig(),
+        init: np.ndarray | None = None) -> IcpResult:
     """Rigid transform taking `source` (N,3) onto `target` (M,3) by iterated closest points."""
     if method not in METHODS:
         raise ValueError(f"unknown ICP method {method!r}; expected one of {', '.join(METHODS)}")

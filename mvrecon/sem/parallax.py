@@ -23,7 +23,7 @@ import numpy as np
 from ..geometry.rotation import angle_axis_to_rotmat
 
 
-def parse_axis(text) -> float:
+def parse_axis(text: str | float) -> float:
     """Tilt axis in degrees from the CLI: "y" (vertical, 90), "x" (horizontal, 0) or a number of degrees."""
     value = str(text).strip().lower()
     if value == "y":
@@ -52,14 +52,16 @@ def image_center(width: int, height: int) -> np.ndarray:
     return np.array([(width - 1) / 2.0, (height - 1) / 2.0])
 
 
-def project_tilted(points, axis_deg: float, tilt_deg: float, center, shift=(0.0, 0.0)) -> np.ndarray:
+def project_tilted(points: np.ndarray, axis_deg: float, tilt_deg: float, center: np.ndarray,
+                   shift: tuple[float, float] | np.ndarray = (0.0, 0.0)) -> np.ndarray:
     """World points (N,3) in reference pixels -> pixels (N,2) of the view tilted by `tilt_deg`."""
     R = tilt_rotation(axis_deg, tilt_deg)
     return np.asarray(points, dtype=float) @ R[:2].T + np.asarray(center, float) + np.asarray(shift, float)
 
 
-def heights_from_parallax(uv1, uv2, tilt1_deg: float, tilt2_deg: float, axis_deg: float, center,
-                          shift2=None) -> np.ndarray:
+def heights_from_parallax(uv1: np.ndarray, uv2: np.ndarray, tilt1_deg: float, tilt2_deg: float,
+                          axis_deg: float, center: np.ndarray,
+                          shift2: np.ndarray | None = None) -> np.ndarray:
     """World points (N,3) from matched pixels of two views with known tilts (the paper's photogrammetry step).
 
     Along the parallax direction p1 = alpha cos(t1) + h sin(t1) and p2 = alpha cos(t2) + h sin(t2), so

@@ -14,12 +14,18 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
+import tifffile
+from scipy.spatial import cKDTree
 
 from ..errors import InputError
-from ..features.sift import SiftConfig
+from ..features.sift import SiftConfig, extract_sift
 from ..io.files import made_folder
-from ..matching.matcher import MatcherConfig
+from ..io.images import image_metadata, list_images, read_image, to_gray
+from ..io.ply import write_ply
+from ..io.record import digest
+from ..matching.matcher import MatcherConfig, match_descriptors, prepare_descriptors
 from ..progress import progress
 from ..stereo.sgbm import SGBMConfig
 from .affine import (
@@ -95,7 +101,7 @@ class SemConfig:
             raise InputError(f"--max-size {self.max_size}: must be at least 16 pixels")
 
 
-def parse_length_um(text) -> float:
+def parse_length_um(text: str) -> float:
     """'0.05um', '50nm', '0.05 µm', '1e-3mm' or a bare number (micrometres) -> micrometres."""
     m = re.fullmatch(r"\s*([0-9.eE+-]+)\s*(nm|um|µm|mm)?\s*", str(text))
     try:
@@ -113,11 +119,9 @@ def _natural_key(name: str):
     return [(0, float(t), "") if i % 2 else (1, 0.0, t.lower()) for i, t in enumerate(parts)]
 
 
-def resolve_images(inputs) -> list[Path]:
+def resolve_images(inputs: list[Path | str]) -> list[Path]:
     """Image files from a list of files and/or folders (a folder gives its images in natural name order, signed
     numbers compared as numbers)."""
-    from ..io.images import list_images
-
     paths = []
     for item in inputs:
         p = Path(item)
@@ -146,11 +150,6 @@ def _check_distinct_files(paths) -> None:
 
 def _load(paths, max_size):
     """Grey images at working size and the downscale factor; two files with identical pixels are refused."""
-    import cv2
-
-    from ..io.images import read_image, to_gray
-    from ..io.record import digest
-
     images, seen = [], {}
     for p in paths:
         image = read_image(p)
@@ -177,9 +176,6 @@ def _load(paths, max_size):
 def _match_all(images, config: SemConfig):
     """Keypoints (OpenCV pixel convention) per image and the affine-verified matches of every pair, each verified
     pair with its affine-F axis and parallax measure (`_parallax`)."""
-    from ..features.sift import extract_sift
-    from ..matching.matcher import match_descriptors, prepare_descriptors
-
     keypoints, descriptors = [], []
     for im in progress(images, desc="SIFT", unit="image"):
         kp, desc = extract_sift(im, config.sift)
@@ -213,8 +209,6 @@ def _motion_coherence(x1, x2, axis_deg: float, neighbours: int = 4, min_distance
     its `neighbours` nearest matches at least `min_distance` px away in the first image: nearer ones are the same
     keypoint at another orientation, with the same localisation error. Motions beyond 4 sigma (wrong matches) are
     clipped; a pair that moves all alike (a shifted copy) gives 0."""
-    from scipy.spatial import cKDTree
-
     _, nvec = axis_vectors(axis_deg)
     r = (x2 - x1) @ nvec
     r = r - np.median(r)
@@ -288,8 +282,6 @@ def _check_tilts_differ(tilts_deg) -> None:
 
 def _check_ground_truth_size(gt_height, first) -> None:
     """Ground truth must lie on the input images' grid (it is resampled with them under --max-size)."""
-    from ..io.images import image_metadata
-
     meta = image_metadata(first)
     if np.shape(gt_height) != (meta.height, meta.width):
         rows, cols = np.shape(gt_height)
@@ -320,7 +312,8 @@ def _cell_average(points: np.ndarray, shape) -> np.ndarray:
     return out / counts[:, None]
 
 
-def run_sem(image_paths, out_dir, config: SemConfig = SemConfig(), gt_height=None) -> dict:
+def run_sem(image_paths: list[Path], out_dir: Path | str, config: SemConfig = SemConfig(),
+            gt_height: np.ndarray | None = None) -> dict:
     """Run the whole SEM pipeline and write the outputs to `out_dir`; returns the report (also report.json).
     gt_height: a ground-truth height map on the reference image's grid at input size, in the output's units
     (um with a pixel size, else input pixels), scored by `heightmap.height_accuracy` into the report's
@@ -598,8 +591,6 @@ def _height_map_report(height_u: np.ndarray, line, factor: float) -> dict:
 
 def _to_working_grid(height, shape) -> np.ndarray:
     """A map of the input grid resampled to the working grid (area average; NaN where any input pixel is NaN)."""
-    import cv2
-
     height = np.asarray(height, np.float32)
     if height.shape == tuple(shape):
         return height
@@ -609,8 +600,8 @@ def _to_working_grid(height, shape) -> np.ndarray:
     return np.where(known > 0.999, values / np.maximum(known, 1e-6), np.nan)
 
 
-def _check_given_axis(config: SemConfig, obs, n: int, ref: int, solution, axis_from_pairs: float, pairs_used: int,
-                      warn) -> dict:
+def _check_given_axis(config: SemConfig, obs, n: int, ref: int, solution, axis_from_pairs: float,
+                      pairs_used: int, warn) -> dict:
     """Compare a given --axis with the matches' own estimate; beyond AXIS_TOLERANCE_DEG, fit the axis freely too
     and warn with both adjustment RMS figures (an axis 90 deg off: 1.12 px against 0.13 px, heights 26 % off).
 
@@ -668,14 +659,10 @@ def _profile_line(spec, factor, axis, center, shape):
 
 
 def _write_outputs(out: Path, ref_image, height, merged_u, merged_px, center, line, unit, to_unit):
-    import matplotlib
+    import matplotlib  # noqa: PLC0415 - figures only
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import tifffile
-
-    from ..io.ply import write_ply
-
+    import matplotlib.pyplot as plt  # noqa: PLC0415 - figures only
     h, w = height.shape
     tifffile.imwrite(out / "height.tif", height.astype(np.float32))
     # coloured PLY of the merged points (y flipped so the cloud is right-handed with heights up)

@@ -15,6 +15,7 @@ with contour-shaped errors where the true disparity crosses half-integers.
 
 from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 
 from ..stereo.best import BestConfig, best_disparity
@@ -56,8 +57,6 @@ def _frame(shape, axis_deg):
 def _rectify(image, axis_deg, frame, stretch, shift):
     """(rectified float32 image, mask of rectified pixels inside the image): rectified pixel (k, r) reads image
     pixel c + shift + stretch (k - kc) n + (r - rc) a."""
-    import cv2
-
     (rows, cols), centre_r = frame
     h, w = image.shape
     a, n = axis_vectors(axis_deg)
@@ -79,14 +78,13 @@ def _disparity(left, right, lo: int, hi: int, matcher) -> np.ndarray:
     return best_disparity(left, right, replace(matcher, min_disparity=lo, num_disparities=hi - lo + 1))
 
 
-def pair_heights(image1, image2, tilt1: float, tilt2: float, axis_deg: float, shift1, shift2, height_range,
-                 matcher, margin_px: float = 3.0) -> np.ndarray:
+def pair_heights(image1: np.ndarray, image2: np.ndarray, tilt1: float, tilt2: float, axis_deg: float,
+                 shift1: np.ndarray, shift2: np.ndarray, height_range: tuple[float, float] | np.ndarray,
+                 matcher: BestConfig | SGBMConfig, margin_px: float = 3.0) -> np.ndarray:
     """float32 height map of the world (0-degree) grid in image pixels, NaN where the pair did not match: view 1
     rectified as the left image, view 2 (stretched) as the right one. shift1/shift2 are the views' drifts from
     the joint solution, so heights share its gauge; height_range (lo, hi) bounds the disparity search, widened
     by margin_px of disparity. matcher: a `BestConfig` or an `SGBMConfig`."""
-    import cv2
-
     h, w = image1.shape
     frame = _frame((h, w), axis_deg)
     (rows, cols), centre_r = frame
@@ -121,7 +119,8 @@ def pair_heights(image1, image2, tilt1: float, tilt2: float, axis_deg: float, sh
     return np.where(valid > 0.999, out, np.nan).astype(np.float32)
 
 
-def combine_pairs(maps, disparity_scales, tolerance_px: float = 1.0) -> np.ndarray:
+def combine_pairs(maps: list[np.ndarray], disparity_scales: list[float],
+                  tolerance_px: float = 1.0) -> np.ndarray:
     """One height map from several pairs' maps (NaN = unmatched): per pixel the median weighted by each pair's
     precision (disparity_scale^2, its disparity per pixel of height), then the weighted mean of the pairs within
     tolerance_px of disparity of that median. A pixel needs two agreeing pairs (one when there is one pair): a
@@ -144,13 +143,12 @@ def combine_pairs(maps, disparity_scales, tolerance_px: float = 1.0) -> np.ndarr
     return np.where(enough & (total > 0), mean, np.nan).astype(np.float32)
 
 
-def stereo_heights(images, tilts_deg, axis_deg: float, shifts, reference: int, height_range,
+def stereo_heights(images: list[np.ndarray], tilts_deg: np.ndarray, axis_deg: float, shifts: np.ndarray,
+                   reference: int, height_range: tuple[float, float],
                    config: StereoConfig = StereoConfig()) -> tuple[np.ndarray, dict]:
     """Height map of the world grid (image pixels; NaN where no pair matched or the pairs disagree) from the pairs
     (reference, j) of every view j tilted away from the reference, matched by `best` and combined by
     `combine_pairs`; and a report (pairs, matched fraction of each, combined fraction, working scale)."""
-    import cv2
-
     h, w = images[reference].shape
     others = [j for j in range(len(images)) if j != reference
               and abs(disparity_per_height(tilts_deg[reference], tilts_deg[j])) > 1e-3]

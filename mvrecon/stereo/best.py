@@ -15,6 +15,7 @@ Everything is vectorised numpy except the scanline recursion, which loops over o
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from ..io.images import to_gray
@@ -47,7 +48,7 @@ class BestConfig:
     median_sigma: float = 25.5
 
 
-def census_transform(gray, size=(9, 7)) -> np.ndarray:
+def census_transform(gray: np.ndarray, size: tuple[int, int] = (9, 7)) -> np.ndarray:
     """uint64 bit string per pixel: bit k set where neighbour k is darker than the centre (reflected borders)."""
     w, h = size
     if w * h - 1 > 64:
@@ -67,7 +68,7 @@ def census_transform(gray, size=(9, 7)) -> np.ndarray:
     return code
 
 
-def cost_volume(left, right, config: BestConfig) -> np.ndarray:
+def cost_volume(left: np.ndarray, right: np.ndarray, config: BestConfig) -> np.ndarray:
     """(H, W, D) float32 matching cost: census Hamming distance + gradient_weight * capped |dI/dx| difference.
 
     Pixels whose match falls outside the right image (x - d < 0) get the cost against the right image's border
@@ -98,7 +99,7 @@ def _path_step(cost, prev, p1, p2):
     return cost + best - prev_min
 
 
-def sgm_aggregate(volume, gray, config: BestConfig) -> np.ndarray:
+def sgm_aggregate(volume: np.ndarray, gray: np.ndarray, config: BestConfig) -> np.ndarray:
     """Sum of the 8 directional SGM path costs (H, W, D)."""
     H, W, D = volume.shape
     g = np.asarray(gray, dtype=np.float32)
@@ -168,7 +169,7 @@ def _subpixel(aggregated, index) -> np.ndarray:
     return index + np.where(inner, np.clip(offset, -0.5, 0.5), 0.0)
 
 
-def right_disparity(aggregated, min_disparity: int) -> np.ndarray:
+def right_disparity(aggregated: np.ndarray, min_disparity: int) -> np.ndarray:
     """Integer disparity of the right image from the left costs: argmin over d of S_L(y, x + d, d), found with a
     running minimum over d instead of building a second cost volume. Pixels with no candidate get NaN."""
     H, W, D = aggregated.shape
@@ -187,7 +188,7 @@ def right_disparity(aggregated, min_disparity: int) -> np.ndarray:
     return best_d
 
 
-def left_right_check(disp_left, disp_right, threshold: float) -> np.ndarray:
+def left_right_check(disp_left: np.ndarray, disp_right: np.ndarray, threshold: float) -> np.ndarray:
     """Mask of left pixels whose disparity agrees with the right map at x - d within threshold."""
     H, W = disp_left.shape
     xs = np.arange(W)[None, :] - np.round(disp_left).astype(int)
@@ -205,22 +206,20 @@ def _nearest_valid_right(d) -> np.ndarray:
     return np.where(right_idx < W, d[np.arange(H)[:, None], np.clip(right_idx, 0, W - 1)], np.nan)
 
 
-def remove_speckles(disparity, size: int, max_diff: float) -> np.ndarray:
+def remove_speckles(disparity: np.ndarray, size: int, max_diff: float) -> np.ndarray:
     """NaN over blobs of at most `size` pixels whose neighbours differ by at most `max_diff` (OpenCV's
     filterSpeckles on 1/16 px): small islands that passed the left-right check are wrong matches, and in the
     left-edge band a chain of them would stop `clear_left_border`'s run (Motorcycle: disparities 0 at columns 0-5)."""
     d = np.asarray(disparity, dtype=np.float32)
     if size <= 0:
         return d
-    import cv2
-
     hole = np.iinfo(np.int16).min  # disparities stay within +-2047 px: a wider range has no cost volume in memory
     fixed = np.where(np.isfinite(d), np.round(np.clip(d, -2047, 2047) * 16), hole).astype(np.int16)
     cv2.filterSpeckles(fixed, hole, size, max(1, round(16 * max_diff)))
     return np.where(fixed == hole, np.nan, d).astype(np.float32)
 
 
-def clear_left_border(disparity) -> np.ndarray:
+def clear_left_border(disparity: np.ndarray) -> np.ndarray:
     """NaN over the band at the left edge that the right camera cannot see.
 
     A pixel at column x next to a surface of disparity d > x on its right could not test that surface (x - d < 0
@@ -236,7 +235,7 @@ def clear_left_border(disparity) -> np.ndarray:
     return np.where(band, np.nan, d).astype(np.float32)
 
 
-def fill_holes_background(disparity) -> np.ndarray:
+def fill_holes_background(disparity: np.ndarray) -> np.ndarray:
     """Fill NaN pixels with the smaller of the nearest valid disparities to their left and right on the row."""
     d = np.asarray(disparity, dtype=np.float32)
     H, W = d.shape
@@ -250,19 +249,17 @@ def fill_holes_background(disparity) -> np.ndarray:
     return np.where(np.isfinite(filled), filled, np.nan).astype(np.float32)
 
 
-def weighted_median(disparity, guide, radius: int, sigma: float) -> np.ndarray:
+def weighted_median(disparity: np.ndarray, guide: np.ndarray, radius: int, sigma: float) -> np.ndarray:
     """Edge-aware weighted median of the disparity (OpenCV ximgproc), guided by the left image in grey: with a
     colour guide OpenCV 5.0's filter gives different results from run to run on the same input (58 % of the
     pixels of a random map, by up to 30 px); in grey it is repeatable (Motorcycle bad-2 6.58 against
     6.32-6.34 in colour, before the speckle filter)."""
-    import cv2
-
     d = np.nan_to_num(np.asarray(disparity, dtype=np.float32), nan=0.0)
     guide8 = to_gray(np.clip(np.asarray(guide), 0, 255).astype(np.uint8))
     return cv2.ximgproc.weightedMedianFilter(guide8, d, radius, sigma)
 
 
-def best_disparity(left, right, config: BestConfig = BestConfig()) -> np.ndarray:
+def best_disparity(left: np.ndarray, right: np.ndarray, config: BestConfig = BestConfig()) -> np.ndarray:
     """float32 disparity of the left image; NaN holes only when fill_holes is False."""
     gray = to_gray(left, np.float32)
     aggregated = sgm_aggregate(cost_volume(left, right, config), gray, config)

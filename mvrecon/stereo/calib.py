@@ -32,7 +32,7 @@ def _matrix(text: str) -> np.ndarray:
     return np.array(rows, dtype=float).reshape(3, 3)
 
 
-def read_calib(path) -> StereoCalib:
+def read_calib(path: Path | str) -> StereoCalib:
     """Parse a Middlebury calib.txt; InputError names the file and what is missing or malformed (a binary file, a
     missing key, a value that is not a number, a focal length or baseline that is not positive)."""
     path = Path(path)
@@ -69,7 +69,8 @@ def read_calib(path) -> StereoCalib:
     return calib
 
 
-def check_image_size(path, calib: StereoCalib, width: int, height: int, image) -> None:
+def check_image_size(path: Path | str, calib: StereoCalib, width: int, height: int,
+                     image: Path | str) -> None:
     """Refuse a calib.txt made for other images: its f, cx, cy, doffs and ndisp scale with the image size, so a
     calib.txt of the full-size pair used on a quarter-size one gives wrong depth and search range without any
     error. The file's width/height must equal the image's; a file without them (they are optional here) is judged
@@ -86,7 +87,7 @@ def check_image_size(path, calib: StereoCalib, width: int, height: int, image) -
                          f"these {width}x{height} images ({image}): made for other images?")
 
 
-def write_calib(path, calib: StereoCalib) -> None:
+def write_calib(path: Path | str, calib: StereoCalib) -> None:
     def mat(m):
         return "[" + "; ".join(" ".join(f"{v:g}" for v in row) for row in m) + "]"
 

@@ -16,12 +16,13 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ..errors import InputError
 from ..io.files import replace_whole
 from ..io.images import as_uint8, to_gray
-from ..io.record import code_digest, digest
+from ..io.record import Record, code_digest, digest
 from ..progress import progress
 
 log = logging.getLogger("mvrecon.calibrate")
@@ -56,7 +57,7 @@ class CameraParams:
         return K, np.array(dist, dtype=float)
 
     @staticmethod
-    def from_opencv(K, dist, width: int, height: int) -> "CameraParams":
+    def from_opencv(K: np.ndarray, dist: np.ndarray, width: int, height: int) -> "CameraParams":
         d = np.zeros(4)
         d[:min(4, len(np.ravel(dist)))] = np.ravel(dist)[:4]
         return CameraParams(width, height, (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]) + 0.5,
@@ -84,10 +85,8 @@ class StereoResult:
     dropped_pairs: list[str]
 
 
-def detect_board_size(gray) -> tuple[int, int] | None:
+def detect_board_size(gray: np.ndarray) -> tuple[int, int] | None:
     """Inner-corner count (cols, rows) of the largest chessboard OpenCV's sector detector finds, or None."""
-    import cv2
-
     ok, corners, meta = cv2.findChessboardCornersSBWithMeta(gray, (3, 3), cv2.CALIB_CB_LARGER)
     if not ok or meta is None:
         return None
@@ -95,10 +94,8 @@ def detect_board_size(gray) -> tuple[int, int] | None:
     return (max(rows, cols), min(rows, cols))  # landscape order; the detectors accept either orientation
 
 
-def find_corners(gray, board: tuple[int, int]) -> np.ndarray | None:
+def find_corners(gray: np.ndarray, board: tuple[int, int]) -> np.ndarray | None:
     """(N,2) sub-pixel inner corners in OpenCV pixels, row by row, or None when the board is not found."""
-    import cv2
-
     flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
     for size in (board, board[::-1]):
         ok, corners = cv2.findChessboardCorners(gray, size, flags=flags)
@@ -127,8 +124,6 @@ def board_points(board: tuple[int, int], square: float) -> np.ndarray:
 
 
 def _view_errors(obj, corners, K, dist, rvecs, tvecs) -> np.ndarray:
-    import cv2
-
     errs = []
     for o, c, r, t in zip(obj, corners, rvecs, tvecs):
         proj, _ = cv2.projectPoints(o, r, t, K, dist)
@@ -147,8 +142,6 @@ def _one_thread():
     with 2 threads, three runs on the same corners gave three camera files differing in the 9th-10th digit. On one
     thread (the solves take under 0.1 s of the 2.7 s of the ximea set) the same corners give the same bytes, so that
     a resumed run writes what an uninterrupted one writes."""
-    import cv2
-
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
     try:
@@ -159,8 +152,6 @@ def _one_thread():
 
 def _calibrate_views(names, corners, size, config: CalibrationConfig, board) -> MonoResult:
     """calibrateCamera (k1, k2, p1, p2), drop outlier views once, solve again."""
-    import cv2
-
     obj = [board_points(board, config.square)] * len(names)
     flags = cv2.CALIB_FIX_K3
     names, corners = list(names), [c.astype(np.float32) for c in corners]
@@ -209,8 +200,6 @@ def _detect_all(images: dict, board, stages=None) -> tuple[tuple[int, int], dict
     """Board size (given or the most common detected one) and {name: corners} for the views where it is found.
     With `stages` (an io.record.Record), each image's board search and corners are recorded as they are found
     and taken from the record when an earlier run found them in the same pixels with the same code."""
-    import cv2
-
     grays = {n: to_gray(as_uint8(img)) for n, img in images.items()}
     code = (code_digest(__name__), cv2.__version__) if stages is not None else None
     if board is None:
@@ -237,7 +226,8 @@ def _detect_all(images: dict, board, stages=None) -> tuple[tuple[int, int], dict
     return board, found
 
 
-def calibrate_mono(images: dict, config: CalibrationConfig = CalibrationConfig(), stages=None) -> MonoResult:
+def calibrate_mono(images: dict, config: CalibrationConfig = CalibrationConfig(),
+                   stages: Record | None = None) -> MonoResult:
     """images: {name: array}. All images must share one size. stages: an `io.record.Record` that keeps each
     image's corners for a rerun (None: nothing kept)."""
     sizes = {}  # (h, w) -> the first image of that size, an example to find
@@ -258,12 +248,11 @@ def _consistent_order(c_left, c_right) -> np.ndarray:
 
 
 def calibrate_stereo(left: dict, right: dict, pairs: list[tuple[str, str]],
-                     config: CalibrationConfig = CalibrationConfig(), stages=None) -> StereoResult:
+                     config: CalibrationConfig = CalibrationConfig(),
+                     stages: Record | None = None) -> StereoResult:
     """Mono calibration of each camera, then stereoCalibrate (intrinsics fixed) on pairs seen by both, with
     outlier pairs dropped; R, t map left-camera coordinates to the right camera (x_r = R x_l + t). stages: as for
     `calibrate_mono`."""
-    import cv2
-
     mono_l = calibrate_mono(left, config, stages)
     mono_r = calibrate_mono(right, CalibrationConfig(mono_l.board, config.square, config.outlier_factor,
                                                      config.outlier_floor_px, config.min_views), stages)
@@ -318,7 +307,8 @@ def _camera_toml(section: str, result: MonoResult) -> str:
             f"views_dropped = [{dropped}]\nper_view_rms_px = {{ {per_view} }}\n")
 
 
-def write_camera_toml(path, result: "MonoResult | StereoResult", config: CalibrationConfig) -> None:
+def write_camera_toml(path: Path | str, result: "MonoResult | StereoResult",
+                      config: CalibrationConfig) -> None:
     left = result.left if isinstance(result, StereoResult) else result
     text = (f"# written by `mvrecon calibrate`: chessboard {left.board[0]}x{left.board[1]} inner corners, "
             f"square {config.square:g}\n" + _camera_toml("camera", left))
@@ -335,7 +325,7 @@ def write_camera_toml(path, result: "MonoResult | StereoResult", config: Calibra
     replace_whole(path, lambda tmp: tmp.write_text(text))
 
 
-def read_camera_toml(path) -> dict:
+def read_camera_toml(path: Path | str) -> dict:
     """{"path", "left": CameraParams, "right": CameraParams | None, "stereo": {"R", "t"} | None}. Anything else
     (not text, not TOML, a missing table or key, a value of the wrong kind) is one InputError naming the file."""
     path = Path(path)

@@ -14,7 +14,7 @@ def _fmt(t: float) -> str:
     return f"{t:g}"
 
 
-def disparity_metrics(pred, gt, valid=None) -> dict:
+def disparity_metrics(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray | None = None) -> dict:
     """Metrics over the pixels where `valid` (default: all) and the ground truth is known."""
     pred, gt = np.asarray(pred, dtype=np.float64), np.asarray(gt, dtype=np.float64)
     if pred.shape != gt.shape:
@@ -36,7 +36,7 @@ def disparity_metrics(pred, gt, valid=None) -> dict:
     return out
 
 
-def evaluate(pred, gt, nonocc_mask=None) -> dict:
+def evaluate(pred: np.ndarray, gt: np.ndarray, nonocc_mask: np.ndarray | None = None) -> dict:
     """{"all": metrics, "nonocc": metrics (only when a mask is given)}."""
     result = {"all": disparity_metrics(pred, gt)}
     if nonocc_mask is not None:
@@ -44,7 +44,7 @@ def evaluate(pred, gt, nonocc_mask=None) -> dict:
     return result
 
 
-def error_map(pred, gt) -> np.ndarray:
+def error_map(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
     """|pred - gt| with NaN where the ground truth is unknown and +inf where the prediction is a hole."""
     pred, gt = np.asarray(pred, dtype=np.float64), np.asarray(gt, dtype=np.float64)
     err = np.abs(pred - gt)

@@ -1,16 +1,18 @@
 """Stereo figures (PNG, matplotlib Agg): matches with epipolar lines and epipoles, the rectified pair, colour-scaled
 disparity and depth maps with their scale bar, and the error map against ground truth."""
 
+from pathlib import Path
+
 import numpy as np
 
 from ..geometry.fundamental import epipolar_lines, epipoles
 
 
 def _plt():
-    import matplotlib
+    import matplotlib  # noqa: PLC0415 - figures only
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # noqa: PLC0415 - figures only
 
     return plt
 
@@ -31,7 +33,9 @@ def _draw_line(ax, line, width, height, **style):
     ax.plot(xs, ys, **style)
 
 
-def matches_epipolar_figure(path, left, right, x1, x2, F, inliers, max_lines: int = 20, seed: int = 0) -> None:
+def matches_epipolar_figure(path: Path | str, left: np.ndarray, right: np.ndarray, x1: np.ndarray,
+                            x2: np.ndarray, F: np.ndarray, inliers: np.ndarray, max_lines: int = 20,
+                            seed: int = 0) -> None:
     """Top: the two images side by side with inlier matches (green) and outliers (red).
     Bottom: a sample of inliers with their epipolar lines in both images and the epipoles (if in view)."""
     plt = _plt()
@@ -47,7 +51,7 @@ def matches_epipolar_figure(path, left, right, x1, x2, F, inliers, max_lines: in
     rng = np.random.default_rng(seed)
     out_idx = np.flatnonzero(~inliers)
     in_idx = np.flatnonzero(inliers)
-    from matplotlib.collections import LineCollection
+    from matplotlib.collections import LineCollection  # noqa: PLC0415 - figures only
 
     for idx, colour in ((rng.permutation(out_idx)[:100], "r"), (rng.permutation(in_idx)[:300], "lime")):
         segments = np.stack([x1[idx], x2[idx] + [w, 0]], axis=1)
@@ -77,7 +81,7 @@ def matches_epipolar_figure(path, left, right, x1, x2, F, inliers, max_lines: in
     plt.close(fig)
 
 
-def rectified_figure(path, left, right, step: int = 40) -> None:
+def rectified_figure(path: Path | str, left: np.ndarray, right: np.ndarray, step: int = 40) -> None:
     """Rectified pair side by side with horizontal lines every `step` rows: matches must sit on the same line."""
     plt = _plt()
     h, w = left.shape[:2]
@@ -91,7 +95,8 @@ def rectified_figure(path, left, right, step: int = 40) -> None:
     plt.close(fig)
 
 
-def scalar_map_figure(path, values, title: str, label: str, cmap: str = "turbo", vmin=None, vmax=None) -> None:
+def scalar_map_figure(path: Path | str, values: np.ndarray, title: str, label: str, cmap: str = "turbo",
+                      vmin: float | None = None, vmax: float | None = None) -> None:
     """A float map with a colour scale; NaN (holes) drawn black."""
     plt = _plt()
     v = np.asarray(values, dtype=float)
@@ -110,7 +115,7 @@ def scalar_map_figure(path, values, title: str, label: str, cmap: str = "turbo",
     plt.close(fig)
 
 
-def error_map_figure(path, error, title: str, cap: float = 4.0) -> None:
+def error_map_figure(path: Path | str, error: np.ndarray, title: str, cap: float = 4.0) -> None:
     """|d - d_gt| capped at `cap` px (hot colours = wrong), holes magenta, unknown ground truth grey."""
     plt = _plt()
     err = np.asarray(error, dtype=float)

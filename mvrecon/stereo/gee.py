@@ -14,6 +14,7 @@ The left image is the reference (Middlebury convention, x_right = x_left - d).
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from ..progress import progress
@@ -41,10 +42,8 @@ class GEEResult:
     reliability: float | None  # inverse mean energy of the kept estimates; None when none is kept
 
 
-def error_energy_volume(left, right, config: GEEConfig) -> np.ndarray:
+def error_energy_volume(left: np.ndarray, right: np.ndarray, config: GEEConfig) -> np.ndarray:
     """(D, H, W) float32 smoothed error energies; disparities whose right pixel falls outside get +inf."""
-    import cv2
-
     L = np.asarray(left, dtype=np.float32)
     R = np.asarray(right, dtype=np.float32)
     if L.ndim == 2:
@@ -72,7 +71,7 @@ def error_energy_volume(left, right, config: GEEConfig) -> np.ndarray:
     return volume
 
 
-def gee_disparity(left, right, config: GEEConfig = GEEConfig()) -> GEEResult:
+def gee_disparity(left: np.ndarray, right: np.ndarray, config: GEEConfig = GEEConfig()) -> GEEResult:
     """Disparity map of the left image by global error energy minimisation with reliability filtering."""
     volume = error_energy_volume(left, right, config)
     best = np.argmin(volume, axis=0)

@@ -11,17 +11,26 @@ import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
+import cv2
 import numpy as np
+import tifffile
+from PIL import Image
 
 from ..errors import InputError
+from ..features.sift import SiftConfig, extract_sift
 from ..geometry.fundamental import RansacConfig, ransac_fundamental, sampson_distance
 from ..geometry.rectification import apply_homography, calibrated_rectification, fit_to_canvas, hartley_rectification
 from ..io.files import made_folder, replace_whole, write_json
 from ..io.images import as_uint8, read_image, to_gray, write_image
 from ..io.pfm import read_pfm, write_pfm
 from ..io.record import Record, code_digest, digest
+from ..matching.matcher import MatcherConfig, match_descriptors
+from . import figures
 from .best import BestConfig, best_disparity
-from .calib import check_image_size, read_calib
+from .calib import StereoCalib, check_image_size, read_calib
+from .calibrate import read_camera_toml
+from .depth import disparity_to_depth, write_point_cloud
+from .evaluate import error_map, evaluate
 from .gee import GEEConfig, gee_disparity
 from .sgbm import SGBMConfig, sgbm_disparity
 
@@ -47,12 +56,10 @@ class StereoConfig:
     best: BestConfig = BestConfig()
 
 
-def sift_matches(left, right, ratio: float = 0.8, max_features: int = 8192) -> tuple[np.ndarray, np.ndarray]:
+def sift_matches(left: np.ndarray, right: np.ndarray, ratio: float = 0.8,
+                 max_features: int = 8192) -> tuple[np.ndarray, np.ndarray]:
     """Front-end SIFT matches (mutual nearest neighbours passing Lowe's ratio) as (x1, x2) pixel arrays with pixel
     centres at integers, the convention of the image arrays (the front end stores COLMAP's +0.5)."""
-    from ..features.sift import SiftConfig, extract_sift
-    from ..matching.matcher import MatcherConfig, match_descriptors
-
     sift = SiftConfig(max_num_features=max_features)
     k1, d1 = extract_sift(left, sift)
     k2, d2 = extract_sift(right, sift)
@@ -62,7 +69,7 @@ def sift_matches(left, right, ratio: float = 0.8, max_features: int = 8192) -> t
     return (k1[pairs[:, 0], :2].astype(float) - 0.5, k2[pairs[:, 1], :2].astype(float) - 0.5)
 
 
-def load_ground_truth(path, scale: float = 1.0) -> np.ndarray:
+def load_ground_truth(path: Path | str, scale: float = 1.0) -> np.ndarray:
     """Disparity ground truth as float32 with NaN where unknown: PFM (inf = unknown), npz (first array, inf =
     unknown), TIFF (0 = unknown) or PNG (0 = unknown; divide by `scale`, e.g. 4 for Middlebury 2003 PNGs)."""
     path = Path(path)
@@ -76,13 +83,9 @@ def load_ground_truth(path, scale: float = 1.0) -> np.ndarray:
             with np.load(path) as data:
                 gt = np.asarray(data[data.files[0]], dtype=np.float32)
         elif suffix in (".tif", ".tiff"):
-            import tifffile
-
             gt = tifffile.imread(path).astype(np.float32)
             gt[gt == 0] = np.nan
         else:
-            from PIL import Image
-
             gt = np.asarray(Image.open(path), dtype=np.float32)
             gt[gt == 0] = np.nan
     except (ValueError, OSError) as exc:
@@ -94,10 +97,8 @@ def load_ground_truth(path, scale: float = 1.0) -> np.ndarray:
     return gt.astype(np.float32)
 
 
-def load_mask(path) -> np.ndarray:
+def load_mask(path: Path | str) -> np.ndarray:
     """Non-occluded mask: the brightest value of the mask image (255 in Middlebury 2014, 1 in the Cones palette)."""
-    from PIL import Image
-
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: non-occlusion mask not found")
@@ -110,7 +111,7 @@ def load_mask(path) -> np.ndarray:
     return m == m.max()
 
 
-def read_pair(left_path, right_path) -> tuple[np.ndarray, np.ndarray]:
+def read_pair(left_path: Path | str, right_path: Path | str) -> tuple[np.ndarray, np.ndarray]:
     left, right = read_image(left_path), read_image(right_path)
     if left.shape[:2] != right.shape[:2]:
         raise InputError(f"{right_path}: size {right.shape[1]}x{right.shape[0]} differs from the left image's "
@@ -129,7 +130,8 @@ def _disparity_range(d, margin_fraction: float = 0.25, margin: float = 8.0) -> t
     return dmin, max(num, 16)
 
 
-def search_range(config: StereoConfig, calib, match_disparities, nonnegative: bool) -> tuple[int, int]:
+def search_range(config: StereoConfig, calib: StereoCalib | None, match_disparities: np.ndarray,
+                 nonnegative: bool) -> tuple[int, int]:
     """(min, num) disparities: the config's when set, else calib.txt's ndisp, else the matches' range with a margin
     (clipped at 0 when disparities cannot be negative: Middlebury geometry, or after `fit_to_canvas`)."""
     if calib is not None and calib.ndisp > 0:
@@ -145,7 +147,8 @@ def search_range(config: StereoConfig, calib, match_disparities, nonnegative: bo
     return dmin, num
 
 
-def compute_disparity(left, right, config: StereoConfig, min_disparity: int, num_disparities: int):
+def compute_disparity(left: np.ndarray, right: np.ndarray, config: StereoConfig, min_disparity: int,
+                      num_disparities: int) -> tuple[np.ndarray, dict]:
     """(disparity float32 with NaN holes, extra info dict) by the configured method."""
     if config.method == "gee":
         result = gee_disparity(left, right, replace(config.gee, min_disparity=min_disparity,
@@ -164,7 +167,8 @@ VERTICAL_LIMIT_PX = 2.0  # median |y_left - y_right| of the inlier matches after
 MIN_PARALLAX_PX = 0.5  # median |x_left - x_right| of the SIFT matches below this: no depth to measure
 
 
-def judge_matches(p1, p2, dmin: int, num: int, kind: str, doffs: float = 0.0) -> tuple[dict, list[str]]:
+def judge_matches(p1: np.ndarray, p2: np.ndarray, dmin: int, num: int, kind: str,
+                  doffs: float = 0.0) -> tuple[dict, list[str]]:
     """Figures of the inlier matches in the rectified frame, and warnings for a result that is likely wrong
     although every step ran: rows that do not line up (a camera file of another rig, a pair that is not
     rectified), disparities that are mostly negative (left and right swapped: the search range, calib.txt's
@@ -219,8 +223,6 @@ def _same_file(a, b) -> bool:
 
 def _rectify_with_camera(left, right, camera, x1, x2):
     """Undistort and rectify with a stereo calibration from `mvrecon calibrate --stereo`."""
-    import cv2
-
     (K1, D1), (K2, D2) = camera["left"].opencv(), camera["right"].opencv()
     rect = calibrated_rectification(K1, K2, camera["stereo"]["R"], camera["stereo"]["t"])
     h, w = left.shape[:2]
@@ -246,8 +248,10 @@ def _load_pfm(path: Path) -> np.ndarray:
     return values
 
 
-def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=None, camera_path=None,
-               gt_path=None, mask_path=None, gt_scale: float = 1.0, rectified: bool = False) -> dict:
+def run_stereo(config: StereoConfig, left_path: Path | str, right_path: Path | str, out_dir: Path | str,
+               calib_path: Path | str | None = None, camera_path: Path | str | None = None,
+               gt_path: Path | str | None = None, mask_path: Path | str | None = None, gt_scale: float = 1.0,
+               rectified: bool = False) -> dict:
     """The whole two-view run; writes rectified images, disparity/depth PFM and PNG, cloud.ply, figures, report.
 
     rectified=True takes the pair as already rectified without a calib.txt (disparity only, no metric depth).
@@ -270,8 +274,6 @@ def run_stereo(config: StereoConfig, left_path, right_path, out_dir, calib_path=
     calib = read_calib(calib_path) if calib_path is not None else None
     camera = None
     if camera_path is not None:
-        from .calibrate import read_camera_toml
-
         camera = read_camera_toml(camera_path)
     gt = load_ground_truth(gt_path, gt_scale) if gt_path is not None else None
     mask = load_mask(mask_path) if mask_path is not None else None
@@ -334,8 +336,6 @@ class _Rectified:
 def _run(config: StereoConfig, left_path, right_path, out: Path, left, right, calib, camera, gt, mask,
          rectified: bool) -> dict:
     """run_stereo after its checks, into the existing folder `out` (an interrupted run keeps its stages there)."""
-    from . import figures
-
     stages = Record(out)
     stages.path.parent.mkdir(parents=True, exist_ok=True)  # the matches and disparities are kept there too
     report: dict = {"left": str(left_path), "right": str(right_path), "method": config.method, "warnings": []}
@@ -370,10 +370,6 @@ def _run(config: StereoConfig, left_path, right_path, out: Path, left, right, ca
 def _matches(config: StereoConfig, run: _Output, left, right, left_path, right_path):
     """SIFT matches and the fundamental matrix (x1, x2, F, inlier mask), found once per pair and code: their
     counts and OpenCV's F for comparison go into the report, the epipolar figure into the folder."""
-    import cv2
-
-    from . import figures
-
     def find_matches():
         x1, x2 = sift_matches(left, right, config.ratio, config.max_features)
         if len(x1) < 8:
@@ -417,8 +413,6 @@ def _matches(config: StereoConfig, run: _Output, left, right, left_path, right_p
 def _rectify(left, right, F, xi1, xi2, calib, camera, rectified: bool, report: dict) -> _Rectified:
     """The rectified pair: as given (calib.txt, or declared rectified), by the camera file's stereo
     calibration, or by Hartley's homographies from F; how, in report["rectification"]."""
-    import cv2
-
     if calib is not None or (rectified and camera is None):  # Middlebury pairs come rectified
         geometry = None
         if calib is not None:  # calib.txt carries the rectified geometry
@@ -449,10 +443,6 @@ def _disparity(config: StereoConfig, run: _Output, rect: _Rectified, calib, kind
     """The disparity of the rectified left image (NaN outside it and in holes) and the seconds it took:
     searched in the range the matches (or calib.txt, or the config) give, found once per pair, range and code;
     written as PFM, as PNG when it fits, and as a figure."""
-    import cv2
-
-    from . import figures
-
     report = run.report
     # disparities are not negative but with a camera file's rectification (never given with a calib.txt)
     dmin, num = search_range(config, calib, rect.p1[:, 0] - rect.p2[:, 0], nonnegative=kind != "camera")
@@ -488,9 +478,6 @@ def _disparity(config: StereoConfig, run: _Output, rect: _Rectified, calib, kind
 
 def _depth_and_cloud(run: _Output, disparity, rect: _Rectified) -> None:
     """Metric depth (PFM and figure) and the coloured point cloud, from a disparity with known geometry."""
-    from . import figures
-    from .depth import disparity_to_depth, write_point_cloud
-
     geometry = rect.geometry
     depth = disparity_to_depth(disparity, geometry["focal"], geometry["baseline"], geometry["doffs"])
     _save_pfm(run.out / "depth.pfm", depth)
@@ -508,9 +495,6 @@ def _depth_and_cloud(run: _Output, disparity, rect: _Rectified) -> None:
 
 def _score(config: StereoConfig, run: _Output, disparity, gt, mask) -> None:
     """Scores against the ground-truth disparity (report["metrics"]) and the error map, when frames agree."""
-    from . import figures
-    from .evaluate import error_map, evaluate
-
     if run.report["rectification"].startswith("uncalibrated"):
         run.warn("ground truth is compared in the frame of the uncalibrated rectification; give --calib or "
                  "--rectified for pairs that are already rectified")
@@ -542,6 +526,4 @@ def _write_disparity_png(path: Path, disparity) -> bool:
 
 
 def _bgr(image):
-    import cv2
-
     return cv2.cvtColor(image, cv2.COLOR_RGB2BGR) if image.ndim == 3 else image

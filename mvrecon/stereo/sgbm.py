@@ -8,6 +8,7 @@ Pixels OpenCV marks invalid are returned as NaN (holes), never silently filled.
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 
@@ -29,9 +30,7 @@ class SGBMConfig:
     mode: str = "3way"
 
 
-def create_matcher(config: SGBMConfig, channels: int):
-    import cv2
-
+def create_matcher(config: SGBMConfig, channels: int) -> cv2.StereoSGBM:
     modes = {"hh": cv2.STEREO_SGBM_MODE_HH, "3way": cv2.STEREO_SGBM_MODE_SGBM_3WAY, "sgbm": cv2.STEREO_SGBM_MODE_SGBM}
     area = channels * config.block_size ** 2
     return cv2.StereoSGBM_create(
@@ -42,7 +41,7 @@ def create_matcher(config: SGBMConfig, channels: int):
         preFilterCap=config.pre_filter_cap, mode=modes[config.mode])
 
 
-def sgbm_disparity(left, right, config: SGBMConfig = SGBMConfig()) -> np.ndarray:
+def sgbm_disparity(left: np.ndarray, right: np.ndarray, config: SGBMConfig = SGBMConfig()) -> np.ndarray:
     """float32 disparity of the left image, NaN where OpenCV found no valid match."""
     left, right = np.ascontiguousarray(left), np.ascontiguousarray(right)
     channels = 1 if left.ndim == 2 else left.shape[2]

@@ -36,6 +36,7 @@ from PIL import Image
 from ..errors import InputError
 from ..io.files import read_json_object, replace_whole, write_json
 from ..io.images import FORMATS, IMAGE_EXTENSIONS, image_problem, list_images, write_image
+from ..progress import progress
 
 log = logging.getLogger(__name__)
 
@@ -145,7 +146,7 @@ def _scaled_size(width: int, height: int, downscale: float) -> tuple[int, int]:
     return max(1, int(round(width / downscale))), max(1, int(round(height / downscale)))
 
 
-def check_kernels(deg: Degradation, width: int, height: int, src) -> None:
+def check_kernels(deg: Degradation, width: int, height: int, src: Path | str) -> None:
     """SettingError when a blur kernel (OpenCV's Gaussian reaches 4 sigma each side) would not fit in the image
     after downscaling: it only blurs the image to its mean, and takes minutes (--blur 1e5) or all memory
     (--motion 1e9)."""
@@ -331,7 +332,7 @@ def degrade_image(src: Path, dst: Path, deg: Degradation, seed: int = 0, name: s
     replace_whole(dst, lambda tmp: _write(tmp, pixels, src, exif, deg.jpeg_quality))
 
 
-def image_sources(images) -> tuple[Path, list[str]]:
+def image_sources(images: Path | str) -> tuple[Path, list[str]]:
     """The folder and the image names in it (POSIX, relative to it) that `degrade_folder` degrades: the images
     `reconstruct` takes from a folder (`io.images.list_images`), or one image file; InputError when there are none."""
     path = Path(images)
@@ -365,16 +366,14 @@ def _save_record(out_dir: Path, settings: dict, done: set[str]) -> None:
     write_json(out_dir / RECORD, {"settings": settings, "done": sorted(done)}, indent=1)
 
 
-def degrade_folder(images, out_dir, deg: Degradation, seed: int = 0, progress_desc: str = "degrade",
-                   names: list[str] | None = None) -> list[Path]:
+def degrade_folder(images: Path | str, out_dir: Path | str, deg: Degradation, seed: int = 0,
+                   progress_desc: str = "degrade", names: list[str] | None = None) -> list[Path]:
     """Degrade every image of `images` (a folder or one image) into `out_dir` under the same names, sub-folders
     kept; returns the written paths. `names` (POSIX, relative to the folder `images`): the images to degrade when
     the caller has listed them already (a study lists once for all its cells); default `image_sources(images)`.
 
     A rerun after an interruption skips the images finished under the same settings (recorded in out_dir/RECORD
     after each image), so it continues where the first run stopped."""
-    from ..progress import progress
-
     folder, names = image_sources(images) if names is None else (Path(images), list(names))
     out_dir = Path(out_dir)
     source, out = folder.resolve(), out_dir.resolve()

@@ -9,6 +9,7 @@ what lets a wider grid reuse the cells an earlier, narrower one computed.
 from dataclasses import dataclass
 
 from ..errors import InputError
+from .degrade import Degradation, with_level
 
 CLEAN = "clean"
 
@@ -51,17 +52,13 @@ class Cell:
     def is_clean(self) -> bool:
         return self.axis is None
 
-    def degradation(self, base):
+    def degradation(self, base: Degradation) -> Degradation:
         """`base` (a degrade.Degradation) with this cell's level set."""
-        from .degrade import with_level  # imported here so `mvrecon --help` does not load OpenCV
-
         return base if self.is_clean else with_level(base, AXES[self.axis].field, self.level)
 
 
 def parse_levels(axis: str, text: str) -> tuple[float, ...]:
     """'0,5,10' -> (0.0, 5.0, 10.0), in the order given (the user lists them from mild to severe)."""
-    from .degrade import Degradation, with_level
-
     try:
         levels = tuple(float(v) for v in text.split(",") if v.strip())
     except ValueError:

@@ -9,7 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..io.images import read_image
+from ..io.images import list_images, read_image
 from .grid import AXES, CLEAN, Cell, Grid
 
 PLOTTED = (("registered_pct", "registered images (%)"), ("auc@1", "relative-pose AUC@1"),
@@ -25,12 +25,12 @@ def _level_label(axis: str, level: float) -> str:
     return "clean" if level == AXES[axis].identity else f"{level:g}"
 
 
-def metric_plots(rows: list[dict], grid: Grid, out_dir) -> list[tuple[str, Path]]:
+def metric_plots(rows: list[dict], grid: Grid, out_dir: Path | str) -> list[tuple[str, Path]]:
     """Write `<metric>.png` per metric into out_dir; returns (title, path) pairs in PLOTTED order."""
-    import matplotlib
+    import matplotlib  # noqa: PLC0415 - figures only
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # noqa: PLC0415 - figures only
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -89,7 +89,7 @@ def detailed_window(img: np.ndarray, size: int) -> tuple[int, int]:
     return int(x), int(y)
 
 
-def contact_sheet(folders: dict, grid: Grid, path, crop: int = 160, example: str | None = None,
+def contact_sheet(folders: dict, grid: Grid, path: Path | str, crop: int = 160, example: str | None = None,
                   names: list[str] | None = None) -> Path:
     """A grid of crops of one example image: a row per degradation, a column per level (clean first).
 
@@ -97,12 +97,11 @@ def contact_sheet(folders: dict, grid: Grid, path, crop: int = 160, example: str
     `names`: the study's images (default: `io.images.list_images` of the clean folder); the example is one that
     every cell has (a cell leaves out an image its decoder refused).
     """
-    import matplotlib
+    import matplotlib  # noqa: PLC0415 - figures only
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # noqa: PLC0415 - figures only
 
-    from ..io.images import list_images
 
     if names is None:
         names, _ = list_images(folders[CLEAN])

@@ -7,7 +7,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from ..io.files import printable_name
-from .grid import AXES
+from .config import StudyConfig
+from .grid import AXES, Grid
 
 TABLE_COLUMNS = (("engine", "engine"), ("degradation", "degradation"), ("level", "level"),
                  ("registered_pct", "registered %"), ("auc@1", "AUC@1"), ("auc@5", "AUC@5"), ("points", "points"),
@@ -43,8 +44,8 @@ def describe_breaking_point(verdict: dict, axis: str) -> tuple[str, str]:
     return f"{AXES[axis].name} {verdict['level']:g} ({verdict['metric']})", "broke"
 
 
-def write_report(path, config, grid, rows: list[dict], verdicts: dict, plots: list, sheet: Path,
-                 command: str | None = None, skipped: dict | None = None) -> Path:
+def write_report(path: Path | str, config: StudyConfig, grid: Grid, rows: list[dict], verdicts: dict,
+                 plots: list, sheet: Path, command: str | None = None, skipped: dict | None = None) -> Path:
     """`skipped`: the files of IMAGES left out of the study (name -> why), from `io.images.list_images`."""
     engines = list(dict.fromkeys(r["engine"] for r in rows))
     reference = ("ground truth " + html.escape(str(config.gt))) if config.gt else \

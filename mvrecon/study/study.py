@@ -18,20 +18,26 @@ the clean images (so the clean cell scores itself perfectly and the degraded cel
 """
 
 import csv
+import importlib.util
 import logging
 import math
 import os
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor, as_completed
-from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import InputError
-from ..eval.runners import RunOptions, RunResult, run_colmap, run_mvrecon
+from ..eval.ground_truth import GroundTruth, load_ground_truth
+from ..eval.metrics import accuracy_summary
+from ..eval.runners import RunResult, forget_if_failed, run_colmap, run_mvrecon
 from ..io.files import read_json_object, write_json
 from ..io.images import list_images
 from ..progress import progress
-from .degrade import Degradation, degrade_folder
-from .grid import CLEAN, Cell, Grid
+from .config import StudyConfig
+from .degrade import degrade_folder
+from .grid import AXES, CLEAN, Cell, Grid
+from .plots import contact_sheet, metric_plots
+from .report import write_report
 
 log = logging.getLogger(__name__)
 
@@ -39,39 +45,6 @@ ENGINES = ("mvrecon", "colmap", "colmap-global")
 COLUMNS = ("engine", "degradation", "level", "registered_pct", "registered", "images", "components", "points",
            "mean_track_length", "mean_reprojection_error_px", "auc@1", "auc@5", "auc@10", "keypoints_per_image",
            "mean_inliers_per_pair", "verified_pairs", "wall_s", "peak_mem_mb", "reference", "error")
-
-
-@dataclass(frozen=True)
-class StudyConfig:
-    """What every cell of a study shares; a study folder keeps one config (the grid and engines may grow)."""
-
-    images: Path  # the clean images
-    gt: Path | None = None  # ground truth (any format eval.ground_truth reads); None: each engine's clean model
-    engines: tuple[str, ...] = ("mvrecon", "colmap")
-    seed: int = 0  # the degradations' noise and both engines' RANSAC/mapper seed
-    base: Degradation = field(default_factory=Degradation)  # parameters not varied (e.g. the motion angle)
-    run_options: RunOptions = field(default_factory=RunOptions)
-    jobs: int = 0  # cells run at the same time; 0: the machine's cores
-    timeout_s: float | None = None  # per engine run; a run past it counts as failed
-
-    def identity(self) -> dict:
-        """The settings that make cells comparable (the engines, jobs and timeout may change between runs)."""
-        return {"images": str(Path(self.images).resolve()), "gt": str(Path(self.gt).resolve()) if self.gt else None,
-                "seed": self.seed, "base": self.base.to_dict(), "run_options": self.run_options.to_dict()}
-
-    def check_grid(self, grid: Grid, downscale: str | None = None) -> None:
-        """An InputError when `grid` makes smaller copies of the images while a run option holds for the clean
-        images' size only (camera params, masks). `downscale`: its levels as given (--downscale), for the
-        message."""
-        if "downscale" not in grid.levels or not grid.degraded_levels("downscale"):
-            return
-        if self.run_options.camera_params:
-            raise InputError(f"--camera-params with --downscale {downscale}: the params hold for the clean "
-                             "images' size, not for the smaller copies; study the downscale without "
-                             "--camera-params")
-        if self.run_options.masks:
-            raise InputError(f"--masks with --downscale {downscale}: the masks fit the clean images' size, "
-                             "not the smaller copies; study the downscale without --masks")
 
 
 def _runner(engine: str):
@@ -85,10 +58,8 @@ def _runner(engine: str):
     raise InputError(f"engine {engine!r}: expected one of {', '.join(ENGINES)}")
 
 
-def check_engines(engines) -> None:
+def check_engines(engines: Sequence[str]) -> None:
     """Refuse unknown engines, and mvrecon while its `reconstruct` command is not installed."""
-    import importlib.util
-
     if not engines:
         raise InputError("--engines: no engine given (mvrecon, colmap or both, comma-separated)")
     for engine in engines:
@@ -158,10 +129,8 @@ def _check_cell_images(folder: Path, marker: Path, names: list[str], images) -> 
                          "folder, or delete this one to start over")
 
 
-def forget_failed_runs(study_dir: Path, engines, cells: list[Cell]) -> list[str]:
+def forget_failed_runs(study_dir: Path, engines: Sequence[str], cells: list[Cell]) -> list[str]:
     """Delete the cached runs that failed (crash, timeout), so they run again; returns their 'engine/cell' names."""
-    from ..eval.runners import forget_if_failed
-
     return [f"{engine}/{cell.key}" for engine in engines for cell in cells
             if forget_if_failed(study_dir / "runs" / engine / cell.key)]
 
@@ -192,12 +161,10 @@ def run_cells(study_dir: Path, config: StudyConfig, folders: dict[str, Path], ce
     return results
 
 
-def load_reference(config: StudyConfig, image_names: list[str]):
+def load_reference(config: StudyConfig, image_names: list[str]) -> GroundTruth | None:
     """The ground truth restricted to the study's images, or None (then each engine's clean model is used)."""
     if config.gt is None:
         return None
-    from ..eval.ground_truth import load_ground_truth
-
     gt = load_ground_truth(config.gt).subset(image_names)
     if len(gt) < 2:
         raise InputError(f"{config.gt}: ground truth for {len(gt)} of the {len(image_names)} images in "
@@ -210,8 +177,6 @@ def measure(result: RunResult, reference: dict, image_names: list[str]) -> dict:
 
     Registered % is of `image_names`, the study's images: an image a model holds that is not one of them (a stale
     run) is not counted, so it can never pass 100."""
-    from ..eval.metrics import accuracy_summary
-
     nan = float("nan")
     n_images = len(image_names)
     report = result.report or {}
@@ -236,8 +201,6 @@ def measure(result: RunResult, reference: dict, image_names: list[str]) -> dict:
 
 def tabulate(config: StudyConfig, grid: Grid, results: dict, image_names: list[str]) -> list[dict]:
     """One row per engine x degradation x level; the clean row appears once per degradation at its identity."""
-    from .grid import AXES
-
     gt = load_reference(config, image_names)
     rows = []
     for engine in config.engines:
@@ -301,7 +264,7 @@ def breaking_points(rows: list[dict], fraction: float = 0.5) -> dict:
     return out
 
 
-def run_study(config: StudyConfig, grid: Grid, study_dir, command: str | None = None,
+def run_study(config: StudyConfig, grid: Grid, study_dir: Path | str, command: str | None = None,
               retry_failed: bool = False, listing: tuple[list[str], dict[str, str]] | None = None) -> list[dict]:
     """Everything `mvrecon study` does: cells, runs, study.csv, plots, contact sheet and study.html.
 
@@ -309,9 +272,6 @@ def run_study(config: StudyConfig, grid: Grid, study_dir, command: str | None = 
     `listing`: `io.images.list_images(config.images)` when the caller has it already (its warnings are not
     repeated).
     """
-    from .plots import contact_sheet, metric_plots
-    from .report import write_report
-
     study_dir = Path(study_dir)
     check_engines(config.engines)
     image_names, skipped = listing if listing is not None else list_images(config.images)

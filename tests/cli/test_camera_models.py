@@ -58,7 +58,7 @@ def two_images(folder: Path, size=(160, 120)) -> Path:
 # --- compare and study say COLMAP's fisheye rule before running ---------------------------------------------
 
 def test_compare_warns_before_running_colmap_on_a_fisheye_without_params(tmp_path, monkeypatch, caplog):
-    import mvrecon.eval.compare as compare
+    import mvrecon.commands.compare as compare
 
     def stop(*args, **kwargs):
         raise InputError("stopped before running")

@@ -229,7 +229,7 @@ def _board_folder(folder, views) -> Path:
 
 
 def test_cli_output_file_is_checked_before_the_work(tmp_path, capsys, monkeypatch):
-    import mvrecon.stereo.calibrate as calibrate
+    import mvrecon.commands.calibrate as calibrate
 
     folder = _board_folder(tmp_path / "boards", dict(list(synthetic_views().items())[:2]))
     original = (folder / "view00.png").read_bytes()
