@@ -347,7 +347,9 @@ with most of its image pairs more than 5 deg off, counts 0); *verified pairs*: i
 geometry in the run's database; AUC@t: relative-pose AUC over all image pairs against the ground truth (a pair
 with an unregistered image, or split across models, counts 180 deg). The targets, stated for 1,000 images:
 registered >= COLMAP's, AUC@5 >= COLMAP's - {margin}, whole wall time <= {ratio} x COLMAP's, peak memory <=
-COLMAP's, and mapping time growing at most as images ** {exponent}.
+COLMAP's, and mapping time growing at most as images ** {exponent}. On a machine shared with other work, wall
+times drift by a third between calls: compare the two engines of a row, measured one after the other, more
+than rows of different calls.
 """
 
 
