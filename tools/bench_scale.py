@@ -411,8 +411,9 @@ def main(argv=None) -> int:
                         help="scenes and runs, kept across calls (default out/bench_scale)")
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "scale.md",
                         help="the page to write, the plot beside it as .svg (default docs/scale.md)")
-    parser.add_argument("--timeout", type=float, default=4 * 3600,
-                        help="seconds per engine run (default 14400)")
+    parser.add_argument("--timeout", type=float, default=8 * 3600,
+                        help="seconds per engine run (default 28800: COLMAP's matching of 1,000 images can "
+                             "take hours on 2 cores)")
     raw = sys.argv[1:] if argv is None else argv
     args = parser.parse_args(join_option_value(raw, "--mvrecon-args"))
     logging.basicConfig(level=logging.INFO, format="%(message)s")
