@@ -1,8 +1,9 @@
 """Run the engines under comparison on the same images, each in its own subprocess, into one `report.json` schema.
 
 - `run_mvrecon`: our `mvrecon reconstruct` CLI, exactly as a user runs it.
-- `run_colmap`: pycolmap's extract_features + match_exhaustive + incremental_mapping (or global_mapping), CPU,
-  with the same camera mode and model; engine "colmap" (or "colmap-global").
+- `run_colmap`: pycolmap's extract_features + match_exhaustive (or match_sequential, match_spatial) +
+  incremental_mapping (or global_mapping), CPU, with the same camera mode and model; engine "colmap" (or
+  "colmap-global").
 - `run_colmap_on_database`: COLMAP's incremental mapper on mvrecon's own database ("same matches"), which separates
   front-end differences from mapper differences.
 - `run_mvrecon_map`: mvrecon's mapper alone (`mvrecon map`) on a database, the other side of that comparison; it can
@@ -60,6 +61,11 @@ CAMERA_MODES = ("auto", "single", "per-folder", "per-image")
 COLMAP_ENGINES = ("colmap", "colmap-global")  # COLMAP end to end: never sees mvrecon's extra flags
 RUN = "run"  # the piece of work a run folder's record holds
 RECORD = "runner.json"  # the record of a run, in OUT/.stages (an older mvrecon kept it in OUT itself)
+# COLMAP's pairs in its own runs: every pair; each image with the next ones in name order (its
+# SequentialPairingOptions: 10 and 2, 4, 8... further, no loop detection, which needs a vocabulary tree); or
+# each with its nearest images by the GPS positions that its feature extraction reads from EXIF into pose priors
+# (SpatialPairingOptions: up to 50 within 100 m, heights ignored)
+COLMAP_MATCHING = ("exhaustive", "sequential", "spatial")
 
 
 @dataclass(frozen=True)
@@ -72,25 +78,34 @@ class RunOptions:
     seed: int = 0  # random seed of both engines (COLMAP's RANSAC and mapper, mvrecon's --seed)
     mvrecon_args: tuple[str, ...] = ()  # extra flags for `mvrecon reconstruct` only (e.g. matcher settings)
     masks: str = ""  # folder of image masks for both engines (io/masks.py, COLMAP's mask_path); "" = none
+    colmap_matching: str = "exhaustive"  # COLMAP's pairs in its own runs (COLMAP_MATCHING); mvrecon's: its flags
 
     def __post_init__(self):
         if self.camera_mode not in CAMERA_MODES:
             raise InputError(f"camera mode {self.camera_mode!r}: expected one of {', '.join(CAMERA_MODES)}")
+        if self.colmap_matching not in COLMAP_MATCHING:
+            raise InputError(f"COLMAP matching {self.colmap_matching!r}: expected one of "
+                             f"{', '.join(COLMAP_MATCHING)}")
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d["camera_params"], d["mvrecon_args"] = list(self.camera_params), list(self.mvrecon_args)
         if not self.masks:  # runs made before masks existed keep their identity
             del d["masks"]
+        if self.colmap_matching == "exhaustive":  # and those made before COLMAP could match otherwise
+            del d["colmap_matching"]
         return d
 
     def identity(self, engine: str) -> dict:
         """The options `engine`'s result depends on, which a finished run must have been made with to be reused.
         COLMAP's own runs never see mvrecon's extra flags, so other flags for mvrecon must not make them stale;
-        the same-matches run maps mvrecon's database, which those flags shaped, so it keeps them."""
+        the same-matches run maps mvrecon's database, which those flags shaped, so it keeps them. COLMAP's
+        matching only counts for COLMAP's own runs."""
         d = self.to_dict()
         if engine in COLMAP_ENGINES:
             del d["mvrecon_args"]
+        else:
+            d.pop("colmap_matching", None)
         return d
 
 
@@ -139,12 +154,13 @@ def colmap_fisheye_warning(options: RunOptions, image_dir: Path | str, names: li
 
 
 def run_mvrecon(image_dir: Path | str, out_dir: Path | str, options: RunOptions = RunOptions(),
-                timeout: float | None = None) -> RunResult:
+                timeout: float | None = None, code: Path | str | None = None) -> RunResult:
     """`mvrecon reconstruct IMAGE_DIR -o OUT_DIR` with the options' camera settings and seed.
 
-    Known intrinsics (`camera_params`) are held fixed, as `run_colmap` holds them in COLMAP's bundle adjustment."""
+    Known intrinsics (`camera_params`) are held fixed, as `run_colmap` holds them in COLMAP's bundle adjustment.
+    `code`: the mvrecon source tree to run (`code_environment`), else the one installed."""
     cmd = [sys.executable, "-m", "mvrecon.cli", *reconstruct_args(image_dir, out_dir, options)]
-    return _run("mvrecon", cmd, Path(image_dir), Path(out_dir), options, timeout)
+    return _run("mvrecon", cmd, Path(image_dir), Path(out_dir), options, timeout, tree=code)
 
 
 def reconstruct_args(image_dir: Path | str, out_dir: Path | str, options: RunOptions) -> list[str]:
@@ -160,12 +176,13 @@ def reconstruct_args(image_dir: Path | str, out_dir: Path | str, options: RunOpt
 
 
 def run_colmap(image_dir: Path | str, out_dir: Path | str, options: RunOptions = RunOptions(),
-               global_mapper: bool = False, timeout: float | None = None) -> RunResult:
-    """pycolmap end to end on the CPU: extract_features, match_exhaustive, incremental (or global) mapping."""
+               global_mapper: bool = False, timeout: float | None = None, code: Path | str | None = None) -> RunResult:
+    """pycolmap end to end on the CPU: extract_features, the options' matching (`colmap_matching`), incremental
+    (or global) mapping. `code`: the mvrecon source tree whose runner starts it, else the one installed."""
     engine = "colmap-global" if global_mapper else "colmap"
     cmd = [sys.executable, "-m", "mvrecon.eval.runners", "colmap", str(image_dir), str(out_dir),
            "--options", json.dumps(options.identity(engine))] + (["--global-mapper"] if global_mapper else [])
-    return _run(engine, cmd, Path(image_dir), Path(out_dir), options, timeout)
+    return _run(engine, cmd, Path(image_dir), Path(out_dir), options, timeout, tree=code)
 
 
 def run_colmap_on_database(database_path: Path | str, out_dir: Path | str,
@@ -436,8 +453,16 @@ def _colmap_main(image_dir: Path, out_dir: Path, options: dict, global_mapper: b
     matching.use_gpu = False
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = int(options["seed"])
-    pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification,
-                              device=pycolmap.Device.cpu)
+    how = options.get("colmap_matching", "exhaustive")
+    if how == "sequential":
+        pycolmap.match_sequential(db, matching_options=matching, verification_options=verification,
+                                  device=pycolmap.Device.cpu)
+    elif how == "spatial":  # the pose priors extract_features wrote from the images' EXIF GPS
+        pycolmap.match_spatial(db, matching_options=matching, verification_options=verification,
+                               device=pycolmap.Device.cpu)
+    else:
+        pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification,
+                                  device=pycolmap.Device.cpu)
     stages.done("matching")
     models = _map(db, image_dir, out_dir, options, global_mapper)
     stages.done("mapping")
