@@ -19,12 +19,15 @@ ON_INTERRUPT = ("features and matches done are kept; rerun the same command to c
 def add_mapper_options(parser, *, standalone: bool = True) -> None:
     """Mapper flags shared by `reconstruct` and `map`; only the standalone `map` adds its own --config and
     --overwrite (`reconstruct` has them from the front end's options, and one --config file holds both)."""
-    from ..sfm.config import OPTIMIZERS
+    from ..sfm.config import MAPPERS, OPTIMIZERS
     from ._options import non_negative_int
 
     g = parser.add_argument_group("mapping")
     g.add_argument("--seed", type=non_negative_int, default=None,
                    help="random seed: equal inputs and seed give equal models (default 0)")
+    g.add_argument("--mapper", choices=MAPPERS, default=None,
+                   help="incremental (default: image by image, as COLMAP's) or global (rotation and translation "
+                        "averaging, then one bundle adjustment: faster on large sets; see docs/global-mapper.md)")
     g.add_argument("--optimizer", choices=OPTIMIZERS, default=None,
                    help="GTSAM optimizer for bundle adjustment: plain Levenberg-Marquardt with the points "
                         "eliminated first (lm, default) or SfmLevenbergMarquardt with Schur elimination (sfm)")
@@ -47,7 +50,7 @@ def mapper_config(args, from_file=None):
 
     table = (from_file or config_file(args))[1]
     config = with_overrides(MapperConfig(), table, source=f"{args.config}: mapper")
-    flags = {"seed": args.seed, "optimizer": args.optimizer}
+    flags = {"seed": args.seed, "optimizer": args.optimizer, "mapper": args.mapper}
     if args.fix_intrinsics:
         flags["refine_intrinsics"] = False
     config = with_overrides(config, {k: v for k, v in flags.items() if v is not None}, source="command line")

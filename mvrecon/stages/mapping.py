@@ -96,8 +96,13 @@ def map_workspace(config: MapperConfig, workspace, *, image_dir=None, text: bool
 
 def _run_mapper(corr, config, snapshot: Path, resume: bool):
     """The models of the correspondences `corr` (database.Correspondences), with each image's status: the
-    incremental mapper (sfm/incremental.py), the one mapper so far; a second one (global) is chosen here. Its
-    module loads only when mapping runs (GTSAM is heavy for the commands that never map)."""
+    incremental mapper (sfm/incremental.py) or, with `mapper = "global"`, the global one (sfm/global_mapper.py,
+    which maps in one go and has no snapshot to resume from). Their modules load only when mapping runs (GTSAM
+    is heavy for the commands that never map)."""
+    if config.mapper == "global":
+        from ..sfm.global_mapper import map_correspondences_globally
+
+        return map_correspondences_globally(corr, config)
     from ..sfm.incremental import map_correspondences
 
     return map_correspondences(corr, config, snapshot_path=snapshot, resume=resume)

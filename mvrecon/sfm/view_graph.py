@@ -1,0 +1,160 @@
+"""The view graph of the global mapper: one relative pose per verified pair, and the focal lengths behind them.
+
+`calibrate_focals` first sets each guessed focal length (not trusted, 1.2 * max(w, h)) from the pairs'
+fundamental matrices, as GLOMAP calibrates its view graph: an essential matrix E = K2^T F K1 has two equal
+singular values, so the focal that makes (s1 - s2) / (s1 + s2) smallest over all the camera's pairs is the one
+the pairs support (one scale per camera, searched over 0.5-2x the guess, cameras in turn). Where the cost
+has no minimum inside that range the guess stays: when the optical axes meet (an orbit around an object) the
+pairs do not observe the focal at all, and the smallest focal tried always wins (object_orbit_small: 384 px for
+the true 560, where the bundle adjustment then took 4x longer to find it than from the 768 px guess). Then
+`relative_poses` estimates each pair's relative pose from its matches in normalised coordinates (five-point
+RANSAC), with the median triangulation angle of its inliers: a pair under `min_tri_angle_deg` has no usable
+baseline, and gives a rotation only (from its homography where one fits, a camera turning in place).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..geometry.triangulation import triangulation_angle_deg
+from ..geometry.two_view import relative_pose
+from .config import MapperConfig
+from .initialize import two_view_points
+
+_SAMPLE = 1000  # matches a pair's pose and angle are estimated from (as the initial pair's)
+_SCALES = np.geomspace(0.5, 2.0, 121)  # of a guessed focal, tried by the calibration (steps of 1.2%)
+_EDGE = 6  # a minimum this close to either end of the range is no estimate
+_CALIBRATION_SWEEPS = 3
+_MIN_RELATIVE_INLIERS = 15  # a pair's matches fitting its relative pose (COLMAP's min_num_inliers)
+
+
+@dataclass
+class ViewEdge:
+    """A pair's relative pose: x2 = R x1 + t in camera coordinates (|t| = 1), from `inliers` matches."""
+
+    R: np.ndarray
+    t: np.ndarray
+    inliers: int
+    angle_deg: float  # median triangulation angle of the inliers; below the minimum, `t` is not used
+
+
+@dataclass
+class ViewGraph:
+    edges: dict  # (a, b) internal image indices, a < b -> ViewEdge
+    rejected: dict  # (a, b) -> why the pair gave no edge
+
+
+def oriented_pairs(image_ids, pairs) -> dict:
+    """(a, b) internal indices with a < b -> (N,2) inlier keypoint indices of a and b, for verified pairs."""
+    index_of = {int(i): k for k, i in enumerate(np.asarray(image_ids).tolist())}
+    out = {}
+    for p in pairs:
+        a, b = index_of.get(p.image_id1), index_of.get(p.image_id2)
+        if a is None or b is None or len(p.inliers) == 0 or a == b:
+            continue
+        out[(a, b) if a < b else (b, a)] = p.inliers if a < b else p.inliers[:, ::-1]
+    return out
+
+
+def _sample(matches, seed: int) -> np.ndarray:
+    if len(matches) <= _SAMPLE:
+        return matches
+    return matches[np.sort(np.random.default_rng(seed).choice(len(matches), _SAMPLE, replace=False))]
+
+
+def _fundamental(model, a, b, matches):
+    import cv2
+
+    u1, u2 = model.keypoints[a][matches[:, 0]], model.keypoints[b][matches[:, 1]]
+    if len(u1) < 8:
+        return None
+    F, _ = cv2.findFundamentalMat(u1, u2, cv2.FM_8POINT)
+    return F if F is not None and F.shape == (3, 3) else None
+
+
+def _essential_costs(F, K1s, K2s) -> np.ndarray:
+    """(s1 - s2) / (s1 + s2) of E = K2^T F K1 for stacks of calibrations."""
+    E = np.einsum("nji,jk,nkl->nil", K2s, F, K1s)
+    s = np.linalg.svd(E, compute_uv=False)
+    return (s[:, 0] - s[:, 1]) / np.maximum(s[:, 0] + s[:, 1], 1e-300)
+
+
+def calibrate_focals(model, pairs: dict, seed: int = 0) -> dict:
+    """Set the focal of every camera whose focal is guessed to the one its pairs' fundamental matrices support
+    best (see the module docstring); returns camera id -> (guess, calibrated focal) of those it changed."""
+    guessed = {c for c, cam in model.cameras.items() if not cam.prior_trusted}
+    if not guessed:
+        return {}
+    Fs = []
+    for (a, b), matches in pairs.items():
+        ca, cb = int(model.camera_of[a]), int(model.camera_of[b])
+        if (ca in guessed or cb in guessed) and len(matches) >= 4 * _MIN_RELATIVE_INLIERS:
+            F = _fundamental(model, a, b, _sample(matches, seed))
+            if F is not None:
+                Fs.append((ca, cb, F / np.linalg.norm(F)))
+    changed = {}
+    base = {c: model.cameras[c].focal() for c in guessed}
+    for _ in range(_CALIBRATION_SWEEPS):
+        moved = False
+        for c in sorted(guessed):
+            mine = [(ca, cb, F) for ca, cb, F in Fs if c in (ca, cb)]
+            if not mine:
+                continue
+            cost = np.zeros(len(_SCALES))
+            for ca, cb, F in mine:
+                Ks = []
+                for other in (ca, cb):
+                    K = np.broadcast_to(model.cameras[other].K(), (len(_SCALES), 3, 3)).copy()
+                    if other == c:
+                        K[:, :2, :2] *= (base[c] * _SCALES / model.cameras[c].focal())[:, None, None]
+                    Ks.append(K)
+                cost += np.minimum(_essential_costs(F, Ks[0], Ks[1]), 0.5)
+            best = int(np.argmin(cost))
+            if not _EDGE <= best < len(_SCALES) - _EDGE:
+                continue  # no minimum inside the range: the pairs do not observe the focal (an orbit)
+            focal = float(base[c] * _SCALES[best])
+            if abs(focal / model.cameras[c].focal() - 1) > 1e-3:
+                model.cameras[c].set_focal(focal)
+                changed[c] = (base[c], focal)
+                moved = True
+        if not moved:
+            break
+    return changed
+
+
+def relative_poses(model, pairs: dict, config: MapperConfig) -> ViewGraph:
+    """The relative pose of each pair at the model's current calibration (see the module docstring)."""
+    edges, rejected = {}, {}
+    for (a, b), matches in sorted(pairs.items()):
+        matches = _sample(matches, config.seed)
+        x1, x2 = model.normalized_keypoints(a)[matches[:, 0]], model.normalized_keypoints(b)[matches[:, 1]]
+        ok = np.isfinite(x1).all(axis=1) & np.isfinite(x2).all(axis=1)
+        x1, x2 = x1[ok], x2[ok]
+        f = 0.5 * (model.camera(a).focal() + model.camera(b).focal())
+        est = relative_pose(x1, x2, config.two_view_max_error_px / f, seed=config.seed)
+        if est is None or est[2].sum() < _MIN_RELATIVE_INLIERS:
+            found = 0 if est is None else int(est[2].sum())
+            rejected[(a, b)] = (f"{found} of its {len(matches)} matches fit a relative pose in front of both "
+                                f"views, < {_MIN_RELATIVE_INLIERS}")
+            continue
+        R, t, inl = est
+        X, z, _ = two_view_points(R, t, x1[inl], x2[inl])
+        front = (z > 0).all(axis=1) & np.isfinite(X).all(axis=1)
+        angle = float(np.median(triangulation_angle_deg(np.zeros(3), -R.T @ t, X[front]))) if front.any() else 0.0
+        if angle < config.min_tri_angle_deg:
+            R = _rotation_only(x1, x2, config.two_view_max_error_px / f, R)
+        edges[(a, b)] = ViewEdge(R, t, int(inl.sum()), angle)
+    return ViewGraph(edges, rejected)
+
+
+def _rotation_only(x1, x2, threshold: float, fallback) -> np.ndarray:
+    """The rotation of a pair without baseline: the nearest rotation to its normalised homography (x2 ~ H x1),
+    or `fallback` (the essential matrix's) when no homography fits."""
+    import cv2
+
+    H, mask = cv2.findHomography(x1, x2, cv2.RANSAC, threshold)
+    if H is None or mask is None or mask.sum() < _MIN_RELATIVE_INLIERS:
+        return fallback
+    U, _, Vt = np.linalg.svd(H if np.linalg.det(H) > 0 else -H)  # H is known up to a scale of either sign
+    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    return R
