@@ -31,6 +31,7 @@ from .bundle import bundle_adjust
 from .config import MapperConfig
 from .incremental import MappingResult
 from .model import Camera, Reconstruction
+from .register import register_image
 from .rotation_averaging import average_rotations
 from .tracks import build_tracks
 from .translation_averaging import average_translations
@@ -94,7 +95,7 @@ class GlobalMapper:
             keys = [k for k in graph.edges if left[k[0]] and left[k[1]]]
             if not keys:
                 break
-            m, used = self._map_component(scratch.cameras, graph, keys, bar)
+            m, used = self._map_component(scratch.cameras, graph, keys, left)
             left[used] = False
             if m is None:
                 continue
@@ -126,7 +127,8 @@ class GlobalMapper:
         a loose gate), for the guessed cameras it holds `focal_min_images` images of, where they moved more than
         1%: relative poses estimated at a focal far off give rotations and directions that no averaging makes
         consistent (object_orbit_small from the 768 px guess, 560 true: AUC@5 0.55, and 0.99 after this pass)."""
-        m, _ = self._map_component(cameras, graph, list(graph.edges), None, coarse=True)
+        m, _ = self._map_component(cameras, graph, list(graph.edges), np.ones(len(self.image_ids), bool),
+                                   coarse=True)
         if m is None:
             return {}
         out = {}
@@ -139,9 +141,10 @@ class GlobalMapper:
         return out
 
     # ----- one model -----
-    def _map_component(self, cameras, graph, keys, bar, coarse: bool = False):
-        """(model or None, images it took from the pool): the largest consistent component of the edges `keys`;
-        with `coarse` only one round of triangulation and BA (for `_calibrate_by_bundle`)."""
+    def _map_component(self, cameras, graph, keys, pool, coarse: bool = False):
+        """(model or None, images it took from the pool): the largest consistent component of the edges `keys`,
+        joined by the images of `pool` that register to its points (`_refine`); with `coarse` only one round of
+        triangulation and BA (for `_calibrate_by_bundle`)."""
         n, cfg = len(self.image_ids), self.config
         start = time.perf_counter()
         ij = np.array(keys, dtype=np.int64)
@@ -182,35 +185,64 @@ class GlobalMapper:
             m.register(i, rot.R[i], -rot.R[i] @ pos.centers[i])
         if coarse:
             triangulate_tracks(m, self.tracks, np.arange(len(self.tracks)), self._gated(_GATES_PX[0]), cfg.seed)
+            m.deregister_empty_images()  # a camera is refined only when all its registered images are observed
             self._bundle(m, intrinsics=True)
             return m, component
-        self._refine(m)
+        self._refine(m, pool)
         self._clock("bundle_adjustment", start)
-        log.info("global model: %d of %d images, %d points", int(m.registered.sum()), int(component.sum()),
-                 len(m.alive_points()))
-        return m, component
+        log.info("global model: %d images (%d from averaging), %d points", int(m.registered.sum()),
+                 int(component.sum()), len(m.alive_points()))
+        return m, component | m.registered
 
-    def _refine(self, m: Reconstruction) -> None:
-        """Triangulation, global BA and filtering rounds at narrowing gates, then the catastrophic poses out."""
+    def _refine(self, m: Reconstruction, pool) -> None:
+        """Triangulation, global BA and filtering rounds at narrowing gates; then the poses too few matches support
+        are taken out, and the images of `pool` left out (poses lost to the filters, taken out, or never placed
+        by the averaging) are registered by absolute pose against the points, as the incremental mapper does;
+        a last round of refinement."""
         cfg = self.config
-        tracks = np.arange(len(self.tracks))
         for k, gate in enumerate([*_GATES_PX, cfg.max_reproj_error_px]):
             loose = self._gated(gate)
             if k == 0:
-                triangulate_tracks(m, self.tracks, tracks, loose, cfg.seed)
+                triangulate_tracks(m, self.tracks, np.arange(len(self.tracks)), loose, cfg.seed)
             else:
                 retriangulate(m, self.tracks, loose, cfg.seed)
+            self._note_lost(m)
             self._bundle(m, intrinsics=True)
             self._filter(m, loose)
-        for _ in range(2):
-            if not self._drop_unsupported(m):
-                break
-            self._bundle(m, intrinsics=True)
+        dropped = self._drop_unsupported(m)
+        if self._register_left(m, pool) or dropped:
             retriangulate(m, self.tracks, cfg, cfg.seed)
+            self._bundle(m, intrinsics=True)
             self._filter(m, cfg)
-        self._bundle(m, intrinsics=True)
+            if self._drop_unsupported(m):
+                self._bundle(m, intrinsics=True)
+                self._filter(m, cfg)
         retriangulate(m, self.tracks, cfg, cfg.seed)
+        self._bundle(m, intrinsics=True)
         self._filter(m, cfg)
+
+    def _note_lost(self, m: Reconstruction) -> None:
+        for i in m.deregister_empty_images():
+            self.reasons[i] = "no track triangulated with its global pose (the filters removed them all)"
+
+    def _register_left(self, m: Reconstruction, pool) -> list[int]:
+        """Register by absolute pose (register.register_image) the images of `pool` not in the model; each gets
+        its observations from the next retriangulation. Returns those registered."""
+        cfg = self.config
+        added = []
+        for i in np.flatnonzero(pool & ~m.registered).tolist():
+            reg = register_image(m, self.tracks, i, cfg, seed=cfg.seed + i, decide=True)
+            if reg.ok:
+                added.append(i)
+                self.reasons.pop(i, None)
+            elif i not in self.reasons or not m.registered.any():
+                continue
+            else:
+                self.reasons[i] += f"; and its absolute pose against the model failed: {reg.reason}"
+        if added:
+            log.info("global model: %d image(s) registered by absolute pose: %s", len(added),
+                     ", ".join(self.names[i] for i in added))
+        return added
 
     def _gated(self, gate: float) -> MapperConfig:
         """The config with its triangulation and filtering gates widened to `gate` pixels."""
