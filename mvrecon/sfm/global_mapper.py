@@ -2,7 +2,8 @@
 
 GLOMAP's pipeline on GTSAM and the incremental mapper's own parts:
 1. View graph (view_graph.py): guessed focal lengths calibrated from the pairs' fundamental matrices, then one
-   relative pose per verified pair.
+   relative pose per verified pair; a guessed focal the pairs cannot tell is refined by coarse global models
+   first.
 2. Rotation averaging (rotation_averaging.py): robust initialisation, L1-IRLS, `gtsam.ShonanAveraging3`;
    pairs whose rotation disagrees by more than 5 degrees are outliers; the largest consistent component is a
    model.
@@ -40,6 +41,7 @@ from .view_graph import calibrate_focals, oriented_pairs, relative_poses
 
 log = logging.getLogger("mvrecon.sfm")
 _GATES_PX = (16.0, 8.0)  # reprojection gates of the first rounds, before the config's own (4 px)
+_CALIBRATION_PASSES = 3  # coarse models that refine a guessed focal (`_calibrate_by_bundle`)
 _MAX_ROTATION_ERROR_DEG = 5.0  # GLOMAP's threshold on a pair's rotation residual
 _MAX_DIRECTION_ERROR_DEG = 10.0  # a translation direction this far off the solved baseline is dropped
 
@@ -76,15 +78,17 @@ class GlobalMapper:
             log.info("camera %d: focal %.1f px from the view graph (guessed %.1f)", c, focal, guess)
         graph = relative_poses(scratch, self.pairs, self.config)
         start = self._clock("view_graph", start)
-        if not all(cam.prior_trusted for cam in scratch.cameras.values()) and graph.edges:
-            calibrated = self._calibrate_by_bundle(scratch.cameras, graph)
+        for _ in range(_CALIBRATION_PASSES if not all(c.prior_trusted for c in scratch.cameras.values()) else 0):
+            calibrated = self._calibrate_by_bundle(scratch.cameras, graph) if graph.edges else {}
+            for c, params in calibrated.items():
+                log.info("camera %d: focal %.1f px from a coarse global model (was %.1f)", c, params[0],
+                         scratch.cameras[c].params[0])
+                scratch.cameras[c].params = params
             if calibrated:
-                for c, params in calibrated.items():
-                    log.info("camera %d: %s from a first global model (was %s)", c, np.round(params, 3).tolist(),
-                             np.round(scratch.cameras[c].params, 3).tolist())
-                    scratch.cameras[c].params = params
                 graph = relative_poses(scratch, self.pairs, self.config)
             start = self._clock("calibration", start)
+            if not calibrated:
+                break
         for (a, b), why in graph.rejected.items():
             for i in (a, b):
                 self.reasons.setdefault(i, f"its pairs gave no relative pose: the pair with "
@@ -123,10 +127,13 @@ class GlobalMapper:
         return Reconstruction(self.image_ids, self.names, self.camera_of, cameras, self.keypoints, len(self.tracks))
 
     def _calibrate_by_bundle(self, cameras, graph) -> dict:
-        """Camera id -> parameters refined by a first, coarse global model (one round of triangulation and BA at
-        a loose gate), for the guessed cameras it holds `focal_min_images` images of, where they moved more than
-        1%: relative poses estimated at a focal far off give rotations and directions that no averaging makes
-        consistent (object_orbit_small from the 768 px guess, 560 true: AUC@5 0.55, and 0.99 after this pass)."""
+        """Camera id -> parameters with the focal refined by a coarse global model (one round of triangulation
+        and BA at a loose gate), for the guessed cameras it holds `focal_min_images` images of, where the focal
+        moved more than 2%: relative poses estimated at a focal far off give rotations and directions that no
+        averaging makes consistent (object_orbit_small from the 768 px guess, 560 true: AUC@5 0.55, and 0.99 after
+        this pass). Only the focal: the coarse model's poses are too rough to tell distortion from focal (the
+        temple's: k1 -0.43 beside a focal of 920 for the true 1520, 0). Run again (up to `_CALIBRATION_PASSES`)
+        while the focal moves, as a focal far off is found only part of the way."""
         m, _ = self._map_component(cameras, graph, list(graph.edges), np.ones(len(self.image_ids), bool),
                                    coarse=True)
         if m is None:
@@ -136,7 +143,7 @@ class GlobalMapper:
             before, cam = cameras[c], m.cameras[c]
             users = int((m.registered & (m.camera_of == c)).sum())
             if not before.prior_trusted and users >= self.config.focal_min_images \
-                    and abs(cam.focal() / before.focal() - 1) > 0.01:
+                    and abs(cam.focal() / before.focal() - 1) > 0.02:
                 out[c] = cam.params.copy()
         return out
 
@@ -186,7 +193,7 @@ class GlobalMapper:
         if coarse:
             triangulate_tracks(m, self.tracks, np.arange(len(self.tracks)), self._gated(_GATES_PX[0]), cfg.seed)
             m.deregister_empty_images()  # a camera is refined only when all its registered images are observed
-            self._bundle(m, intrinsics=True)
+            self._bundle(m, intrinsics=True, distortion=False)
             return m, component
         self._refine(m, pool)
         self._clock("bundle_adjustment", start)
@@ -250,14 +257,14 @@ class GlobalMapper:
         return replace(cfg, max_reproj_error_px=max(gate, cfg.max_reproj_error_px),
                        filter_max_reproj_error_px=max(gate, cfg.filter_max_reproj_error_px))
 
-    def _bundle(self, m: Reconstruction, intrinsics: bool) -> None:
+    def _bundle(self, m: Reconstruction, intrinsics: bool, distortion: bool = True) -> None:
         """Global BA of every registered image; intrinsics as in the incremental mapper's global BA: the focal
-        from focal_min_images images on, the distortion from distortion_min_images on, and a BA that leaves a
-        camera implausible undone and repeated with less refined."""
+        from focal_min_images images on, the distortion (unless not `distortion`) from distortion_min_images on,
+        and a BA that leaves a camera implausible undone and repeated with less refined."""
         cfg = self.config
         n = int(m.registered.sum())
         focal = intrinsics and cfg.refine_intrinsics and n >= cfg.focal_min_images
-        distortion = n >= cfg.distortion_min_images
+        distortion = distortion and n >= cfg.distortion_min_images
         saved = (m.R.copy(), m.t.copy(), m.xyz.data.copy(), {c: cam.params.copy() for c, cam in m.cameras.items()})
         for intr, dist in dict.fromkeys([(focal, distortion), (focal, False), (False, False)]):
             out = bundle_adjust(m, m.registered_images(), cfg, point_ids=m.alive_points(), refine_intrinsics=intr,

@@ -3,10 +3,11 @@
 `calibrate_focals` first sets each guessed focal length (not trusted, 1.2 * max(w, h)) from the pairs'
 fundamental matrices, as GLOMAP calibrates its view graph: an essential matrix E = K2^T F K1 has two equal
 singular values, so the focal that makes (s1 - s2) / (s1 + s2) smallest over all the camera's pairs is the one
-the pairs support (one scale per camera, searched over 0.5-2x the guess, cameras in turn). Where the cost
-has no minimum inside that range the guess stays: when the optical axes meet (an orbit around an object) the
-pairs do not observe the focal at all, and the smallest focal tried always wins (object_orbit_small: 384 px for
-the true 560, where the bundle adjustment then took 4x longer to find it than from the 768 px guess). Then
+the pairs support (one scale per camera, searched over 0.25-3x the guess, cameras in turn; herzjesu: 2776 px
+for the true 2760, from 3686). Where the cost has no clear minimum inside that range (under half the cost at
+both ends) the guess stays: when the optical axes meet (an orbit around an object) the pairs do not observe the
+focal, and the smallest focal tried wins (object_orbit_small: 384 px for the true 560); the global mapper then
+finds it with coarse models (global_mapper.py). Then
 `relative_poses` estimates each pair's relative pose from its matches in normalised coordinates (five-point
 RANSAC), with the median triangulation angle of its inliers: a pair under `min_tri_angle_deg` has no usable
 baseline, and gives a rotation only (from its homography where one fits, a camera turning in place).
@@ -22,8 +23,9 @@ from .config import MapperConfig
 from .initialize import two_view_points
 
 _SAMPLE = 1000  # matches a pair's pose and angle are estimated from (as the initial pair's)
-_SCALES = np.geomspace(0.5, 2.0, 121)  # of a guessed focal, tried by the calibration (steps of 1.2%)
+_SCALES = np.geomspace(0.25, 3.0, 161)  # of a guessed focal, tried by the calibration (steps of 1.6%)
 _EDGE = 6  # a minimum this close to either end of the range is no estimate
+_SHARPNESS = 0.5  # the minimum's cost must be under this share of the cost at both ends of the range
 _CALIBRATION_SWEEPS = 3
 _MIN_RELATIVE_INLIERS = 15  # a pair's matches fitting its relative pose (COLMAP's min_num_inliers)
 
@@ -110,8 +112,8 @@ def calibrate_focals(model, pairs: dict, seed: int = 0) -> dict:
                     Ks.append(K)
                 cost += np.minimum(_essential_costs(F, Ks[0], Ks[1]), 0.5)
             best = int(np.argmin(cost))
-            if not _EDGE <= best < len(_SCALES) - _EDGE:
-                continue  # no minimum inside the range: the pairs do not observe the focal (an orbit)
+            if not _EDGE <= best < len(_SCALES) - _EDGE or cost[best] > _SHARPNESS * min(cost[0], cost[-1]):
+                continue  # no clear minimum inside the range: the pairs do not observe the focal (an orbit)
             focal = float(base[c] * _SCALES[best])
             if abs(focal / model.cameras[c].focal() - 1) > 1e-3:
                 model.cameras[c].set_focal(focal)
