@@ -10,8 +10,8 @@ settings), the catalog scenes' ground truth in WORK/scenes/<set>/gt/sparse, the 
 the relative-pose AUC@1 and AUC@5 against the ground truth (eval.metrics: a pair with an unregistered image or
 split across models counts 180 deg) and the mapping wall time: mvrecon's mappers called in this process on the
 database's correspondences (reading the database not counted), pycolmap's `global_mapping` and
-`incremental_mapping` on a copy of the database (seed 0). Each engine runs once per set: on a shared machine
-the times are noisy, so compare ratios within a row.
+`incremental_mapping` on a copy of the database (seed 0). Wall and CPU time (all the process's threads) of
+each; each engine runs once per set: on a shared machine the wall times are noisy, the CPU times less so.
 """
 
 import argparse
@@ -36,25 +36,25 @@ ENGINES = ("mvrecon-global", "mvrecon-incremental", "colmap-global", "colmap-inc
 
 
 def ground_truth(work: Path, name: str):
-    for folder in (work / "scenes" / name, DATA / name):
+    for folder in (work / "scenes" / name, DATA / name, work / name):
         found = find_ground_truth(folder) if folder.is_dir() else None
         if found is not None:
             return found
     return None
 
 
-def run_mvrecon(db: Path, engine: str) -> tuple[list[dict], float]:
+def run_mvrecon(db: Path, engine: str) -> tuple[list[dict], float, float]:
     corr = database.read_correspondences(db)
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     if engine == "mvrecon-global":
         result = map_correspondences_globally(corr, MapperConfig(mapper="global"))
     else:
         result = map_correspondences(corr, MapperConfig())
-    seconds = time.perf_counter() - start
-    return [{m.names[i]: (m.R[i], m.t[i]) for i in m.registered_images()} for m in result.models], seconds
+    seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
+    return [{m.names[i]: (m.R[i], m.t[i]) for i in m.registered_images()} for m in result.models], seconds, cpu
 
 
-def run_colmap(db: Path, engine: str) -> tuple[list[dict], float]:
+def run_colmap(db: Path, engine: str) -> tuple[list[dict], float, float]:
     import pycolmap
 
     from mvrecon.eval.models import poses
@@ -62,19 +62,21 @@ def run_colmap(db: Path, engine: str) -> tuple[list[dict], float]:
     with tempfile.TemporaryDirectory() as tmp:
         copy = Path(tmp) / "database.db"
         shutil.copyfile(db, copy)
+        out = Path(tmp) / "out"
+        out.mkdir()
         pycolmap.set_random_seed(0)
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.process_time()
         if engine == "colmap-global":
             opts = pycolmap.GlobalPipelineOptions()
             opts.random_seed = 0
-            found = pycolmap.global_mapping(copy, "", Path(tmp) / "out", opts)
+            found = pycolmap.global_mapping(copy, tmp, out, opts)
         else:
             opts = pycolmap.IncrementalPipelineOptions()
             opts.random_seed = 0
-            found = pycolmap.incremental_mapping(copy, "", Path(tmp) / "out", opts)
-        seconds = time.perf_counter() - start
+            found = pycolmap.incremental_mapping(copy, tmp, out, opts)
+        seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
         models = sorted(found.values(), key=lambda r: r.num_reg_images(), reverse=True)
-        return [poses(r) for r in models], seconds
+        return [poses(r) for r in models], seconds, cpu
 
 
 def main(argv=None) -> int:
@@ -86,8 +88,8 @@ def main(argv=None) -> int:
     names = [n for n in args.only.split(",") if n] or sorted(
         p.parent.parent.name for p in args.work.glob("*/database/database.db"))
     engines = [e for e in args.engines.split(",") if e]
-    print("| set | engine | registered | largest | AUC@1 | AUC@5 | mapping s |")
-    print("|---|---|---|---|---|---|---|")
+    print("| set | engine | registered | largest | AUC@1 | AUC@5 | mapping s | CPU s |")
+    print("|---|---|---|---|---|---|---|---|")
     for name in names:
         db = args.work / name / "database" / "database.db"
         gt_path = ground_truth(args.work, name)
@@ -98,14 +100,14 @@ def main(argv=None) -> int:
         gt = load_ground_truth_for(gt_path, [im.name for im in corr.images.values()])
         for engine in engines:
             try:
-                models, seconds = (run_mvrecon if engine.startswith("mvrecon") else run_colmap)(db, engine)
+                models, seconds, cpu = (run_mvrecon if engine.startswith("mvrecon") else run_colmap)(db, engine)
             except Exception as exc:  # a failed engine is a row saying so, not the end of the table
                 print(f"| {name} | {engine} | failed: {type(exc).__name__}: {exc} | | | | |", flush=True)
                 continue
             acc = accuracy_summary(models, gt)
             largest = len(models[0]) if models else 0
             print(f"| {name} | {engine} | {acc['registered']}/{len(corr.images)} | {largest} | "
-                  f"{acc['auc@1']:.3f} | {acc['auc@5']:.3f} | {seconds:.1f} |", flush=True)
+                  f"{acc['auc@1']:.3f} | {acc['auc@5']:.3f} | {seconds:.1f} | {cpu:.1f} |", flush=True)
     return 0
 
 

@@ -28,6 +28,7 @@ import numpy as np
 
 from ..progress import progress
 from . import filtering
+from .ba_points import select_points
 from .bundle import bundle_adjust
 from .config import MapperConfig
 from .incremental import MappingResult
@@ -36,11 +37,12 @@ from .register import register_image
 from .rotation_averaging import average_rotations
 from .tracks import build_tracks
 from .translation_averaging import average_translations
-from .triangulate import retriangulate, triangulate_tracks
-from .view_graph import calibrate_focals, oriented_pairs, relative_poses
+from .triangulate import refine_existing_points, retriangulate, triangulate_tracks
+from .view_graph import COARSE_SAMPLE, SAMPLE, calibrate_focals, oriented_pairs, relative_poses
 
 log = logging.getLogger("mvrecon.sfm")
 _GATES_PX = (16.0, 8.0)  # reprojection gates of the first rounds, before the config's own (4 px)
+_COARSE_ITERATIONS = 15  # LM iterations of a coarse model's BA
 _CALIBRATION_PASSES = 3  # coarse models that refine a guessed focal (`_calibrate_by_bundle`)
 _MAX_ROTATION_ERROR_DEG = 5.0  # GLOMAP's threshold on a pair's rotation residual
 _MAX_DIRECTION_ERROR_DEG = 10.0  # a translation direction this far off the solved baseline is dropped
@@ -74,21 +76,27 @@ class GlobalMapper:
         bar = progress(total=n, desc="mapping", unit="img")
         start = time.perf_counter()
         scratch = self._new_model(self.cameras)
-        for c, (guess, focal) in calibrate_focals(scratch, self.pairs, self.config.seed).items():
+        found = calibrate_focals(scratch, self.pairs, self.config.seed)
+        for c, (guess, focal) in found.items():
             log.info("camera %d: focal %.1f px from the view graph (guessed %.1f)", c, focal, guess)
-        graph = relative_poses(scratch, self.pairs, self.config)
+        # a focal the view graph could not calibrate is found by coarse models first, from rougher relative poses
+        guessed = any(not cam.prior_trusted and c not in found for c, cam in scratch.cameras.items())
+        graph = relative_poses(scratch, self.pairs, self.config, COARSE_SAMPLE if guessed else SAMPLE)
         start = self._clock("view_graph", start)
-        for _ in range(_CALIBRATION_PASSES if not all(c.prior_trusted for c in scratch.cameras.values()) else 0):
-            calibrated = self._calibrate_by_bundle(scratch.cameras, graph) if graph.edges else {}
+        for k in range(_CALIBRATION_PASSES if guessed and graph.edges else 0):
+            calibrated = self._calibrate_by_bundle(scratch.cameras, graph)
             for c, params in calibrated.items():
                 log.info("camera %d: focal %.1f px from a coarse global model (was %.1f)", c, params[0],
                          scratch.cameras[c].params[0])
                 scratch.cameras[c].params = params
-            if calibrated:
-                graph = relative_poses(scratch, self.pairs, self.config)
-            start = self._clock("calibration", start)
             if not calibrated:
                 break
+            if k + 1 < _CALIBRATION_PASSES:
+                graph = relative_poses(scratch, self.pairs, self.config, COARSE_SAMPLE)
+            start = self._clock("calibration", start)
+        if guessed:
+            graph = relative_poses(scratch, self.pairs, self.config)
+            start = self._clock("view_graph", start)
         for (a, b), why in graph.rejected.items():
             for i in (a, b):
                 self.reasons.setdefault(i, f"its pairs gave no relative pose: the pair with "
@@ -193,7 +201,7 @@ class GlobalMapper:
         if coarse:
             triangulate_tracks(m, self.tracks, np.arange(len(self.tracks)), self._gated(_GATES_PX[0]), cfg.seed)
             m.deregister_empty_images()  # a camera is refined only when all its registered images are observed
-            self._bundle(m, intrinsics=True, distortion=False)
+            self._bundle(m, intrinsics=True, distortion=False, subset=True, coarse=True)
             return m, component
         self._refine(m, pool)
         self._clock("bundle_adjustment", start)
@@ -214,7 +222,7 @@ class GlobalMapper:
             else:
                 retriangulate(m, self.tracks, loose, cfg.seed)
             self._note_lost(m)
-            self._bundle(m, intrinsics=True)
+            self._bundle(m, intrinsics=True, subset=gate > cfg.max_reproj_error_px)
             self._filter(m, loose)
         dropped = self._drop_unsupported(m)
         if self._register_left(m, pool) or dropped:
@@ -257,18 +265,30 @@ class GlobalMapper:
         return replace(cfg, max_reproj_error_px=max(gate, cfg.max_reproj_error_px),
                        filter_max_reproj_error_px=max(gate, cfg.filter_max_reproj_error_px))
 
-    def _bundle(self, m: Reconstruction, intrinsics: bool, distortion: bool = True) -> None:
+    def _bundle(self, m: Reconstruction, intrinsics: bool, distortion: bool = True, subset: bool = False,
+                coarse: bool = False) -> None:
         """Global BA of every registered image; intrinsics as in the incremental mapper's global BA: the focal
         from focal_min_images images on, the distortion (unless not `distortion`) from distortion_min_images on,
-        and a BA that leaves a camera implausible undone and repeated with less refined."""
+        and a BA that leaves a camera implausible undone and repeated with less refined. With `subset`, as the
+        incremental mapper's BAs during growth, only ba_points_per_image well-spread points per image are
+        optimised and the others re-fitted to the poses (ba_points.py): the rounds at loose gates only need the
+        poses and the focal near. `coarse` (the calibration's models) takes ba_points_per_image_early points
+        per image and stops after `_COARSE_ITERATIONS`: the next pass goes on from where it stopped."""
         cfg = self.config
         n = int(m.registered.sum())
         focal = intrinsics and cfg.refine_intrinsics and n >= cfg.focal_min_images
         distortion = distortion and n >= cfg.distortion_min_images
         saved = (m.R.copy(), m.t.copy(), m.xyz.data.copy(), {c: cam.params.copy() for c, cam in m.cameras.items()})
         for intr, dist in dict.fromkeys([(focal, distortion), (focal, False), (False, False)]):
-            out = bundle_adjust(m, m.registered_images(), cfg, point_ids=m.alive_points(), refine_intrinsics=intr,
-                                refine_distortion=dist, max_iterations=cfg.global_ba_iterations)
+            points = m.alive_points()
+            quota = cfg.ba_points_per_image_early if coarse else cfg.ba_points_per_image
+            if subset and quota > 0:
+                points = select_points(m, m.registered_images(), quota)
+            out = bundle_adjust(m, m.registered_images(), cfg, point_ids=points, refine_intrinsics=intr,
+                                refine_distortion=dist,
+                                max_iterations=_COARSE_ITERATIONS if coarse else cfg.global_ba_iterations)
+            if len(points) < len(m.alive_points()):
+                refine_existing_points(m, np.setdiff1d(m.alive_points(), points))
             self.ba_calls += 1
             self.ba_seconds += out.seconds
             bad = filtering.degenerate_cameras(m)

@@ -20,7 +20,7 @@ from scipy.sparse.linalg import spsolve
 
 from ..geometry.rotation import angle_axis_to_rotmat
 
-_RANDOM_TREES = 40
+_RANDOM_TREES = 20
 _IRLS_ITERATIONS = 12
 
 

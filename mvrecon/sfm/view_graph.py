@@ -9,20 +9,20 @@ both ends) the guess stays: when the optical axes meet (an orbit around an objec
 focal, and the smallest focal tried wins (object_orbit_small: 384 px for the true 560); the global mapper then
 finds it with coarse models (global_mapper.py). Then
 `relative_poses` estimates each pair's relative pose from its matches in normalised coordinates (five-point
-RANSAC), with the median triangulation angle of its inliers: a pair under `min_tri_angle_deg` has no usable
-baseline, and gives a rotation only (from its homography where one fits, a camera turning in place).
+RANSAC), with the median triangulation angle of its inliers; a pair that a homography of a rotation explains
+as well (a camera turning in place) gives that rotation and no translation direction.
 """
 
 from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry.triangulation import triangulation_angle_deg
-from ..geometry.two_view import relative_pose
+from ..geometry.triangulation import triangulation_angle_deg, two_view_midpoints
+from ..geometry.two_view import homography_translation, relative_pose
 from .config import MapperConfig
-from .initialize import two_view_points
 
-_SAMPLE = 1000  # matches a pair's pose and angle are estimated from (as the initial pair's)
+SAMPLE = 1000  # matches a pair's pose and angle are estimated from (as the initial pair's)
+COARSE_SAMPLE = 300  # the same for the coarse models that calibrate a focal
 _SCALES = np.geomspace(0.25, 3.0, 161)  # of a guessed focal, tried by the calibration (steps of 1.6%)
 _EDGE = 6  # a minimum this close to either end of the range is no estimate
 _SHARPNESS = 0.5  # the minimum's cost must be under this share of the cost at both ends of the range
@@ -37,7 +37,7 @@ class ViewEdge:
     R: np.ndarray
     t: np.ndarray
     inliers: int
-    angle_deg: float  # median triangulation angle of the inliers; below the minimum, `t` is not used
+    angle_deg: float  # median triangulation angle of the inliers (0: a rotation); below the minimum `t` is not used
 
 
 @dataclass
@@ -58,10 +58,10 @@ def oriented_pairs(image_ids, pairs) -> dict:
     return out
 
 
-def _sample(matches, seed: int) -> np.ndarray:
-    if len(matches) <= _SAMPLE:
+def _sample(matches, seed: int, size: int = SAMPLE) -> np.ndarray:
+    if len(matches) <= size:
         return matches
-    return matches[np.sort(np.random.default_rng(seed).choice(len(matches), _SAMPLE, replace=False))]
+    return matches[np.sort(np.random.default_rng(seed).choice(len(matches), size, replace=False))]
 
 
 def _fundamental(model, a, b, matches):
@@ -124,39 +124,48 @@ def calibrate_focals(model, pairs: dict, seed: int = 0) -> dict:
     return changed
 
 
-def relative_poses(model, pairs: dict, config: MapperConfig) -> ViewGraph:
-    """The relative pose of each pair at the model's current calibration (see the module docstring)."""
+def relative_poses(model, pairs: dict, config: MapperConfig, sample: int = SAMPLE) -> ViewGraph:
+    """The relative pose of each pair at the model's current calibration (see the module docstring), from at
+    most `sample` of its matches."""
     edges, rejected = {}, {}
     for (a, b), matches in sorted(pairs.items()):
-        matches = _sample(matches, config.seed)
+        matches = _sample(matches, config.seed, sample)
         x1, x2 = model.normalized_keypoints(a)[matches[:, 0]], model.normalized_keypoints(b)[matches[:, 1]]
         ok = np.isfinite(x1).all(axis=1) & np.isfinite(x2).all(axis=1)
         x1, x2 = x1[ok], x2[ok]
         f = 0.5 * (model.camera(a).focal() + model.camera(b).focal())
-        est = relative_pose(x1, x2, config.two_view_max_error_px / f, seed=config.seed)
-        if est is None or est[2].sum() < _MIN_RELATIVE_INLIERS:
-            found = 0 if est is None else int(est[2].sum())
+        threshold = config.two_view_max_error_px / f
+        est = relative_pose(x1, x2, threshold, seed=config.seed)
+        found = 0 if est is None else int(est[2].sum())
+        turn = _rotation_fit(x1, x2, threshold)
+        if turn is not None and turn[1] >= found and turn[2] < np.radians(config.min_tri_angle_deg):
+            edges[(a, b)] = ViewEdge(turn[0], np.zeros(3), turn[1], 0.0)  # a rotation about the camera centre
+            continue
+        if found < _MIN_RELATIVE_INLIERS:
             rejected[(a, b)] = (f"{found} of its {len(matches)} matches fit a relative pose in front of both "
                                 f"views, < {_MIN_RELATIVE_INLIERS}")
             continue
         R, t, inl = est
-        X, z, _ = two_view_points(R, t, x1[inl], x2[inl])
-        front = (z > 0).all(axis=1) & np.isfinite(X).all(axis=1)
+        X = two_view_midpoints(R, t, x1[inl], x2[inl])  # the angle needs no refined points
+        front = np.isfinite(X).all(axis=1)
+        front[front] = (X[front, 2] > 0) & (X[front] @ R[2] + t[2] > 0)
         angle = float(np.median(triangulation_angle_deg(np.zeros(3), -R.T @ t, X[front]))) if front.any() else 0.0
-        if angle < config.min_tri_angle_deg:
-            R = _rotation_only(x1, x2, config.two_view_max_error_px / f, R)
-        edges[(a, b)] = ViewEdge(R, t, int(inl.sum()), angle)
+        edges[(a, b)] = ViewEdge(R, t, found, angle)
     return ViewGraph(edges, rejected)
 
 
-def _rotation_only(x1, x2, threshold: float, fallback) -> np.ndarray:
-    """The rotation of a pair without baseline: the nearest rotation to its normalised homography (x2 ~ H x1),
-    or `fallback` (the essential matrix's) when no homography fits."""
+def _rotation_fit(x1, x2, threshold: float):
+    """(nearest rotation, inliers, |t|/d) of the pair's normalised homography (x2 ~ H x1), or None when none
+    fits: |t|/d near 0 (the spread of its singular values, `homography_translation`) is a camera turning in
+    place, whose essential matrix is degenerate and whose rotation is the homography's."""
     import cv2
 
+    if len(x1) < 4:
+        return None
     H, mask = cv2.findHomography(x1, x2, cv2.RANSAC, threshold)
     if H is None or mask is None or mask.sum() < _MIN_RELATIVE_INLIERS:
-        return fallback
-    U, _, Vt = np.linalg.svd(H if np.linalg.det(H) > 0 else -H)  # H is known up to a scale of either sign
+        return None
+    H = H if np.linalg.det(H) > 0 else -H  # H is known up to a scale of either sign
+    U, _, Vt = np.linalg.svd(H)
     R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    return R
+    return R, int(mask.sum()), homography_translation(H, np.eye(3), np.eye(3))
