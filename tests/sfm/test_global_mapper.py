@@ -10,6 +10,7 @@ import pytest
 from mvrecon import database
 from mvrecon.cli import main
 from mvrecon.eval.metrics import accuracy_summary
+from mvrecon.eval.models import poses as poses_of
 from mvrecon.eval.models import sparse_models
 from mvrecon.sfm.config import MapperConfig
 from mvrecon.sfm.global_mapper import GlobalMapper, map_correspondences_globally
@@ -137,3 +138,20 @@ def test_catalog_orbit_end_to_end(object_orbit_small, tmp_path):
     assert acc["auc@5"] >= 0.95
     report = json.loads((tmp_path / "run" / "report.json").read_text())
     assert all(s["status"] == "registered" for s in report["images"].values())
+
+
+def test_map_command_runs_the_global_mapper_and_refuses_an_unknown_one(tmp_path, capsys):
+    """`mvrecon map -w WS --mapper global` writes the models and a report; `mapper = "global"` in the [mapper]
+    table of --config is the same choice; a mapper that does not exist is refused naming the file."""
+    (tmp_path / "ws").mkdir()
+    gt = synthetic_database(tmp_path / "ws" / "database.db")
+    assert main(["-q", "map", "-w", str(tmp_path / "ws"), "--mapper", "global"]) == 0
+    (model,) = sparse_models(tmp_path / "ws" / "sparse")
+    assert model.num_reg_images() == 8
+    assert accuracy_summary([poses_of(model)], gt)["auc@1"] >= 0.9
+    report = json.loads((tmp_path / "ws" / "report.json").read_text())
+    assert all(s["status"] == "registered" for s in report["images"].values())
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[mapper]\nmapper = "spiral"\n')
+    assert main(["-q", "map", "-w", str(tmp_path / "ws"), "--config", str(bad), "--overwrite"]) == 2
+    assert f"{bad}: mapper must be one of incremental, global, not 'spiral'" in capsys.readouterr().err
