@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry.rotation import angle_axis_to_rotmat
 from ..geometry.triangulation import triangulation_angle_deg, two_view_midpoints
 from ..geometry.two_view import homography_translation, relative_pose
 from .config import MapperConfig
@@ -146,12 +147,40 @@ def relative_poses(model, pairs: dict, config: MapperConfig, sample: int = SAMPL
                                 f"views, < {_MIN_RELATIVE_INLIERS}")
             continue
         R, t, inl = est
+        R, t = refine_relative_pose(R, t, x1[inl], x2[inl])
         X = two_view_midpoints(R, t, x1[inl], x2[inl])  # the angle needs no refined points
         front = np.isfinite(X).all(axis=1)
         front[front] = (X[front, 2] > 0) & (X[front] @ R[2] + t[2] > 0)
         angle = float(np.median(triangulation_angle_deg(np.zeros(3), -R.T @ t, X[front]))) if front.any() else 0.0
         edges[(a, b)] = ViewEdge(R, t, found, angle)
     return ViewGraph(edges, rejected)
+
+
+def refine_relative_pose(R, t, x1, x2, iterations: int = 10):
+    """(R, t) refined by Levenberg-Marquardt on the Sampson distances of the inlier matches (normalised
+    coordinates): the five-point RANSAC's pose comes from a minimal sample, and with a narrow field of view it
+    can be degrees off (templeSparseRing, 24 deg across: pairs of 150-200 matches 10 deg off in rotation)."""
+    from scipy.optimize import least_squares
+
+    if len(x1) < 6:
+        return R, t
+    h1, h2 = np.c_[x1, np.ones(len(x1))], np.c_[x2, np.ones(len(x2))]
+    basis = np.linalg.svd(t.reshape(1, 3))[2][1:]  # two directions orthogonal to t
+
+    def pose(p):
+        Rp = angle_axis_to_rotmat(p[:3]) @ R
+        tp = t + basis.T @ p[3:]
+        return Rp, tp / np.linalg.norm(tp)
+
+    def sampson(p):
+        Rp, tp = pose(p)
+        E = np.array([[0, -tp[2], tp[1]], [tp[2], 0, -tp[0]], [-tp[1], tp[0], 0]]) @ Rp
+        Ex1, Etx2 = h1 @ E.T, h2 @ E
+        num = np.einsum("ni,ni->n", h2, Ex1)
+        return num / np.sqrt(Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2 + 1e-300)
+
+    fit = least_squares(sampson, np.zeros(5), method="lm", max_nfev=iterations * 6)
+    return pose(fit.x) if fit.cost <= 0.5 * float(np.sum(sampson(np.zeros(5)) ** 2)) else (R, t)
 
 
 def _rotation_fit(x1, x2, threshold: float):
