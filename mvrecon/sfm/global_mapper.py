@@ -214,7 +214,8 @@ class GlobalMapper:
         """Triangulation, global BA and filtering rounds at narrowing gates; then the poses too few matches support
         are taken out, and the images of `pool` left out (poses lost to the filters, taken out, or never placed
         by the averaging) are registered by absolute pose against the points, as the incremental mapper does;
-        a last round of refinement."""
+        a last round of refinement. Every BA but the last optimises a point subset (`_bundle`): on a 150-view
+        orbit BA took 1016 s of a 1625 s mapping, and three of its eight BAs were over every point."""
         cfg = self.config
         for k, gate in enumerate([*_GATES_PX, cfg.max_reproj_error_px]):
             loose = self._gated(gate)
@@ -223,15 +224,15 @@ class GlobalMapper:
             else:
                 retriangulate(m, self.tracks, loose, cfg.seed)
             self._note_lost(m)
-            self._bundle(m, intrinsics=True, subset=gate > cfg.max_reproj_error_px)
+            self._bundle(m, intrinsics=True, subset=True)
             self._filter(m, loose)
         dropped = self._drop_unsupported(m)
         if self._register_left(m, pool) or dropped:
             retriangulate(m, self.tracks, cfg, cfg.seed)
-            self._bundle(m, intrinsics=True)
+            self._bundle(m, intrinsics=True, subset=True)
             self._filter(m, cfg)
             if self._drop_unsupported(m):
-                self._bundle(m, intrinsics=True)
+                self._bundle(m, intrinsics=True, subset=True)
                 self._filter(m, cfg)
         retriangulate(m, self.tracks, cfg, cfg.seed)
         self._bundle(m, intrinsics=True)
