@@ -26,8 +26,8 @@ def add_mapper_options(parser, *, standalone: bool = True) -> None:
     g.add_argument("--seed", type=non_negative_int, default=None,
                    help="random seed: equal inputs and seed give equal models (default 0)")
     g.add_argument("--mapper", choices=MAPPERS, default=None,
-                   help="incremental (default: image by image, as COLMAP's) or global (rotation and translation "
-                        "averaging, then one bundle adjustment: faster on large sets; see docs/global-mapper.md)")
+                   help="incremental (default: image by image, as COLMAP's) or global (all poses at once by "
+                        "rotation and translation averaging, then bundle adjustment; see docs/global-mapper.md)")
     g.add_argument("--optimizer", choices=OPTIMIZERS, default=None,
                    help="GTSAM optimizer for bundle adjustment: plain Levenberg-Marquardt with the points "
                         "eliminated first (lm, default) or SfmLevenbergMarquardt with Schur elimination (sfm)")
