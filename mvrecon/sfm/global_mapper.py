@@ -252,9 +252,7 @@ class GlobalMapper:
             if reg.ok:
                 added.append(i)
                 self.reasons.pop(i, None)
-            elif i not in self.reasons or not m.registered.any():
-                continue
-            else:
+            elif i in self.reasons and "absolute pose" not in self.reasons[i]:  # once, for the first model
                 self.reasons[i] += f"; and its absolute pose against the model failed: {reg.reason}"
         if added:
             log.info("global model: %d image(s) registered by absolute pose: %s", len(added),

@@ -1,8 +1,8 @@
 """The mapping stage: the verified pairs in the workspace's database -> models in sparse/N/ and points.ply.
 
-`map_workspace(config, workspace)` runs the incremental mapper (sfm/incremental.py) through `_run_mapper`: the
-place where another mapper (a global one) plugs in. With `resume`, mapping continues from the workspace's
-snapshot.
+`map_workspace(config, workspace)` runs the incremental mapper (sfm/incremental.py), or the global one
+(sfm/global_mapper.py) with `mapper = "global"`, through `_run_mapper`. With `resume`, incremental mapping
+continues from the workspace's snapshot.
 """
 
 import logging
