@@ -54,7 +54,7 @@ class MapSummary:
 @holding_workspace
 def map_workspace(config: MapperConfig, workspace, *, image_dir=None, text: bool = False, resume: bool = False,
                   overwrite: bool = False, keypoint_colors=None) -> MapSummary:
-    """Run the incremental mapper on the workspace's database and write `sparse/N/` and `points.ply`.
+    """Run the mapper (`config.mapper`) on the workspace's database and write `sparse/N/` and `points.ply`.
 
     With `resume`, mapping continues from the last snapshot in the workspace (`snapshots/mapper.pkl`);
     without it mapping starts over. The points are coloured from `keypoint_colors`
