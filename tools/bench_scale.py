@@ -81,8 +81,7 @@ from mvrecon.commands._options import join_option_value  # noqa: E402
 from mvrecon.errors import InputError  # noqa: E402
 from mvrecon.eval.compare import machine_info  # noqa: E402
 from mvrecon.eval.ground_truth import find_ground_truth, load_ground_truth_for  # noqa: E402
-from mvrecon.eval.runners import RunOptions, run_colmap, run_mvrecon  # noqa: E402
-from mvrecon.io.files import read_json_object  # noqa: E402
+from mvrecon.eval.runners import RunOptions, run_colmap, run_meta, run_mvrecon  # noqa: E402
 from mvrecon.io.gps import read_gps  # noqa: E402
 from mvrecon.io.images import list_images  # noqa: E402
 from mvrecon.progress import clear_line, progress  # noqa: E402
@@ -185,8 +184,8 @@ def render(name: str, count: int, work: Path) -> tuple[Path, Path | None]:
 
 def start_over_if_interrupted(out: Path) -> None:
     """Delete a run that started and never ended: run again, it would resume and time only its second part."""
-    meta = read_json_object(out / "runner.json")
-    if meta is not None and not meta.get("finished"):
+    meta = run_meta(out)
+    if meta and not meta.get("finished"):
         log.info("%s: an interrupted run; starting it again", out)
         shutil.rmtree(out)
 

@@ -6,11 +6,13 @@ from ..config import bounded
 from ..errors import InputError
 
 OPTIMIZERS = ("lm", "sfm")  # MapperConfig.optimizer's choices
+MAPPERS = ("incremental", "global")  # MapperConfig.mapper's choices
 
 
 @dataclass(frozen=True)
 class MapperConfig:
-    """Incremental mapping options; the defaults follow COLMAP's incremental mapper, and each field's comment
+    """Mapping options (the incremental mapper's, which the global mapper's triangulation, bundle adjustment
+    and filters share); the defaults follow COLMAP's incremental mapper, and each field's comment
     names COLMAP's option where there is one. Pixel thresholds are in pixels of the (distorted) image. Values
     from a --config file or a flag are checked against each field's `bounded` range (config.py).
     """
@@ -72,6 +74,8 @@ class MapperConfig:
     focal_min_images: int = bounded(3, 2)
     # below this many images only the focal is refined: a few views fit a wrong distortion
     distortion_min_images: int = bounded(6, 2)
+    # "incremental": image by image (sfm/incremental.py); "global": all poses at once (sfm/global_mapper.py)
+    mapper: str = "incremental"
     # "lm": Levenberg-Marquardt with points eliminated first; "sfm": gtsam.SfmLevenbergMarquardtOptimizer
     optimizer: str = "lm"
     # images a model needs, at most 0.8 x the images, else the largest one stays (COLMAP: min_model_size)
@@ -82,7 +86,10 @@ class MapperConfig:
     seed: int = bounded(0, 0)
 
     def validate(self, source) -> None:
-        """An InputError naming `source` (the config file that set it) for an optimizer the mapper lacks."""
+        """An InputError naming `source` (the config file that set it) for an optimizer or mapper that does not
+        exist."""
+        if self.mapper not in MAPPERS:
+            raise InputError(f"{source}: mapper must be one of {', '.join(MAPPERS)}, not {self.mapper!r}")
         if self.optimizer not in OPTIMIZERS:
             raise InputError(f"{source}: mapper optimizer must be one of {', '.join(OPTIMIZERS)}, "
                              f"not {self.optimizer!r}")

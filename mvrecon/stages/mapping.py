@@ -1,8 +1,8 @@
 """The mapping stage: the verified pairs in the workspace's database -> models in sparse/N/ and points.ply.
 
-`map_workspace(config, workspace)` runs the incremental mapper (sfm/incremental.py) through `_run_mapper`: the
-place where another mapper (a global one) plugs in. With `resume`, mapping continues from the workspace's
-snapshot.
+`map_workspace(config, workspace)` runs the incremental mapper (sfm/incremental.py), or the global one
+(sfm/global_mapper.py) with `mapper = "global"`, through `_run_mapper`. With `resume`, incremental mapping
+continues from the workspace's snapshot.
 """
 
 import logging
@@ -54,7 +54,7 @@ class MapSummary:
 @holding_workspace
 def map_workspace(config: MapperConfig, workspace, *, image_dir=None, text: bool = False, resume: bool = False,
                   overwrite: bool = False, keypoint_colors=None) -> MapSummary:
-    """Run the incremental mapper on the workspace's database and write `sparse/N/` and `points.ply`.
+    """Run the mapper (`config.mapper`) on the workspace's database and write `sparse/N/` and `points.ply`.
 
     With `resume`, mapping continues from the last snapshot in the workspace (`snapshots/mapper.pkl`);
     without it mapping starts over. The points are coloured from `keypoint_colors`
@@ -96,8 +96,13 @@ def map_workspace(config: MapperConfig, workspace, *, image_dir=None, text: bool
 
 def _run_mapper(corr, config, snapshot: Path, resume: bool):
     """The models of the correspondences `corr` (database.Correspondences), with each image's status: the
-    incremental mapper (sfm/incremental.py), the one mapper so far; a second one (global) is chosen here. Its
-    module loads only when mapping runs (GTSAM is heavy for the commands that never map)."""
+    incremental mapper (sfm/incremental.py) or, with `mapper = "global"`, the global one (sfm/global_mapper.py,
+    which maps in one go and has no snapshot to resume from). Their modules load only when mapping runs (GTSAM
+    is heavy for the commands that never map)."""
+    if config.mapper == "global":
+        from ..sfm.global_mapper import map_correspondences_globally
+
+        return map_correspondences_globally(corr, config)
     from ..sfm.incremental import map_correspondences
 
     return map_correspondences(corr, config, snapshot_path=snapshot, resume=resume)

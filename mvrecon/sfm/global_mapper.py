@@ -1,0 +1,361 @@
+"""The global mapper (`--mapper global`): all cameras at once from the view graph, then the points and a global BA.
+
+GLOMAP's pipeline on GTSAM and the incremental mapper's own parts:
+1. View graph (view_graph.py): guessed focal lengths calibrated from the pairs' fundamental matrices, then one
+   relative pose per verified pair; a guessed focal the pairs cannot tell is refined by coarse global models
+   first.
+2. Rotation averaging (rotation_averaging.py): robust initialisation, L1-IRLS, `gtsam.ShonanAveraging3`;
+   pairs whose rotation disagrees by more than 5 degrees are outliers; the largest consistent component is a
+   model.
+3. Translation averaging (translation_averaging.py): the pairs' translation directions turned into the world
+   frame, `gtsam.MFAS` outlier rejection, `gtsam.TranslationRecovery`.
+4. Tracks (tracks.py) triangulated (triangulate.py) in rounds with the reprojection gate narrowing from 16 px to
+   the config's, each round followed by a global bundle adjustment (bundle.py: the incremental mapper's factors,
+   intrinsics refined as there) and the filters (filtering.py).
+5. Catastrophic poses: an image that keeps too few observations fitting within the gate after the rounds (fewer
+   than abs_pose_min_inliers, or under abs_pose_min_inlier_ratio of its triangulated matches) is taken out of
+   the model with that reason and the model is refined again, rather than written at a flipped or far-away pose.
+The images the first model leaves (other components of the view graph, or images whose pairs were outliers)
+are mapped again as the next model, as the incremental mapper starts new models; every image left
+unregistered gets a reason.
+"""
+
+import logging
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from ..progress import progress
+from . import filtering
+from .ba_points import select_points
+from .bundle import bundle_adjust
+from .config import MapperConfig
+from .incremental import MappingResult
+from .model import Camera, Reconstruction
+from .register import register_image
+from .rotation_averaging import average_rotations
+from .tracks import build_tracks
+from .translation_averaging import average_translations
+from .triangulate import refine_existing_points, retriangulate, triangulate_tracks
+from .view_graph import COARSE_SAMPLE, SAMPLE, calibrate_focals, oriented_pairs, relative_poses
+
+log = logging.getLogger("mvrecon.sfm")
+_GATES_PX = (16.0, 8.0)  # reprojection gates of the first rounds, before the config's own (4 px)
+_COARSE_ITERATIONS = 15  # LM iterations of a coarse model's BA
+_CALIBRATION_PASSES = 3  # coarse models that refine a guessed focal (`_calibrate_by_bundle`)
+_MAX_ROTATION_ERROR_DEG = 5.0  # GLOMAP's threshold on a pair's rotation residual
+_MAX_DIRECTION_ERROR_DEG = 10.0  # a translation direction this far off the solved baseline is dropped
+
+
+class GlobalMapper:
+    def __init__(self, corr, config: MapperConfig = MapperConfig()):
+        self.config = config
+        ids = sorted(corr.images)
+        self.image_ids = np.array(ids, dtype=np.int64)
+        self.names = [corr.images[i].name for i in ids]
+        self.camera_of = np.array([corr.images[i].camera_id for i in ids], dtype=np.int64)
+        self.cameras = {cid: Camera(c.model, int(c.width), int(c.height), np.asarray(c.params, float),
+                                    bool(c.prior_trusted), 0.0) for cid, c in corr.cameras.items()}
+        for cam in self.cameras.values():
+            cam.prior_focal = cam.focal()
+        self.keypoints = [np.asarray(corr.keypoints.get(i, np.zeros((0, 2))), float) for i in ids]
+        self.pairs = oriented_pairs(self.image_ids, corr.pairs)
+        self.tracks = build_tracks(self.image_ids, [len(k) for k in self.keypoints], corr.pairs)
+        self.reasons: dict[int, str] = {}
+        self.ba_calls, self.ba_seconds = 0, 0.0
+        self.seconds: dict[str, float] = {}
+
+    def _clock(self, name: str, start: float) -> float:
+        now = time.perf_counter()
+        self.seconds[name] = self.seconds.get(name, 0.0) + now - start
+        return now
+
+    def run(self) -> MappingResult:
+        n = len(self.image_ids)
+        bar = progress(total=n, desc="mapping", unit="img")
+        start = time.perf_counter()
+        scratch = self._new_model(self.cameras)
+        found = calibrate_focals(scratch, self.pairs, self.config.seed)
+        for c, (guess, focal) in found.items():
+            log.info("camera %d: focal %.1f px from the view graph (guessed %.1f)", c, focal, guess)
+        # a focal the view graph could not calibrate is found by coarse models first, from rougher relative poses
+        guessed = any(not cam.prior_trusted and c not in found for c, cam in scratch.cameras.items())
+        graph = relative_poses(scratch, self.pairs, self.config, COARSE_SAMPLE if guessed else SAMPLE)
+        start = self._clock("view_graph", start)
+        for k in range(_CALIBRATION_PASSES if guessed and graph.edges else 0):
+            calibrated = self._calibrate_by_bundle(scratch.cameras, graph)
+            for c, params in calibrated.items():
+                log.info("camera %d: focal %.1f px from a coarse global model (was %.1f)", c, params[0],
+                         scratch.cameras[c].params[0])
+                scratch.cameras[c].params = params
+            if not calibrated:
+                break
+            if k + 1 < _CALIBRATION_PASSES:
+                graph = relative_poses(scratch, self.pairs, self.config, COARSE_SAMPLE)
+            start = self._clock("calibration", start)
+        if guessed:
+            graph = relative_poses(scratch, self.pairs, self.config)
+            start = self._clock("view_graph", start)
+        for (a, b), why in graph.rejected.items():
+            for i in (a, b):
+                self.reasons.setdefault(i, f"its pairs gave no relative pose: the pair with "
+                                           f"{self.names[b if i == a else a]} has {why}")
+        models = []
+        left = np.ones(n, bool)
+        while len(models) < self.config.max_models:
+            keys = [k for k in graph.edges if left[k[0]] and left[k[1]]]
+            if not keys:
+                break
+            m, used = self._map_component(scratch.cameras, graph, keys, left)
+            left[used] = False
+            if m is None:
+                continue
+            if int(m.registered.sum()) >= self.min_model_size():
+                models.append(m)
+                bar.update(int(m.registered.sum()))
+            else:
+                for i in m.registered_images().tolist():
+                    self.reasons[i] = (f"its model stayed at {int(m.registered.sum())} images, under "
+                                       f"min_model_size {self.min_model_size()}, and was discarded")
+        bar.close()
+        models.sort(key=lambda m: -int(m.registered.sum()))
+        self._clock("models", start)
+        return MappingResult(models, self._status(models),
+                             {"tracks": len(self.tracks), "split_inconsistent_tracks": self.tracks.split_inconsistent,
+                              "ba_calls": self.ba_calls, "ba_seconds": self.ba_seconds,
+                              "view_graph_edges": len(graph.edges),
+                              "seconds": {k: round(v, 3) for k, v in self.seconds.items()}})
+
+    def min_model_size(self) -> int:
+        """As the incremental mapper's: min(min_model_size, 0.8 x the number of images, rounded down)."""
+        return min(self.config.min_model_size, int(0.8 * len(self.image_ids)))
+
+    def _new_model(self, cameras) -> Reconstruction:
+        return Reconstruction(self.image_ids, self.names, self.camera_of, cameras, self.keypoints, len(self.tracks))
+
+    def _calibrate_by_bundle(self, cameras, graph) -> dict:
+        """Camera id -> parameters with the focal refined by a coarse global model (one round of triangulation
+        and BA at a loose gate), for the guessed cameras it holds `focal_min_images` images of, where the focal
+        moved more than 5% (a coarse model finds it within a few percent; orbit150: 671, 550, 569 px for the true
+        550): relative poses estimated at a focal far off give rotations and directions that no averaging makes
+        consistent (object_orbit_small from the 768 px guess, 560 true: AUC@5 0.55, and 0.99 after this pass).
+        Only the focal: the coarse model's poses are too rough to tell distortion from focal (the temple's: k1
+        -0.43 beside a focal of 920 for the true 1520, 0). Run again (up to `_CALIBRATION_PASSES`) while the
+        focal moves, as a focal far off is found only part of the way."""
+        m, _ = self._map_component(cameras, graph, list(graph.edges), np.ones(len(self.image_ids), bool),
+                                   coarse=True)
+        if m is None:
+            return {}
+        out = {}
+        for c in np.unique(m.camera_of[m.registered]).tolist():
+            before, cam = cameras[c], m.cameras[c]
+            users = int((m.registered & (m.camera_of == c)).sum())
+            if not before.prior_trusted and users >= self.config.focal_min_images \
+                    and abs(cam.focal() / before.focal() - 1) > 0.05:
+                out[c] = cam.params.copy()
+        return out
+
+    # ----- one model -----
+    def _map_component(self, cameras, graph, keys, pool, coarse: bool = False):
+        """(model or None, images it took from the pool): the largest consistent component of the edges `keys`,
+        joined by the images of `pool` that register to its points (`_refine`); with `coarse` only one round of
+        triangulation and BA (for `_calibrate_by_bundle`)."""
+        n, cfg = len(self.image_ids), self.config
+        start = time.perf_counter()
+        ij = np.array(keys, dtype=np.int64)
+        Rij = np.array([graph.edges[k].R for k in keys])
+        weights = np.array([graph.edges[k].inliers for k in keys], float)
+        rot = average_rotations(n, ij, Rij, weights, _MAX_ROTATION_ERROR_DEG, cfg.seed)
+        start = self._clock("rotation_averaging", start)
+        component = rot.solved.copy()
+        touched = np.zeros(n, bool)
+        touched[ij.ravel()] = True
+        for i in np.flatnonzero(touched & ~component).tolist():
+            self.reasons.setdefault(i, f"its relative rotations disagree with those of its model's images by more "
+                                       f"than {_MAX_ROTATION_ERROR_DEG:g} deg (outlier pairs), or link it to no "
+                                       "model")
+        if component.sum() < 2:
+            return None, touched
+        # translation directions of the consistent pairs with a baseline, in the world frame: C_j - C_i ~ -R_j^T t_ij
+        with_baseline = [k for k, ok in zip(keys, rot.inliers)
+                         if ok and graph.edges[k].angle_deg >= cfg.min_tri_angle_deg]
+        if not with_baseline:
+            for i in np.flatnonzero(component).tolist():
+                self.reasons[i] = (f"no baseline: all its consistent pairs are rotations about the camera centre "
+                                   f"(median triangulation angle < {cfg.min_tri_angle_deg:g} deg): a camera turning "
+                                   "in place, whose camera positions the global mapper cannot find")
+            return None, component
+        tij = np.array(with_baseline, dtype=np.int64)
+        d = -np.einsum("mji,mj->mi", rot.R[tij[:, 1]], np.array([graph.edges[k].t for k in with_baseline]))
+        pos = average_translations(n, tij, d, _MAX_DIRECTION_ERROR_DEG, cfg.seed)
+        start = self._clock("translation_averaging", start)
+        for i in np.flatnonzero(component & ~pos.solved).tolist():
+            self.reasons[i] = ("no position: its pairs with a baseline do not link it to the model's other cameras "
+                               "(too few, too short, or their translation directions are outliers)")
+        placed = pos.solved & component
+        if placed.sum() < 2:
+            return None, component
+        m = self._new_model(cameras)
+        for i in np.flatnonzero(placed).tolist():
+            m.register(i, rot.R[i], -rot.R[i] @ pos.centers[i])
+        if coarse:
+            triangulate_tracks(m, self.tracks, np.arange(len(self.tracks)), self._gated(_GATES_PX[0]), cfg.seed)
+            m.deregister_empty_images()  # a camera is refined only when all its registered images are observed
+            self._bundle(m, intrinsics=True, distortion=False, subset=True, coarse=True)
+            return m, component
+        self._refine(m, pool)
+        self._clock("bundle_adjustment", start)
+        log.info("global model: %d images (%d from averaging), %d points", int(m.registered.sum()),
+                 int(component.sum()), len(m.alive_points()))
+        return m, component | m.registered
+
+    def _refine(self, m: Reconstruction, pool) -> None:
+        """Triangulation, global BA and filtering rounds at narrowing gates; then the poses too few matches support
+        are taken out, and the images of `pool` left out (poses lost to the filters, taken out, or never placed
+        by the averaging) are registered by absolute pose against the points, as the incremental mapper does;
+        a last round of refinement. Every BA but the last optimises a point subset (`_bundle`): on a 150-view
+        orbit BA took 1016 s of a 1625 s mapping, and three of its eight BAs were over every point."""
+        cfg = self.config
+        for k, gate in enumerate([*_GATES_PX, cfg.max_reproj_error_px]):
+            loose = self._gated(gate)
+            if k == 0:
+                triangulate_tracks(m, self.tracks, np.arange(len(self.tracks)), loose, cfg.seed)
+            else:
+                retriangulate(m, self.tracks, loose, cfg.seed)
+            self._note_lost(m)
+            self._bundle(m, intrinsics=True, subset=True)
+            self._filter(m, loose)
+        dropped = self._drop_unsupported(m)
+        if self._register_left(m, pool) or dropped:
+            retriangulate(m, self.tracks, cfg, cfg.seed)
+            self._bundle(m, intrinsics=True, subset=True)
+            self._filter(m, cfg)
+            if self._drop_unsupported(m):
+                self._bundle(m, intrinsics=True, subset=True)
+                self._filter(m, cfg)
+        retriangulate(m, self.tracks, cfg, cfg.seed)
+        self._bundle(m, intrinsics=True)
+        self._filter(m, cfg)
+
+    def _note_lost(self, m: Reconstruction) -> None:
+        for i in m.deregister_empty_images():
+            self.reasons[i] = "no track triangulated with its global pose (the filters removed them all)"
+
+    def _register_left(self, m: Reconstruction, pool) -> list[int]:
+        """Register by absolute pose (register.register_image) the images of `pool` not in the model; each gets
+        its observations from the next retriangulation. Returns those registered."""
+        cfg = self.config
+        added = []
+        for i in np.flatnonzero(pool & ~m.registered).tolist():
+            reg = register_image(m, self.tracks, i, cfg, seed=cfg.seed + i, decide=True)
+            if reg.ok:
+                added.append(i)
+                self.reasons.pop(i, None)
+            elif i in self.reasons and "absolute pose" not in self.reasons[i]:  # once, for the first model
+                self.reasons[i] += f"; and its absolute pose against the model failed: {reg.reason}"
+        if added:
+            log.info("global model: %d image(s) registered by absolute pose: %s", len(added),
+                     ", ".join(self.names[i] for i in added))
+        return added
+
+    def _gated(self, gate: float) -> MapperConfig:
+        """The config with its triangulation and filtering gates widened to `gate` pixels."""
+        cfg = self.config
+        return replace(cfg, max_reproj_error_px=max(gate, cfg.max_reproj_error_px),
+                       filter_max_reproj_error_px=max(gate, cfg.filter_max_reproj_error_px))
+
+    def _bundle(self, m: Reconstruction, intrinsics: bool, distortion: bool = True, subset: bool = False,
+                coarse: bool = False) -> None:
+        """Global BA of every registered image; intrinsics as in the incremental mapper's global BA: the focal
+        from focal_min_images images on, the distortion (unless not `distortion`) from distortion_min_images on,
+        and a BA that leaves a camera implausible undone and repeated with less refined. With `subset`, as the
+        incremental mapper's BAs during growth, only ba_points_per_image well-spread points per image are
+        optimised and the others re-fitted to the poses (ba_points.py): the rounds at loose gates only need the
+        poses and the focal near. `coarse` (the calibration's models) takes ba_points_per_image_early points
+        per image and stops after `_COARSE_ITERATIONS`: the next pass goes on from where it stopped."""
+        cfg = self.config
+        n = int(m.registered.sum())
+        focal = intrinsics and cfg.refine_intrinsics and n >= cfg.focal_min_images
+        distortion = distortion and n >= cfg.distortion_min_images
+        saved = (m.R.copy(), m.t.copy(), m.xyz.data.copy(), {c: cam.params.copy() for c, cam in m.cameras.items()})
+        for intr, dist in dict.fromkeys([(focal, distortion), (focal, False), (False, False)]):
+            points = m.alive_points()
+            quota = cfg.ba_points_per_image_early if coarse else cfg.ba_points_per_image
+            if subset and quota > 0:
+                points = select_points(m, m.registered_images(), quota)
+            out = bundle_adjust(m, m.registered_images(), cfg, point_ids=points, refine_intrinsics=intr,
+                                refine_distortion=dist,
+                                max_iterations=_COARSE_ITERATIONS if coarse else cfg.global_ba_iterations)
+            if len(points) < len(m.alive_points()):
+                refine_existing_points(m, np.setdiff1d(m.alive_points(), points))
+            self.ba_calls += 1
+            self.ba_seconds += out.seconds
+            bad = filtering.degenerate_cameras(m)
+            if not bad:
+                return
+            log.info("bundle adjustment left camera(s) %s implausible; undone", bad)
+            m.R[:], m.t[:], m.xyz.data[:] = saved[0], saved[1], saved[2]
+            for c, params in saved[3].items():
+                m.cameras[c].params = params.copy()
+
+    def _filter(self, m: Reconstruction, config: MapperConfig) -> None:
+        filtering.filter_observations(m, config)
+        filtering.filter_small_angle_points(m, config)
+        for i in m.deregister_empty_images():
+            self.reasons[i] = "lost all its observations to the filters after bundle adjustment"
+
+    def _drop_unsupported(self, m: Reconstruction) -> list[int]:
+        """Deregister the images whose pose too few of their matches support (see the module docstring)."""
+        cfg = self.config
+        obs = m.alive_observations()
+        count = np.bincount(m.obs_image.data[obs], minlength=len(m.image_ids))
+        dropped = []
+        for i in m.registered_images().tolist():
+            t = self.tracks.track_of[i]
+            with_point = int(np.count_nonzero(m.point_of_track[t[t >= 0]] >= 0))
+            ratio = count[i] / with_point if with_point else 0.0
+            if count[i] < cfg.abs_pose_min_inliers or ratio < cfg.abs_pose_min_inlier_ratio:
+                dropped.append(i)
+                self.reasons[i] = (f"its global pose was an outlier: {count[i]} of the {with_point} matches to "
+                                   f"the model's points fit it within {cfg.filter_max_reproj_error_px:g} px after "
+                                   f"bundle adjustment (< abs_pose_min_inliers {cfg.abs_pose_min_inliers} or under "
+                                   f"abs_pose_min_inlier_ratio {cfg.abs_pose_min_inlier_ratio:g})")
+        if dropped and len(dropped) < int(m.registered.sum()) - 1:
+            m.remove_observations(m.observations_of_images(dropped))
+            for i in dropped:
+                m.registered[i] = False
+                if i in m.registration_order:
+                    m.registration_order.remove(i)
+            log.info("global model: %d image(s) with unsupported poses taken out: %s", len(dropped),
+                     ", ".join(self.names[i] for i in dropped))
+            return dropped
+        return []
+
+    # ----- report -----
+    def _status(self, models) -> dict:
+        model_of = {}
+        for k, m in enumerate(models):
+            for i in np.flatnonzero(m.registered).tolist():
+                model_of.setdefault(i, k)
+        paired = np.zeros(len(self.image_ids), bool)
+        for a, b in self.pairs:
+            paired[a] = paired[b] = True
+        out = {}
+        for i, name in enumerate(self.names):
+            if i in model_of:
+                out[name] = {"status": "registered", "model": model_of[i], "reason": None}
+                continue
+            if len(self.keypoints[i]) == 0:
+                reason = "no keypoints: a featureless image (blank, or out of focus)"
+            elif not paired[i]:
+                reason = "no verified pairs with any other image"
+            else:
+                reason = self.reasons.get(i, "not part of any model's consistent view graph")
+            out[name] = {"status": "unregistered", "model": None, "reason": reason}
+        return out
+
+
+def map_correspondences_globally(corr, config: MapperConfig = MapperConfig()) -> MappingResult:
+    """Run the global mapper on a database's correspondences (see `database.read_correspondences`)."""
+    return GlobalMapper(corr, config).run()

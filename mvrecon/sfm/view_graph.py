@@ -1,0 +1,200 @@
+"""The view graph of the global mapper: one relative pose per verified pair, and the focal lengths behind them.
+
+`calibrate_focals` first sets each guessed focal length (not trusted, 1.2 * max(w, h)) from the pairs'
+fundamental matrices, as GLOMAP calibrates its view graph: an essential matrix E = K2^T F K1 has two equal
+singular values, so the focal that makes (s1 - s2) / (s1 + s2) smallest over all the camera's pairs is the one
+the pairs support (one scale per camera, searched over 0.25-3x the guess, cameras in turn; herzjesu: 2776 px
+for the true 2760, from 3686). Where the cost has no clear minimum inside that range (under half the cost at
+both ends) the guess stays: when the optical axes meet (an orbit around an object) the pairs do not observe the
+focal, and the smallest focal tried wins (object_orbit_small: 384 px for the true 560); the global mapper then
+finds it with coarse models (global_mapper.py). Then
+`relative_poses` estimates each pair's relative pose from its matches in normalised coordinates (five-point
+RANSAC), with the median triangulation angle of its inliers; a pair that a homography of a rotation explains
+as well (a camera turning in place) gives that rotation and no translation direction.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..geometry.rotation import angle_axis_to_rotmat
+from ..geometry.triangulation import triangulation_angle_deg, two_view_midpoints
+from ..geometry.two_view import homography_translation, relative_pose
+from .config import MapperConfig
+
+SAMPLE = 1000  # matches a pair's pose and angle are estimated from (as the initial pair's)
+COARSE_SAMPLE = 300  # the same for the coarse models that calibrate a focal
+_SCALES = np.geomspace(0.25, 3.0, 161)  # of a guessed focal, tried by the calibration (steps of 1.6%)
+_EDGE = 6  # a minimum this close to either end of the range is no estimate
+_SHARPNESS = 0.5  # the minimum's cost must be under this share of the cost at both ends of the range
+_CALIBRATION_SWEEPS = 3
+_MIN_RELATIVE_INLIERS = 15  # a pair's matches fitting its relative pose (COLMAP's min_num_inliers)
+
+
+@dataclass
+class ViewEdge:
+    """A pair's relative pose: x2 = R x1 + t in camera coordinates (|t| = 1), from `inliers` matches."""
+
+    R: np.ndarray
+    t: np.ndarray
+    inliers: int
+    angle_deg: float  # median triangulation angle of the inliers (0: a rotation); below the minimum `t` is not used
+
+
+@dataclass
+class ViewGraph:
+    edges: dict  # (a, b) internal image indices, a < b -> ViewEdge
+    rejected: dict  # (a, b) -> why the pair gave no edge
+
+
+def oriented_pairs(image_ids, pairs) -> dict:
+    """(a, b) internal indices with a < b -> (N,2) inlier keypoint indices of a and b, for verified pairs."""
+    index_of = {int(i): k for k, i in enumerate(np.asarray(image_ids).tolist())}
+    out = {}
+    for p in pairs:
+        a, b = index_of.get(p.image_id1), index_of.get(p.image_id2)
+        if a is None or b is None or len(p.inliers) == 0 or a == b:
+            continue
+        out[(a, b) if a < b else (b, a)] = p.inliers if a < b else p.inliers[:, ::-1]
+    return out
+
+
+def _sample(matches, seed: int, size: int = SAMPLE) -> np.ndarray:
+    if len(matches) <= size:
+        return matches
+    return matches[np.sort(np.random.default_rng(seed).choice(len(matches), size, replace=False))]
+
+
+def _fundamental(model, a, b, matches):
+    import cv2
+
+    u1, u2 = model.keypoints[a][matches[:, 0]], model.keypoints[b][matches[:, 1]]
+    if len(u1) < 8:
+        return None
+    F, _ = cv2.findFundamentalMat(u1, u2, cv2.FM_8POINT)
+    return F if F is not None and F.shape == (3, 3) else None
+
+
+def _essential_costs(F, K1s, K2s) -> np.ndarray:
+    """(s1 - s2) / (s1 + s2) of E = K2^T F K1 for stacks of calibrations."""
+    E = np.einsum("nji,jk,nkl->nil", K2s, F, K1s)
+    s = np.linalg.svd(E, compute_uv=False)
+    return (s[:, 0] - s[:, 1]) / np.maximum(s[:, 0] + s[:, 1], 1e-300)
+
+
+def calibrate_focals(model, pairs: dict, seed: int = 0) -> dict:
+    """Set the focal of every camera whose focal is guessed to the one its pairs' fundamental matrices support
+    best (see the module docstring); returns camera id -> (guess, calibrated focal) of those it changed."""
+    guessed = {c for c, cam in model.cameras.items() if not cam.prior_trusted}
+    if not guessed:
+        return {}
+    Fs = []
+    for (a, b), matches in pairs.items():
+        ca, cb = int(model.camera_of[a]), int(model.camera_of[b])
+        if (ca in guessed or cb in guessed) and len(matches) >= 4 * _MIN_RELATIVE_INLIERS:
+            F = _fundamental(model, a, b, _sample(matches, seed))
+            if F is not None:
+                Fs.append((ca, cb, F / np.linalg.norm(F)))
+    changed = {}
+    base = {c: model.cameras[c].focal() for c in guessed}
+    for _ in range(_CALIBRATION_SWEEPS):
+        moved = False
+        for c in sorted(guessed):
+            mine = [(ca, cb, F) for ca, cb, F in Fs if c in (ca, cb)]
+            if not mine:
+                continue
+            cost = np.zeros(len(_SCALES))
+            for ca, cb, F in mine:
+                Ks = []
+                for other in (ca, cb):
+                    K = np.broadcast_to(model.cameras[other].K(), (len(_SCALES), 3, 3)).copy()
+                    if other == c:
+                        K[:, :2, :2] *= (base[c] * _SCALES / model.cameras[c].focal())[:, None, None]
+                    Ks.append(K)
+                cost += np.minimum(_essential_costs(F, Ks[0], Ks[1]), 0.5)
+            best = int(np.argmin(cost))
+            if not _EDGE <= best < len(_SCALES) - _EDGE or cost[best] > _SHARPNESS * min(cost[0], cost[-1]):
+                continue  # no clear minimum inside the range: the pairs do not observe the focal (an orbit)
+            focal = float(base[c] * _SCALES[best])
+            if abs(focal / model.cameras[c].focal() - 1) > 1e-3:
+                model.cameras[c].set_focal(focal)
+                changed[c] = (base[c], focal)
+                moved = True
+        if not moved:
+            break
+    return changed
+
+
+def relative_poses(model, pairs: dict, config: MapperConfig, sample: int = SAMPLE) -> ViewGraph:
+    """The relative pose of each pair at the model's current calibration (see the module docstring), from at
+    most `sample` of its matches."""
+    edges, rejected = {}, {}
+    for (a, b), matches in sorted(pairs.items()):
+        matches = _sample(matches, config.seed, sample)
+        x1, x2 = model.normalized_keypoints(a)[matches[:, 0]], model.normalized_keypoints(b)[matches[:, 1]]
+        ok = np.isfinite(x1).all(axis=1) & np.isfinite(x2).all(axis=1)
+        x1, x2 = x1[ok], x2[ok]
+        f = 0.5 * (model.camera(a).focal() + model.camera(b).focal())
+        threshold = config.two_view_max_error_px / f
+        est = relative_pose(x1, x2, threshold, seed=config.seed)
+        found = 0 if est is None else int(est[2].sum())
+        turn = _rotation_fit(x1, x2, threshold)
+        if turn is not None and turn[1] >= found and turn[2] < np.radians(config.min_tri_angle_deg):
+            edges[(a, b)] = ViewEdge(turn[0], np.zeros(3), turn[1], 0.0)  # a rotation about the camera centre
+            continue
+        if found < _MIN_RELATIVE_INLIERS:
+            rejected[(a, b)] = (f"{found} of its {len(matches)} matches fit a relative pose in front of both "
+                                f"views, < {_MIN_RELATIVE_INLIERS}")
+            continue
+        R, t, inl = est
+        R, t = refine_relative_pose(R, t, x1[inl], x2[inl])
+        X = two_view_midpoints(R, t, x1[inl], x2[inl])  # the angle needs no refined points
+        front = np.isfinite(X).all(axis=1)
+        front[front] = (X[front, 2] > 0) & (X[front] @ R[2] + t[2] > 0)
+        angle = float(np.median(triangulation_angle_deg(np.zeros(3), -R.T @ t, X[front]))) if front.any() else 0.0
+        edges[(a, b)] = ViewEdge(R, t, found, angle)
+    return ViewGraph(edges, rejected)
+
+
+def refine_relative_pose(R, t, x1, x2, iterations: int = 10):
+    """(R, t) refined by Levenberg-Marquardt on the Sampson distances of the inlier matches (normalised
+    coordinates): the five-point RANSAC's pose comes from a minimal sample, and with a narrow field of view it
+    can be degrees off (templeSparseRing, 24 deg across: pairs of 150-200 matches 10 deg off in rotation)."""
+    from scipy.optimize import least_squares
+
+    if len(x1) < 6:
+        return R, t
+    h1, h2 = np.c_[x1, np.ones(len(x1))], np.c_[x2, np.ones(len(x2))]
+    basis = np.linalg.svd(t.reshape(1, 3))[2][1:]  # two directions orthogonal to t
+
+    def pose(p):
+        Rp = angle_axis_to_rotmat(p[:3]) @ R
+        tp = t + basis.T @ p[3:]
+        return Rp, tp / np.linalg.norm(tp)
+
+    def sampson(p):
+        Rp, tp = pose(p)
+        E = np.array([[0, -tp[2], tp[1]], [tp[2], 0, -tp[0]], [-tp[1], tp[0], 0]]) @ Rp
+        Ex1, Etx2 = h1 @ E.T, h2 @ E
+        num = np.einsum("ni,ni->n", h2, Ex1)
+        return num / np.sqrt(Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2 + 1e-300)
+
+    fit = least_squares(sampson, np.zeros(5), method="lm", max_nfev=iterations * 6)
+    return pose(fit.x) if fit.cost <= 0.5 * float(np.sum(sampson(np.zeros(5)) ** 2)) else (R, t)
+
+
+def _rotation_fit(x1, x2, threshold: float):
+    """(nearest rotation, inliers, |t|/d) of the pair's normalised homography (x2 ~ H x1), or None when none
+    fits: |t|/d near 0 (the spread of its singular values, `homography_translation`) is a camera turning in
+    place, whose essential matrix is degenerate and whose rotation is the homography's."""
+    import cv2
+
+    if len(x1) < 4:
+        return None
+    H, mask = cv2.findHomography(x1, x2, cv2.RANSAC, threshold)
+    if H is None or mask is None or mask.sum() < _MIN_RELATIVE_INLIERS:
+        return None
+    H = H if np.linalg.det(H) > 0 else -H  # H is known up to a scale of either sign
+    U, _, Vt = np.linalg.svd(H)
+    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    return R, int(mask.sum()), homography_translation(H, np.eye(3), np.eye(3))
