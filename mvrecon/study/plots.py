@@ -9,7 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..io.images import list_images, read_image
+from ..io.images import list_images, read_image, to_gray
 from .grid import AXES, CLEAN, Cell, Grid
 
 PLOTTED = (("registered_pct", "registered images (%)"), ("auc@1", "relative-pose AUC@1"),
@@ -80,7 +80,7 @@ def _display(path) -> np.ndarray:
 
 def detailed_window(img: np.ndarray, size: int) -> tuple[int, int]:
     """Top-left corner of the size x size window with the most gradient energy (where degradations show)."""
-    grey = img.mean(axis=2).astype(np.float32)
+    grey = to_gray(img, np.float32)
     energy = cv2.Sobel(grey, cv2.CV_32F, 1, 0) ** 2 + cv2.Sobel(grey, cv2.CV_32F, 0, 1) ** 2
     summed = cv2.boxFilter(energy, -1, (size, size), normalize=False, anchor=(0, 0), borderType=cv2.BORDER_CONSTANT)
     h, w = grey.shape

@@ -4,6 +4,7 @@ import html
 import json
 import shutil
 
+import numpy as np
 import pytest
 
 from mvrecon.cli import main
@@ -11,6 +12,7 @@ from mvrecon.errors import InputError
 from mvrecon.io.images import list_images
 from mvrecon.study.degrade import Degradation, degrade_image
 from mvrecon.study.grid import Cell, Grid, parse_levels
+from mvrecon.study.plots import detailed_window
 from mvrecon.study.study import breaking_points, read_csv
 from tests.helpers import DATA as SHARED_DATA
 
@@ -238,3 +240,11 @@ def test_study_of_images_only_in_sub_folders_and_cells_made_from_other_images(ti
     shutil.rmtree(study / "images" / "noise-3" / "b")
     assert main(args) == 2
     assert "(without b/3.png, b/4.png, b/5.png)" in capsys.readouterr().err
+
+
+def test_detailed_window_finds_the_textured_patch():
+    img = np.full((200, 300, 3), 128, np.uint8)
+    rng = np.random.default_rng(0)
+    img[120:160, 200:240] = rng.integers(0, 256, (40, 40, 3), dtype=np.uint8)  # the only detail: 40 x 40 at (200, 120)
+    x, y = detailed_window(img, 40)
+    assert abs(x - 200) <= 2 and abs(y - 120) <= 2
