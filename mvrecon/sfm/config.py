@@ -81,7 +81,7 @@ class MapperConfig:
     # seeds every random choice (RANSAC), so equal inputs give equal models (COLMAP: random_seed)
     seed: int = bounded(0, 0)
 
-    def validate(self, source) -> None:
+    def validate(self, source: str | None) -> None:
         """An InputError naming `source` (the config file that set it) for an optimizer the mapper lacks."""
         if self.optimizer not in OPTIMIZERS:
             raise InputError(f"{source}: mapper optimizer must be one of {', '.join(OPTIMIZERS)}, "
