@@ -25,7 +25,7 @@ from .images import colors_at, read_image
 from .ply import write_ply
 
 if TYPE_CHECKING:
-    import pycolmap  # noqa: PLC0415 - 0.11 s of CPU that a whole run never spends (tests/io)
+    import pycolmap
 
 log = logging.getLogger("mvrecon.io")
 
@@ -208,7 +208,8 @@ def _points_file(head, track, lengths) -> bytes:
     return out.tobytes()
 
 
-def write_models(models: list, sparse_dir: Path | str, image_dir: Path | str | None = None, text: bool = False,
+def write_models(models: list, sparse_dir: Path | str, image_dir: Path | str | None = None,
+                 text: bool = False,
                  keypoint_colors: dict[str, np.ndarray] | None = None) -> list[WrittenModel]:
     """Write models (largest first) to sparse_dir/0, 1, ...; point colours from `keypoint_colors` (see
     point_colors) when it covers a model's images, otherwise from the images in image_dir when given."""
