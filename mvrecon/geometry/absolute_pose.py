@@ -92,7 +92,7 @@ def refine_pose_and_focal(X: np.ndarray, uv: np.ndarray, K: np.ndarray, R: np.nd
     Used when the camera's focal length is only a guess and no registered image shares the camera yet, as
     COLMAP's estimate_focal_length does; the Huber loss keeps a few bad matches from pulling the focal.
     """
-    from scipy.optimize import least_squares  # noqa: PLC0415 - 0.4 s of import, for images of unknown focal only
+    from scipy.optimize import least_squares  # noqa: PLC0415 - slow to import; images of unknown focal only
 
     rvec0 = cv2.Rodrigues(np.asarray(R, dtype=float))[0].ravel()
     f0 = float(K[0, 0])
