@@ -14,7 +14,6 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..io.files import made_folder, read_json_object, write_json
-from .build import KINDS, check_entry
 
 
 def _catalog_dir() -> Path:
@@ -83,6 +82,8 @@ def make_scene(name: str, out_dir: Path | str) -> Path:
     entry that lacks a table or key or makes fewer than 2 views (`build.check_entry`), before the folder is
     touched; an error while building removes the folder when this call created it.
     """
+    from .build import KINDS, check_entry  # noqa: PLC0415 - pycolmap and OpenCV: not for `scene list`
+
     entry, digest, path = load_entry(name)
     out = Path(out_dir)
     info = read_scene_info(out)
