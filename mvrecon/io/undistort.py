@@ -33,7 +33,8 @@ from .sqlite import connect_readonly
 
 
 def export_undistorted(model_dir: Path | str, image_dir: Path | str, out_dir: Path | str, *,
-                       max_image_size: int = -1, text: bool = False, database: Path | str | None = None) -> Path:
+                       max_image_size: int = -1, text: bool = False,
+                       database: Path | str | None = None) -> Path:
     """Undistort the images of the model in `model_dir` into `out_dir`; returns out_dir/sparse/0. `database`:
     the database the model was mapped from, which tells the frame of images with an EXIF orientation."""
     model_dir, image_dir, out_dir = Path(model_dir), Path(image_dir), Path(out_dir)
