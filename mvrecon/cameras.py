@@ -22,7 +22,7 @@ from .io.images import ImageMeta
 CAMERA_MODES = ("auto", "single", "per-folder", "per-image")
 
 
-def report_entry(camera_id, model: str, width, height, params) -> dict:
+def report_entry(camera_id: int, model: str, width: int, height: int, params: np.ndarray) -> dict:
     """A camera as report.json lists it (COLMAP's parameter order), for either engine's model."""
     return {"camera_id": int(camera_id), "model": model, "width": int(width), "height": int(height),
             "params": [float(v) for v in params]}
@@ -92,7 +92,7 @@ def _refuse_fold(model: str, params, size: tuple[int, int] | None, where: str) -
                          "image past that radius has no ray; check the distortion coefficients")
 
 
-def fold_radius(model: str, params, corner: float, samples: int = 20000) -> float | None:
+def fold_radius(model: str, params: np.ndarray, corner: float, samples: int = 20000) -> float | None:
     """The distorted radius (normalised image units) where the model's distortion stops growing with the ray's
     angle from the axis, when that is short of `corner` (normalised too), else None. Rays are sampled by angle up
     to 90 deg, which covers every ray of a pinhole model and every one a fisheye projects, toward the axes and

@@ -9,17 +9,22 @@ does not change results, so it is left out of the hash and of the stored dict.
 import dataclasses
 import hashlib
 import json
+import math
 import tomllib
+from collections.abc import Iterable
 from pathlib import Path
+from typing import Any, TypeVar
 
 from .errors import InputError
+
+ConfigT = TypeVar("ConfigT")  # a config dataclass
 
 
 def _hashed_fields(cfg):
     return [f for f in dataclasses.fields(cfg) if f.metadata.get("hash", True)]
 
 
-def to_dict(cfg, *, all_fields: bool = False) -> dict:
+def to_dict(cfg: object, *, all_fields: bool = False) -> dict:
     """Nested plain dict of a config (tuples become lists); unhashed fields only with `all_fields`."""
     out = {}
     for f in (dataclasses.fields(cfg) if all_fields else _hashed_fields(cfg)):
@@ -34,13 +39,14 @@ def to_dict(cfg, *, all_fields: bool = False) -> dict:
     return out
 
 
-def config_hash(cfg_or_dict) -> str:
+def config_hash(cfg_or_dict: object) -> str:
     """SHA-256 (16 hex digits) of the canonical JSON of a config: equal configs give equal hashes across runs."""
     d = cfg_or_dict if isinstance(cfg_or_dict, dict) else to_dict(cfg_or_dict)
     return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def bounded(default, low=None, high=None, *, low_open: bool = False, **metadata):
+def bounded(default: object, low: float | None = None, high: float | None = None, *, low_open: bool = False,
+            **metadata: object) -> Any:
     """A config field whose overrides (a TOML file or a flag) must lie in [low, high], or (low, high] with
     `low_open`: a negative image size or a ratio of 5 is refused when given, not met as a crash later."""
     return dataclasses.field(default=default,
@@ -50,8 +56,6 @@ def bounded(default, low=None, high=None, *, low_open: bool = False, **metadata)
 def _checked(f, current, value, where: str):
     """`value` for field `f` (whose default-derived value is `current`), of the field's type and within its
     bounds; an InputError naming `where` otherwise."""
-    import math
-
     if isinstance(value, dict):
         raise InputError(f"{where}: expected a single value, not a table")
     if current is None or (isinstance(current, str) and isinstance(value, str)):
@@ -85,7 +89,7 @@ def _checked(f, current, value, where: str):
     return value
 
 
-def with_overrides(cfg, overrides: dict, *, source: str = "overrides"):
+def with_overrides(cfg: ConfigT, overrides: dict, *, source: str = "overrides") -> ConfigT:
     """A copy of `cfg` with fields replaced from a (nested) dict; unknown keys, values of the wrong type and
     values outside a `bounded` field's range raise InputError naming `source` and the key."""
     fields = {f.name: f for f in dataclasses.fields(cfg)}
@@ -104,7 +108,7 @@ def with_overrides(cfg, overrides: dict, *, source: str = "overrides"):
     return dataclasses.replace(cfg, **changes)
 
 
-def with_field(cfg, path: tuple[str, ...], value, *, where: str):
+def with_field(cfg: ConfigT, path: tuple[str, ...], value: object, *, where: str) -> ConfigT:
     """A copy of `cfg` with the (nested) field at `path`, e.g. ("sift", "max_num_features"), set to `value`,
     checked as `with_overrides` checks it; an InputError names `where` (the flag the user gave, say) instead of
     the field, whose name the user may never have seen."""
@@ -116,7 +120,7 @@ def with_field(cfg, path: tuple[str, ...], value, *, where: str):
     return dataclasses.replace(cfg, **{name: _checked(field, current, value, where)})
 
 
-def check_tables(tables: dict, names, *, source: str) -> None:
+def check_tables(tables: dict, names: Iterable[str], *, source: str) -> None:
     """Refuse, naming `source` and the key, a value where one of the table `names` belongs (`mapper = 3` for
     a [mapper] table): it would otherwise reach the code that reads the table's options as a crash."""
     for name in names:
@@ -125,7 +129,7 @@ def check_tables(tables: dict, names, *, source: str) -> None:
                              f"below), got {tables[name]!r}")
 
 
-def load_toml(path) -> dict:
+def load_toml(path: Path | str) -> dict:
     """Read a TOML override file; a missing or malformed file is an InputError naming it."""
     path = Path(path)
     try:

@@ -12,6 +12,7 @@ tells which of COLMAP's cameras it cannot verify without a focal length (`colmap
 
 import os
 import sqlite3
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -87,7 +88,7 @@ def colmap_needs_focal(model: str) -> bool:
     """Whether COLMAP marks every pair of a `model` camera without a focal-length prior DEGENERATE (pycolmap 4.2
     does so for its fisheye models, whose focal length a fundamental matrix cannot give, when it matches and again
     when its mapper loads a database), so that its runs register no image of such a camera."""
-    import pycolmap
+    import pycolmap  # noqa: PLC0415 - 0.11 s of CPU that a whole run never spends (tests/stages)
 
     if model not in pycolmap.CameraModelId.__members__:
         return False
@@ -100,7 +101,7 @@ def colmap_blind_cameras(cameras: dict) -> list[int]:
     return [cid for cid, cam in sorted(cameras.items()) if not cam.prior_trusted and colmap_needs_focal(cam.model)]
 
 
-def pair_configurations(path) -> dict[str, int]:
+def pair_configurations(path: Path | str) -> dict[str, int]:
     """Matched pairs per two-view configuration in the database, most first; read with SQL, as pycolmap's
     reader skips the pairs without inliers, which are the ones that tell why none is verified."""
     with connect_readonly(path) as con:
@@ -150,7 +151,7 @@ class Correspondences:
 
 
 @contextmanager
-def open_database(path):
+def open_database(path: Path | str) -> Iterator[sqlite3.Connection]:
     """Open (creating if needed, in COLMAP's schema) a COLMAP database and close it however the block ends. A
     file that is not a readable SQLite database is an InputError naming it, and so is a folder that cannot be
     written (SQLite makes its journal next to the database)."""
@@ -211,7 +212,7 @@ def pair_images(pair: int) -> tuple[int, int]:
     return int(pair) // _MAX_IMAGE_ID, int(pair) % _MAX_IMAGE_ID
 
 
-def write_camera(db, cam: CameraInfo) -> int:
+def write_camera(db: sqlite3.Connection, cam: CameraInfo) -> int:
     if cam.model not in CAMERA_MODEL_IDS:
         raise ValueError(f"unknown COLMAP camera model {cam.model!r}")
     row = (CAMERA_MODEL_IDS[cam.model], int(cam.width), int(cam.height),
@@ -224,11 +225,12 @@ def write_camera(db, cam: CameraInfo) -> int:
                           "VALUES (?, ?, ?, ?, ?)", row).lastrowid)
 
 
-def write_image(db, name: str, camera_id: int) -> int:
+def write_image(db: sqlite3.Connection, name: str, camera_id: int) -> int:
     return int(db.execute("INSERT INTO images (name, camera_id) VALUES (?, ?)", (name, int(camera_id))).lastrowid)
 
 
-def write_features(db, image_id: int, keypoints: np.ndarray, descriptors: np.ndarray) -> None:
+def write_features(db: sqlite3.Connection, image_id: int, keypoints: np.ndarray,
+                   descriptors: np.ndarray) -> None:
     """Keypoints (N,4): x, y (COLMAP convention), scale, orientation in radians; descriptors (N,128) uint8."""
     kp = np.asarray(keypoints, dtype=np.float32).reshape(-1, 4)
     desc = np.asarray(descriptors, dtype=np.uint8).reshape(len(kp), -1 if len(kp) else 128)
@@ -238,7 +240,7 @@ def write_features(db, image_id: int, keypoints: np.ndarray, descriptors: np.nda
                (int(image_id), _SIFT, *_blob(desc, np.uint8)))
 
 
-def write_matches(db, image_id1: int, image_id2: int, matches: np.ndarray) -> None:
+def write_matches(db: sqlite3.Connection, image_id1: int, image_id2: int, matches: np.ndarray) -> None:
     """Raw (putative) matches, (N,2) keypoint indices of image 1 and image 2."""
     m = np.asarray(matches, dtype=np.uint32).reshape(-1, 2)
     if int(image_id1) > int(image_id2):
@@ -247,7 +249,7 @@ def write_matches(db, image_id1: int, image_id2: int, matches: np.ndarray) -> No
                (pair_id(image_id1, image_id2), *_blob(m, np.uint32)))
 
 
-def write_two_view_geometry(db, pair: PairGeometry) -> None:
+def write_two_view_geometry(db: sqlite3.Connection, pair: PairGeometry) -> None:
     """Stored for the pair in COLMAP's order (smaller image id first), as COLMAP does: the inliers' columns
     swapped, F and E transposed and H inverted when the pair comes the other way round."""
     inliers = np.asarray(pair.inliers, dtype=np.uint32).reshape(-1, 2)
@@ -264,7 +266,7 @@ def write_two_view_geometry(db, pair: PairGeometry) -> None:
                 *matrices))
 
 
-def read_cameras(db) -> dict[int, CameraInfo]:
+def read_cameras(db: sqlite3.Connection) -> dict[int, CameraInfo]:
     return {int(cid): CameraInfo(camera_id=int(cid), model=_MODEL_NAMES.get(int(model), f"UNKNOWN_{model}"),
                                  width=int(w), height=int(h), params=np.frombuffer(params or b"", np.float64).copy(),
                                  prior_trusted=bool(prior))
@@ -272,12 +274,12 @@ def read_cameras(db) -> dict[int, CameraInfo]:
                 "SELECT camera_id, model, width, height, params, prior_focal_length FROM cameras ORDER BY camera_id")}
 
 
-def read_images(db) -> dict[int, ImageInfo]:
+def read_images(db: sqlite3.Connection) -> dict[int, ImageInfo]:
     return {int(i): ImageInfo(image_id=int(i), name=name, camera_id=int(c))
             for i, name, c in db.execute("SELECT image_id, name, camera_id FROM images ORDER BY image_id")}
 
 
-def read_correspondences(path, min_inliers: int = 0, *, mapped: bool = True) -> Correspondences:
+def read_correspondences(path: Path | str, min_inliers: int = 0, *, mapped: bool = True) -> Correspondences:
     """Load cameras, images, keypoint positions and verified pairs (with at least `min_inliers` inliers).
 
     `mapped`: the correspondences are for mvrecon's mapper, so a camera of a model it does not model is an
@@ -326,7 +328,7 @@ def _check_sqlite(path: Path) -> None:
                          "run again") from None
 
 
-def database_damage(path) -> str | None:
+def database_damage(path: Path | str) -> str | None:
     """What SQLite's `PRAGMA quick_check` finds wrong in the database file `path` (its first problem: a page cut
     off or overwritten since it was written), or None when it finds nothing. It reads every page, unlike
     `_check_sqlite`, which passed a database with 4 KB zeroed in its middle: 40 ms for a 24 MB database."""
@@ -350,7 +352,7 @@ def _matrix_or_none(blob):
 # --- resumable stages (features, matching): what is done, one transaction per unit of work ---
 
 @contextmanager
-def transaction(db, path, nbytes: int):
+def transaction(db: sqlite3.Connection, path: Path | str, nbytes: int) -> Iterator[sqlite3.Connection]:
     """One unit of work (an image's features, a batch of pairs) written whole or not at all: Ctrl-C is held back
     until the block's end, and an error inside it rolls the unit back. The disk must have room for twice the
     block's `nbytes` (the WAL, then the database) first, or the run stops with one line, its earlier units kept."""
@@ -369,22 +371,22 @@ def _one(db, sql: str, *args):
     return db.execute(sql, args).fetchone()
 
 
-def has_features(db, image_id: int) -> bool:
+def has_features(db: sqlite3.Connection, image_id: int) -> bool:
     return bool(_one(db, "SELECT 1 FROM keypoints WHERE image_id = ?", int(image_id)) and
                 _one(db, "SELECT 1 FROM descriptors WHERE image_id = ?", int(image_id)))
 
 
-def num_keypoints(db, image_id: int) -> int:
+def num_keypoints(db: sqlite3.Connection, image_id: int) -> int:
     row = _one(db, "SELECT rows FROM keypoints WHERE image_id = ?", int(image_id))
     return int(row[0]) if row else 0
 
 
-def read_features(db, image_id: int) -> tuple[np.ndarray, np.ndarray]:
+def read_features(db: sqlite3.Connection, image_id: int) -> tuple[np.ndarray, np.ndarray]:
     """(N,4+) float keypoints (x, y in COLMAP pixels first) and (N,128) uint8 descriptors of one image."""
     return read_keypoints(db, image_id), read_descriptors(db, image_id)
 
 
-def read_keypoints(db, image_id: int) -> np.ndarray:
+def read_keypoints(db: sqlite3.Connection, image_id: int) -> np.ndarray:
     """(N,4+) float keypoints of one image, x, y in COLMAP pixels first; (0,4) for an image without any (a blank
     frame, sky)."""
     row = _one(db, "SELECT rows, cols, data FROM keypoints WHERE image_id = ?", int(image_id))
@@ -393,7 +395,7 @@ def read_keypoints(db, image_id: int) -> np.ndarray:
     return _array(row[2], row[0], row[1], np.float32).astype(np.float64)
 
 
-def read_descriptors(db, image_id: int) -> np.ndarray:
+def read_descriptors(db: sqlite3.Connection, image_id: int) -> np.ndarray:
     """(N,128) uint8 descriptors of one image, without its keypoints (retrieval needs only these)."""
     row = _one(db, "SELECT rows, cols, data FROM descriptors WHERE image_id = ?", int(image_id))
     if row is None or not row[0]:
@@ -401,28 +403,28 @@ def read_descriptors(db, image_id: int) -> np.ndarray:
     return _array(row[2], row[0], row[1], np.uint8)
 
 
-def has_two_view_geometry(db, image_id1: int, image_id2: int) -> bool:
+def has_two_view_geometry(db: sqlite3.Connection, image_id1: int, image_id2: int) -> bool:
     return _one(db, "SELECT 1 FROM two_view_geometries WHERE pair_id = ?", pair_id(image_id1, image_id2)) is not None
 
 
-def num_matched_pairs(db) -> int:
+def num_matched_pairs(db: sqlite3.Connection) -> int:
     """Pairs with raw matches stored (COLMAP's NumMatchedImagePairs)."""
     return int(_one(db, "SELECT COUNT(*) FROM matches")[0])
 
 
-def clear_matches(db) -> None:
+def clear_matches(db: sqlite3.Connection) -> None:
     """Drop raw matches and verified geometries (when the matching config changes)."""
     db.execute("DELETE FROM matches")
     db.execute("DELETE FROM two_view_geometries")
 
 
-def read_verified_pairs(db) -> list[tuple[int, int, str, int]]:
+def read_verified_pairs(db: sqlite3.Connection) -> list[tuple[int, int, str, int]]:
     """(image_id1, image_id2, configuration name, inlier count) of every pair with at least one inlier."""
     return [(*pair_images(pair), _config_name(config), int(rows)) for pair, config, rows in db.execute(
         "SELECT pair_id, config, rows FROM two_view_geometries WHERE rows > 0 ORDER BY pair_id")]
 
 
-def database_counts(path) -> dict:
+def database_counts(path: Path | str) -> dict:
     """Images, keypoints per image, verified pairs and mean inliers per pair of a COLMAP database.
 
     One definition for every engine's report: a pair is verified when its two-view geometry is neither

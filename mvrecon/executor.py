@@ -148,7 +148,7 @@ def _init_worker():
     pycolmap is loaded, prints a stack dump)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    import cv2  # here, in the worker: the parent forks its workers while it has not loaded OpenCV
+    import cv2  # noqa: PLC0415 - here, in the worker: the parent forks its workers before loading OpenCV
 
     cv2.setNumThreads(1)
     keep_freed_memory(one_arena=True)
@@ -581,7 +581,7 @@ def _openblas_controls():
 
 
 @contextmanager
-def blas_threads(n: int):
+def blas_threads(n: int) -> Iterator[None]:
     """Run the block with BLAS limited to `n` threads. When the caller already runs one task per core, BLAS's
     own threads only compete with them, and OpenBLAS threads spin while they wait: on a busy 2-core machine
     descriptor matching ran 3x slower with them than without."""

@@ -12,16 +12,19 @@ failure handler for it on import, which printed a 30-line C stack dump, as if mv
 handler is put back after that import (`keep_handlers_after_import`).
 """
 
+import importlib.util
 import signal
 import sys
 import threading
+from collections.abc import Iterator
 from contextlib import contextmanager
+from types import ModuleType
 
 STOPPING = (signal.SIGINT, signal.SIGTERM)
 
 
 @contextmanager
-def ctrl_c_deferred():
+def ctrl_c_deferred() -> Iterator[None]:
     """Run the block with SIGINT and SIGTERM recorded only; after it, deliver the first to its previous handler
     (the CLI's)."""
     # only the main thread handles signals; None: a handler Python did not install, which it cannot restore
@@ -50,8 +53,6 @@ class _HandlersBack:
     def find_spec(self, name, path=None, target=None):
         if name != self.module:
             return None
-        import importlib.util
-
         sys.meta_path.remove(self)  # found once, by the other finders; the import happens once
         spec = importlib.util.find_spec(name)
         if spec is None or spec.loader is None:
@@ -79,8 +80,8 @@ def keep_handlers_after_import(module: str = "pycolmap") -> None:
         sys.meta_path.insert(0, _HandlersBack(module))
 
 
-def import_open3d():
+def import_open3d() -> ModuleType:
     """The open3d module; its first import runs with Ctrl-C held back."""
     with ctrl_c_deferred():
-        import open3d
+        import open3d  # noqa: PLC0415 - heavy, for the point-cloud readers only, with Ctrl-C held back
     return open3d

@@ -40,8 +40,8 @@ class ReconstructConfig:
     mapper: MapperConfig = MapperConfig()
 
 
-def reconstruct(config: ReconstructConfig, image_dir, out_dir, *, text: bool = False, resume: bool = False,
-                overwrite: bool = False) -> dict:
+def reconstruct(config: ReconstructConfig, image_dir: Path | str, out_dir: Path | str, *, text: bool = False,
+                resume: bool = False, overwrite: bool = False) -> dict:
     """Images -> features -> matches -> models: OUT/database.db, sparse/N/, points.ply, report.json.
 
     A finished run with the same config is not redone (its report is returned); an interrupted one resumes:

@@ -10,6 +10,7 @@ import logging
 import shutil
 import sys
 import time
+from collections.abc import Iterable
 
 _enabled = True
 _shown = None  # the bar currently drawn on stderr's last line, if any
@@ -20,7 +21,7 @@ def set_enabled(enabled: bool) -> None:
     _enabled = enabled
 
 
-def clear_line(record=None) -> bool:
+def clear_line(record: logging.LogRecord | None = None) -> bool:
     """Erase the drawn bar (it is redrawn at its next update); usable as a logging filter, hence `record`."""
     global _shown
     if _shown is not None:
@@ -105,7 +106,8 @@ def _clock(seconds: float) -> str:
     return f"{m // 60}:{m % 60:02d}:{s:02d}" if m >= 60 else f"{m:02d}:{s:02d}"
 
 
-def progress(iterable=None, *, total=None, desc: str = "", unit: str = "it") -> Bar:
+def progress(iterable: Iterable | None = None, *, total: int | None = None, desc: str = "",
+             unit: str = "it") -> Bar:
     """Wrap an iterable (or make a bar to `update()` by hand) with the project's progress bar."""
     disable = not _enabled or logging.getLogger("mvrecon").getEffectiveLevel() > logging.INFO
     return Bar(iterable, total=total, desc=desc, unit=unit, disable=disable)

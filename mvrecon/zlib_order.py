@@ -18,6 +18,7 @@ and the worker processes. One that imported pycolmap first is broken already and
 `TAKEN_OVER` says so, importing mvrecon warns, and `cli.main` runs its command in a fresh interpreter instead.
 """
 
+import ctypes
 import os
 import sys
 import warnings
@@ -26,8 +27,6 @@ import zlib  # noqa: F401  (loads the system's libz.so.1, before pycolmap can be
 
 def _load_order() -> list[str]:
     """The paths of the shared objects of this process in the order they were loaded (`dl_iterate_phdr`)."""
-    import ctypes
-
     class Info(ctypes.Structure):  # the first two fields of `struct dl_phdr_info`
         _fields_ = [("addr", ctypes.c_void_p), ("name", ctypes.c_char_p)]
 
@@ -47,8 +46,6 @@ def _pycolmap_took_zlib() -> bool:
     then libz.so.1 resolved its own calls to pycolmap's copies (see the module's docstring)."""
     if "pycolmap" not in sys.modules or not sys.platform.startswith("linux"):
         return False
-    import ctypes
-
     try:
         order = _load_order()
         core = next(k for k, p in enumerate(order) if f"{os.sep}pycolmap{os.sep}_core" in p)

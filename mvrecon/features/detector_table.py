@@ -9,9 +9,11 @@ rerun after an interruption computes only the missing ones; `write_table` writes
 import csv
 import logging
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ..errors import InputError
@@ -53,7 +55,7 @@ class DetectorTableConfig:
             raise InputError(f"--pairs needs an even number of images, got {len(paths)}")
 
 
-def collect_images(inputs) -> list[Path]:
+def collect_images(inputs: Iterable[Path | str]) -> list[Path]:
     """The image files given, each folder replaced by its images (name order); an InputError names a path that
     does not exist."""
     paths = []
@@ -138,8 +140,6 @@ def measure_table(config: DetectorTableConfig, paths: list[Path], out: Path) -> 
     `out` measured are reused, the others measured and kept as each is done. An image that cannot be decoded
     is skipped with a warning, except with pairs (they are given by position); none decoded is an
     InputError."""
-    import cv2  # OpenCV loads only when a table is measured
-
     stages = Record(out.parent, f"detectors-{out.stem}.json")  # what earlier runs into this table finished
     settings = {"angle": config.angle, "scale": config.scale, "opencv": cv2.__version__,
                 "code": code_digest(*detectors.CODE)}

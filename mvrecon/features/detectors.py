@@ -18,7 +18,15 @@ that a rerun after an edit of one of them computes them again.
 import time
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
+from scipy.spatial import cKDTree
+
+from ..geometry.fundamental import RansacConfig, ransac_fundamental
+from ..io.images import to_gray
+from ..matching.matcher import MatcherConfig, match_descriptors
+from .sift import SiftConfig, extract_sift
+from .surf import SurfConfig, extract_surf
 
 DETECTORS = ("SIFT", "SURF", "FAST", "ORB", "AKAZE", "BRISK")
 BINARY = {"FAST", "ORB", "BRISK", "AKAZE"}  # Hamming-distance descriptors
@@ -35,8 +43,6 @@ class Detection:
 
 
 def _gray(image) -> np.ndarray:
-    from ..io.images import to_gray
-
     return to_gray(image)
 
 
@@ -47,28 +53,20 @@ def _from_cv(kps) -> np.ndarray:
 
 def _opencv_factory(name: str):
     """OpenCV 5 moved AKAZE and BRISK to the contrib module `xfeatures2d`; OpenCV 4 has them in `cv2`."""
-    import cv2
-
     return getattr(cv2, name, None) or getattr(cv2.xfeatures2d, name)
 
 
-def detect(name: str, image, max_features: int = 8192) -> Detection:
+def detect(name: str, image: np.ndarray, max_features: int = 8192) -> Detection:
     """Keypoints and descriptors of one detector on an 8-bit (or any `read_image`) image."""
-    import cv2
-
     name = name.upper()
     gray = _gray(image)
     t0 = time.perf_counter()
     if name == "SIFT":
-        from .sift import SiftConfig, extract_sift
-
         kps, desc = extract_sift(gray, SiftConfig(max_num_features=max_features))
         kps = np.asarray(kps, dtype=np.float64).copy()
         kps[:, :2] -= 0.5  # COLMAP's pixel convention back to array indices
         impl = "opencv (front end)"
     elif name == "SURF":
-        from .surf import SurfConfig, extract_surf
-
         kps, desc, impl = extract_surf(gray, SurfConfig(max_features=max_features))
     elif name in ("FAST", "ORB", "AKAZE", "BRISK"):
         detector = {"FAST": lambda: cv2.FastFeatureDetector_create(),
@@ -100,7 +98,8 @@ def _visible(pts, shape, border: float) -> np.ndarray:
     return (pts[:, 0] >= border) & (pts[:, 0] < w - border) & (pts[:, 1] >= border) & (pts[:, 1] < h - border)
 
 
-def repeatability(kps1, kps2, H, shape1, shape2, eps: float = 2.5, border: float = 10.0) -> float:
+def repeatability(kps1: np.ndarray, kps2: np.ndarray, H: np.ndarray, shape1: tuple[int, ...],
+                  shape2: tuple[int, ...], eps: float = 2.5, border: float = 10.0) -> float:
     """Share of keypoints seen by both images that reappear within eps px under x2 = H x1 (0..1)."""
     kps1, kps2 = np.asarray(kps1)[:, :2], np.asarray(kps2)[:, :2]
     Hinv = np.linalg.inv(H)
@@ -109,8 +108,6 @@ def repeatability(kps1, kps2, H, shape1, shape2, eps: float = 2.5, border: float
     n = min(in1.sum(), in2.sum())
     if n == 0:
         return 0.0
-    from scipy.spatial import cKDTree
-
     p1 = _apply_h(H, kps1[in1])
     p2 = kps2[in2]
     d12, _ = cKDTree(p2).query(p1, distance_upper_bound=eps)
@@ -122,14 +119,10 @@ def repeatability(kps1, kps2, H, shape1, shape2, eps: float = 2.5, border: float
 
 def match(det1: Detection, det2: Detection, name: str, ratio: float = 0.8) -> np.ndarray:
     """(M,2) index pairs: mutual nearest neighbours passing the ratio test (Hamming for binary descriptors)."""
-    import cv2
-
     if det1.descriptors is None or det2.descriptors is None or len(det1.descriptors) < 2 or len(
             det2.descriptors) < 2:
         return np.zeros((0, 2), int)
     if name.upper() == "SIFT":
-        from ..matching.matcher import MatcherConfig, match_descriptors
-
         return np.asarray(match_descriptors(det1.descriptors, det2.descriptors, MatcherConfig(max_ratio=ratio)),
                           dtype=int).reshape(-1, 2)
     norm = cv2.NORM_HAMMING if name.upper() in BINARY else cv2.NORM_L2
@@ -146,8 +139,6 @@ def match(det1: Detection, det2: Detection, name: str, ratio: float = 0.8) -> np
 
 def verified_inliers(det1: Detection, det2: Detection, name: str, threshold: float = 1.0) -> int:
     """Matches consistent with one fundamental matrix (our eight-point RANSAC); 0 below 8 matches."""
-    from ..geometry.fundamental import RansacConfig, ransac_fundamental
-
     pairs = match(det1, det2, name)
     if len(pairs) < 8:
         return 0
@@ -159,19 +150,16 @@ def verified_inliers(det1: Detection, det2: Detection, name: str, threshold: flo
     return int(inliers.sum())
 
 
-def synthetic_homography(shape, angle_deg: float = 20.0, scale: float = 0.8) -> np.ndarray:
+def synthetic_homography(shape: tuple[int, ...], angle_deg: float = 20.0, scale: float = 0.8) -> np.ndarray:
     """Rotation about the image centre with a zoom: the known warp used for repeatability."""
-    import cv2
-
     h, w = shape[:2]
     return np.vstack([cv2.getRotationMatrix2D((w / 2, h / 2), angle_deg, scale), [0, 0, 1]])
 
 
-def warp_repeatability(name: str, image, H, eps: float = 2.5, keypoints=None) -> float:
+def warp_repeatability(name: str, image: np.ndarray, H: np.ndarray, eps: float = 2.5,
+                       keypoints: np.ndarray | None = None) -> float:
     """Repeatability of a detector between an image and its warp by H; `keypoints`: the image's own, when they
     were detected already (the detection is then not run twice)."""
-    import cv2
-
     gray = _gray(image)
     warped = cv2.warpPerspective(gray, H, (gray.shape[1], gray.shape[0]))
     k1 = detect(name, gray).keypoints if keypoints is None else keypoints
@@ -179,7 +167,7 @@ def warp_repeatability(name: str, image, H, eps: float = 2.5, keypoints=None) ->
     return repeatability(k1, k2, H, gray.shape, warped.shape, eps)
 
 
-def measure(name: str, image, H) -> tuple[Detection, dict]:
+def measure(name: str, image: np.ndarray, H: np.ndarray) -> tuple[Detection, dict]:
     """One detector on one image: its Detection (for the pairs) and the table's figures: keypoints, detect_s (the
     time of the detection alone), repeatability under the warp H (0..1) and implementation."""
     det = detect(name, image)

@@ -49,7 +49,7 @@ def extract_sift(image: np.ndarray, config: SiftConfig = SiftConfig(), reduced: 
     `reduced`: the image is the photo decoded at 1/reduced of its size (io.images.read_image_for_detection);
     it is detected at the size the full photo would be, and the keypoints are given in the full photo's
     pixels."""
-    import cv2
+    import cv2  # noqa: PLC0415 - loaded after the feature workers fork (executor._get_context)
 
     gray = to_gray(image)
     h, w = gray.shape[0] * reduced, gray.shape[1] * reduced

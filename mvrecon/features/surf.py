@@ -17,7 +17,9 @@ All stages are vectorised over pixels or keypoints; there is no per-keypoint Pyt
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
+from scipy.ndimage import maximum_filter
 
 from ..io.images import to_gray
 
@@ -40,7 +42,7 @@ class SurfConfig:
     max_features: int = 0
 
 
-def integral_image(gray) -> np.ndarray:
+def integral_image(gray: np.ndarray) -> np.ndarray:
     """(H+1, W+1) float64 cumulative sums with a zero first row and column."""
     g = np.asarray(gray, dtype=np.float64)
     ii = np.zeros((g.shape[0] + 1, g.shape[1] + 1))
@@ -48,7 +50,8 @@ def integral_image(gray) -> np.ndarray:
     return ii
 
 
-def box_sum(ii, y0, x0, y1, x1) -> np.ndarray:
+def box_sum(ii: np.ndarray, y0: np.ndarray | int, x0: np.ndarray | int, y1: np.ndarray | int,
+            x1: np.ndarray | int) -> np.ndarray:
     """Sum over rows y0..y1-1, cols x0..x1-1 (arrays broadcast); coordinates are clipped into the image."""
     H, W = ii.shape[0] - 1, ii.shape[1] - 1
     y0, y1 = np.clip(y0, 0, H), np.clip(y1, 0, H)
@@ -71,7 +74,8 @@ def _filter(ii, cy, cx, size: int, pattern) -> np.ndarray:
     return out / float(size * size)
 
 
-def hessian_responses(ii, size: int, cy, cx) -> tuple[np.ndarray, np.ndarray]:
+def hessian_responses(ii: np.ndarray, size: int, cy: np.ndarray,
+                      cx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(det of the approximated Hessian, sign of its trace) on the centre grid."""
     dxx = _filter(ii, cy, cx, size, _DXX)
     dyy = _filter(ii, cy, cx, size, _DYY)
@@ -79,10 +83,8 @@ def hessian_responses(ii, size: int, cy, cx) -> tuple[np.ndarray, np.ndarray]:
     return dxx * dyy - (0.9 * dxy) ** 2, np.sign(dxx + dyy)
 
 
-def fast_hessian(gray, config: SurfConfig = SurfConfig()) -> np.ndarray:
+def fast_hessian(gray: np.ndarray, config: SurfConfig = SurfConfig()) -> np.ndarray:
     """Keypoints (N, 5): x, y (pixel centres at integers), scale s, response det(H), Laplacian sign."""
-    from scipy.ndimage import maximum_filter
-
     g = np.asarray(gray, dtype=np.float64)
     ii = integral_image(g)
     H, W = g.shape
@@ -146,7 +148,8 @@ def _quadratic_offset(stack, k, i, j) -> tuple[np.ndarray, np.ndarray]:
     return offset, ok
 
 
-def haar(ii, x, y, size) -> tuple[np.ndarray, np.ndarray]:
+def haar(ii: np.ndarray, x: np.ndarray | float, y: np.ndarray | float,
+         size: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
     """Haar wavelet responses (dx, dy) of side `size` centred at (x, y); arrays broadcast."""
     half = np.maximum(np.round(size / 2).astype(int), 1)
     xi, yi = np.round(x).astype(int), np.round(y).astype(int)
@@ -155,7 +158,7 @@ def haar(ii, x, y, size) -> tuple[np.ndarray, np.ndarray]:
     return dx, dy
 
 
-def orientations(ii, kps, window: float = np.pi / 3, bins: int = 42) -> np.ndarray:
+def orientations(ii: np.ndarray, kps: np.ndarray, window: float = np.pi / 3, bins: int = 42) -> np.ndarray:
     """Dominant angle (radians, image axes: x right, y down) of each keypoint (N, >=3: x, y, s)."""
     if len(kps) == 0:
         return np.zeros(0)
@@ -180,7 +183,7 @@ def orientations(ii, kps, window: float = np.pi / 3, bins: int = 42) -> np.ndarr
     return best
 
 
-def descriptors(ii, kps, angles) -> np.ndarray:
+def descriptors(ii: np.ndarray, kps: np.ndarray, angles: np.ndarray) -> np.ndarray:
     """SURF-64 descriptors (N, 64) float32, unit length."""
     n = len(kps)
     if n == 0:
@@ -205,7 +208,7 @@ def descriptors(ii, kps, angles) -> np.ndarray:
     return desc.astype(np.float32)
 
 
-def surf(gray, config: SurfConfig = SurfConfig()) -> tuple[np.ndarray, np.ndarray]:
+def surf(gray: np.ndarray, config: SurfConfig = SurfConfig()) -> tuple[np.ndarray, np.ndarray]:
     """Our SURF: keypoints (N, 4: x, y, scale s, angle in radians; pixel centres at integers) and (N, 64)
     float32 descriptors."""
     g = np.asarray(gray, dtype=np.float64)
@@ -218,8 +221,6 @@ def surf(gray, config: SurfConfig = SurfConfig()) -> tuple[np.ndarray, np.ndarra
 
 
 def opencv_surf_available() -> bool:
-    import cv2
-
     try:
         cv2.xfeatures2d.SURF_create()
         return True
@@ -227,11 +228,9 @@ def opencv_surf_available() -> bool:
         return False
 
 
-def extract_surf(gray, config: SurfConfig = SurfConfig()) -> tuple[np.ndarray, np.ndarray, str]:
+def extract_surf(gray: np.ndarray, config: SurfConfig = SurfConfig()) -> tuple[np.ndarray, np.ndarray, str]:
     """(keypoints (N,4), descriptors, "opencv" | "mvrecon"): OpenCV's SURF when the build has it, else ours."""
     if opencv_surf_available():
-        import cv2
-
         det = cv2.xfeatures2d.SURF_create(config.hessian_threshold, config.octaves, config.layers - 2,
                                           False, config.upright)
         kp, desc = det.detectAndCompute(np.asarray(gray, dtype=np.uint8), None)

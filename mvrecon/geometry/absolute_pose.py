@@ -4,11 +4,13 @@ Image points are "ideal" pixels: distortion removed but the focal length and pri
 RANSAC threshold stays in pixels. Poses are cam_from_world (x = K (R X + t)).
 """
 
+import cv2
 import numpy as np
 
 
-def pnp_ransac(X, uv, K, threshold_px: float, seed: int = 0, confidence: float = 0.9999,
-               max_iterations: int = 10000):
+def pnp_ransac(X: np.ndarray, uv: np.ndarray, K: np.ndarray, threshold_px: float, seed: int = 0,
+               confidence: float = 0.9999,
+               max_iterations: int = 10000) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """(R, t, inlier mask) or None: P3P minimal samples in RANSAC, SQPnP on the inliers, then LM on them.
 
     OpenCV's RANSAC fits its final pose to the inliers with EPnP, which can fail outright on a wide field of
@@ -16,8 +18,6 @@ def pnp_ransac(X, uv, K, threshold_px: float, seed: int = 0, confidence: float =
     optimal and took 0.2 ms there. Of the candidate poses (RANSAC's, SQPnP's, and SQPnP's refined by LM) the
     one with the most inliers, in front of the camera, wins.
     """
-    import cv2
-
     X = np.ascontiguousarray(X, dtype=np.float64).reshape(-1, 3)
     uv = np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 2)
     if len(X) < 4:
@@ -47,7 +47,9 @@ def pnp_ransac(X, uv, K, threshold_px: float, seed: int = 0, confidence: float =
     return best
 
 
-def rival_poses(X, uv, K, inliers, threshold_px: float, min_inliers: float, count: int = 2, seed: int = 0):
+def rival_poses(X: np.ndarray, uv: np.ndarray, K: np.ndarray, inliers: np.ndarray, threshold_px: float,
+                min_inliers: float, count: int = 2,
+                seed: int = 0) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """Other poses that fit many of the matches the best pose leaves out (`inliers` is its mask): a list of
     (R, t, inlier mask over all matches), each from P3P RANSAC on the matches no pose before it fits; the
     search ends at the first that fits fewer than `min_inliers` of those.
@@ -71,7 +73,8 @@ def rival_poses(X, uv, K, inliers, threshold_px: float, min_inliers: float, coun
     return out
 
 
-def reprojection_errors(X, uv, K, R, t) -> np.ndarray:
+def reprojection_errors(X: np.ndarray, uv: np.ndarray, K: np.ndarray, R: np.ndarray,
+                        t: np.ndarray) -> np.ndarray:
     """Pixel distance of each projected point to its observation; inf behind the camera."""
     Xc = np.asarray(X) @ R.T + t
     z = Xc[:, 2]
@@ -82,14 +85,14 @@ def reprojection_errors(X, uv, K, R, t) -> np.ndarray:
     return err
 
 
-def refine_pose_and_focal(X, uv, K, R, t):
+def refine_pose_and_focal(X: np.ndarray, uv: np.ndarray, K: np.ndarray, R: np.ndarray,
+                          t: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """Least-squares pose and focal length (one f for x and y) on inlier matches: (R, t, f).
 
     Used when the camera's focal length is only a guess and no registered image shares the camera yet, as
     COLMAP's estimate_focal_length does; the Huber loss keeps a few bad matches from pulling the focal.
     """
-    import cv2
-    from scipy.optimize import least_squares
+    from scipy.optimize import least_squares  # noqa: PLC0415 - slow to import; images of unknown focal only
 
     rvec0 = cv2.Rodrigues(np.asarray(R, dtype=float))[0].ravel()
     f0 = float(K[0, 0])

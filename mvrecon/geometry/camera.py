@@ -33,7 +33,7 @@ def num_distortion_terms(model: str) -> int:
     return sum(name not in ("f", "fx", "fy", "cx", "cy") for name in PARAM_NAMES[model])
 
 
-def check_model(model: str, params) -> np.ndarray:
+def check_model(model: str, params: np.ndarray) -> np.ndarray:
     """Validated float parameter vector for `model`; ValueError names the model and the expected layout."""
     if model not in PARAM_NAMES:
         raise ValueError(f"unknown camera model {model!r}; expected one of {', '.join(MODELS)}")
@@ -59,7 +59,7 @@ def default_params(model: str, focal: float, width: int, height: int) -> np.ndar
     }[model], dtype=float)
 
 
-def split(model: str, params):
+def split(model: str, params: np.ndarray) -> tuple[float, float, float, float, dict[str, float]]:
     """(fx, fy, cx, cy, distortion dict) of a parameter vector."""
     p = check_model(model, params)
     if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
@@ -72,13 +72,13 @@ def split(model: str, params):
     return fx, fy, cx, cy, dist
 
 
-def calibration_matrix(model: str, params) -> np.ndarray:
+def calibration_matrix(model: str, params: np.ndarray) -> np.ndarray:
     """3x3 K (COLMAP pixel convention)."""
     fx, fy, cx, cy, _ = split(model, params)
     return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
 
 
-def distortion_coefficients(model: str, params) -> np.ndarray:
+def distortion_coefficients(model: str, params: np.ndarray) -> np.ndarray:
     """OpenCV's distortion vector for the model: (k1, k2, p1, p2) as cv2.projectPoints takes it (zeros for
     pinhole models), and for OPENCV_FISHEYE (k1, k2, k3, k4) as cv2.fisheye takes it."""
     _, _, _, _, d = split(model, params)
@@ -86,7 +86,7 @@ def distortion_coefficients(model: str, params) -> np.ndarray:
     return np.array([d.get(name, 0.0) for name in names])
 
 
-def distort(model: str, params, xy) -> np.ndarray:
+def distort(model: str, params: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Normalised undistorted image coordinates (N,2) -> normalised distorted coordinates."""
     if model == "OPENCV_FISHEYE":
         return _distort_fisheye(np.asarray(xy, dtype=float), distortion_coefficients(model, params))
@@ -100,7 +100,8 @@ def distort(model: str, params, xy) -> np.ndarray:
     return np.stack([u + du, v + dv], axis=-1)
 
 
-def undistort_normalized(model: str, params, xy_distorted, iterations: int = 30) -> np.ndarray:
+def undistort_normalized(model: str, params: np.ndarray, xy_distorted: np.ndarray,
+                         iterations: int = 30) -> np.ndarray:
     """Invert `distort` by Newton's method with the analytic Jacobian, vectorised over points; only points
     not yet converged are iterated (past the fold of a strong barrel distortion some never converge)."""
     xd = np.asarray(xy_distorted, dtype=float)
@@ -193,7 +194,7 @@ def _undistort_fisheye(xd, k, iterations: int) -> np.ndarray:
     return xd * np.where(ok, scale, np.nan)[:, None]
 
 
-def project(model: str, params, points_cam) -> np.ndarray:
+def project(model: str, params: np.ndarray, points_cam: np.ndarray) -> np.ndarray:
     """Camera-frame points (N,3), z forward -> pixels (N,2). Points behind the camera give NaN."""
     X = np.asarray(points_cam, dtype=float)
     z = X[..., 2]
@@ -202,13 +203,13 @@ def project(model: str, params, points_cam) -> np.ndarray:
     return normalized_to_pixels(model, params, distort(model, params, xy))
 
 
-def normalized_to_pixels(model: str, params, xy_distorted) -> np.ndarray:
+def normalized_to_pixels(model: str, params: np.ndarray, xy_distorted: np.ndarray) -> np.ndarray:
     fx, fy, cx, cy, _ = split(model, params)
     xy = np.asarray(xy_distorted, dtype=float)
     return np.stack([fx * xy[..., 0] + cx, fy * xy[..., 1] + cy], axis=-1)
 
 
-def pixels_to_normalized(model: str, params, uv) -> np.ndarray:
+def pixels_to_normalized(model: str, params: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Pixels (N,2) -> undistorted normalised coordinates (N,2) (the ray is (x, y, 1))."""
     fx, fy, cx, cy, _ = split(model, params)
     uv = np.asarray(uv, dtype=float)
@@ -216,7 +217,7 @@ def pixels_to_normalized(model: str, params, uv) -> np.ndarray:
     return undistort_normalized(model, params, xd)
 
 
-def focal_length(model: str, params) -> float:
+def focal_length(model: str, params: np.ndarray) -> float:
     """Mean focal length in pixels."""
     fx, fy, *_ = split(model, params)
     return float((fx + fy) / 2)

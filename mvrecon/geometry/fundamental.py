@@ -16,7 +16,7 @@ def _homogeneous(points) -> np.ndarray:
     return np.hstack([p, np.ones((len(p), 1))])
 
 
-def hartley_normalization(points) -> tuple[np.ndarray, np.ndarray]:
+def hartley_normalization(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(normalised points (N,2), 3x3 T) with T moving the centroid to 0 and the mean distance to sqrt(2)."""
     p = np.asarray(points, dtype=float).reshape(-1, 2)
     centroid = p.mean(axis=0)
@@ -26,14 +26,14 @@ def hartley_normalization(points) -> tuple[np.ndarray, np.ndarray]:
     return (p - centroid) * s, T
 
 
-def enforce_rank2(F) -> np.ndarray:
+def enforce_rank2(F: np.ndarray) -> np.ndarray:
     """Closest rank-2 matrix in Frobenius norm: zero the smallest singular value (paper steps 2-4)."""
     U, D, Vt = np.linalg.svd(np.asarray(F, dtype=float))
     D[2] = 0.0
     return U @ np.diag(D) @ Vt
 
 
-def eight_point(x1, x2) -> np.ndarray:
+def eight_point(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """F from n >= 8 correspondences (N,2) by the normalised eight-point algorithm; unit Frobenius norm.
 
     With more than eight points this is the linear least-squares solution (smallest singular vector of A).
@@ -55,7 +55,7 @@ def eight_point(x1, x2) -> np.ndarray:
     return F if F[2, 2] >= 0 else -F
 
 
-def sampson_distance(F, x1, x2) -> np.ndarray:
+def sampson_distance(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """First-order geometric distance (pixels) of each correspondence to the epipolar geometry F."""
     h1, h2 = _homogeneous(x1), _homogeneous(x2)
     Fx1 = h1 @ np.asarray(F).T
@@ -65,7 +65,7 @@ def sampson_distance(F, x1, x2) -> np.ndarray:
     return np.sqrt(num / np.maximum(den, 1e-300))
 
 
-def epipolar_lines(F, points, which: int) -> np.ndarray:
+def epipolar_lines(F: np.ndarray, points: np.ndarray, which: int) -> np.ndarray:
     """Lines (a, b, c) with a x + b y + c = 0, normalised so a^2 + b^2 = 1.
 
     which=2: lines in image 2 of points of image 1 (F x1); which=1: lines in image 1 of points of image 2 (F^T x2).
@@ -75,7 +75,7 @@ def epipolar_lines(F, points, which: int) -> np.ndarray:
     return lines / np.linalg.norm(lines[:, :2], axis=1, keepdims=True)
 
 
-def epipoles(F) -> tuple[np.ndarray, np.ndarray]:
+def epipoles(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Homogeneous epipoles (e1, e2), unit norm: F e1 = 0 (in image 1) and F^T e2 = 0 (in image 2).
 
     Divide by the third coordinate for pixels; a third coordinate near 0 means the epipole is at infinity
@@ -96,7 +96,8 @@ class RansacConfig:
     seed: int = 0
 
 
-def ransac_fundamental(x1, x2, config: RansacConfig = RansacConfig()) -> tuple[np.ndarray, np.ndarray]:
+def ransac_fundamental(x1: np.ndarray, x2: np.ndarray,
+                       config: RansacConfig = RansacConfig()) -> tuple[np.ndarray, np.ndarray]:
     """Robust F: eight-point minimal samples scored by Sampson distance, adaptive iteration count, then a
     least-squares eight-point refit on the inliers (repeated while the inlier set grows).
 

@@ -20,7 +20,7 @@ def _skew(v) -> np.ndarray:
     return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
 
 
-def apply_homography(H, points) -> np.ndarray:
+def apply_homography(H: np.ndarray, points: np.ndarray) -> np.ndarray:
     """(N,2) pixels mapped through a 3x3 homography."""
     p = np.asarray(points, dtype=float).reshape(-1, 2)
     h = np.hstack([p, np.ones((len(p), 1))]) @ np.asarray(H).T
@@ -44,7 +44,8 @@ def _epipole_to_infinity(e, width: float, height: float) -> np.ndarray:
     return G @ R @ T
 
 
-def hartley_rectification(F, x1, x2, size2) -> tuple[np.ndarray, np.ndarray]:
+def hartley_rectification(F: np.ndarray, x1: np.ndarray, x2: np.ndarray,
+                          size2: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Rectifying homographies (H1, H2) for the left and right images from F (x2^T F x1 = 0) and its inlier
     matches x1, x2 (N,2). size2 = (width, height) of the right image. After warping, matches share a row.
     """
@@ -78,7 +79,8 @@ class RectifiedFrame:
     height: int
 
 
-def fit_to_canvas(H1, H2, size1, x1, x2, margin: int = 8) -> RectifiedFrame:
+def fit_to_canvas(H1: np.ndarray, H2: np.ndarray, size1: tuple[int, int], x1: np.ndarray, x2: np.ndarray,
+                  margin: int = 8) -> RectifiedFrame:
     """Scale and shift rectifying homographies so the left image fills a canvas of about its original size.
 
     Both images get the same vertical map (rows must stay aligned) and the same scale; the right image is shifted
@@ -112,7 +114,8 @@ class CalibratedRectification:
     baseline: float
 
 
-def calibrated_rectification(K1, K2, R, t) -> CalibratedRectification:
+def calibrated_rectification(K1: np.ndarray, K2: np.ndarray, R: np.ndarray,
+                             t: np.ndarray) -> CalibratedRectification:
     """Fusiello-style rectification for cameras with x_cam2 = R x_cam1 + t (OpenCV stereoCalibrate's R, T).
 
     The new x axis is the baseline (camera 1 -> camera 2), y is orthogonal to it and to camera 1's optical axis;

@@ -3,7 +3,7 @@
 import numpy as np
 
 
-def quat_to_rotmat(q) -> np.ndarray:
+def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
     """Rotation matrix of a unit quaternion (w, x, y, z); the quaternion is normalised first."""
     w, x, y, z = np.asarray(q, dtype=float) / np.linalg.norm(q)
     return np.array([
@@ -13,7 +13,7 @@ def quat_to_rotmat(q) -> np.ndarray:
     ])
 
 
-def rotmat_to_quat(R) -> np.ndarray:
+def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
     """Unit quaternion (w, x, y, z) with w >= 0 of a rotation matrix: Eigen's (eigen_quaternions, stable near
     180 deg), normalised, so that a matrix read from a file with few digits still gives a unit quaternion."""
     q = eigen_quaternions(R)[0]
@@ -21,7 +21,7 @@ def rotmat_to_quat(R) -> np.ndarray:
     return -q if q[0] < 0 else q
 
 
-def eigen_quaternions(R) -> np.ndarray:
+def eigen_quaternions(R: np.ndarray) -> np.ndarray:
     """(n,4) unit quaternions (w, x, y, z) of rotation matrices (n,3,3), computed as Eigen's Quaternion(matrix)
     does, operation for operation (w may be negative), so that written poses come out in the same bits as
     pycolmap's (io/colmap_model.py)."""
@@ -52,7 +52,7 @@ def eigen_quaternions(R) -> np.ndarray:
     return q[:, [3, 0, 1, 2]]
 
 
-def eigen_rotate(q, X) -> np.ndarray:
+def eigen_rotate(q: np.ndarray, X: np.ndarray) -> np.ndarray:
     """Points X (n,3) turned by unit quaternions q (n,4; w, x, y, z) with Eigen's formula for q * v, the one
     COLMAP projects with: by R instead, all but 2 of templeSparseRing's 1699 point errors in points3D.bin
     differed in the last bits."""
@@ -61,7 +61,7 @@ def eigen_rotate(q, X) -> np.ndarray:
     return X + q[:, :1] * uv + np.cross(q[:, 1:], uv)
 
 
-def angle_axis_to_rotmat(rvec) -> np.ndarray:
+def angle_axis_to_rotmat(rvec: np.ndarray) -> np.ndarray:
     """Rodrigues: rotation by |rvec| radians about rvec."""
     rvec = np.asarray(rvec, dtype=float)
     theta = np.linalg.norm(rvec)
@@ -72,7 +72,7 @@ def angle_axis_to_rotmat(rvec) -> np.ndarray:
     return np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * K @ K
 
 
-def rotation_angle_deg(R) -> float:
+def rotation_angle_deg(R: np.ndarray) -> float:
     """Angle of a rotation matrix in degrees; atan2 of the skew and trace parts stays exact near zero,
     where arccos of the trace alone loses everything below about 1e-6 degrees."""
     R = np.asarray(R, dtype=float)
@@ -81,12 +81,12 @@ def rotation_angle_deg(R) -> float:
     return float(np.degrees(np.arctan2(s, c)))
 
 
-def rotation_error_deg(R_a, R_b) -> float:
+def rotation_error_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
     """Angle of the rotation that takes R_b to R_a, in degrees."""
     return rotation_angle_deg(np.asarray(R_a) @ np.asarray(R_b).T)
 
 
-def vector_angle_deg(a, b) -> float:
+def vector_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     """Angle between two vectors in degrees; 180 when either is zero (an undefined direction counts as failed)."""
     a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
     na, nb = np.linalg.norm(a), np.linalg.norm(b)

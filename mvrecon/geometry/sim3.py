@@ -13,7 +13,7 @@ class Sim3:
     R: np.ndarray
     t: np.ndarray
 
-    def apply(self, points) -> np.ndarray:
+    def apply(self, points: np.ndarray) -> np.ndarray:
         return self.scale * np.asarray(points, dtype=float) @ self.R.T + self.t
 
     def matrix(self) -> np.ndarray:
@@ -27,7 +27,8 @@ class Sim3:
         return Sim3(1.0 / self.scale, Ri, -Ri @ self.t / self.scale)
 
 
-def umeyama(src, dst, with_scale: bool = True, weights=None) -> Sim3:
+def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True,
+            weights: np.ndarray | None = None) -> Sim3:
     """Least-squares Sim3 (or rigid, with_scale=False) taking src (N,3) onto dst (N,3); Umeyama 1991."""
     src, dst = np.asarray(src, dtype=float), np.asarray(dst, dtype=float)
     if src.shape != dst.shape or src.ndim != 2 or src.shape[0] < 3:
@@ -48,8 +49,8 @@ def umeyama(src, dst, with_scale: bool = True, weights=None) -> Sim3:
     return Sim3(scale, R, t)
 
 
-def ransac_umeyama(src, dst, threshold: float, with_scale: bool = True, iterations: int = 1000,
-                   seed: int = 0) -> tuple[Sim3, np.ndarray]:
+def ransac_umeyama(src: np.ndarray, dst: np.ndarray, threshold: float, with_scale: bool = True,
+                   iterations: int = 1000, seed: int = 0) -> tuple[Sim3, np.ndarray]:
     """Robust Sim3: minimal 3-point samples, inliers within `threshold` (dst units), refit on the best inliers.
 
     Returns the transform and the boolean inlier mask. With fewer than 3 points it raises ValueError.

@@ -10,7 +10,7 @@ length for pixels).
 import numpy as np
 
 
-def triangulate_dlt(R, t, x, mask) -> np.ndarray:
+def triangulate_dlt(R: np.ndarray, t: np.ndarray, x: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Linear triangulation (n,3): the null vector of the stacked x cross P X = 0 rows (least squares)."""
     P = np.concatenate([R, t[..., None]], axis=-1)  # (n,k,3,4)
     w = mask[..., None].astype(float)
@@ -24,7 +24,7 @@ def triangulate_dlt(R, t, x, mask) -> np.ndarray:
         return X[:, :3] / X[:, 3:4]
 
 
-def two_view_midpoints(R, t, x1, x2) -> np.ndarray:
+def two_view_midpoints(R: np.ndarray, t: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """Midpoints (n,3) of the closest points of the rays of normalised matches x1 (camera [I|0]) and x2
     (camera [R|t]), NaN where the rays are parallel: closed form, so cheap enough to test pose hypotheses and
     to start a refinement."""
@@ -41,7 +41,8 @@ def two_view_midpoints(R, t, x1, x2) -> np.ndarray:
     return X
 
 
-def residuals(X, R, t, x, mask) -> tuple[np.ndarray, np.ndarray]:
+def residuals(X: np.ndarray, R: np.ndarray, t: np.ndarray, x: np.ndarray,
+              mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Normalised residuals (n,k,2) (zero where mask is False) and depths (n,k)."""
     Xc = np.einsum("nkij,nj->nki", R, X) + t
     z = Xc[..., 2]
@@ -51,7 +52,8 @@ def residuals(X, R, t, x, mask) -> tuple[np.ndarray, np.ndarray]:
     return r, z
 
 
-def refine_points(X, R, t, x, mask, iterations: int = 5) -> np.ndarray:
+def refine_points(X: np.ndarray, R: np.ndarray, t: np.ndarray, x: np.ndarray, mask: np.ndarray,
+                  iterations: int = 5) -> np.ndarray:
     """Gauss-Newton on the normalised reprojection error of each point, all points at once.
 
     DLT minimises an algebraic error; this step moves each point to the (locally) least-squares reprojection
@@ -99,7 +101,8 @@ def _unit_rays(X, centers) -> np.ndarray:
     return rays / np.maximum(np.linalg.norm(rays, axis=-1, keepdims=True), 1e-300)
 
 
-def max_triangulation_angle_deg(X, centers, mask, chunk_elements: int = 2_000_000) -> np.ndarray:
+def max_triangulation_angle_deg(X: np.ndarray, centers: np.ndarray, mask: np.ndarray,
+                                chunk_elements: int = 2_000_000) -> np.ndarray:
     """Largest angle (deg) between any two viewing rays of each point; centers (n,k,3) camera centres.
 
     All view pairs are compared ((n,k,k) cosines), in chunks of points so memory stays bounded for long
@@ -116,7 +119,8 @@ def max_triangulation_angle_deg(X, centers, mask, chunk_elements: int = 2_000_00
     return np.degrees(np.arccos(np.clip(cos.min(axis=(1, 2)), -1.0, 1.0)))
 
 
-def reaches_triangulation_angle(X, centers, mask, min_deg: float) -> np.ndarray:
+def reaches_triangulation_angle(X: np.ndarray, centers: np.ndarray, mask: np.ndarray,
+                                min_deg: float) -> np.ndarray:
     """Whether the largest angle between two viewing rays of each point reaches `min_deg` (the same test as
     `max_triangulation_angle_deg(...) >= min_deg`). The angles to each point's first ray bound that largest
     angle from below and decide nearly every point; only the rest compare all view pairs."""
@@ -134,7 +138,7 @@ def reaches_triangulation_angle(X, centers, mask, min_deg: float) -> np.ndarray:
     return ok
 
 
-def triangulation_angle_deg(center1, center2, X) -> np.ndarray:
+def triangulation_angle_deg(center1: np.ndarray, center2: np.ndarray, X: np.ndarray) -> np.ndarray:
     """Angle (deg) at each point X (n,3) between the rays to two camera centres (n,3) or (3,)."""
     a, b = X - center1, X - center2
     cos = np.sum(a * b, axis=-1) / np.maximum(np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1), 1e-300)

@@ -10,14 +10,15 @@ import numpy as np
 from .triangulation import two_view_midpoints
 
 
-def relative_pose(x1, x2, threshold: float, seed: int = 0, confidence: float = 0.9999):
+def relative_pose(x1: np.ndarray, x2: np.ndarray, threshold: float, seed: int = 0,
+                  confidence: float = 0.9999) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """(R, t, inlier mask) with x2 ~ R x1 + t and |t| = 1, or None when no essential matrix is found.
 
     x1, x2: (N,2) undistorted normalised coordinates. The returned mask keeps only the inliers in front of
     both
     cameras (cheirality check of the chosen decomposition).
     """
-    import cv2
+    import cv2  # noqa: PLC0415 - loaded after the feature workers fork (executor._get_context)
 
     x1 = np.ascontiguousarray(x1, dtype=np.float64).reshape(-1, 2)
     x2 = np.ascontiguousarray(x2, dtype=np.float64).reshape(-1, 2)
@@ -34,12 +35,13 @@ def relative_pose(x1, x2, threshold: float, seed: int = 0, confidence: float = 0
 _FAR = 50.0  # points farther than this many baselines decide nothing about cheirality (OpenCV's choice too)
 
 
-def pose_from_essential(E, x1, x2, candidates):
+def pose_from_essential(E: np.ndarray, x1: np.ndarray, x2: np.ndarray,
+                        candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """(R, t, inliers) of the decomposition of E that puts most `candidates` in front of both cameras (and
     nearer than 50 baselines), or None when fewer than 5 are. The four hypotheses are tested on the rays'
     closed-form midpoints: with OpenCV's recoverPose (a DLT per point and hypothesis) `relative_pose` took
     2.4 ms per templeRing pair, 1.3 ms with this, for the same poses."""
-    import cv2
+    import cv2  # noqa: PLC0415 - loaded after the feature workers fork (executor._get_context)
 
     R1, R2, t = cv2.decomposeEssentialMat(E)
     t = t.ravel()
@@ -60,7 +62,8 @@ def pose_from_essential(E, x1, x2, candidates):
     return R, tt / np.linalg.norm(tt), inliers
 
 
-def focal_from_fundamental(F, principal_point1, principal_point2) -> tuple[float, float]:
+def focal_from_fundamental(F: np.ndarray, principal_point1: np.ndarray,
+                           principal_point2: np.ndarray) -> tuple[float, float]:
     """Focal lengths (f1, f2) of two views from F with known principal points (Bougnoux 1998).
 
     Each is NaN when the formula gives a negative f^2 (noise, or a degenerate configuration such as optical
@@ -84,7 +87,7 @@ def focal_from_fundamental(F, principal_point1, principal_point2) -> tuple[float
     return one(F, p1, p2), one(F.T, p2, p1)
 
 
-def homography_translation(H, K1, K2):
+def homography_translation(H: np.ndarray, K1: np.ndarray, K2: np.ndarray) -> float | np.ndarray:
     """|t|/d of the calibrated homography Hn = K2^-1 H K1 ~ R + t n^T/d, from the spread of its singular values:
     a pure rotation has three equal singular values; a translation along or towards the plane (distance d)
     spreads them by about |t|/d, the parallax angle at the plane in radians. K1, K2 may be stacks (n,3,3) of

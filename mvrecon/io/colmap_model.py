@@ -21,6 +21,7 @@ from ..errors import InputError
 from ..geometry import camera as cammodel
 from ..geometry.rotation import eigen_quaternions, eigen_rotate
 from .files import require_room, some_names
+from .images import colors_at, read_image
 from .ply import write_ply
 
 if TYPE_CHECKING:
@@ -78,13 +79,11 @@ def _mean_colors(model, samples: dict) -> np.ndarray | None:
     return sums / np.maximum(counts, 1)[:, None]
 
 
-def image_colors(model, image_dir) -> np.ndarray:
+def image_colors(model, image_dir: Path | str) -> np.ndarray:
     """RGB (uint8) of every point id sampled in the registered images in image_dir, what pycolmap's
     `extract_colors_for_all_images` gave (bilinear at each observation, averaged per point). An image that
     cannot be read is left out with a warning, as COLMAP does. The keypoints are in the upright frame our
     feature extraction works in; those of a COLMAP database are in the stored one, told by the camera's size."""
-    from .images import colors_at, read_image  # PIL, which only this needs
-
     samples = {}
     for i in model.registration_order:
         name, cam, kp = model.names[i], model.camera(i), model.keypoints[i]
@@ -131,7 +130,7 @@ def _point_errors(model, obs, poses, kp_xy, lengths) -> np.ndarray:
     return np.bincount(point_index, weights=err, minlength=len(lengths)) / np.maximum(lengths, 1)
 
 
-def model_files(model, colors=None) -> tuple[dict[str, bytes], WrittenModel]:
+def model_files(model, colors: np.ndarray | None = None) -> tuple[dict[str, bytes], WrittenModel]:
     """The five .bin files of the registered images, their cameras and the points with observations (coloured
     by `colors`, indexed by point id, when given; else black), and what they hold for points.ply."""
     reg = np.asarray(model.registration_order, dtype=np.int64)  # pycolmap keeps the images in this order
@@ -209,8 +208,9 @@ def _points_file(head, track, lengths) -> bytes:
     return out.tobytes()
 
 
-def write_models(models, sparse_dir, image_dir=None, text: bool = False,
-                 keypoint_colors=None) -> list[WrittenModel]:
+def write_models(models: list, sparse_dir: Path | str, image_dir: Path | str | None = None,
+                 text: bool = False,
+                 keypoint_colors: dict[str, np.ndarray] | None = None) -> list[WrittenModel]:
     """Write models (largest first) to sparse_dir/0, 1, ...; point colours from `keypoint_colors` (see
     point_colors) when it covers a model's images, otherwise from the images in image_dir when given."""
     sparse_dir = Path(sparse_dir)
@@ -234,12 +234,12 @@ def write_models(models, sparse_dir, image_dir=None, text: bool = False,
 
 def _write_text(folder) -> None:
     """The COLMAP text files beside a binary model, written by pycolmap (imported only for --text)."""
-    import pycolmap
+    import pycolmap  # noqa: PLC0415 - 0.11 s of CPU that a whole run never spends (tests/io)
 
     pycolmap.Reconstruction(str(folder)).write_text(str(folder))
 
 
-def model_bytes(rec) -> int:
+def model_bytes(rec: "pycolmap.Reconstruction") -> int:
     """About the size of a pycolmap reconstruction's binary files (the text ones take up to three times as
     much), for a room check before pycolmap writes them: it does not report a failed write (on a full disk it
     left points3D.bin empty). Every keypoint of an image is a 2D point of 24 bytes, a 3D point 51 bytes and 8
@@ -248,10 +248,10 @@ def model_bytes(rec) -> int:
     return 24 * num_points2d + 256 * rec.num_images() + 64 * rec.num_points3D() + 8 * rec.compute_num_observations()
 
 
-def write_text_models(sparse_dir) -> int:
+def write_text_models(sparse_dir: Path | str) -> int:
     """Add the COLMAP text files to every binary model sparse_dir/N (a finished run asked for --text again);
     returns the number of models."""
-    import pycolmap
+    import pycolmap  # noqa: PLC0415 - 0.11 s of CPU that a whole run never spends (tests/io)
 
     dirs = [d for d in sorted(Path(sparse_dir).iterdir()) if (d / "cameras.bin").is_file()]
     recs = [pycolmap.Reconstruction(str(d)) for d in dirs]
@@ -262,7 +262,7 @@ def write_text_models(sparse_dir) -> int:
     return len(dirs)
 
 
-def warn_text_names(models_names, sparse_dir) -> None:
+def warn_text_names(models_names: list[list[str]], sparse_dir: Path | str) -> None:
     """Warn when an image name of the text models sparse_dir/N (`models_names[N]`: its image names) holds white
     space: the text format ends a name at its first space, so COLMAP's reader (pycolmap read 'photo 2.png' back
     as 'photo') and nerfstudio's lose those names; the binary files next to them keep them whole."""
@@ -274,16 +274,16 @@ def warn_text_names(models_names, sparse_dir) -> None:
                         Path(sparse_dir) / str(k) / "images.txt", some_names(map(repr, spaced)))
 
 
-def write_points_ply(written: WrittenModel, path) -> int:
+def write_points_ply(written: WrittenModel, path: Path | str) -> int:
     """Coloured PLY of a written model's points (in point3D-id order); returns the number of points."""
     write_ply(path, written.xyz, written.rgb)
     return len(written.xyz)
 
 
-def load_reconstruction(path) -> "pycolmap.Reconstruction":
+def load_reconstruction(path: Path | str) -> "pycolmap.Reconstruction":
     """A COLMAP model folder (binary or text); an InputError names the folder when it holds no model or one
     that pycolmap cannot read (a cut-off images.bin raises IndexError there, a garbled cameras.bin ValueError)."""
-    import pycolmap
+    import pycolmap  # noqa: PLC0415 - 0.11 s of CPU that a whole run never spends (tests/io)
 
     path = Path(path)
     if not (path / "images.bin").exists() and not (path / "images.txt").exists():

@@ -9,6 +9,7 @@ import fcntl
 import json
 import os
 import shutil
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -18,7 +19,7 @@ _held: dict[Path, int] = {}  # folder -> how many nested `hold_folder` blocks of
 _made: dict[Path, Path] = {}  # folder held -> the outermost folder its `hold_folder` created
 
 
-def replace_whole(dst, write) -> None:
+def replace_whole(dst: Path | str, write: Callable[[Path], object]) -> None:
     """`write(tmp)` to a hidden name next to `dst` (the same suffix: image writers choose the format by it), then
     rename it to `dst`. Hidden, so a folder listed meanwhile (images, a study's cells) does not show it."""
     dst = Path(dst)
@@ -30,7 +31,7 @@ def replace_whole(dst, write) -> None:
         tmp.unlink(missing_ok=True)
 
 
-def require_room(path, nbytes: int, spare: int = 32 << 20) -> None:
+def require_room(path: Path | str, nbytes: int, spare: int = 32 << 20) -> None:
     """Refuse, naming `path`, to write `nbytes` where the disk has less than that and `spare` free. For writers
     that cannot report a full disk themselves: pycolmap aborts the process when a database commit or an image
     of its undistorter fails to be written."""
@@ -44,7 +45,7 @@ def require_room(path, nbytes: int, spare: int = 32 << 20) -> None:
                        f"write on); {DiskFull.advice}")
 
 
-def outermost_new_folder(path) -> Path | None:
+def outermost_new_folder(path: Path | str) -> Path | None:
     """The outermost folder that `Path(path).mkdir(parents=True)` would create (None when `path` exists, unless
     this run's `hold_folder` made it): what a run that fails must remove to leave nothing behind."""
     top = Path(path)
@@ -56,7 +57,9 @@ def outermost_new_folder(path) -> Path | None:
 
 
 @contextmanager
-def made_folder(path, removed_on=BaseException, within=None):
+def made_folder(path: Path | str,
+                removed_on: type[BaseException] | tuple[type[BaseException], ...] = BaseException,
+                within: Path | str | None = None) -> Iterator[Path]:
     """Create folder `path` (with its parents) for the block; when the block raises one of `removed_on`, remove
     what this run created, so a refused or failed run leaves no folder behind, and an existing folder (the user's,
     or an earlier run's) stays. `within`: the path whose new folders count (default `path`; a run that keeps
@@ -72,7 +75,7 @@ def made_folder(path, removed_on=BaseException, within=None):
 
 
 @contextmanager
-def hold_folder(path):
+def hold_folder(path: Path | str) -> Iterator[Path]:
     """Hold output folder `path` for the block, against another mvrecon process: two runs writing one database
     broke the second with a SQLite constraint error, and two compares into one folder each broke the other's runs.
     An exclusive `flock` on the folder itself (no lock file is left behind), which the kernel releases when the
@@ -144,18 +147,18 @@ def printable_name(name: str) -> str:
     return name.encode("utf-8", ESCAPE).decode("utf-8")
 
 
-def some_names(names, shown: int = 1) -> str:
+def some_names(names: Iterable[str], shown: int = 1) -> str:
     """The first `shown` of `names` and how many more, for a message that names a few files."""
     names = list(names)
     return ", ".join(names[:shown]) + (f" and {len(names) - shown} more" if len(names) > shown else "")
 
 
-def write_json(path, data, **dumps) -> None:
+def write_json(path: Path | str, data: object, **dumps: object) -> None:
     """`data` as JSON text (json.dumps options in `dumps`) in `path`, whole or not at all."""
     replace_whole(path, lambda tmp: tmp.write_text(json.dumps(data, **dumps) + "\n"))
 
 
-def read_json_object(path) -> dict | None:
+def read_json_object(path: Path | str) -> dict | None:
     """The JSON object in `path`; None when the file is missing, unreadable, cut off or holds something else."""
     try:
         data = json.loads(Path(path).read_text())

@@ -67,7 +67,7 @@ class ImageMeta:
 OUTPUT_MARKS = ("database.db", "sparse", "scene.json", "study.json", ".mvrecon-degrade.json")
 
 
-def visible_files(folder) -> list[str]:
+def visible_files(folder: Path | str) -> list[str]:
     """Every file under `folder` (POSIX names relative to it, sorted as paths), hidden ones (a dot in the path)
     left out, and so are sub-folders holding a run's outputs (one of OUTPUT_MARKS): an output or export written
     inside the image folder must not come back as input images on the next run."""
@@ -111,7 +111,7 @@ def _identity(path: Path):
         return str(path)
 
 
-def list_images(folder) -> tuple[list[str], dict[str, str]]:
+def list_images(folder: Path | str) -> tuple[list[str], dict[str, str]]:
     """Image names (POSIX, relative to `folder`, sorted) and the skipped files (name -> reason)."""
     folder = Path(folder)
     if not folder.exists():
@@ -241,7 +241,7 @@ def _jpeg_problem(data: bytes) -> str | None:
             i = m.start()
 
 
-def image_metadata(path) -> ImageMeta:
+def image_metadata(path: Path | str) -> ImageMeta:
     """Upright size and camera EXIF (make, model, focal length in mm and 35 mm equivalent), without decoding."""
     path = Path(path)
     try:
@@ -294,13 +294,13 @@ def _focal_from_sensor(focal_mm, sub, exif, stored_width) -> float | None:
     return focal_mm * xres / unit * stored_width / full_width
 
 
-def read_image(path, *, upright: bool = True) -> np.ndarray:
+def read_image(path: Path | str, *, upright: bool = True) -> np.ndarray:
     """Decode an image upright: HxW grey or HxWx3 RGB, uint8 or uint16 as stored; alpha is dropped. With
     `upright=False` the EXIF orientation is not applied: the pixels as stored, the frame COLMAP works in."""
     return _decode(Path(path), 1, upright)
 
 
-def read_image_for_detection(path, detection_size: int) -> tuple[np.ndarray, int]:
+def read_image_for_detection(path: Path | str, detection_size: int) -> tuple[np.ndarray, int]:
     """`read_image(path)`, or for a large JPEG the same picture decoded at 1/2, 1/4 or 1/8 of its size, and
     that factor: (image, 1) or (image, r) as `decoding_for_detection` chooses r."""
     path = Path(path)
@@ -308,7 +308,7 @@ def read_image_for_detection(path, detection_size: int) -> tuple[np.ndarray, int
     return _decode(path, factor, True, grey=grey), factor
 
 
-def decoding_for_detection(path, detection_size: int) -> tuple[int, int, int, bool]:
+def decoding_for_detection(path: Path | str, detection_size: int) -> tuple[int, int, int, bool]:
     """(width, height, r, grey) of an image as stored (its header; (0, 0, 1, False) if unreadable), and the
     fraction 1/r of its size to decode it at for a detector that shrinks it to `detection_size` pixels on its
     long side. libjpeg shrinks a JPEG in its inverse DCT at a fraction of the memory and time of a whole
@@ -337,7 +337,7 @@ _REDUCED = {(2, False): "IMREAD_REDUCED_COLOR_2", (4, False): "IMREAD_REDUCED_CO
 
 def _decode(path: Path, factor: int, upright: bool, grey: bool = False) -> np.ndarray:
     """The pixels of `path` (at 1/factor of its size: a JPEG only) as read_image gives them."""
-    import cv2
+    import cv2  # noqa: PLC0415 - loaded after the feature workers fork (executor._get_context)
 
     try:
         data = np.fromfile(path, dtype=np.uint8)
@@ -369,10 +369,10 @@ def _decode(path: Path, factor: int, upright: bool, grey: bool = False) -> np.nd
     return apply_orientation(image, _orientation(path)) if upright else image
 
 
-def write_image(path, image: np.ndarray) -> None:
+def write_image(path: Path | str, image: np.ndarray) -> None:
     """`cv2.imwrite` (BGR or grey pixels; the format from the suffix) through bytes: OpenCV's own imwrite and
     imread crash the process (SIGSEGV) on a path that is not UTF-8."""
-    import cv2
+    import cv2  # noqa: PLC0415 - loaded after the feature workers fork (executor._get_context)
 
     ok, data = cv2.imencode(Path(path).suffix, image)
     if not ok:
@@ -403,7 +403,7 @@ def apply_orientation(image: np.ndarray, orientation: int) -> np.ndarray:
     return np.ascontiguousarray(op(image)) if op else image
 
 
-def as_uint8(image) -> np.ndarray:
+def as_uint8(image: np.ndarray) -> np.ndarray:
     """8-bit copy: 16-bit (or float) images stretched by their maximum, so 10/12-bit data keeps its contrast; the
     matchers work on 8-bit data."""
     img = np.asarray(image)
@@ -416,13 +416,13 @@ def as_uint8(image) -> np.ndarray:
 LUMA_WEIGHTS = (0.299, 0.587, 0.114)  # ITU-R BT.601, the weights of OpenCV's RGB2GRAY
 
 
-def to_gray(image: np.ndarray, dtype=np.uint8) -> np.ndarray:
+def to_gray(image: np.ndarray, dtype: type[np.uint8] | type[np.float32] = np.uint8) -> np.ndarray:
     """The image in grey, by the BT.601 weights, the one conversion every path uses (an alpha channel is ignored).
 
     uint8 (for detection and matching): OpenCV's RGB2GRAY, then `as_uint8` (a 16-bit image stretched by the
     maximum of its grey); 8-bit grey comes back as given. float32 (for costs that need sub-level differences):
     the weighted sum in float32, unrounded, on the image's own scale."""
-    import cv2
+    import cv2  # noqa: PLC0415 - loaded after the feature workers fork (executor._get_context)
 
     if dtype == np.float32:
         img = np.asarray(image, dtype=np.float32)

@@ -8,6 +8,7 @@ turned as the image is by its EXIF orientation (mvrecon works upright); only a m
 degrees that already has the upright size (width and height swapped) is taken as drawn upright.
 """
 
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -17,12 +18,12 @@ from ..errors import InputError
 from .images import TRANSPOSED, _orientation, apply_orientation, read_image
 
 
-def mask_path(masks_dir, name: str) -> Path:
+def mask_path(masks_dir: Path | str, name: str) -> Path:
     """COLMAP's name for the mask of image `name` (a path relative to the image folder)."""
     return Path(masks_dir) / f"{name}.png"
 
 
-def find_masks(masks_dir, names) -> tuple[dict, list]:
+def find_masks(masks_dir: Path | str, names: Iterable[str]) -> tuple[dict, list]:
     """({name: mask file} of the images that have one, [names without one]); an InputError when `masks_dir` is
     not a folder."""
     folder = Path(masks_dir)
@@ -53,7 +54,8 @@ def check_mask(path: Path, image: Path, upright_size: tuple[int, int], orientati
                          f"{upright_size[1]}; a mask must have its image's size")
 
 
-def keypoints_outside_mask(path: Path, image_path: Path, keypoints: np.ndarray, upright_shape) -> np.ndarray:
+def keypoints_outside_mask(path: Path, image_path: Path, keypoints: np.ndarray,
+                           upright_shape: tuple[int, int]) -> np.ndarray:
     """Bool per keypoint (x, y in COLMAP pixels, the upright frame): True where the mask keeps it."""
     mask = read_image(path, upright=False)
     if mask.ndim == 3:

@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 
 
-def write_pfm(path, image) -> None:
+def write_pfm(path: Path | str, image: np.ndarray) -> None:
     """Write a float32 (H,W) or (H,W,3) array; `inf` marks unknown values, as Middlebury does."""
     image = np.asarray(image, dtype=np.float32)
     if image.ndim == 3 and image.shape[2] == 1:
@@ -18,7 +18,7 @@ def write_pfm(path, image) -> None:
         f.write(np.ascontiguousarray(np.flipud(image)).astype("<f4").tobytes())
 
 
-def read_pfm(path) -> np.ndarray:
+def read_pfm(path: Path | str) -> np.ndarray:
     """Read a PFM file into a float32 array, top row first. ValueError names the file when it is not PFM."""
     path = Path(path)
     with open(path, "rb") as f:

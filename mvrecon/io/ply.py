@@ -1,12 +1,15 @@
 """Binary little-endian PLY point clouds with optional colours and normals, readable by Open3D, MeshLab and
 CloudCompare."""
 
+from pathlib import Path
+
 import numpy as np
 
 from ..interrupts import import_open3d
 
 
-def write_ply(path, points, colors=None, normals=None) -> None:
+def write_ply(path: Path | str, points: np.ndarray, colors: np.ndarray | None = None,
+              normals: np.ndarray | None = None) -> None:
     """points (N,3) float; colors (N,3) uint8 (or floats in [0,1]); normals (N,3) float."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     n = len(points)
@@ -35,7 +38,7 @@ def write_ply(path, points, colors=None, normals=None) -> None:
         f.write(data.tobytes())
 
 
-def read_ply_points(path) -> tuple[np.ndarray, np.ndarray | None]:
+def read_ply_points(path: Path | str) -> tuple[np.ndarray, np.ndarray | None]:
     """Points (N,3) and colours (N,3) uint8 or None, from a PLY written by `write_ply` (or any Open3D can read)."""
     o3d = import_open3d()
 

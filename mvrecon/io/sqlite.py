@@ -8,7 +8,7 @@ from pathlib import Path
 from ..errors import InputError
 
 
-def connect_readonly(path) -> closing[sqlite3.Connection]:
+def connect_readonly(path: Path | str) -> closing[sqlite3.Connection]:
     """A read-only sqlite3 connection to the database file `path`, closed on leaving the `with` block; the
     caller reads with SQL what pycolmap's reader skips or refuses."""
     path = Path(path).resolve()

@@ -17,9 +17,12 @@ COLMAP did (a COLMAP database mapped with `mvrecon map -o`, or a bare COLMAP mod
 import logging
 import shutil
 import sqlite3
+from collections.abc import Iterable
 from pathlib import Path
 
+import cv2
 import numpy as np
+import pycolmap
 from PIL import Image
 
 from ..errors import InputError
@@ -29,12 +32,11 @@ from .images import TRANSPOSED, image_metadata, image_problem, read_image
 from .sqlite import connect_readonly
 
 
-def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -1, text: bool = False,
-                       database=None) -> Path:
+def export_undistorted(model_dir: Path | str, image_dir: Path | str, out_dir: Path | str, *,
+                       max_image_size: int = -1, text: bool = False,
+                       database: Path | str | None = None) -> Path:
     """Undistort the images of the model in `model_dir` into `out_dir`; returns out_dir/sparse/0. `database`:
     the database the model was mapped from, which tells the frame of images with an EXIF orientation."""
-    import pycolmap
-
     model_dir, image_dir, out_dir = Path(model_dir), Path(image_dir), Path(out_dir)
     rec = load_reconstruction(model_dir)
     lenses = sorted({cam.model.name for cam in rec.cameras.values()})
@@ -125,7 +127,7 @@ def export_undistorted(model_dir, image_dir, out_dir, *, max_image_size: int = -
 OUTSIDE_WARNING = 0.01  # share of observations outside the undistorted images that is worth a warning
 
 
-def observations_outside(rec) -> tuple[int, int]:
+def observations_outside(rec: pycolmap.Reconstruction) -> tuple[int, int]:
     """(observations of a 3D point outside their undistorted image, all such observations) of an exported model.
     COLMAP's undistorter keeps every observation but crops each image to what a PINHOLE camera can hold: a lens
     wider than that (past 180 deg it cannot hold it all) lost half of a wide fisheye's observations silently."""
@@ -230,7 +232,7 @@ def _frame_from_size(meta, cam) -> bool | None:
     return size == stored
 
 
-def database_frames(database, names) -> dict[str, bool]:
+def database_frames(database: Path | str | None, names: Iterable[str]) -> dict[str, bool]:
     """Which frame the database the model was mapped from says each of `names` is in: True (stored pixel frame)
     where COLMAP extracted its features, False (upright) where mvrecon did; names it has no keypoints of are left
     out (as all are without a database: a bare model folder).
@@ -260,8 +262,6 @@ def _8bit_in_model_frame(image_dir: Path, metas: dict, stored: set, folder: Path
     (the model's frame; without the tag, viewers and trainers see what the model describes). COLMAP kept 16 bits,
     which 8-bit readers divide by 256 (14-bit data came out dark); like our feature reader we stretch by the
     maximum, but one for all images, so views keep their relative brightness."""
-    import cv2
-
     deep = [n for n in metas if _more_than_8_bits(image_dir / n)]
     copies = set(deep) | {n for n, m in metas.items() if m.orientation != 1}
     if not copies:

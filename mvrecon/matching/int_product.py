@@ -26,7 +26,7 @@ def _get_session():
     global _session
     with _lock:
         if _session is None:
-            import onnxruntime
+            import onnxruntime  # noqa: PLC0415 - heavy; loaded while the feature workers run (startup.py)
 
             options = onnxruntime.SessionOptions()
             options.intra_op_num_threads = 1  # the matching pool already runs one pair per core

@@ -49,7 +49,7 @@ class Prepared:
         return self.rows.dtype == np.uint8
 
 
-def normalize_descriptors(desc) -> np.ndarray:
+def normalize_descriptors(desc: np.ndarray) -> np.ndarray:
     """float32 unit rows; float32 input is taken as already unit."""
     d = np.asarray(desc)
     if d.dtype == np.float32:
@@ -58,7 +58,7 @@ def normalize_descriptors(desc) -> np.ndarray:
     return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
 
 
-def prepare_descriptors(desc) -> Prepared:
+def prepare_descriptors(desc: np.ndarray | Prepared) -> Prepared:
     """uint8 rows -> 7-bit integer form; any other rows -> float32 unit rows. Prepared input is returned as is."""
     if isinstance(desc, Prepared):
         return desc
@@ -99,7 +99,8 @@ def _as_float(p: Prepared) -> Prepared:
     return p if not p.integer else prepare_descriptors(p.rows.astype(np.float32) * p.inv_norm[:, None])
 
 
-def match_descriptors(desc1, desc2, config: MatcherConfig = MatcherConfig()) -> np.ndarray:
+def match_descriptors(desc1: np.ndarray | Prepared, desc2: np.ndarray | Prepared,
+                      config: MatcherConfig = MatcherConfig()) -> np.ndarray:
     """(N,2) int64 index pairs of mutual nearest neighbours that pass the ratio and distance tests."""
     a, b = prepare_descriptors(desc1), prepare_descriptors(desc2)
     n1, n2 = len(a), len(b)

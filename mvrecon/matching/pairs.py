@@ -32,7 +32,7 @@ def sequential_pairs(names: list[str], window: int) -> list[tuple[str, str]]:
     return [(a, names[j]) for i, a in enumerate(names) for j in range(i + 1, min(len(names), i + 1 + window))]
 
 
-def pairs_from_file(path, names: list[str]) -> list[tuple[str, str]]:
+def pairs_from_file(path: Path | str, names: list[str]) -> list[tuple[str, str]]:
     """Read `name1 name2` lines; unknown names, an image paired with itself and malformed lines are InputErrors
     naming file and line."""
     path = Path(path)

@@ -64,7 +64,7 @@ def f_iterations(num_matches: int, config: VerifyConfig) -> int:
 
 
 def _usac(kind: str, p1: np.ndarray, p2: np.ndarray, threshold: float, config: VerifyConfig, K=None):
-    import cv2
+    import cv2  # noqa: PLC0415 - loaded after the feature workers fork (executor._get_context)
 
     method = cv2.USAC_MAGSAC
     try:

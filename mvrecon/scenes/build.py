@@ -11,10 +11,13 @@ import logging
 from pathlib import Path
 
 import numpy as np
+import pycolmap
 
+from ..geometry.camera import PARAM_NAMES, default_params
 from ..io.images import to_gray
 from ..progress import progress
 from . import cameras, meshes
+from .cameras import OrthographicCamera, PerspectiveCamera
 from .render import Hits, Renderer, RenderSettings
 from .textures import TextureSpec
 from .writers import write_colmap_model, write_depth, write_disparity, write_image, write_middlebury_calib
@@ -172,8 +175,6 @@ def _check_tilt_angles(angles) -> None:
 
 def _check_synthetic(entry: dict) -> None:
     """COLMAP's generator makes rigs x cameras per rig x frames per rig images: 2 or more."""
-    import pycolmap
-
     opts = entry.get("synthetic", {})
     if not isinstance(opts, dict):
         raise ValueError(f"synthetic = {opts!r}: must be a [synthetic] table")
@@ -298,17 +299,13 @@ def build_poses(entry: dict) -> list:
     return _call(TRAJECTORIES[kind], traj, f"trajectory {kind}")
 
 
-def build_camera(entry: dict):
+def build_camera(entry: dict) -> PerspectiveCamera | OrthographicCamera:
     c = dict(entry.get("camera", {}))
     if c.pop("orthographic", False):
         return _call(cameras.OrthographicCamera, c, "camera")
     if "focal" in c:
-        from ..geometry.camera import default_params
-
         params = default_params(c["model"], c.pop("focal"), c["width"], c["height"])
         for name, value in c.pop("distortion", {}).items():
-            from ..geometry.camera import PARAM_NAMES
-
             params[PARAM_NAMES[c["model"]].index(name)] = value
         c["params"] = tuple(params)
     return _call(cameras.PerspectiveCamera, c, "camera")
@@ -347,7 +344,7 @@ def _render_all(
         write_depth(files[k][1], depth)
 
 
-def surface_points(renderer: Renderer, count: int, seed: int):
+def surface_points(renderer: Renderer, count: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Seeded surface samples: positions (N,3), unit normals (N,3), colours (N,3) uint8 from the texture."""
     pts, tri, bary = meshes.sample_surface(renderer.mesh, count, seed)
     v = renderer.mesh.vertices[renderer.mesh.triangles[tri]]
@@ -359,7 +356,12 @@ def surface_points(renderer: Renderer, count: int, seed: int):
 
 
 def observations(
-    renderer: Renderer, cam, pose, points: np.ndarray, normals: np.ndarray, min_cos: float = 0.1
+    renderer: Renderer,
+    cam: PerspectiveCamera,
+    pose: tuple[np.ndarray, np.ndarray],
+    points: np.ndarray,
+    normals: np.ndarray,
+    min_cos: float = 0.1,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Which points a perspective camera sees, and where: (indices, pixels (N,2)).
 
@@ -434,7 +436,14 @@ def stereo(entry: dict, base_dir: Path, out: Path) -> dict:
     return info
 
 
-def disparity_from_depth(renderer: Renderer, cam, pose0, c1: np.ndarray, depth: np.ndarray, baseline: float):
+def disparity_from_depth(
+    renderer: Renderer,
+    cam: PerspectiveCamera,
+    pose0: tuple[np.ndarray, np.ndarray],
+    c1: np.ndarray,
+    depth: np.ndarray,
+    baseline: float,
+) -> tuple[np.ndarray, np.ndarray]:
     """Left disparity fx*B/Z (inf without surface) and the Middlebury mask: 255 visible in the right image,
     128 occluded there (or outside it), 0 unknown."""
     R, t = pose0
@@ -500,8 +509,6 @@ def sem_tilt(entry: dict, base_dir: Path, out: Path) -> dict:
 
 def colmap_synthetic(entry: dict, base_dir: Path, out: Path) -> dict:
     """COLMAP's own synthetic generator: random cameras and points, images with COLMAP's feature patches."""
-    import pycolmap
-
     opts = dict(entry.get("synthetic", {}))
     if "camera_model" in opts:
         opts["camera_model_id"] = pycolmap.CameraModelId.__members__[opts.pop("camera_model")]

@@ -6,6 +6,7 @@ images is exactly the one stored in the ground-truth camera. Orthographic camera
 their scale is the pixel size in scene units (micrometres for SEM).
 """
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -93,7 +94,12 @@ class CameraRays:
         return origins, self.cam.ray_directions(px).astype(np.float32)
 
 
-def look_at(center, target, up=(0.0, 0.0, 1.0), roll_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def look_at(
+    center: Sequence[float] | np.ndarray,
+    target: Sequence[float] | np.ndarray,
+    up: Sequence[float] | np.ndarray = (0.0, 0.0, 1.0),
+    roll_deg: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """cam_from_world (R, t) of a camera at `center` looking at `target`, world `up` up in the image."""
     center, target, up = (np.asarray(a, dtype=float) for a in (center, target, up))
     z = target - center
@@ -114,7 +120,7 @@ def orbit(
     count: int,
     radius: float,
     height: float,
-    target=(0, 0, 0),
+    target: Sequence[float] | np.ndarray = (0, 0, 0),
     start_deg: float = 0.0,
     arc_deg: float = 360.0,
     height_wobble: float = 0.0,
@@ -140,7 +146,7 @@ def handheld(
     count: int,
     radius: float,
     height: float,
-    target=(0, 0, 0),
+    target: Sequence[float] | np.ndarray = (0, 0, 0),
     start_deg: float = 0.0,
     arc_deg: float = 90.0,
     jitter: float = 0.0,
@@ -185,8 +191,8 @@ def handheld(
 
 def forward(
     count: int,
-    start,
-    direction,
+    start: Sequence[float] | np.ndarray,
+    direction: Sequence[float] | np.ndarray,
     step: float,
     look_distance: float = 10.0,
     sway: float = 0.0,
@@ -210,7 +216,7 @@ def hemisphere(
     count: int,
     radius_min: float,
     radius_max: float,
-    target=(0, 0, 0),
+    target: Sequence[float] | np.ndarray = (0, 0, 0),
     elevation_min_deg: float = 15.0,
     elevation_max_deg: float = 70.0,
     seed: int = 0,
@@ -232,7 +238,7 @@ def inward(
     count: int,
     radius: float,
     height: float,
-    center=(0, 0, 0),
+    center: Sequence[float] | np.ndarray = (0, 0, 0),
     look_height: float | None = None,
     across: float = 3.0,
 ) -> list:
@@ -247,14 +253,21 @@ def inward(
     return poses
 
 
-def stereo_pair(center, target, baseline: float) -> list:
+def stereo_pair(
+    center: Sequence[float] | np.ndarray, target: Sequence[float] | np.ndarray, baseline: float
+) -> list:
     """A rectified pair: the same rotation, the right camera `baseline` along the left camera's x axis."""
     R, t = look_at(center, target)
     c1 = np.asarray(center, float) + baseline * R[0]
     return [(R, t), (R.copy(), -R @ c1)]
 
 
-def tilt_series(angles_deg, distance: float, axis: str = "y", eucentric=(0.0, 0.0, 0.0)) -> list:
+def tilt_series(
+    angles_deg: Sequence[float],
+    distance: float,
+    axis: str = "y",
+    eucentric: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0),
+) -> list:
     """Orthographic views of a specimen in the world x-y plane, tilted about a world axis through `eucentric`.
 
     At 0 degrees the camera looks straight down (-z) with image x along world x and image y along world -y,

@@ -70,13 +70,13 @@ def load_entry(name: str) -> tuple[dict, str, Path]:
     return entry, digest, path
 
 
-def read_scene_info(out_dir) -> dict | None:
+def read_scene_info(out_dir: Path | str) -> dict | None:
     """The scene.json of a folder, or None (none there, or one cut off by an interruption: only make_scene
     writes it, so such a folder is a scene of ours to render again)."""
     return read_json_object(Path(out_dir) / "scene.json")
 
 
-def make_scene(name: str, out_dir: str | Path) -> Path:
+def make_scene(name: str, out_dir: Path | str) -> Path:
     """Render catalog scene `name` (or a .toml path) into out_dir and return out_dir.
 
     Deterministic: the same TOML gives the same bytes. Cached: when out_dir already holds the complete scene
@@ -85,7 +85,7 @@ def make_scene(name: str, out_dir: str | Path) -> Path:
     entry that lacks a table or key or makes fewer than 2 views (`build.check_entry`), before the folder is
     touched; an error while building removes the folder when this call created it.
     """
-    from .build import KINDS, check_entry
+    from .build import KINDS, check_entry  # noqa: PLC0415 - pycolmap and OpenCV: not for `scene list`
 
     entry, digest, path = load_entry(name)
     out = Path(out_dir)

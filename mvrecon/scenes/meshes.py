@@ -6,8 +6,11 @@ inside, height fields for facades, terrain and SEM specimens, spheres, cylinders
 in a grid) plus PLY/OBJ files from disk.
 """
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ..interrupts import import_open3d
@@ -54,7 +57,12 @@ def merge(meshes: list[TexturedMesh]) -> TexturedMesh:
 
 
 def grid(
-    origin, u_edge, v_edge, heights: np.ndarray, texture: TextureSpec, uv_repeat=(1.0, 1.0)
+    origin: Sequence[float] | np.ndarray,
+    u_edge: Sequence[float] | np.ndarray,
+    v_edge: Sequence[float] | np.ndarray,
+    heights: np.ndarray,
+    texture: TextureSpec,
+    uv_repeat: tuple[float, float] = (1.0, 1.0),
 ) -> TexturedMesh:
     """A rectangle origin + s*u_edge + t*v_edge displaced along u_edge x v_edge by heights (rows=t, cols=s).
 
@@ -83,7 +91,13 @@ def grid(
     )
 
 
-def quad(origin, u_edge, v_edge, texture: TextureSpec, uv_repeat=(1.0, 1.0)) -> TexturedMesh:
+def quad(
+    origin: Sequence[float] | np.ndarray,
+    u_edge: Sequence[float] | np.ndarray,
+    v_edge: Sequence[float] | np.ndarray,
+    texture: TextureSpec,
+    uv_repeat: tuple[float, float] = (1.0, 1.0),
+) -> TexturedMesh:
     """A flat textured rectangle; its front side is u_edge x v_edge."""
     return grid(origin, u_edge, v_edge, np.zeros((2, 2)), texture, uv_repeat)
 
@@ -94,7 +108,11 @@ def _rotation_z(deg: float) -> np.ndarray:
 
 
 def box(
-    center, size, textures: list[TextureSpec], yaw_deg: float = 0.0, inward: bool = False,
+    center: Sequence[float] | np.ndarray,
+    size: Sequence[float] | np.ndarray,
+    textures: list[TextureSpec],
+    yaw_deg: float = 0.0,
+    inward: bool = False,
     tile: float | None = None,
 ) -> TexturedMesh:
     """An axis-aligned box turned by yaw about z; face k uses textures[k % len]. inward: normals inside.
@@ -123,7 +141,9 @@ def box(
     return merge(meshes)
 
 
-def uv_sphere(center, radius: float, texture: TextureSpec, segments: int = 64) -> TexturedMesh:
+def uv_sphere(
+    center: Sequence[float] | np.ndarray, radius: float, texture: TextureSpec, segments: int = 64
+) -> TexturedMesh:
     """A sphere with latitude-longitude texture coordinates (u around z, v from top to bottom)."""
     rings = segments // 2
     lon = np.linspace(0.0, 2 * np.pi, segments + 1)
@@ -152,7 +172,11 @@ def uv_sphere(center, radius: float, texture: TextureSpec, segments: int = 64) -
 
 
 def cylinder(
-    base_center, radius: float, height: float, texture: TextureSpec, segments: int = 32
+    base_center: Sequence[float] | np.ndarray,
+    radius: float,
+    height: float,
+    texture: TextureSpec,
+    segments: int = 32,
 ) -> TexturedMesh:
     """An upright (z) cylinder standing on `base_center`, with its top cap (a stud, a post, a can).
 
@@ -177,7 +201,7 @@ def cylinder(
                         np.zeros(len(side) + segments, np.int64), [texture])
 
 
-def tile(mesh: TexturedMesh, offsets) -> TexturedMesh:
+def tile(mesh: TexturedMesh, offsets: np.ndarray) -> TexturedMesh:
     """Copies of `mesh` moved by each of `offsets` (N,3), sharing its textures: identical parts in a row or a
     grid (studs on a brick, windows on a facade), whose repetition is exact as a moulded or built one is."""
     offsets = np.asarray(offsets, float).reshape(-1, 3)
@@ -229,8 +253,6 @@ def relief(
             h += 0.6 * np.exp(-(dist**2) / (2 * (size * 0.02) ** 2))
         return amplitude * h / max(np.abs(h).max(), 1e-12)
     if kind == "terrain":
-        import cv2
-
         h = np.zeros(shape)
         weight = 1.0
         for octave in range(5):
@@ -242,7 +264,12 @@ def relief(
     raise ValueError(f"unknown relief {kind!r}; expected flat, bumps or terrain")
 
 
-def load_mesh(path, texture: TextureSpec, scale: float = 1.0, translate=(0.0, 0.0, 0.0)) -> TexturedMesh:
+def load_mesh(
+    path: Path | str,
+    texture: TextureSpec,
+    scale: float = 1.0,
+    translate: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0),
+) -> TexturedMesh:
     """A PLY/OBJ triangle mesh; its own UVs are kept, else UVs are a planar projection on its x-y extent."""
     o3d = import_open3d()
 

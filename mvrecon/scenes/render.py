@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..interrupts import import_open3d
-from .cameras import CameraRays
+from .cameras import CameraRays, OrthographicCamera, PerspectiveCamera
 from .meshes import TexturedMesh
 from .textures import TextureAtlas, make_texture
 
@@ -128,7 +128,13 @@ class Renderer:
             return s.ambient + (1 - s.ambient) * 3.0 * (1.0 / cos - 1.0)
         raise ValueError(f"unknown shading {s.shading!r}; expected lambertian or sem")
 
-    def render(self, cam, pose, exposure: float = 1.0, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    def render(
+        self,
+        cam: PerspectiveCamera | OrthographicCamera,
+        pose: tuple[np.ndarray, np.ndarray],
+        exposure: float = 1.0,
+        seed: int = 0,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """(image uint8 (H,W,3), or (H,W,4) with `settings.alpha`; z-depth float32 (H,W) with inf where no
         surface) of `cam` at pose (R, t).
 

@@ -8,6 +8,7 @@ Everything is generated from names and seeds, so textures are identical on every
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from ..interrupts import ctrl_c_deferred
@@ -50,7 +51,7 @@ class TextureSpec:
     tint: tuple[float, float, float] = (1.0, 1.0, 1.0)
 
     @classmethod
-    def parse(cls, value, default_seed: int = 0) -> "TextureSpec":
+    def parse(cls, value: "str | dict | TextureSpec", default_seed: int = 0) -> "TextureSpec":
         """A spec from a catalog entry: a photo name string or a table with the fields above."""
         if isinstance(value, TextureSpec):
             return value
@@ -73,7 +74,7 @@ def load_photo(name: str) -> np.ndarray:
     if name not in PHOTOS:
         raise ValueError(f"unknown photo {name!r}; expected one of {', '.join(PHOTOS)} or 'noise'")
     with ctrl_c_deferred():  # the first photo imports skimage.io and scipy
-        import skimage.data
+        import skimage.data  # noqa: PLC0415 - heavy (scipy), photo textures only, Ctrl-C held back
 
         image = np.asarray(getattr(skimage.data, name)())
     if image.dtype == bool:
@@ -91,8 +92,6 @@ def fractal_noise(
 
     The finest octave has a period of a few texels, which gives SIFT corners and blobs at every scale.
     """
-    import cv2
-
     rng = np.random.default_rng(seed)
     total = np.zeros((size, size, channels), np.float32)
     weight, norm = 1.0, 0.0
@@ -112,8 +111,6 @@ def fractal_noise(
 
 def make_texture(spec: TextureSpec) -> np.ndarray:
     """The texture of a spec, float32 RGB (size, size, 3) in [0, 1]."""
-    import cv2
-
     if spec.photo == "noise":
         texture = fractal_noise(spec.size, spec.seed, channels=3)
     else:

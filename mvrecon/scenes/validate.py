@@ -8,18 +8,20 @@ should agree with the ground truth within half a degree.
 import time
 from pathlib import Path
 
+import pycolmap
+
 from ..eval.metrics import accuracy_summary, align_and_compare
 from ..eval.models import load_reconstruction, model_stats, poses
 
 
-def colmap_reconstruct(scene_dir, work_dir, camera_model: str | None = None, num_threads: int = -1) -> dict:
+def colmap_reconstruct(
+    scene_dir: Path | str, work_dir: Path | str, camera_model: str | None = None, num_threads: int = -1
+) -> dict:
     """pycolmap's extract -> exhaustive match -> incremental mapping on scene_dir/images, one shared camera.
 
     camera_model defaults to the ground truth's model (the focal length is not given: COLMAP guesses it).
     Returns {"models": [Reconstruction, ...] largest first, "seconds": {stage: wall time}}.
     """
-    import pycolmap
-
     scene_dir, work_dir = Path(scene_dir), Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
     database = work_dir / "database.db"
@@ -53,7 +55,7 @@ def colmap_reconstruct(scene_dir, work_dir, camera_model: str | None = None, num
     return {"models": ordered, "seconds": seconds}
 
 
-def compare_with_ground_truth(scene_dir, models: list) -> dict:
+def compare_with_ground_truth(scene_dir: Path | str, models: list) -> dict:
     """Headline accuracy of estimated models against gt/sparse (metric names as in eval.metrics)."""
     gt = poses(load_reconstruction(Path(scene_dir) / "gt" / "sparse"))
     est = [poses(m) for m in models]

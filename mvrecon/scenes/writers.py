@@ -7,16 +7,17 @@ is what lets `make_scene` promise deterministic, cached output.
 from pathlib import Path
 
 import numpy as np
+import pycolmap
+from PIL import Image
 
 from ..io.files import replace_whole
 from ..io.pfm import write_pfm
+from .cameras import PerspectiveCamera
 
 
-def write_image(path, image: np.ndarray, jpeg_quality: int = 95) -> None:
+def write_image(path: Path | str, image: np.ndarray, jpeg_quality: int = 95) -> None:
     """PNG or JPEG by the file suffix; RGB uint8 (H,W,3) or grey (H,W). Whole or not at all, as a rerun after
     Ctrl-C keeps the views on disk."""
-    from PIL import Image
-
     pil = Image.fromarray(image)
     if Path(path).suffix.lower() in (".jpg", ".jpeg"):
         replace_whole(path, lambda tmp: pil.save(tmp, quality=jpeg_quality, subsampling=0, optimize=False))
@@ -25,8 +26,8 @@ def write_image(path, image: np.ndarray, jpeg_quality: int = 95) -> None:
 
 
 def write_colmap_model(
-    path,
-    cam,
+    path: Path | str,
+    cam: PerspectiveCamera,
     names: list[str],
     poses: list,
     points: np.ndarray,
@@ -39,8 +40,6 @@ def write_colmap_model(
     in the order given, and the points' tracks link back to them. Points seen in fewer than two images are
     skipped.
     """
-    import pycolmap
-
     rec = pycolmap.Reconstruction()
     camera = pycolmap.Camera(
         model=cam.model, width=cam.width, height=cam.height, params=list(cam.params), camera_id=1
@@ -69,13 +68,13 @@ def write_colmap_model(
     rec.write_binary(str(path))
 
 
-def write_depth(path, depth: np.ndarray) -> None:
+def write_depth(path: Path | str, depth: np.ndarray) -> None:
     """float32 z-depth (H,W), inf where no surface; whole or not at all, as images."""
     replace_whole(path, lambda tmp: np.save(tmp, np.asarray(depth, np.float32)))
 
 
 def write_middlebury_calib(
-    path, fx: float, cx: float, cy: float, baseline: float, width: int, height: int, ndisp: int
+    path: Path | str, fx: float, cx: float, cy: float, baseline: float, width: int, height: int, ndisp: int
 ) -> None:
     """Middlebury calib.txt for a `baseline` in metres (the stereo scenes' unit), written in millimetres as the
     format specifies, so depth from it (Z = f B / (d + doffs)) is in mm as with Middlebury's own pairs.
@@ -89,5 +88,5 @@ def write_middlebury_calib(
     Path(path).write_text(text)
 
 
-def write_disparity(path, disparity: np.ndarray) -> None:
+def write_disparity(path: Path | str, disparity: np.ndarray) -> None:
     write_pfm(path, np.asarray(disparity, np.float32))

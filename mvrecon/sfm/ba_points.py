@@ -10,10 +10,12 @@ new poses afterwards (`triangulate.refine_existing_points`); the final BAs of a 
 
 import numpy as np
 
+from .model import Reconstruction
+
 GRID = 16
 
 
-def select_points(model, images, per_image: int) -> np.ndarray:
+def select_points(model: Reconstruction, images: np.ndarray | list[int], per_image: int) -> np.ndarray:
     """Point ids: up to `per_image` well-spread, long, accurate points of each of `images` (their union)."""
     obs = model.observations_of_images(images)
     if len(obs) == 0:

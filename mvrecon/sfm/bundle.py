@@ -27,9 +27,11 @@ import time
 from contextlib import contextmanager
 from dataclasses import dataclass
 
+import gtsam
 import numpy as np
 
 from .config import MapperConfig
+from .model import Reconstruction
 
 log = logging.getLogger("mvrecon.sfm")
 _TIGHT = 1e-6
@@ -112,14 +114,13 @@ class _Window:
         return np.flatnonzero(self.variable).tolist()
 
 
-def bundle_adjust(model, variable_images, config: MapperConfig, *, point_ids=None, refine_intrinsics=False,
-                  refine_distortion=True, max_iterations=None, relative_tolerance=None,
-                  optimizer=None) -> BundleResult:
+def bundle_adjust(model: Reconstruction, variable_images: np.ndarray | list[int], config: MapperConfig, *,
+                  point_ids: np.ndarray | None = None, refine_intrinsics: bool = False,
+                  refine_distortion: bool = True, max_iterations: int | None = None,
+                  relative_tolerance: float | None = None, optimizer: str | None = None) -> BundleResult:
     """Optimise the poses of `variable_images`, the points they see (or `point_ids`) and, when asked, the
     intrinsics of cameras whose registered images are all variable (the focal only, without
     `refine_distortion`). Other registered images stay constant. `relative_tolerance` overrides the config's."""
-    import gtsam
-
     start = time.perf_counter()
     window = _window(model, variable_images, point_ids)
     if window is None:

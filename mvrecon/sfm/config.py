@@ -85,7 +85,7 @@ class MapperConfig:
     # seeds every random choice (RANSAC), so equal inputs give equal models (COLMAP: random_seed)
     seed: int = bounded(0, 0)
 
-    def validate(self, source) -> None:
+    def validate(self, source: str | None) -> None:
         """An InputError naming `source` (the config file that set it) for an optimizer or mapper that does not
         exist."""
         if self.mapper not in MAPPERS:

@@ -2,11 +2,14 @@
 
 import numpy as np
 
+from ..geometry import camera as cammodel
 from ..geometry.triangulation import reaches_triangulation_angle
 from .config import MapperConfig
+from .model import Reconstruction
 
 
-def filter_observations(model, config: MapperConfig, point_ids=None) -> int:
+def filter_observations(model: Reconstruction, config: MapperConfig,
+                        point_ids: np.ndarray | None = None) -> int:
     """Remove observations reprojecting over the threshold or behind the camera (of `point_ids` or all).
 
     Points left with fewer than two observations are deleted. Returns the number of observations removed.
@@ -20,7 +23,8 @@ def filter_observations(model, config: MapperConfig, point_ids=None) -> int:
     return len(bad)
 
 
-def filter_small_angle_points(model, config: MapperConfig, point_ids=None) -> int:
+def filter_small_angle_points(model: Reconstruction, config: MapperConfig,
+                              point_ids: np.ndarray | None = None) -> int:
     """Delete points whose largest triangulation angle is under the threshold (depth is ill-determined)."""
     pids = model.alive_points() if point_ids is None else np.asarray(point_ids, dtype=np.int64)
     pids = pids[model.point_alive.data[pids]]
@@ -33,13 +37,12 @@ def filter_small_angle_points(model, config: MapperConfig, point_ids=None) -> in
     return len(bad)
 
 
-def degenerate_cameras(model, max_focal_ratio: float = 10.0, max_distortion: float = 1.0) -> list[int]:
+def degenerate_cameras(model: Reconstruction, max_focal_ratio: float = 10.0,
+                       max_distortion: float = 1.0) -> list[int]:
     """Cameras whose refined parameters are implausible (COLMAP's bogus-camera check): a focal length more
     than `max_focal_ratio` away from the prior, or a distortion coefficient beyond `max_distortion`. The mapper
     undoes a BA that leaves one, so only what no growing model passes through belongs here: fx / fy is tested at
     a model's end (`non_square_cameras`), as growing fisheye_orbit_small per image passes 520 / 1025."""
-    from ..geometry import camera as cammodel
-
     bad = []
     for cid, cam in model.cameras.items():
         f = cam.focal()
@@ -51,7 +54,7 @@ def degenerate_cameras(model, max_focal_ratio: float = 10.0, max_distortion: flo
     return bad
 
 
-def non_square_cameras(model, max_aspect_ratio: float = 1.5) -> list[int]:
+def non_square_cameras(model: Reconstruction, max_aspect_ratio: float = 1.5) -> list[int]:
     """Cameras of registered images, without a trusted prior, whose fx and fy are more than
     `max_aspect_ratio` apart: a finished model holding one was fitted to wrong matches.
 
@@ -63,8 +66,6 @@ def non_square_cameras(model, max_aspect_ratio: float = 1.5) -> list[int]:
     1597 / 461, 603 / 1137 and 499 / 857 and a 29 deg rotation error. A trusted calibration may be
     anamorphic; it is not second-guessed.
     """
-    from ..geometry import camera as cammodel
-
     used = np.unique(model.camera_of[model.registered])
     bad = []
     for cid in used.tolist():

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import config_hash
+from ..database import Correspondences
 from ..geometry.camera import num_distortion_terms
 from ..io.files import replace_whole
 from ..progress import progress
@@ -687,14 +688,12 @@ class IncrementalMapper:
 
 
 def _swapped(p):
-    from dataclasses import replace
-
     return replace(p, image_id1=p.image_id2, image_id2=p.image_id1, inliers=p.inliers[:, ::-1].copy(),
                    F=None if p.F is None else p.F.T, E=None if p.E is None else p.E.T, H=None if p.H is None
                    else np.linalg.inv(p.H))
 
 
-def map_correspondences(corr, config: MapperConfig = MapperConfig(), snapshot_path=None,
-                        resume: bool = False) -> MappingResult:
+def map_correspondences(corr: Correspondences, config: MapperConfig = MapperConfig(),
+                        snapshot_path: Path | str | None = None, resume: bool = False) -> MappingResult:
     """Run the incremental mapper on a database's correspondences (see `database.read_correspondences`)."""
     return IncrementalMapper(corr, config, snapshot_path).run(resume=resume)

@@ -16,11 +16,14 @@ miss as the reason of the images that stay unregistered).
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
+from ..database import PairGeometry
 from ..geometry.triangulation import refine_points, residuals, triangulation_angle_deg, two_view_midpoints
 from ..geometry.two_view import focal_from_fundamental, homography_translation, relative_pose
 from .config import MapperConfig
+from .model import Reconstruction
 
 
 @dataclass
@@ -52,7 +55,8 @@ _FEW_MATCHES, _NOT_TRIED, _ROTATION, _NO_POSE, _FEW_POSE_INLIERS, _FEW_POINTS, _
 _DECISION_MATCHES = 1000  # a pose and a median angle from this many matches decide as well as from all
 
 
-def two_view_points(R, t, x1, x2):
+def two_view_points(R: np.ndarray, t: np.ndarray, x1: np.ndarray,
+                    x2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Triangulate normalised matches for cam1 = [I|0], cam2 = [R|t]; returns points, depths (n,2), errors
     (n,2)."""
     n = len(x1)
@@ -67,7 +71,7 @@ def two_view_points(R, t, x1, x2):
     return X, z, np.linalg.norm(r, axis=-1)
 
 
-def evaluate_pair(model, pair, i1: int, i2: int, config: MapperConfig,
+def evaluate_pair(model: Reconstruction, pair: PairGeometry, i1: int, i2: int, config: MapperConfig,
                   focal_from_pair: bool = True) -> InitialPair | None:
     """Relative pose and median triangulation angle of one candidate pair (on a seeded subset of at most
     1000 of its matches), or None when it fails the criteria that do not depend on the angle threshold.
@@ -77,7 +81,7 @@ def evaluate_pair(model, pair, i1: int, i2: int, config: MapperConfig,
     return found if isinstance(found, InitialPair) else None
 
 
-def assess_pair(model, pair, i1: int, i2: int, config: MapperConfig,
+def assess_pair(model: Reconstruction, pair: PairGeometry, i1: int, i2: int, config: MapperConfig,
                 focal_from_pair: bool = True) -> InitialPair | PairRejection:
     """`evaluate_pair`, with a PairRejection saying which criterion failed instead of None."""
     rotation = _rotation_fit(model, pair, i1, i2)
@@ -152,8 +156,6 @@ def _focal_from_pair(model, i1: int, i2: int, k1, k2) -> None:
     Bougnoux's formula degenerates when the optical axes nearly meet (orbits around an object); then the
     estimate is NaN or implausible and the prior stays.
     """
-    import cv2
-
     c1, c2 = model.camera(i1), model.camera(i2)
     if c1.prior_trusted and c2.prior_trusted:
         return
@@ -177,7 +179,8 @@ def _focal_from_pair(model, i1: int, i2: int, k1, k2) -> None:
             cam.set_focal(f)
 
 
-def find_initial_pair(model, pairs_by_index, excluded, config: MapperConfig, tried: set,
+def find_initial_pair(model: Reconstruction, pairs_by_index: dict[tuple[int, int], PairGeometry],
+                      excluded: set[int], config: MapperConfig, tried: set,
                       evaluated: dict) -> InitialPair | None:
     """First pair meeting the criteria; `pairs_by_index` maps (i1, i2) internal indices -> PairGeometry.
 
@@ -200,7 +203,7 @@ def find_initial_pair(model, pairs_by_index, excluded, config: MapperConfig, tri
     return None
 
 
-def rejected_for_few_inliers(found) -> bool:
+def rejected_for_few_inliers(found: InitialPair | PairRejection) -> bool:
     """Whether a pair's `assess_pair` result or rejection is one that a lower init_min_inliers could turn
     round."""
     return isinstance(found, PairRejection) and found.closeness[0] in (_FEW_MATCHES, _FEW_POSE_INLIERS, _FEW_POINTS)
@@ -215,8 +218,9 @@ def _candidates(pairs_by_index, excluded, config: MapperConfig) -> list:
                   key=lambda c: (-c[0], c[1]))
 
 
-def initial_pair_rejections(model, pairs_by_index, excluded, config: MapperConfig, evaluated: dict,
-                            started=frozenset()) -> dict:
+def initial_pair_rejections(model: Reconstruction, pairs_by_index: dict[tuple[int, int], PairGeometry],
+                            excluded: set[int], config: MapperConfig, evaluated: dict,
+                            started: frozenset[int] = frozenset()) -> dict:
     """pair -> PairRejection for every pair between images not in `excluded`, after `find_initial_pair`
     accepted none of them: what each missed. A candidate not evaluated yet (the mapper resumed from a
     snapshot, or a camera's calibration changed since) is evaluated now, into `evaluated`. A pair whose angle

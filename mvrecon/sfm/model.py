@@ -105,7 +105,7 @@ class Reconstruction:
         self._ba_factors: tuple = (None, {})  # (loss width, observation -> GTSAM factor), sfm/bundle.py
 
     # ----- images -----
-    def register(self, i: int, R, t) -> None:
+    def register(self, i: int, R: np.ndarray, t: np.ndarray) -> None:
         self.R[i], self.t[i] = R, t
         if not self.registered[i]:
             self.registered[i] = True
@@ -131,7 +131,7 @@ class Reconstruction:
     def camera(self, i: int) -> Camera:
         return self.cameras[int(self.camera_of[i])]
 
-    def cameras_shared(self, images, least: int = 3) -> bool:
+    def cameras_shared(self, images: np.ndarray | list[int], least: int = 3) -> bool:
         """Whether every camera of `images` is shared by `least` or more registered images: then the observations
         of all of them pin its focal, which the BAs lean on (ba_points_per_image_early,
         ba_shared_initial_lambda)."""
@@ -164,7 +164,8 @@ class Reconstruction:
         return self._ba_factors[1]
 
     # ----- points and observations -----
-    def add_points(self, xyz, tracks, obs_point_local, obs_image, obs_kp) -> np.ndarray:
+    def add_points(self, xyz: np.ndarray, tracks: np.ndarray, obs_point_local: np.ndarray,
+                   obs_image: np.ndarray, obs_kp: np.ndarray) -> np.ndarray:
         """Add points with their observations; obs_point_local indexes into the new points. Returns point
         ids."""
         pids = self.xyz.append(xyz)
@@ -174,7 +175,7 @@ class Reconstruction:
         self.add_observations(pids[np.asarray(obs_point_local, dtype=np.int64)], obs_image, obs_kp)
         return pids
 
-    def add_observations(self, points, images, kps) -> None:
+    def add_observations(self, points: np.ndarray, images: np.ndarray, kps: np.ndarray) -> None:
         points, images, kps = (np.asarray(a, dtype=np.int64).ravel() for a in (points, images, kps))
         oids = self.obs_point.append(points)
         self.obs_image.append(images)
@@ -184,7 +185,7 @@ class Reconstruction:
             m = images == i
             self.obs_of_kp[i][kps[m]] = oids[m]
 
-    def remove_observations(self, obs) -> None:
+    def remove_observations(self, obs: np.ndarray) -> None:
         """Drop observations; points that keep fewer than two are deleted with their remaining observation."""
         obs = np.asarray(obs, dtype=np.int64)
         obs = obs[self.obs_alive.data[obs]]
@@ -202,7 +203,7 @@ class Reconstruction:
             m = images == i
             self.obs_of_kp[i][kps[m]] = -1
 
-    def delete_points(self, pids) -> None:
+    def delete_points(self, pids: np.ndarray) -> None:
         pids = np.asarray(pids, dtype=np.int64)
         pids = pids[self.point_alive.data[pids]]
         if len(pids) == 0:
@@ -224,20 +225,20 @@ class Reconstruction:
         obs = self.alive_observations()
         return np.bincount(self.obs_point.data[obs], minlength=self.xyz.n)
 
-    def observations_of_images(self, images) -> np.ndarray:
+    def observations_of_images(self, images: np.ndarray | list[int]) -> np.ndarray:
         """Alive observation ids made in any of `images`."""
         mask = np.zeros(len(self.image_ids), bool)
         mask[np.asarray(images, dtype=np.int64)] = True
         obs = self.alive_observations()
         return obs[mask[self.obs_image.data[obs]]]
 
-    def observations_of_points(self, pids) -> np.ndarray:
+    def observations_of_points(self, pids: np.ndarray) -> np.ndarray:
         mask = np.zeros(self.xyz.n, bool)
         mask[np.asarray(pids, dtype=np.int64)] = True
         obs = self.alive_observations()
         return obs[mask[self.obs_point.data[obs]]]
 
-    def padded_observations(self, pids):
+    def padded_observations(self, pids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(points, obs, mask): the given points that have alive observations, and their observation ids as
         rows of an (n, k) array padded where `mask` is False (the layout of geometry.triangulation)."""
         obs = self.observations_of_points(pids)
@@ -255,7 +256,7 @@ class Reconstruction:
         return points, padded, mask
 
     # ----- errors and statistics -----
-    def project(self, images, xyz) -> tuple[np.ndarray, np.ndarray]:
+    def project(self, images: np.ndarray, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixels (n,2) and depths (n,) of points xyz (n,3) in images (n,), with each image's camera model."""
         images = np.asarray(images, dtype=np.int64)
         Xc = np.einsum("nij,nj->ni", self.R[images], xyz) + self.t[images]
@@ -267,7 +268,7 @@ class Reconstruction:
             uv[m] = cammodel.project(cam.model, cam.params, Xc[m])
         return uv, Xc[:, 2]
 
-    def reprojection_errors(self, obs) -> tuple[np.ndarray, np.ndarray]:
+    def reprojection_errors(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Reprojection error (px; inf behind the camera) and depth of each observation id."""
         obs = np.asarray(obs, dtype=np.int64)
         images = self.obs_image.data[obs]
@@ -313,7 +314,7 @@ class Reconstruction:
         return s
 
     @classmethod
-    def from_state(cls, s: dict, keypoints) -> "Reconstruction":
+    def from_state(cls, s: dict, keypoints: list[np.ndarray]) -> "Reconstruction":
         cams = {k: Camera(*v) for k, v in s["cameras"].items()}
         m = cls(s["image_ids"], s["names"], s["camera_of"], cams, keypoints, len(s["point_of_track"]))
         for k in cls._ARRAYS:

@@ -20,12 +20,15 @@ rules"): essential on the 184 deg fisheye orbit (AUC@5 0.99, 0.51 without), with
 """
 
 import logging
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..geometry.absolute_pose import pnp_ransac, refine_pose_and_focal, reprojection_errors, rival_poses
 from .config import MapperConfig
+from .model import Reconstruction
+from .tracks import Tracks
 
 log = logging.getLogger("mvrecon.sfm")
 _PYRAMID_LEVELS = 6
@@ -34,7 +37,7 @@ _RIVAL_SHARE = 0.2  # a second pose fitting this share of the best pose's inlier
 _WEAK_LINK = 0.75  # below this share of the image's strongest link, its registered views cannot decide
 
 
-def visibility_score(xy, width: int, height: int, levels: int = _PYRAMID_LEVELS) -> int:
+def visibility_score(xy: np.ndarray, width: int, height: int, levels: int = _PYRAMID_LEVELS) -> int:
     """Sum over levels l = 1..levels of (occupied cells of a 2^l grid) * 2^l."""
     if len(xy) == 0:
         return 0
@@ -47,7 +50,7 @@ def visibility_score(xy, width: int, height: int, levels: int = _PYRAMID_LEVELS)
     return int(score)
 
 
-def correspondences_2d3d(model, tracks, image: int):
+def correspondences_2d3d(model: Reconstruction, tracks: Tracks, image: int) -> tuple[np.ndarray, np.ndarray]:
     """(keypoint indices, point ids) of image's keypoints whose track already has a 3D point."""
     t = tracks.track_of[image]
     kps = np.flatnonzero(t >= 0)
@@ -56,7 +59,8 @@ def correspondences_2d3d(model, tracks, image: int):
     return kps[keep], pids[keep]
 
 
-def rank_candidates(model, tracks, images) -> list[tuple[int, int, int]]:
+def rank_candidates(model: Reconstruction, tracks: Tracks,
+                    images: Iterable[int]) -> list[tuple[int, int, int]]:
     """(score, number of 2D-3D matches, image) for the given unregistered images, best first."""
     out = []
     for i in images:
@@ -75,7 +79,7 @@ class Registration:
     wait: bool = False  # not a failure of the image: its pose waits for its neighbours (`choose_pose`)
 
 
-def register_image(model, tracks, image: int, config: MapperConfig, seed: int = 0,
+def register_image(model: Reconstruction, tracks: Tracks, image: int, config: MapperConfig, seed: int = 0,
                    decide: bool = False) -> Registration:
     """Estimate image's pose from its 2D-3D matches and register it (observations are added by the caller).
 
@@ -132,7 +136,7 @@ def _at_focal_scale(K, uv, scale: float):
     return Kh, (uv - K[:2, 2]) * scale + K[:2, 2]
 
 
-def track_links(tracks, image: int) -> np.ndarray:
+def track_links(tracks: Tracks, image: int) -> np.ndarray:
     """Per image, the tracks it shares with `image` (0 for `image` itself): how strongly two views are tied,
     about the inliers of their verified pair plus the matches that reach it through third views."""
     t = tracks.track_of[image]
@@ -145,7 +149,8 @@ def track_links(tracks, image: int) -> np.ndarray:
     return links
 
 
-def choose_pose(model, tracks, image: int, pids, poses):
+def choose_pose(model: Reconstruction, tracks: Tracks, image: int, pids: np.ndarray,
+                poses: list[tuple[np.ndarray, ...]]) -> tuple[tuple[np.ndarray, ...], str | None]:
     """Of `poses` ((R, t, inlier mask over the 2D-3D matches of points `pids`), the best RANSAC pose first),
     the one the image's registered views support most, and None, or with the reason to wait (a str) when
     none of its best-connected views is registered yet, so that they cannot vouch for either pose.

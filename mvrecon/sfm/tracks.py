@@ -13,6 +13,8 @@ from functools import cached_property
 
 import numpy as np
 
+from ..database import PairGeometry
+
 
 @dataclass
 class Tracks:
@@ -41,7 +43,8 @@ class Tracks:
         return np.repeat(np.arange(len(self)), self.lengths())
 
 
-def build_tracks(image_ids, num_keypoints, pairs) -> Tracks:
+def build_tracks(image_ids: np.ndarray | list[int], num_keypoints: np.ndarray | list[int],
+                 pairs: list[PairGeometry]) -> Tracks:
     """Tracks from verified pairs. image_ids: database ids; num_keypoints: per image; pairs: PairGeometry
     list."""
     image_ids = np.asarray(image_ids, dtype=np.int64)

@@ -19,6 +19,8 @@ import numpy as np
 from ..geometry.absolute_pose import pnp_ransac
 from ..geometry.triangulation import reaches_triangulation_angle, refine_points, triangulate_dlt
 from .config import MapperConfig
+from .model import Reconstruction
+from .tracks import Tracks
 
 _PAIR_HYPOTHESES = 8
 
@@ -103,7 +105,8 @@ def _check(model, X, images, kps, mask, config):
     return inl, ok
 
 
-def triangulate_tracks(model, tracks, track_ids, config: MapperConfig, seed: int = 0) -> int:
+def triangulate_tracks(model: Reconstruction, tracks: Tracks, track_ids: np.ndarray, config: MapperConfig,
+                       seed: int = 0) -> int:
     """Create points for the given tracks that have none yet and >= 2 registered views. Returns points
     added."""
     track_ids = np.unique(np.asarray(track_ids, dtype=np.int64))
@@ -158,7 +161,8 @@ def triangulate_tracks(model, tracks, track_ids, config: MapperConfig, seed: int
     return len(sel)
 
 
-def continue_points(model, tracks, config: MapperConfig, images=None, loose: bool = False, seed: int = 0) -> int:
+def continue_points(model: Reconstruction, tracks: Tracks, config: MapperConfig,
+                    images: np.ndarray | list[int] | None = None, loose: bool = False, seed: int = 0) -> int:
     """Add observations of existing points in registered views of their tracks (restricted to `images` when
     given) that pass the pixel gate, or with `loose` the angular one and then `_refits` or `_coherent`.
     Returns observations added."""
@@ -226,12 +230,13 @@ def _coherent(model, X, images, x, config: MapperConfig, seed: int) -> np.ndarra
     return keep
 
 
-def tracks_of_image(model, tracks, image: int) -> np.ndarray:
+def tracks_of_image(model: Reconstruction, tracks: Tracks, image: int) -> np.ndarray:
     t = tracks.track_of[image]
     return np.unique(t[t >= 0])
 
 
-def retriangulate(model, tracks, config: MapperConfig, seed: int = 0) -> tuple[int, int]:
+def retriangulate(model: Reconstruction, tracks: Tracks, config: MapperConfig,
+                  seed: int = 0) -> tuple[int, int]:
     """Continue all points into every registered view and triangulate the tracks still without a point
     (COLMAP's retriangulation after global BA, which recovers points lost to earlier poor poses).
 
@@ -258,7 +263,7 @@ def retriangulate(model, tracks, config: MapperConfig, seed: int = 0) -> tuple[i
     return made, added_obs
 
 
-def refine_existing_points(model, point_ids, iterations: int = 3) -> None:
+def refine_existing_points(model: Reconstruction, point_ids: np.ndarray, iterations: int = 3) -> None:
     """Re-fit points to their observations with the poses held fixed: the points a subset bundle adjustment
     left out follow the poses it moved (their outliers go to the filters that run next)."""
     pids, obs, mask = model.padded_observations(point_ids)

@@ -1,7 +1,9 @@
 """What the stages share: the front end's config, the number of workers, the workspace each stage holds."""
 
 import functools
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -34,12 +36,12 @@ def worker_count(config: FrontendConfig) -> int:
     return config.workers if config.workers > 0 else default_workers()
 
 
-def as_workspace(workspace) -> Workspace:
+def as_workspace(workspace: Workspace | Path | str) -> Workspace:
     """`workspace` as a Workspace (a path is opened as one)."""
     return workspace if isinstance(workspace, Workspace) else Workspace(workspace)
 
 
-def holding_workspace(func):
+def holding_workspace(func: Callable) -> Callable:
     """`func(config, workspace, ...)` run with the workspace locked against other processes (Workspace.lock)."""
     @functools.wraps(func)
     def run(config, workspace, *args, **kwargs):
@@ -48,7 +50,7 @@ def holding_workspace(func):
     return run
 
 
-def stats_text(values) -> str:
+def stats_text(values: Sequence[float] | np.ndarray) -> str:
     """Mean, min and max of `values` in one phrase, for the stages' summaries."""
     v = np.asarray(values, dtype=float)
     if not v.size:

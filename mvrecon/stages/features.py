@@ -8,7 +8,7 @@ handed to an `executor.WorkerPool` (`_hand_out`): the place where another backen
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,10 +20,17 @@ from ..cameras import group_cameras
 from ..config import to_dict
 from ..errors import InputError
 from ..executor import WorkerPool
-from ..features.sift import extraction_memory_mb
+from ..features.sift import extract_sift, extraction_memory_mb
 from ..io.files import read_json_object, some_names, write_json
-from ..io.images import IMAGE_EXTENSIONS, decoding_for_detection, image_metadata, list_images
-from ..io.masks import check_masks, find_masks, mask_path
+from ..io.images import (
+    IMAGE_EXTENSIONS,
+    colors_at,
+    decoding_for_detection,
+    image_metadata,
+    list_images,
+    read_image_for_detection,
+)
+from ..io.masks import check_masks, find_masks, keypoints_outside_mask, mask_path
 from ..progress import progress
 from ..workspace import Workspace
 from .common import FrontendConfig, as_workspace, stats_text, worker_count
@@ -63,13 +70,10 @@ class FeatureSummary:
 def _extract_job(job):
     """Worker: (path, name, sift config, mask path or None, OpenCV threads or None to leave them) -> (name,
     (keypoints, descriptors, keypoint colours)) or (name, error message)."""
-    from ..features.sift import extract_sift
-    from ..io.images import colors_at, read_image_for_detection
-
     path, name, sift_config, mask, threads = job
     try:
         if threads is not None:
-            import cv2
+            import cv2  # noqa: PLC0415 - in the worker: the parent forks its workers before loading OpenCV
 
             if cv2.getNumThreads() != threads:
                 cv2.setNumThreads(threads)
@@ -77,8 +81,6 @@ def _extract_job(job):
         image, reduced = read_image_for_detection(path, sift_config.max_image_size)
         keypoints, descriptors = extract_sift(image, sift_config, reduced)
         if mask is not None:
-            from ..io.masks import keypoints_outside_mask
-
             full_shape = (image.shape[0] * reduced, image.shape[1] * reduced)
             keep = keypoints_outside_mask(mask, path, keypoints, full_shape)
             keypoints, descriptors = keypoints[keep], descriptors[keep]
@@ -115,7 +117,7 @@ def _extraction_jobs(folder: Path, names, config: FrontendConfig, masks: dict, w
             for k, n in enumerate(names)]
 
 
-def require_images(folder) -> tuple[list[str], dict[str, str]]:
+def require_images(folder: Path | str) -> tuple[list[str], dict[str, str]]:
     """`list_images(folder)`, or an InputError when fewer than 2 images are readable: checked before any work
     (extraction here, the engines in compare and study)."""
     names, skipped = list_images(folder)
@@ -132,7 +134,7 @@ def _unreadable(folder: Path, skipped: dict[str, str]) -> dict[str, str]:
 STAMPS = "images.json"  # in the workspace: name -> [size, mtime_ns] of every image file when features were read
 
 
-def image_stamps(folder: Path, names) -> dict[str, list[int]]:
+def image_stamps(folder: Path, names: Iterable[str]) -> dict[str, list[int]]:
     """Size and modification time of each file: what tells a rerun that an image changed since it was read."""
     out = {}
     for name in names:
@@ -184,8 +186,8 @@ def _too_few(folder: Path, usable: int, failed: dict[str, str]):
     raise InputError(f"{folder}: only {usable} usable image(s), need at least 2{why}")
 
 
-def extract_features(config: FrontendConfig, image_dir, workspace, *, overwrite: bool = False,
-                     on_image: Callable[[str], None] | None = None,
+def extract_features(config: FrontendConfig, image_dir: Path | str, workspace: Workspace | Path | str, *,
+                     overwrite: bool = False, on_image: Callable[[str], None] | None = None,
                      before_changes: Callable[[], None] | None = None,
                      alongside: Callable[[], None] | None = None) -> FeatureSummary:
     """Detect SIFT in every image of `image_dir` not yet in the workspace; `on_image(name)` after each commit.

@@ -20,6 +20,7 @@ from ..errors import InputError
 from ..io.colmap_model import warn_text_names, write_models, write_points_ply
 from ..matching.overlay import fixed_keypoints, same_view
 from ..sfm.config import MapperConfig
+from ..sfm.model import Reconstruction
 from ..workspace import Workspace
 from .common import as_workspace, holding_workspace
 
@@ -52,8 +53,10 @@ class MapSummary:
 
 
 @holding_workspace
-def map_workspace(config: MapperConfig, workspace, *, image_dir=None, text: bool = False, resume: bool = False,
-                  overwrite: bool = False, keypoint_colors=None) -> MapSummary:
+def map_workspace(config: MapperConfig, workspace: Workspace | Path | str, *,
+                  image_dir: Path | str | None = None, text: bool = False, resume: bool = False,
+                  overwrite: bool = False,
+                  keypoint_colors: dict[str, np.ndarray] | None = None) -> MapSummary:
     """Run the mapper (`config.mapper`) on the workspace's database and write `sparse/N/` and `points.ply`.
 
     With `resume`, mapping continues from the last snapshot in the workspace (`snapshots/mapper.pkl`);
@@ -100,10 +103,10 @@ def _run_mapper(corr, config, snapshot: Path, resume: bool):
     which maps in one go and has no snapshot to resume from). Their modules load only when mapping runs (GTSAM
     is heavy for the commands that never map)."""
     if config.mapper == "global":
-        from ..sfm.global_mapper import map_correspondences_globally
+        from ..sfm.global_mapper import map_correspondences_globally  # noqa: PLC0415 - GTSAM, after the workers fork
 
         return map_correspondences_globally(corr, config)
-    from ..sfm.incremental import map_correspondences
+    from ..sfm.incremental import map_correspondences  # noqa: PLC0415 - GTSAM, after the workers fork
 
     return map_correspondences(corr, config, snapshot_path=snapshot, resume=resume)
 
@@ -130,7 +133,7 @@ def _write_models(ws: Workspace, models: list, image_dir, text: bool, keypoint_c
             log.warning("%s: no new model; the earlier model in sparse/ and points.ply is kept", ws.path)
 
 
-def camera_entries(model) -> list[dict]:
+def camera_entries(model: Reconstruction) -> list[dict]:
     """The cameras of a model's registered images with their final parameters (COLMAP's order), as report.json
     lists them: the refined intrinsics were only in sparse/N/cameras.bin."""
     cams = [(cid, model.cameras[int(cid)]) for cid in np.unique(model.camera_of[model.registered])]

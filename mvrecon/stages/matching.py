@@ -24,6 +24,7 @@ from ..matching.overlay import drop_static, fixed_keypoints
 from ..matching.pairs import check_spec, select_pairs
 from ..matching.verify import verify_pair
 from ..progress import progress
+from ..workspace import Workspace
 from .common import FrontendConfig, as_workspace, holding_workspace, stats_text, worker_count
 
 log = logging.getLogger(__name__)
@@ -71,7 +72,7 @@ _MANY_FOR_EXHAUSTIVE = 200
 
 
 @holding_workspace
-def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
+def match(config: FrontendConfig, workspace: Workspace | Path | str, *, overwrite: bool = False,
           on_batch: Callable[[int], None] | None = None, batch_size: int = 16,
           max_cached_images: int = 256) -> MatchSummary:
     """Match and verify every selected pair not yet in the workspace; `on_batch(pairs_done)` after each commit.

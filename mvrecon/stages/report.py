@@ -13,8 +13,9 @@ from .features import STAMPS, image_stamps
 from .mapping import MapSummary
 
 
-def write_report(out_dir, *, config_hash: str, seed: int, summary: MapSummary, stages: dict, total: dict,
-                 counts: dict, skipped: dict | None = None, database: dict | None = None) -> dict:
+def write_report(out_dir: Path | str, *, config_hash: str, seed: int, summary: MapSummary, stages: dict,
+                 total: dict, counts: dict, skipped: dict | None = None,
+                 database: dict | None = None) -> dict:
     """OUT/report.json in the schema the compare and study tools read (see docs/sfm.md). `database`: where
     database.db came from ({"made_by": "mvrecon"} or another tool's)."""
     images = {name: dict(s) for name, s in summary.status.items()}
