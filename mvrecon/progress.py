@@ -11,6 +11,7 @@ import shutil
 import sys
 import time
 from collections.abc import Iterable
+from typing import TextIO
 
 _enabled = True
 _shown = None  # the bar currently drawn on stderr's last line, if any
@@ -33,8 +34,8 @@ def clear_line(record: logging.LogRecord | None = None) -> bool:
 class Bar:
     """`update(n)`, `set_postfix_str(text)`, `close()`, and iteration over a wrapped iterable."""
 
-    def __init__(self, iterable=None, total=None, desc: str = "", unit: str = "it", disable: bool = False,
-                 stream=None, min_interval: float = 0.1):
+    def __init__(self, iterable: Iterable | None = None, total: int | None = None, desc: str = "", unit: str = "it",
+                 disable: bool = False, stream: TextIO | None = None, min_interval: float = 0.1):
         if total is None and iterable is not None and hasattr(iterable, "__len__"):
             total = len(iterable)
         self.iterable, self.total, self.desc, self.unit = iterable, total, desc, unit

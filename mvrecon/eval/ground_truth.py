@@ -7,7 +7,7 @@ The HDF5 files are tiny and contiguous, so a small reader here avoids a dependen
 """
 
 import struct
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +26,8 @@ class GroundTruth(dict):
     `source`: the file or folder it came from; `kind`: colmap, middlebury, strecha or imc.
     """
 
-    def __init__(self, poses=(), *, intrinsics=None, points=None, source="", kind=""):
+    def __init__(self, poses: Mapping | Iterable = (), *, intrinsics: dict | None = None,
+                 points: np.ndarray | None = None, source: str = "", kind: str = ""):
         super().__init__(poses)
         self.intrinsics = dict(intrinsics or {})
         self.points = points

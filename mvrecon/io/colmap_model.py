@@ -13,7 +13,7 @@ import logging
 import struct
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -40,6 +40,29 @@ _TRACK_ELEMENT = np.dtype([("image", "<u4"), ("point2d", "<u4")])
 _BEHIND_ERROR = float(np.sqrt(np.finfo(np.float64).max))
 
 
+class SparseModel(Protocol):
+    """What writing a model reads of it: the parts of `sfm.model.Reconstruction` used here. io/ sits below sfm/,
+    so this module names the contract instead of importing the class."""
+
+    image_ids: np.ndarray
+    names: list[str]
+    camera_of: np.ndarray
+    cameras: dict
+    keypoints: list[np.ndarray]
+    R: np.ndarray
+    t: np.ndarray
+    registered: np.ndarray
+    registration_order: list[int]
+    xyz: Any  # growable arrays (sfm.model's buffers): `.data` is the array
+    obs_image: Any
+    obs_kp: Any
+    obs_point: Any
+
+    def alive_observations(self) -> np.ndarray: ...
+
+    def camera(self, i: int) -> Any: ...
+
+
 @dataclass
 class WrittenModel:
     """What write_models wrote of one model, for points.ply and the text-name warning: image names (in the
@@ -50,7 +73,7 @@ class WrittenModel:
     rgb: np.ndarray
 
 
-def point_colors(model, keypoint_colors: dict) -> np.ndarray | None:
+def point_colors(model: SparseModel, keypoint_colors: dict) -> np.ndarray | None:
     """RGB (uint8) of every point id: the mean of the colours at its alive observations' keypoints (from
     `keypoint_colors`: image name -> io.images.colors_at of its keypoints), rounded, as COLMAP's
     `extract_colors_for_all_images` averages its samples (but half to even: an exact half, one point in 2000
@@ -79,7 +102,7 @@ def _mean_colors(model, samples: dict) -> np.ndarray | None:
     return sums / np.maximum(counts, 1)[:, None]
 
 
-def image_colors(model, image_dir: Path | str) -> np.ndarray:
+def image_colors(model: SparseModel, image_dir: Path | str) -> np.ndarray:
     """RGB (uint8) of every point id sampled in the registered images in image_dir, what pycolmap's
     `extract_colors_for_all_images` gave (bilinear at each observation, averaged per point). An image that
     cannot be read is left out with a warning, as COLMAP does. The keypoints are in the upright frame our
@@ -130,7 +153,7 @@ def _point_errors(model, obs, poses, kp_xy, lengths) -> np.ndarray:
     return np.bincount(point_index, weights=err, minlength=len(lengths)) / np.maximum(lengths, 1)
 
 
-def model_files(model, colors: np.ndarray | None = None) -> tuple[dict[str, bytes], WrittenModel]:
+def model_files(model: SparseModel, colors: np.ndarray | None = None) -> tuple[dict[str, bytes], WrittenModel]:
     """The five .bin files of the registered images, their cameras and the points with observations (coloured
     by `colors`, indexed by point id, when given; else black), and what they hold for points.ply."""
     reg = np.asarray(model.registration_order, dtype=np.int64)  # pycolmap keeps the images in this order
@@ -208,7 +231,7 @@ def _points_file(head, track, lengths) -> bytes:
     return out.tobytes()
 
 
-def write_models(models: list, sparse_dir: Path | str, image_dir: Path | str | None = None,
+def write_models(models: list[SparseModel], sparse_dir: Path | str, image_dir: Path | str | None = None,
                  text: bool = False,
                  keypoint_colors: dict[str, np.ndarray] | None = None) -> list[WrittenModel]:
     """Write models (largest first) to sparse_dir/0, 1, ...; point colours from `keypoint_colors` (see

@@ -70,7 +70,7 @@ def nearest_brute_force(queries: np.ndarray, targets: np.ndarray,
 class KDTreeSearch:
     """Open3D's KD-tree (nanoflann) over the target points, built once and queried every iteration."""
 
-    def __init__(self, targets):
+    def __init__(self, targets: np.ndarray):
         o3d = import_open3d()
 
         self._o3d = o3d

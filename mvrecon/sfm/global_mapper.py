@@ -26,6 +26,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from ..database import Correspondences
 from ..progress import progress
 from . import filtering
 from .ba_points import select_points
@@ -49,7 +50,7 @@ _MAX_DIRECTION_ERROR_DEG = 10.0  # a translation direction this far off the solv
 
 
 class GlobalMapper:
-    def __init__(self, corr, config: MapperConfig = MapperConfig()):
+    def __init__(self, corr: Correspondences, config: MapperConfig = MapperConfig()):
         self.config = config
         ids = sorted(corr.images)
         self.image_ids = np.array(ids, dtype=np.int64)
@@ -356,6 +357,6 @@ class GlobalMapper:
         return out
 
 
-def map_correspondences_globally(corr, config: MapperConfig = MapperConfig()) -> MappingResult:
+def map_correspondences_globally(corr: Correspondences, config: MapperConfig = MapperConfig()) -> MappingResult:
     """Run the global mapper on a database's correspondences (see `database.read_correspondences`)."""
     return GlobalMapper(corr, config).run()

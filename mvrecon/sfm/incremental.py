@@ -106,7 +106,8 @@ def _signature(corr, config: MapperConfig) -> tuple:
 
 
 class IncrementalMapper:
-    def __init__(self, corr, config: MapperConfig = MapperConfig(), snapshot_path=None):
+    def __init__(self, corr: Correspondences, config: MapperConfig = MapperConfig(),
+                 snapshot_path: Path | str | None = None):
         self.config = config
         ids = sorted(corr.images)
         self.image_ids = np.array(ids, dtype=np.int64)

@@ -7,6 +7,7 @@ arrays), observations by an observation id. Deleted points and observations stay
 Poses are COLMAP's cam_from_world: x_cam = R @ X + t.
 """
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -77,7 +78,9 @@ class _Buffer:
 class Reconstruction:
     """A model under construction. keypoints: per image (K_i, 2) pixels, COLMAP convention."""
 
-    def __init__(self, image_ids, names, camera_of, cameras: dict, keypoints, num_tracks: int):
+    def __init__(self, image_ids: Sequence[int] | np.ndarray, names: Sequence[str],
+                 camera_of: Sequence[int] | np.ndarray,
+                 cameras: dict, keypoints: Sequence[np.ndarray], num_tracks: int):
         self.image_ids = np.asarray(image_ids, dtype=np.int64)
         self.names = list(names)
         self.camera_of = np.asarray(camera_of, dtype=np.int64)

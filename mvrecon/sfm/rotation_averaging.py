@@ -13,6 +13,7 @@ largest component are left to other components.
 
 from dataclasses import dataclass
 
+import gtsam
 import numpy as np
 from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
@@ -31,14 +32,14 @@ class RotationResult:
     inliers: np.ndarray  # (m,) bool: edges consistent with the rotations
 
 
-def edge_residuals_deg(R, ij, Rij) -> np.ndarray:
+def edge_residuals_deg(R: np.ndarray, ij: np.ndarray, Rij: np.ndarray) -> np.ndarray:
     """Angle (deg) of R_ij R_i R_j^T per edge: 0 when the rotations agree with the edge."""
     M = np.einsum("mab,mbc,mdc->mad", Rij, R[ij[:, 0]], R[ij[:, 1]])
     c = np.clip((np.trace(M, axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)
     return np.degrees(np.arccos(c))
 
 
-def components(n: int, ij) -> np.ndarray:
+def components(n: int, ij: np.ndarray) -> np.ndarray:
     """Connected-component label of each of n nodes joined by the edges ij (m,2)."""
     if len(ij) == 0:
         return np.arange(n)
@@ -73,7 +74,8 @@ def _tree(n, ij, weights) -> np.ndarray:
                     dtype=np.int64)
 
 
-def initial_rotations(n, ij, Rij, weights, root: int, max_error_deg: float, seed: int = 0) -> np.ndarray:
+def initial_rotations(n: int, ij: np.ndarray, Rij: np.ndarray, weights: np.ndarray, root: int,
+                      max_error_deg: float, seed: int = 0) -> np.ndarray:
     """Rotations of the spanning tree (maximum by weight, or one of `_RANDOM_TREES` random ones) whose chained
     rotations agree with the most edges within `max_error_deg`, weighted."""
     rng = np.random.default_rng(seed)
@@ -132,12 +134,10 @@ def _log(M) -> np.ndarray:
     return out
 
 
-def shonan(R, ij, Rij, nodes) -> np.ndarray:
+def shonan(R: np.ndarray, ij: np.ndarray, Rij: np.ndarray, nodes: np.ndarray) -> np.ndarray:
     """`gtsam.ShonanAveraging3` over `nodes` (indices into R) and the edges ij among them, started from R;
     returns R with those nodes replaced. GTSAM's measurement between world_from_camera rotations of i and j is
     R_i R_j^T = R_ij^T."""
-    import gtsam
-
     key = {int(v): k for k, v in enumerate(nodes.tolist())}
     noise = gtsam.noiseModel.Isotropic.Sigma(3, 0.01)
     measurements = [gtsam.BinaryMeasurementRot3(key[int(a)], key[int(b)], gtsam.Rot3(Rij[k].T), noise)
@@ -172,7 +172,8 @@ def _solve(R, ij, Rij, weights, nodes, solver) -> np.ndarray:
     return out
 
 
-def average_rotations(n: int, ij, Rij, weights, max_error_deg: float = 5.0, seed: int = 0) -> RotationResult:
+def average_rotations(n: int, ij: np.ndarray, Rij: np.ndarray, weights: np.ndarray,
+                      max_error_deg: float = 5.0, seed: int = 0) -> RotationResult:
     """Rotations of the largest component of the view graph (n images, edges ij (m,2) with R_j = R_ij R_i and
     positive `weights`), with the outlier edges found on the way (see the module docstring)."""
     ij = np.asarray(ij, dtype=np.int64).reshape(-1, 2)

@@ -11,6 +11,7 @@ poor minima on orbits.
 
 from dataclasses import dataclass
 
+import gtsam
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.linalg import eigsh
@@ -30,11 +31,9 @@ class PositionResult:
     inliers: np.ndarray  # (m,) bool: the directions kept
 
 
-def mfas_inliers(ij, directions, seed: int = 0) -> np.ndarray:
+def mfas_inliers(ij: np.ndarray, directions: np.ndarray, seed: int = 0) -> np.ndarray:
     """Edges whose direction MFAS does not mark as an outlier: mean outlier weight over `_PROJECTIONS`
     projection directions (sampled among the edges' own directions, as 1DSfM does) under `_MFAS_MAX_WEIGHT`."""
-    import gtsam
-
     if len(ij) < 3:
         return np.ones(len(ij), bool)
     rng = np.random.default_rng(seed)
@@ -51,7 +50,7 @@ def mfas_inliers(ij, directions, seed: int = 0) -> np.ndarray:
     return total / len(picks) < _MFAS_MAX_WEIGHT
 
 
-def linear_centers(n: int, ij, directions) -> np.ndarray:
+def linear_centers(n: int, ij: np.ndarray, directions: np.ndarray) -> np.ndarray:
     """Centres minimising sum |(I - d d^T)(C_j - C_i)|^2 with sum C = 0 and sum |C|^2 = 1: the eigenvector of the
     smallest eigenvalue past the three of the common translation. Connected nodes only; a start, not a result."""
     m = len(ij)
@@ -75,10 +74,8 @@ def linear_centers(n: int, ij, directions) -> np.ndarray:
     return eigsh(shifted, k=1, sigma=-1e-6, which="LM")[1][:, 0].reshape(n, 3)
 
 
-def recover_centers(n: int, ij, directions, initial) -> np.ndarray:
+def recover_centers(n: int, ij: np.ndarray, directions: np.ndarray, initial: np.ndarray) -> np.ndarray:
     """`gtsam.TranslationRecovery` of centres from the unit directions (i -> j, world frame), from `initial`."""
-    import gtsam
-
     noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(0.1),
                                            gtsam.noiseModel.Isotropic.Sigma(2, 1.0))
     measurements = [gtsam.BinaryMeasurementUnit3(int(a), int(b), gtsam.Unit3(d), noise)
@@ -91,7 +88,8 @@ def recover_centers(n: int, ij, directions, initial) -> np.ndarray:
     return np.array([result.atPoint3(i) for i in range(n)])
 
 
-def average_translations(n: int, ij, directions, max_error_deg: float = 10.0, seed: int = 0) -> PositionResult:
+def average_translations(n: int, ij: np.ndarray, directions: np.ndarray, max_error_deg: float = 10.0,
+                         seed: int = 0) -> PositionResult:
     """Centres of the largest component the MFAS-kept directions connect (edges ij (m,2); `directions` (m,3):
     unit world-frame direction from camera i to camera j). After the first solution, directions more than
     4x the median error off their baseline (between 1 deg and `max_error_deg`) are dropped and the centres solved
@@ -131,7 +129,7 @@ def average_translations(n: int, ij, directions, max_error_deg: float = 10.0, se
     return PositionResult(centers, solved, inliers)
 
 
-def direction_errors_deg(centers, ij, directions) -> np.ndarray:
+def direction_errors_deg(centers: np.ndarray, ij: np.ndarray, directions: np.ndarray) -> np.ndarray:
     """Angle (deg) between each edge's baseline C_j - C_i and its measured direction."""
     base = centers[ij[:, 1]] - centers[ij[:, 0]]
     cos = np.einsum("mi,mi->m", base, directions) / np.maximum(np.linalg.norm(base, axis=1), 1e-300)

@@ -13,14 +13,19 @@ RANSAC), with the median triangulation angle of its inliers; a pair that a homog
 as well (a camera turning in place) gives that rotation and no translation direction.
 """
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
+from scipy.optimize import least_squares
 
+from ..database import PairGeometry
 from ..geometry.rotation import angle_axis_to_rotmat
 from ..geometry.triangulation import triangulation_angle_deg, two_view_midpoints
 from ..geometry.two_view import homography_translation, relative_pose
 from .config import MapperConfig
+from .model import Reconstruction
 
 SAMPLE = 1000  # matches a pair's pose and angle are estimated from (as the initial pair's)
 COARSE_SAMPLE = 300  # the same for the coarse models that calibrate a focal
@@ -47,7 +52,7 @@ class ViewGraph:
     rejected: dict  # (a, b) -> why the pair gave no edge
 
 
-def oriented_pairs(image_ids, pairs) -> dict:
+def oriented_pairs(image_ids: np.ndarray, pairs: Iterable[PairGeometry]) -> dict:
     """(a, b) internal indices with a < b -> (N,2) inlier keypoint indices of a and b, for verified pairs."""
     index_of = {int(i): k for k, i in enumerate(np.asarray(image_ids).tolist())}
     out = {}
@@ -66,8 +71,6 @@ def _sample(matches, seed: int, size: int = SAMPLE) -> np.ndarray:
 
 
 def _fundamental(model, a, b, matches):
-    import cv2
-
     u1, u2 = model.keypoints[a][matches[:, 0]], model.keypoints[b][matches[:, 1]]
     if len(u1) < 8:
         return None
@@ -82,7 +85,7 @@ def _essential_costs(F, K1s, K2s) -> np.ndarray:
     return (s[:, 0] - s[:, 1]) / np.maximum(s[:, 0] + s[:, 1], 1e-300)
 
 
-def calibrate_focals(model, pairs: dict, seed: int = 0) -> dict:
+def calibrate_focals(model: Reconstruction, pairs: dict, seed: int = 0) -> dict:
     """Set the focal of every camera whose focal is guessed to the one its pairs' fundamental matrices support
     best (see the module docstring); returns camera id -> (guess, calibrated focal) of those it changed."""
     guessed = {c for c, cam in model.cameras.items() if not cam.prior_trusted}
@@ -125,7 +128,7 @@ def calibrate_focals(model, pairs: dict, seed: int = 0) -> dict:
     return changed
 
 
-def relative_poses(model, pairs: dict, config: MapperConfig, sample: int = SAMPLE) -> ViewGraph:
+def relative_poses(model: Reconstruction, pairs: dict, config: MapperConfig, sample: int = SAMPLE) -> ViewGraph:
     """The relative pose of each pair at the model's current calibration (see the module docstring), from at
     most `sample` of its matches."""
     edges, rejected = {}, {}
@@ -156,12 +159,11 @@ def relative_poses(model, pairs: dict, config: MapperConfig, sample: int = SAMPL
     return ViewGraph(edges, rejected)
 
 
-def refine_relative_pose(R, t, x1, x2, iterations: int = 10):
+def refine_relative_pose(R: np.ndarray, t: np.ndarray, x1: np.ndarray, x2: np.ndarray,
+                         iterations: int = 10) -> tuple[np.ndarray, np.ndarray]:
     """(R, t) refined by Levenberg-Marquardt on the Sampson distances of the inlier matches (normalised
     coordinates): the five-point RANSAC's pose comes from a minimal sample, and with a narrow field of view it
     can be degrees off (templeSparseRing, 24 deg across: pairs of 150-200 matches 10 deg off in rotation)."""
-    from scipy.optimize import least_squares
-
     if len(x1) < 6:
         return R, t
     h1, h2 = np.c_[x1, np.ones(len(x1))], np.c_[x2, np.ones(len(x2))]
@@ -187,8 +189,6 @@ def _rotation_fit(x1, x2, threshold: float):
     """(nearest rotation, inliers, |t|/d) of the pair's normalised homography (x2 ~ H x1), or None when none
     fits: |t|/d near 0 (the spread of its singular values, `homography_translation`) is a camera turning in
     place, whose essential matrix is degenerate and whose rotation is the homography's."""
-    import cv2
-
     if len(x1) < 4:
         return None
     H, mask = cv2.findHomography(x1, x2, cv2.RANSAC, threshold)

@@ -144,7 +144,7 @@ class NoVerifiedPairs(InputError):
     """The database gives the mapper no verified pair; `reason` is why, without the path the error names (the
     database, or the images of a `reconstruct` that removed the folder it made, database included)."""
 
-    def __init__(self, path, reason: str):
+    def __init__(self, path: Path | str, reason: str):
         super().__init__(f"{path}: {reason}")
         self.reason = reason
 
