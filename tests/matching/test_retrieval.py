@@ -17,21 +17,7 @@ from mvrecon.matching.pairs import check_spec, select_pairs
 from mvrecon.matching.retrieval import nearest, similarities
 from mvrecon.stages.common import FrontendConfig
 from mvrecon.stages.matching import match
-
-
-def orbit_descriptors(views=16, points=4000, seen=900, noise=8.0, seed=1) -> dict[str, np.ndarray]:
-    """Views on a closed orbit around `points` scene points, each seeing an arc of `seen` consecutive ones, as
-    RootSIFT-like uint8 descriptors with noise: view i shares 650 points with i +- 1, 400 with i +- 2, 150 with
-    i +- 3 and none with the rest."""
-    rng = np.random.default_rng(seed)
-    scene = rng.gamma(0.5, 1.0, (points, 128))  # sparse and non-negative, as SIFT histograms
-    scene = np.sqrt(scene / scene.sum(axis=1, keepdims=True))
-    out = {}
-    for i in range(views):
-        rows = (np.arange(seen) + i * points // views) % points
-        noisy = scene[rows] * 512 + rng.normal(0.0, noise, (seen, 128))
-        out[f"v{i:02d}.png"] = np.clip(np.round(noisy), 0, 255).astype(np.uint8)
-    return out
+from tests.helpers import orbit_descriptors
 
 
 @pytest.mark.parametrize("spec,reason", [
@@ -40,7 +26,8 @@ def orbit_descriptors(views=16, points=4000, seen=900, noise=8.0, seed=1) -> dic
     ("retrieval:-3", "the number of nearest images must be a positive integer, e.g. retrieval:10"),
     ("retrieval:", "the number of nearest images must be a positive integer, e.g. retrieval:10"),
     ("retrieval:²", "the number of nearest images must be a positive integer, e.g. retrieval:10"),
-    ("retrieval", "expected exhaustive, sequential:K, retrieval:K or an existing pairs file"),
+    ("retrieval", "expected auto, exhaustive, sequential:K, spatial:K[:R], retrieval:K, A+B or an existing "
+                  "pairs file"),
 ])
 def test_bad_retrieval_specs_are_refused_in_one_line(spec, reason, tmp_path, capsys):
     with pytest.raises(InputError) as err:
