@@ -12,7 +12,7 @@ from pathlib import Path
 
 from ..io.colmap_model import load_reconstruction
 
-MIN_FRACTION = 0.1  # of the sparser view's points seen by both views
+MIN_FRACTION = 0.25  # of the sparser view's points seen by both views
 
 
 def shared_points(gt_sparse: Path | str) -> tuple[dict[tuple[str, str], int], dict[str, int]]:

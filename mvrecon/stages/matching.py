@@ -54,9 +54,10 @@ class MatchSummary:
 
     def text(self) -> str:
         kinds = ", ".join(f"{n} {k.lower()}" for k, n in sorted(self.configs.items(), key=lambda kv: -kv[1]))
-        return (f"Matching: {self.num_images} images, {self.num_pairs} pairs by {self.strategy or 'a pairs file'} "
-                f"({self.num_matched} matched now, "
-                f"{self.num_pairs - self.num_matched} already done) in {self.seconds:.1f} s; "
+        why = f" ({self.strategy_reason})" if self.strategy_reason != "given" else ""
+        return (f"Matching: {self.num_images} images, {self.num_pairs} pairs ({self.num_matched} matched now, "
+                f"{self.num_pairs - self.num_matched} already done) in {self.seconds:.1f} s, selected by "
+                f"{self.strategy or 'a pairs file'}{why}; "
                 f"{self.num_verified} verified pairs ({kinds or 'none'}); "
                 f"inliers per verified pair: {stats_text(list(self.inliers.values()))}."
                 + (f" {self.fixed_dropped} matches that stay on a pixel where half the images have a feature were "

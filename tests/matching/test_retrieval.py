@@ -2,6 +2,7 @@
 descriptors. Refusals, determinism, the fallbacks, the ranking of true neighbours, and on a ground-truth scene
 fewer pairs with every image registered and the accuracy of exhaustive matching."""
 
+import json
 import logging
 
 import numpy as np
@@ -13,6 +14,7 @@ from mvrecon.errors import InputError
 from mvrecon.eval.ground_truth import load_ground_truth
 from mvrecon.eval.metrics import accuracy_summary
 from mvrecon.eval.models import poses, sparse_models
+from mvrecon.eval.overlap import overlapping_pairs, pair_recall
 from mvrecon.matching.pairs import check_spec, select_pairs
 from mvrecon.matching.retrieval import nearest, similarities
 from mvrecon.stages.common import FrontendConfig
@@ -127,6 +129,21 @@ def test_retrieval_on_an_orbit_matches_fewer_pairs_with_the_accuracy_of_exhausti
     assert 10 <= selected["retrieval:3"].num_pairs <= 30  # the union of 10 lists of 3
     assert acc["retrieval:3"]["registered"] == acc["exhaustive"]["registered"] == 10
     assert acc["retrieval:3"]["auc@5"] >= acc["exhaustive"]["auc@5"] - 0.02
+    report = json.loads((runs["retrieval:3"] / "report.json").read_text())
+    assert report["pairs"] == {"strategy": "retrieval:3", "reason": "given",
+                               "pairs": selected["retrieval:3"].num_pairs}
+
+
+def test_retrieval_finds_the_overlapping_pairs(orbit_runs):
+    scene, runs = orbit_runs
+    with dbmod.open_database(runs["retrieval:3"] / "database.db") as db:
+        ids = {i.name: i.image_id for i in dbmod.read_images(db).values()}
+        pairs = select_pairs("retrieval:3", sorted(ids), descriptors=lambda n: dbmod.read_descriptors(db, ids[n]))
+    # every view of this half orbit sees the object, so every pair shares some ground-truth points; those that
+    # share the most are all found, in fewer than half of the 45 pairs
+    gt = scene / "gt" / "sparse"
+    assert pair_recall(pairs, overlapping_pairs(gt, min_fraction=0.6)) >= 0.9
+    assert pair_recall(pairs, overlapping_pairs(gt, min_fraction=0.7)) == 1.0 and len(pairs) < 45 / 2
 
 
 def test_retrieval_ranks_the_orbit_neighbours_first_and_another_k_is_another_config(orbit_runs):
