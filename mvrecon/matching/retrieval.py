@@ -163,12 +163,14 @@ def global_vectors(names: list[str], read: Callable[[str], np.ndarray]) -> Globa
 
 
 def ranking(vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(expanded, raw) `similarities` of unit rows: the query-expanded ones rank, the raw ones break ties."""
-    raw = similarities(vectors)
-    # at the two ends of a chain of views (a street, a half orbit) an image and its neighbour expand to the
-    # same vector (each is among the other's nearest, and they share the third), so the third's choice
-    # between them fell to float rounding (3.7e-9 apart on object_orbit_small): the raw vectors decide
-    return similarities(expand_queries(vectors, raw)), raw
+    """(expanded, raw) `similarities` of unit rows: the query-expanded ones rank, the raw ones break ties.
+    One BLAS thread, as in `global_vectors`."""
+    with blas_threads(1):
+        raw = similarities(vectors)
+        # at the two ends of a chain of views (a street, a half orbit) an image and its neighbour expand to the
+        # same vector (each is among the other's nearest, and they share the third), so the third's choice
+        # between them fell to float rounding (3.7e-9 apart on object_orbit_small): the raw vectors decide
+        return similarities(expand_queries(vectors, raw)), raw
 
 
 def retrieval_pairs(names: list[str], read: Callable[[str], np.ndarray], k: int,
