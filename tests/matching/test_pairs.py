@@ -127,8 +127,8 @@ def test_auto_chooses_from_what_the_images_offer(caplog):
 
     lla = dict(zip(names, grid_positions(6, 10, 30.0)))
     survey = plan_pairs("auto", names, descriptors=frames.__getitem__, positions=lla.get)
-    assert survey.spec == "spatial:20+retrieval:10" and survey.reason == f"{n} of {n} images have a GPS position"
-    assert len(survey.pairs) <= n * 30
+    assert survey.spec == "spatial:20+retrieval:20" and survey.reason == f"{n} of {n} images have a GPS position"
+    assert len(survey.pairs) <= n * 40
 
     unnamed = {f"{k:03d}_{k * 37 % 101:03d}.jpg": v for k, v in enumerate(frames.values())}  # not one sequence
     plan = plan_pairs("auto", sorted(unnamed), descriptors=unnamed.__getitem__)
