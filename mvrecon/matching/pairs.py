@@ -213,7 +213,7 @@ def sequential_pairs(names: list[str], window: int, vectors: _Vectors | None = N
             best = nearest(expanded[queries], LOOP_NEAREST, tiebreak=raw[queries])
             loops = {tuple(sorted((found[q], found[int(j)]))) for q, row in zip(queries, best) for j in row
                      if np.isfinite(expanded[q, j])}
-            log.info("sequential:%d: %d loop-closure pairs from %d frames", window, len(loops), len(queries))
+            log.debug("sequential:%d: %d loop-closure pairs from %d frames", window, len(loops), len(queries))
             pairs |= {(names[i], names[j]) for i, j in loops}
     return sorted(pairs)
 

@@ -105,7 +105,7 @@ def match(config: FrontendConfig, workspace, *, overwrite: bool = False,
         if ws.begin_stage("matching", record, overwrite):
             dbmod.clear_matches(db)
         todo = [p for p in pairs if not dbmod.has_two_view_geometry(db, *p)]
-        if plan.spec == "exhaustive" and len(images) > _MANY_FOR_EXHAUSTIVE and len(todo) > len(pairs) // 2:
+        if config.pairs == "exhaustive" and len(images) > _MANY_FOR_EXHAUSTIVE and len(todo) > len(pairs) // 2:
             log.warning("exhaustive matching of %d images: %d pairs, growing with the square of the images; "
                         "--pairs auto chooses pairs that grow linearly (retrieval, GPS positions or a video's "
                         "sequence)", len(images), len(pairs))
