@@ -75,7 +75,8 @@ def main(argv=None) -> int:
     sides = {k: np.concatenate([desc[i] for i in ids[k::2]])[:args.size] for k in range(len(ids))}
     desc = sides
     pairs = [(k, k + 1) for k in range(min(args.pairs, len(ids) - 1))]
-    print(f"{len(pairs)} pairs of {np.mean([len(desc[k]) for k in desc]):.0f} x {args.size} descriptors, one thread")
+    rows = np.mean([len(desc[k]) for k in desc])
+    print(f"{len(pairs)} pairs of {rows:.0f} x {args.size} descriptors, one thread")
 
     def onnx_int(d1, d2):  # what the matching stage does: prepared once per image, here once per call
         return match_descriptors(prepare_descriptors(d1), prepare_descriptors(d2))

@@ -41,7 +41,8 @@ def main(argv=None) -> int:
         expanded, raw = ranking(g.vectors)
         pairs = nearest_pairs(expanded, args.k, tiebreak=raw)
         ranked = time.perf_counter()
-        print(f"{n:6d} {made - start:10.1f} {ranked - made:8.2f} {1000 * (ranked - start) / n:9.1f} {len(pairs):7d}",
+        per_image = 1000 * (ranked - start) / n
+        print(f"{n:6d} {made - start:10.1f} {ranked - made:8.2f} {per_image:9.1f} {len(pairs):7d}",
               flush=True)
     return 0
 
