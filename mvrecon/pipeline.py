@@ -94,4 +94,5 @@ def reconstruct(config: ReconstructConfig, image_dir: Path | str, out_dir: Path 
         log.info("%s", summary.text())
         skipped = dict(features.failed)
         return write_report(out, config_hash=full_hash, seed=mapper.seed, summary=summary, stages=clock.stages,
-                            total=clock.total(), counts=dbmod.database_counts(ws.database_path), skipped=skipped)
+                            total=clock.total(), counts=dbmod.database_counts(ws.database_path), skipped=skipped,
+                            pairs=matches.pairs_record())

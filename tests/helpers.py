@@ -48,3 +48,19 @@ def synthetic_scene(root: Path) -> tuple[Path, Path]:
         pycolmap.synthesize_images(image_options, rec, str(images))
         rec.write(str(gt))
     return images, gt
+
+
+def orbit_descriptors(views: int = 16, points: int = 4000, seen: int = 900, noise: float = 8.0, seed: int = 1,
+                      name: str = "v{:02d}.png") -> dict[str, np.ndarray]:
+    """Views on a closed orbit around `points` scene points, each seeing an arc of `seen` consecutive ones, as
+    RootSIFT-like uint8 descriptors with noise, named `name.format(i)`: with the defaults view i shares 650
+    points with i +- 1, 400 with i +- 2, 150 with i +- 3 and none with the rest."""
+    rng = np.random.default_rng(seed)
+    scene = rng.gamma(0.5, 1.0, (points, 128))  # sparse and non-negative, as SIFT histograms
+    scene = np.sqrt(scene / scene.sum(axis=1, keepdims=True))
+    out = {}
+    for i in range(views):
+        rows = (np.arange(seen) + i * points // views) % points
+        noisy = scene[rows] * 512 + rng.normal(0.0, noise, (seen, 128))
+        out[name.format(i)] = np.clip(np.round(noisy), 0, 255).astype(np.uint8)
+    return out

@@ -102,8 +102,10 @@ def add_feature_options(parser: argparse.ArgumentParser) -> None:
 def add_matching_options(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("matching")
     g.add_argument("--pairs", default=None, metavar="SPEC",
-                   help="exhaustive (default), sequential:K (each image with the next K), retrieval:K (each "
-                        "image with the K most similar: unordered photo sets), or a file of 'name1 name2' lines")
+                   help="auto (default: exhaustive below 50 images, else by GPS, video frame names or "
+                        "retrieval), exhaustive, sequential:K (the next K frames, and loop closures), spatial:K[:R] "
+                        "(the K nearest by GPS, within R m), retrieval:K (the K most similar), A+B (both), or a "
+                        "file of 'name1 name2' lines; see docs/pairs.md")
     g.add_argument("--ratio", type=float, default=None, help="Lowe's ratio test threshold (default 0.8)")
     g.add_argument("--max-error", type=float, default=None,
                    help="RANSAC inlier threshold in pixels (default 4)")

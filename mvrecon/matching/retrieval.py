@@ -25,9 +25,11 @@ Descriptors are read twice per image (once for the sample, once to encode) and n
 import logging
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
+from ..executor import blas_threads
 from .matcher import normalize_descriptors
 
 log = logging.getLogger(__name__)
@@ -104,10 +106,11 @@ def similarities(vectors: np.ndarray) -> np.ndarray:
 
 
 def nearest(sim: np.ndarray, k: int, tiebreak: np.ndarray | None = None) -> np.ndarray:
-    """(n, min(k, n-1)) indices of each row's k most similar other rows of a `similarities` matrix, best first.
+    """(rows, min(k, n-1)) indices of each row's k most similar other images of (rows of) an n x n `similarities`
+    matrix, best first.
     Similarities equal to 6 decimals are ranked by `tiebreak` (the same images' similarities before query
     expansion), then by index."""
-    k = min(k, len(sim) - 1)
+    k = min(k, sim.shape[1] - 1)
     if tiebreak is None:
         return np.argsort(-sim, axis=1, kind="stable")[:, :k]
     return np.lexsort((-tiebreak, -np.round(sim, 6)), axis=1)[:, :k]
@@ -126,28 +129,62 @@ def nearest_pairs(sim: np.ndarray, k: int, tiebreak: np.ndarray | None = None) -
     return {(min(i, int(j)), max(i, int(j))) for i, row in enumerate(nearest(sim, k, tiebreak)) for j in row}
 
 
-def retrieval_pairs(names: list[str], read: Callable[[str], np.ndarray], k: int) -> list[tuple[str, str]]:
-    """Pairs of names (in sorted-name order) of each image with its k nearest by VLAD; an image without
-    descriptors is paired with every other image."""
+@dataclass(frozen=True)
+class GlobalVectors:
+    """One unit VLAD vector per image, rows in sorted-name order; `empty`: indices of images without
+    descriptors (their rows are zeros and they rank nowhere)."""
+
+    names: list[str]
+    vectors: np.ndarray
+    empty: list[int]
+
+    @property
+    def found(self) -> list[int]:
+        """Indices of the images that have descriptors."""
+        gone = set(self.empty)
+        return [i for i in range(len(self.names)) if i not in gone]
+
+
+def global_vectors(names: list[str], read: Callable[[str], np.ndarray]) -> GlobalVectors:
+    """VLAD vectors of the images `names` (sorted here) on a vocabulary learned from their own descriptors.
+    BLAS runs one thread here: its products are small (64 centres), and OpenBLAS's waiting threads spin, which
+    made this step 4-10x slower on a busy 2-core machine."""
     names = sorted(names)
-    n = len(names)
-    start = time.perf_counter()
-    centres = learn_vocabulary(names, read)
     vectors, empty = [], []
-    for i, name in enumerate(names):
-        descriptors = read(name)
-        vectors.append(vlad(descriptors, centres))
-        if not len(descriptors):
-            empty.append(i)
-    found = sorted(set(range(n)) - set(empty))
-    vectors = np.stack(vectors)
-    pairs = set()
-    if len(found) > 1:
-        raw = similarities(vectors[found])
+    with blas_threads(1):
+        centres = learn_vocabulary(names, read)
+        for i, name in enumerate(names):
+            descriptors = read(name)
+            vectors.append(vlad(descriptors, centres))
+            if not len(descriptors):
+                empty.append(i)
+    dim = centres.size if len(centres) else CENTRES * 128
+    return GlobalVectors(names, np.stack(vectors) if vectors else np.zeros((0, dim), np.float32), empty)
+
+
+def ranking(vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(expanded, raw) `similarities` of unit rows: the query-expanded ones rank, the raw ones break ties.
+    One BLAS thread, as in `global_vectors`."""
+    with blas_threads(1):
+        raw = similarities(vectors)
         # at the two ends of a chain of views (a street, a half orbit) an image and its neighbour expand to the
         # same vector (each is among the other's nearest, and they share the third), so the third's choice
         # between them fell to float rounding (3.7e-9 apart on object_orbit_small): the raw vectors decide
-        expanded = similarities(expand_queries(vectors[found], raw))
+        return similarities(expand_queries(vectors, raw)), raw
+
+
+def retrieval_pairs(names: list[str], read: Callable[[str], np.ndarray], k: int,
+                    vectors: GlobalVectors | None = None) -> list[tuple[str, str]]:
+    """Pairs of names (in sorted-name order) of each image with its k nearest by VLAD; an image without
+    descriptors is paired with every other image. `vectors`: the images' `global_vectors`, if already made."""
+    names = sorted(names)
+    n = len(names)
+    start = time.perf_counter()
+    g = global_vectors(names, read) if vectors is None else vectors
+    found, empty = g.found, g.empty
+    pairs = set()
+    if len(found) > 1:
+        expanded, raw = ranking(g.vectors[found])
         pairs = {(found[a], found[b]) for a, b in nearest_pairs(expanded, k, tiebreak=raw)}
     if empty:
         log.info("retrieval:%d: %d image(s) without descriptors (%s) are paired with every other image",

@@ -22,7 +22,7 @@ class FrontendConfig:
 
     camera: CameraConfig = CameraConfig()
     sift: SiftConfig = SiftConfig()
-    pairs: str = "exhaustive"  # exhaustive | sequential:K | retrieval:K | path of a pairs file
+    pairs: str = "auto"  # auto | exhaustive | sequential:K | spatial:K[:R] | retrieval:K | A+B | pairs file
     matcher: MatcherConfig = MatcherConfig()
     verify: VerifyConfig = VerifyConfig()
     workers: int = bounded(0, 0, hash=False)  # processes/threads; 0 = all cores

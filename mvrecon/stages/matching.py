@@ -19,9 +19,10 @@ import numpy as np
 from .. import database as dbmod
 from ..config import to_dict
 from ..executor import blas_threads
+from ..io.gps import read_gps
 from ..matching.matcher import match_descriptors, prepare_descriptors
 from ..matching.overlay import drop_static, fixed_keypoints
-from ..matching.pairs import check_spec, select_pairs
+from ..matching.pairs import PairPlan, check_spec, plan_pairs
 from ..matching.verify import verify_pair
 from ..progress import progress
 from ..workspace import Workspace
@@ -41,6 +42,12 @@ class MatchSummary:
     configs: dict[str, int]  # configuration name -> number of pairs
     seconds: float = 0.0
     fixed_dropped: int = 0  # matches left out in this run as features printed on the images (matching/overlay.py)
+    strategy: str = ""  # the pair selection used (`auto` resolved), and why it was chosen
+    strategy_reason: str = ""
+
+    def pairs_record(self) -> dict:
+        """What report.json says of the pair selection."""
+        return {"strategy": self.strategy, "reason": self.strategy_reason, "pairs": self.num_pairs}
 
     @property
     def num_verified(self) -> int:
@@ -48,8 +55,10 @@ class MatchSummary:
 
     def text(self) -> str:
         kinds = ", ".join(f"{n} {k.lower()}" for k, n in sorted(self.configs.items(), key=lambda kv: -kv[1]))
+        why = f" ({self.strategy_reason})" if self.strategy_reason != "given" else ""
         return (f"Matching: {self.num_images} images, {self.num_pairs} pairs ({self.num_matched} matched now, "
-                f"{self.num_pairs - self.num_matched} already done) in {self.seconds:.1f} s; "
+                f"{self.num_pairs - self.num_matched} already done) in {self.seconds:.1f} s, selected by "
+                f"{self.strategy or 'a pairs file'}{why}; "
                 f"{self.num_verified} verified pairs ({kinds or 'none'}); "
                 f"inliers per verified pair: {stats_text(list(self.inliers.values()))}."
                 + (f" {self.fixed_dropped} matches that stay on a pixel where half the images have a feature were "
@@ -88,16 +97,19 @@ def match(config: FrontendConfig, workspace: Workspace | Path | str, *, overwrit
         images = {i.image_id: i for i in dbmod.read_images(db).values() if dbmod.has_features(db, i.image_id)}
         cameras = dbmod.read_cameras(db)
         # the pairs first: a pairs file naming an unknown image is refused before the stage is recorded
-        pairs = _selected_pairs(config.pairs, db, images)
+        plan = _plan(config.pairs, db, images, ws.stage_config("features") or {})
+        pairs = plan.pairs
         if config.pairs != "exhaustive" and Path(config.pairs).is_file():
             record["pairs_file_sha256"] = _pairs_file_sha256(images, pairs)
+        else:  # `auto` as what it chose: a workspace matched exhaustively goes on under `auto`, and back
+            record["pairs"] = plan.spec
         if ws.begin_stage("matching", record, overwrite):
             dbmod.clear_matches(db)
         todo = [p for p in pairs if not dbmod.has_two_view_geometry(db, *p)]
         if config.pairs == "exhaustive" and len(images) > _MANY_FOR_EXHAUSTIVE and len(todo) > len(pairs) // 2:
             log.warning("exhaustive matching of %d images: %d pairs, growing with the square of the images; "
-                        "--pairs retrieval:20 matches each image with its 20 most similar ones (a photo "
-                        "collection), --pairs sequential:10 with the next 10 (a video)", len(images), len(pairs))
+                        "--pairs auto chooses pairs that grow linearly (retrieval, GPS positions or a video's "
+                        "sequence)", len(images), len(pairs))
         # Every image's keypoint positions are read once, as float32 (COLMAP stores them so: exact, and 64 KB for
         # 8192 keypoints): features printed on the images (a logo, a timestamp) are found among all of them, not
         # only those of the pairs left, so that a resumed run decides as an uninterrupted one.
@@ -110,18 +122,24 @@ def match(config: FrontendConfig, workspace: Workspace | Path | str, *, overwrit
         dropped = _match_all(config, ws.database_path, db, todo, cache, batch_size, on_batch)
         verified, configs = _verified_pairs(db, images, pairs)
     return MatchSummary(num_images=len(images), num_pairs=len(pairs), num_matched=len(todo), inliers=verified,
-                        configs=configs, seconds=time.perf_counter() - start, fixed_dropped=dropped)
+                        configs=configs, seconds=time.perf_counter() - start, fixed_dropped=dropped,
+                        strategy=plan.spec if not Path(plan.spec).is_file() else "", strategy_reason=plan.reason)
 
 
-def _selected_pairs(spec: str, db, images: dict) -> list[tuple[int, int]]:
-    """The image-id pairs (smaller id first) that the pair selection `spec` picks among `images`."""
+def _plan(spec: str, db, images: dict, features_record: dict) -> PairPlan:
+    """The pair selection `spec` among `images`, pairs as image ids (smaller id first). GPS positions are read
+    from the image files (the features stage's folder) only when the selection asks for them."""
     by_name = {i.name: i.image_id for i in images.values()}
+    folder = Path(features_record["images"]) if features_record.get("images") else None
 
     def descriptors(name):
         return dbmod.read_descriptors(db, by_name[name])
 
-    return [tuple(sorted((by_name[a], by_name[b]))) for a, b in select_pairs(spec, sorted(by_name),
-                                                                              descriptors=descriptors)]
+    def positions(name):
+        return read_gps(folder / name) if folder is not None else None
+
+    plan = plan_pairs(spec, sorted(by_name), descriptors=descriptors, positions=positions)
+    return PairPlan(plan.spec, plan.reason, [tuple(sorted((by_name[a], by_name[b]))) for a, b in plan.pairs])
 
 
 def _pairs_file_sha256(images: dict, pairs: list[tuple[int, int]]) -> str:

@@ -15,9 +15,10 @@ from .mapping import MapSummary
 
 def write_report(out_dir: Path | str, *, config_hash: str, seed: int, summary: MapSummary, stages: dict,
                  total: dict, counts: dict, skipped: dict | None = None,
-                 database: dict | None = None) -> dict:
+                 database: dict | None = None, pairs: dict | None = None) -> dict:
     """OUT/report.json in the schema the compare and study tools read (see docs/sfm.md). `database`: where
-    database.db came from ({"made_by": "mvrecon"} or another tool's)."""
+    database.db came from ({"made_by": "mvrecon"} or another tool's); `pairs`: the pair selection used
+    (MatchSummary.pairs_record)."""
     images = {name: dict(s) for name, s in summary.status.items()}
     for name, reason in (skipped or {}).items():
         images[name] = {"status": "skipped", "model": None, "reason": reason}
@@ -26,6 +27,8 @@ def write_report(out_dir: Path | str, *, config_hash: str, seed: int, summary: M
               "models": [{"index": k, **s} for k, s in enumerate(summary.model_stats)],
               "stages": stages, "total": total, "counts": counts,
               "database": database or {"made_by": "mvrecon"}}
+    if pairs is not None:
+        report["pairs"] = pairs
     write_json(Path(out_dir) / "report.json", report, indent=1)
     return report
 

@@ -2,6 +2,7 @@
 descriptors. Refusals, determinism, the fallbacks, the ranking of true neighbours, and on a ground-truth scene
 fewer pairs with every image registered and the accuracy of exhaustive matching."""
 
+import json
 import logging
 
 import numpy as np
@@ -13,25 +14,12 @@ from mvrecon.errors import InputError
 from mvrecon.eval.ground_truth import load_ground_truth
 from mvrecon.eval.metrics import accuracy_summary
 from mvrecon.eval.models import poses, sparse_models
+from mvrecon.eval.overlap import overlapping_pairs, pair_recall
 from mvrecon.matching.pairs import check_spec, select_pairs
 from mvrecon.matching.retrieval import nearest, similarities
 from mvrecon.stages.common import FrontendConfig
 from mvrecon.stages.matching import match
-
-
-def orbit_descriptors(views=16, points=4000, seen=900, noise=8.0, seed=1) -> dict[str, np.ndarray]:
-    """Views on a closed orbit around `points` scene points, each seeing an arc of `seen` consecutive ones, as
-    RootSIFT-like uint8 descriptors with noise: view i shares 650 points with i +- 1, 400 with i +- 2, 150 with
-    i +- 3 and none with the rest."""
-    rng = np.random.default_rng(seed)
-    scene = rng.gamma(0.5, 1.0, (points, 128))  # sparse and non-negative, as SIFT histograms
-    scene = np.sqrt(scene / scene.sum(axis=1, keepdims=True))
-    out = {}
-    for i in range(views):
-        rows = (np.arange(seen) + i * points // views) % points
-        noisy = scene[rows] * 512 + rng.normal(0.0, noise, (seen, 128))
-        out[f"v{i:02d}.png"] = np.clip(np.round(noisy), 0, 255).astype(np.uint8)
-    return out
+from tests.helpers import orbit_descriptors
 
 
 @pytest.mark.parametrize("spec,reason", [
@@ -40,7 +28,8 @@ def orbit_descriptors(views=16, points=4000, seen=900, noise=8.0, seed=1) -> dic
     ("retrieval:-3", "the number of nearest images must be a positive integer, e.g. retrieval:10"),
     ("retrieval:", "the number of nearest images must be a positive integer, e.g. retrieval:10"),
     ("retrieval:²", "the number of nearest images must be a positive integer, e.g. retrieval:10"),
-    ("retrieval", "expected exhaustive, sequential:K, retrieval:K or an existing pairs file"),
+    ("retrieval", "expected auto, exhaustive, sequential:K, spatial:K[:R], retrieval:K, A+B or an existing "
+                  "pairs file"),
 ])
 def test_bad_retrieval_specs_are_refused_in_one_line(spec, reason, tmp_path, capsys):
     with pytest.raises(InputError) as err:
@@ -140,6 +129,21 @@ def test_retrieval_on_an_orbit_matches_fewer_pairs_with_the_accuracy_of_exhausti
     assert 10 <= selected["retrieval:3"].num_pairs <= 30  # the union of 10 lists of 3
     assert acc["retrieval:3"]["registered"] == acc["exhaustive"]["registered"] == 10
     assert acc["retrieval:3"]["auc@5"] >= acc["exhaustive"]["auc@5"] - 0.02
+    report = json.loads((runs["retrieval:3"] / "report.json").read_text())
+    assert report["pairs"] == {"strategy": "retrieval:3", "reason": "given",
+                               "pairs": selected["retrieval:3"].num_pairs}
+
+
+def test_retrieval_finds_the_overlapping_pairs(orbit_runs):
+    scene, runs = orbit_runs
+    with dbmod.open_database(runs["retrieval:3"] / "database.db") as db:
+        ids = {i.name: i.image_id for i in dbmod.read_images(db).values()}
+        pairs = select_pairs("retrieval:3", sorted(ids), descriptors=lambda n: dbmod.read_descriptors(db, ids[n]))
+    # every view of this half orbit sees the object, so every pair shares some ground-truth points; those that
+    # share the most are all found, in fewer than half of the 45 pairs
+    gt = scene / "gt" / "sparse"
+    assert pair_recall(pairs, overlapping_pairs(gt, min_fraction=0.6)) >= 0.9
+    assert pair_recall(pairs, overlapping_pairs(gt, min_fraction=0.7)) == 1.0 and len(pairs) < 45 / 2
 
 
 def test_retrieval_ranks_the_orbit_neighbours_first_and_another_k_is_another_config(orbit_runs):

@@ -454,8 +454,9 @@ def test_the_command_runs_as_a_fresh_process(tmp_path):
     done = run("match", "-w", str(ws), "--pairs", "sequential:1", "-q")  # only warnings and errors: none here
     assert (done.stdout, done.stderr) == ("", "")
     done = run("match", "-w", str(ws), "--pairs", "sequential:1")  # the summary, as every command's, on stderr
-    assert done.stdout == "" and done.stderr.startswith("Matching: 3 images, 2 pairs (0 matched now, 2 already")
-    assert "2 verified pairs" in done.stderr
+    # the window's 2 pairs and frame 0's loop closure with frame 2
+    assert done.stdout == "" and done.stderr.startswith("Matching: 3 images, 3 pairs (0 matched now, 3 already")
+    assert "selected by sequential:1; 3 verified pairs" in done.stderr
     with dbmod.open_database(ws / "database.db") as db:
         assert sorted(i.name for i in dbmod.read_images(db).values()) == [f"view{i:02d}.png" for i in range(3)]
 
@@ -537,21 +538,22 @@ def test_a_config_file_the_command_reads_nothing_of_is_named_in_a_warning(tmp_pa
 
 def test_exhaustive_matching_of_many_images_advises_a_linear_pair_selection(tmp_path, monkeypatch, caplog):
     """Exhaustive pairs grow with the square of the images (500 photos: 124,750 pairs), and nothing said that
-    `retrieval:K` or `sequential:K` exists. Over the limit (lowered here to 4 images) one warning says so."""
+    `auto` exists. Over the limit (lowered here to 4 images) one warning says so when exhaustive was asked for
+    (`auto` is exhaustive only below 50 images)."""
     monkeypatch.setattr(matching_stage, "_MANY_FOR_EXHAUSTIVE", 4)
-    config = FrontendConfig(workers=1, sift=SiftConfig(max_num_features=300))
+    config = FrontendConfig(workers=1, sift=SiftConfig(max_num_features=300), pairs="exhaustive")
     ws = tmp_path / "ws"
     extract_features(config, textured_views(tmp_path / "images"), ws)
     with caplog.at_level(logging.WARNING):
         match(config, ws)
-    advice = [r.getMessage() for r in caplog.records if "--pairs retrieval:20" in r.getMessage()]
+    advice = [r.getMessage() for r in caplog.records if "--pairs auto" in r.getMessage()]
     assert advice == ["exhaustive matching of 6 images: 15 pairs, growing with the square of the images; --pairs "
-                      "retrieval:20 matches each image with its 20 most similar ones (a photo collection), --pairs "
-                      "sequential:10 with the next 10 (a video)"]
+                      "auto chooses pairs that grow linearly (retrieval, GPS positions or a video's sequence)"]
     caplog.clear()
     with caplog.at_level(logging.WARNING):
         match(FrontendConfig(workers=1, pairs="sequential:2"), ws, overwrite=True)
-    assert not [r for r in caplog.records if "--pairs retrieval:20" in r.getMessage()]
+        match(FrontendConfig(workers=1), ws, overwrite=True)  # auto: the same 15 pairs, and no advice
+    assert not [r for r in caplog.records if "--pairs auto" in r.getMessage()]
 
 
 def test_the_run_folder_is_o_everywhere_and_w_where_it_was():
