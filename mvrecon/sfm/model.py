@@ -5,6 +5,12 @@ Images are addressed by their internal index (position in `image_ids`), points b
 arrays), observations by an observation id. Deleted points and observations stay in the arrays with their
 `alive` flag cleared, so ids never move while the mapper runs; `compacted()` is for writing out.
 Poses are COLMAP's cam_from_world: x_cam = R @ X + t.
+
+The observations of an image (`obs_of_kp`) and of a point (a chain through `obs_next`, from `point_first_obs`)
+are indexed, and the observation counts per image and per point kept up to date, so that the queries the mapper
+makes per registration cost in proportion to the images and points asked about, never to the whole model (at
+300 images, scans of every observation were most of a registration's Python time). `scanned` counts the
+entries those queries visit: the mapper's work count (sfm/incremental.py).
 """
 
 from dataclasses import dataclass
@@ -74,6 +80,12 @@ class _Buffer:
         return b
 
 
+def _count(counts: np.ndarray, ids, sign: int) -> None:
+    """Add `sign` to counts[k] once per occurrence of k in `ids`."""
+    u, c = np.unique(ids, return_counts=True)
+    counts[u] += sign * c
+
+
 class Reconstruction:
     """A model under construction. keypoints: per image (K_i, 2) pixels, COLMAP convention."""
 
@@ -89,7 +101,10 @@ class Reconstruction:
         self.t = np.zeros((n, 3))
         self.registered = np.zeros(n, bool)
         self.registration_order: list[int] = []
-        self.obs_of_kp = [np.full(len(k), -1, np.int64) for k in self.keypoints]
+        # the observation of each keypoint (-1 for none): one array, `obs_of_kp[i]` a view of image i's part
+        self.kp_offset = np.r_[0, np.cumsum([len(k) for k in self.keypoints])].astype(np.int64)
+        self.obs_of_kp_flat = np.full(int(self.kp_offset[-1]), -1, np.int64)
+        self.obs_of_kp = [self.obs_of_kp_flat[a:b] for a, b in zip(self.kp_offset[:-1], self.kp_offset[1:])]
         self.point_of_track = np.full(num_tracks, -1, np.int64)
         # registered views of each track when its retriangulation last failed (sfm/triangulate.py)
         self.tri_failed_views = np.zeros(num_tracks, np.int64)
@@ -101,6 +116,11 @@ class Reconstruction:
         self.obs_image = _Buffer(np.int64)
         self.obs_kp = _Buffer(np.int64)
         self.obs_alive = _Buffer(bool)
+        self.obs_next = _Buffer(np.int64)  # the point's next observation (older), -1 at the end of its chain
+        self.point_first_obs = _Buffer(np.int64)  # the newest observation of each point, -1 for none
+        self.point_nobs = _Buffer(np.int64)  # alive observations of each point
+        self.image_nobs = np.zeros(n, np.int64)  # alive observations of each image
+        self.scanned = 0  # entries visited by queries (observations, keypoints, track elements): the work count
         self._normalized_cache: dict = {}
         self._ba_factors: tuple = (None, {})  # (loss width, observation -> GTSAM factor), sfm/bundle.py
 
@@ -118,8 +138,7 @@ class Reconstruction:
         """Deregister the images the filters left without any observation (their pose is no longer tied to
         the model, and a bundle adjustment cannot hold a variable without factors), as COLMAP's image filter
         does. Returns them."""
-        counts = np.bincount(self.obs_image.data[self.alive_observations()], minlength=len(self.image_ids))
-        empty = [int(i) for i in np.flatnonzero(self.registered & (counts == 0))]
+        empty = [int(i) for i in np.flatnonzero(self.registered & (self.image_nobs == 0))]
         for i in empty:
             self.registered[i] = False
             self.registration_order.remove(i)
@@ -170,6 +189,8 @@ class Reconstruction:
         pids = self.xyz.append(xyz)
         self.point_track.append(tracks)
         self.point_alive.append(np.ones(len(pids), bool))
+        self.point_first_obs.append(np.full(len(pids), -1, np.int64))
+        self.point_nobs.append(np.zeros(len(pids), np.int64))
         self.point_of_track[np.asarray(tracks, dtype=np.int64)] = pids
         self.add_observations(pids[np.asarray(obs_point_local, dtype=np.int64)], obs_image, obs_kp)
         return pids
@@ -180,9 +201,23 @@ class Reconstruction:
         self.obs_image.append(images)
         self.obs_kp.append(kps)
         self.obs_alive.append(np.ones(len(oids), bool))
-        for i in np.unique(images):
-            m = images == i
-            self.obs_of_kp[i][kps[m]] = oids[m]
+        self.obs_next.append(np.full(len(oids), -1, np.int64))
+        self._chain(points, oids)
+        _count(self.point_nobs.data, points, 1)
+        _count(self.image_nobs, images, 1)
+        self.obs_of_kp_flat[self.kp_offset[images] + kps] = oids
+
+    def _chain(self, points, oids) -> None:
+        """Put the new observations `oids` of `points` at the head of their points' chains."""
+        order = np.argsort(points, kind="stable")
+        p, o = points[order], oids[order]
+        nxt = np.empty(len(o), np.int64)
+        last = np.r_[p[1:] != p[:-1], True] if len(p) else np.zeros(0, bool)
+        first = np.r_[True, p[1:] != p[:-1]] if len(p) else np.zeros(0, bool)
+        nxt[:-1] = o[1:]
+        nxt[last] = self.point_first_obs.data[p[last]]
+        self.obs_next.data[o] = nxt
+        self.point_first_obs.data[p[first]] = o[first]
 
     def remove_observations(self, obs) -> None:
         """Drop observations; points that keep fewer than two are deleted with their remaining observation."""
@@ -192,50 +227,60 @@ class Reconstruction:
             return
         self._clear_observations(obs)
         touched = np.unique(self.obs_point.data[obs])
-        counts = self.point_num_observations()
-        self.delete_points(touched[counts[touched] < 2])
+        self.delete_points(touched[self.point_nobs.data[touched] < 2])
 
     def _clear_observations(self, obs) -> None:
         self.obs_alive.data[obs] = False
         images, kps = self.obs_image.data[obs], self.obs_kp.data[obs]
-        for i in np.unique(images):
-            m = images == i
-            self.obs_of_kp[i][kps[m]] = -1
+        _count(self.point_nobs.data, self.obs_point.data[obs], -1)
+        _count(self.image_nobs, images, -1)
+        self.obs_of_kp_flat[self.kp_offset[images] + kps] = -1
 
     def delete_points(self, pids) -> None:
         pids = np.asarray(pids, dtype=np.int64)
         pids = pids[self.point_alive.data[pids]]
         if len(pids) == 0:
             return
+        obs = self.observations_of_points(pids)
         self.point_alive.data[pids] = False
         self.point_of_track[self.point_track.data[pids]] = -1
-        dead = np.zeros(self.xyz.n, bool)
-        dead[pids] = True
-        obs = np.flatnonzero(self.obs_alive.data & dead[self.obs_point.data])
         self._clear_observations(obs)
 
     def alive_observations(self) -> np.ndarray:
+        self.scanned += self.obs_alive.n
         return np.flatnonzero(self.obs_alive.data)
 
     def alive_points(self) -> np.ndarray:
+        self.scanned += self.point_alive.n
         return np.flatnonzero(self.point_alive.data)
 
     def point_num_observations(self) -> np.ndarray:
-        obs = self.alive_observations()
-        return np.bincount(self.obs_point.data[obs], minlength=self.xyz.n)
+        """Alive observations of every point (a read-only view of the kept counts)."""
+        counts = self.point_nobs.data.view()
+        counts.flags.writeable = False
+        return counts
 
     def observations_of_images(self, images) -> np.ndarray:
-        """Alive observation ids made in any of `images`."""
-        mask = np.zeros(len(self.image_ids), bool)
-        mask[np.asarray(images, dtype=np.int64)] = True
-        obs = self.alive_observations()
-        return obs[mask[self.obs_image.data[obs]]]
+        """Alive observation ids made in any of `images`, ascending."""
+        images = np.unique(np.asarray(images, dtype=np.int64))
+        if len(images) == 0:
+            return np.zeros(0, np.int64)
+        ids = np.concatenate([self.obs_of_kp[i] for i in images.tolist()])
+        self.scanned += len(ids)
+        return np.sort(ids[ids >= 0])
 
     def observations_of_points(self, pids) -> np.ndarray:
-        mask = np.zeros(self.xyz.n, bool)
-        mask[np.asarray(pids, dtype=np.int64)] = True
-        obs = self.alive_observations()
-        return obs[mask[self.obs_point.data[obs]]]
+        """Alive observation ids of the points `pids`, ascending: their chains, followed in steps over all of
+        them at once (as many steps as the longest chain)."""
+        cur = self.point_first_obs.data[np.unique(np.asarray(pids, dtype=np.int64))]
+        cur = cur[cur >= 0]
+        found = []
+        while len(cur):
+            self.scanned += len(cur)
+            found.append(cur[self.obs_alive.data[cur]])
+            cur = self.obs_next.data[cur]
+            cur = cur[cur >= 0]
+        return np.sort(np.concatenate(found)) if found else np.zeros(0, np.int64)
 
     def padded_observations(self, pids):
         """(points, obs, mask): the given points that have alive observations, and their observation ids as
@@ -322,9 +367,14 @@ class Reconstruction:
         for k in cls._BUFFERS:
             setattr(m, k, _Buffer.of(s[k]))
         m.registration_order = list(s["registration_order"])
-        for i in range(len(m.image_ids)):
-            m.obs_of_kp[i][:] = -1
+        # the indexes of the alive observations (`add_observations` keeps them up to date)
+        m.obs_next = _Buffer.of(np.full(m.obs_point.n, -1, np.int64))
+        m.point_first_obs = _Buffer.of(np.full(m.xyz.n, -1, np.int64))
+        m.point_nobs = _Buffer.of(np.zeros(m.xyz.n, np.int64))
         obs = m.alive_observations()
-        for o in obs:
-            m.obs_of_kp[m.obs_image.data[o]][m.obs_kp.data[o]] = o
+        points, images = m.obs_point.data[obs], m.obs_image.data[obs]
+        m._chain(points, obs)
+        _count(m.point_nobs.data, points, 1)
+        _count(m.image_nobs, images, 1)
+        m.obs_of_kp_flat[m.kp_offset[images] + m.obs_kp.data[obs]] = obs
         return m

@@ -23,11 +23,6 @@ from .config import MapperConfig
 _PAIR_HYPOTHESES = 8
 
 
-def _flat_obs_of_kp(model):
-    offsets = np.r_[0, np.cumsum([len(o) for o in model.obs_of_kp])]
-    return np.concatenate(model.obs_of_kp) if offsets[-1] else np.zeros(0, np.int64), offsets
-
-
 def _registered_elements(model, tracks, track_ids):
     """Padded (n,k) image / keypoint / mask arrays of the registered views of each track."""
     lengths = tracks.lengths()[track_ids]
@@ -162,18 +157,19 @@ def continue_points(model, tracks, config: MapperConfig, images=None, loose: boo
     """Add observations of existing points in registered views of their tracks (restricted to `images` when
     given) that pass the pixel gate, or with `loose` the angular one and then `_refits` or `_coherent`.
     Returns observations added."""
-    pid = model.point_of_track[tracks.element_track]
-    cand = (pid >= 0) & model.registered[tracks.image]
-    if images is not None:
-        wanted = np.zeros(len(model.image_ids), bool)
-        wanted[np.asarray(images, dtype=np.int64)] = True
-        cand &= wanted[tracks.image]
-    flat, offsets = _flat_obs_of_kp(model)
-    cand &= flat[offsets[tracks.image] + tracks.keypoint] < 0
-    e = np.flatnonzero(cand)
+    if images is None:
+        e = np.arange(len(tracks.image))
+    else:
+        e = tracks.elements_of_images(images)
+    model.scanned += len(e)
+    img, kp = tracks.image[e], tracks.keypoint[e]
+    p = model.point_of_track[tracks.element_track[e]]
+    cand = (p >= 0) & model.registered[img]
+    e, img, kp, p = e[cand], img[cand], kp[cand], p[cand]
+    free = model.obs_of_kp_flat[model.kp_offset[img] + kp] < 0
+    e, img, kp, p = e[free], img[free], kp[free], p[free]
     if len(e) == 0:
         return 0
-    img, kp, p = tracks.image[e], tracks.keypoint[e], pid[e]
     x = None
     if loose:
         x = np.empty((len(e), 2))
