@@ -14,6 +14,7 @@ model its images belong in). Every image that ends unregistered gets a reason.
 import hashlib
 import logging
 import pickle
+import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -29,7 +30,7 @@ from .bundle import bundle_adjust as _bundle_adjust
 from .config import MapperConfig
 from .initialize import evaluate_pair, find_initial_pair, initial_pair_rejections, rejected_for_few_inliers
 from .model import Camera, Reconstruction
-from .register import correspondences_2d3d, rank_candidates, register_image
+from .register import CandidateRanking, correspondences_2d3d, rank_candidates, register_image
 from .tracks import build_tracks
 from .triangulate import continue_points, refine_existing_points, retriangulate, tracks_of_image, triangulate_tracks
 
@@ -144,6 +145,10 @@ class IncrementalMapper:
         self.stalled_at = -1  # the size at which the current model last stopped growing (`_grow`)
         self.ba_calls, self.ba_seconds = 0, 0.0
         self.undecided: dict[int, str] = {}  # image -> why its pose was ambiguous when it was registered (`_grow`)
+        self.ranking = CandidateRanking(self.tracks)
+        # per registration: (images, points, seconds since the previous one, entries scanned, global refinement)
+        self.registrations: list[tuple[int, int, float, int, bool]] = []
+        self._since = (time.perf_counter(), 0)  # (time, model.scanned) at the end of the last registration
 
     def _bundle(self, m, images, **kwargs):
         out = _bundle_adjust(m, images, self.config, **kwargs)
@@ -250,9 +255,15 @@ class IncrementalMapper:
 
     def _show_progress(self, bar) -> None:
         """The bar counts the images registered now, in the finished models and the current one: each image
-        once, and a discarded model's images (or an image the filters deregistered) no longer."""
+        once, and a discarded model's images (or an image the filters deregistered) no longer; after it, the
+        current model's images and points and the mean seconds of its last 10 registrations."""
         n = len(self._excluded()) + (int(self.current.registered.sum()) if self.current is not None else 0)
         bar.update(n - bar.n)
+        if self.current is not None:
+            recent = [r[2] for r in self.registrations[-10:]]
+            pace = f", {sum(recent) / len(recent):.1f} s/img" if recent else ""
+            bar.set_postfix_str(f"model {len(self.finished)}: {int(self.current.registered.sum())} img, "
+                                f"{self.current.num_points} pts{pace}")
 
     def _excluded(self) -> set:
         out = set()
@@ -439,6 +450,7 @@ class IncrementalMapper:
         the model, where two images waiting for each other would start a second model."""
         cfg = self.config
         excluded = self._excluded()
+        self._since = (time.perf_counter(), m.scanned)
         while True:
             num_reg = int(m.registered.sum())
             state = (num_reg, self.stalled_at == num_reg)  # an image is tried once per state of the model
@@ -446,7 +458,7 @@ class IncrementalMapper:
                     if not m.registered[i] and i not in excluded
                     and self.attempts.get(i, (0, None))[0] < cfg.max_register_trials
                     and self.attempts.get(i, (0, None))[1] != state]
-            ranked = [r for r in rank_candidates(m, self.tracks, pool) if r[1] > 0]
+            ranked = [r for r in self.ranking.rank(m, pool) if r[1] > 0]
             waiting = []
             added = False
             for _, _, i in ranked:
@@ -485,13 +497,17 @@ class IncrementalMapper:
             log.debug("%s: %s", self.names[i], reg.reason)
             return False
         self.reasons.pop(i, None)
-        self._after_registration(m, i)
+        adjusted = self._after_registration(m, i)
+        now, (since, scanned) = time.perf_counter(), self._since
+        self.registrations.append((int(m.registered.sum()), m.num_points, now - since, m.scanned - scanned, adjusted))
+        self._since = (now, m.scanned)
         self._show_progress(bar)
         return True
 
-    def _after_registration(self, m: Reconstruction, i: int) -> None:
+    def _after_registration(self, m: Reconstruction, i: int) -> bool:
         """Triangulate the new image's tracks, then a local BA, or a global one when the model grew enough
-        (a local BA right before a global one would optimise nearly the same problem twice)."""
+        (a local BA right before a global one would optimise nearly the same problem twice); True after a global
+        one."""
         cfg = self.config
         continue_points(m, self.tracks, cfg, images=[i])
         triangulate_tracks(m, self.tracks, tracks_of_image(m, self.tracks, i), cfg, cfg.seed + i)
@@ -501,12 +517,13 @@ class IncrementalMapper:
             self._global_refine(m, growing=True)
             self.last_global = int(m.registered.sum())
             self._save()
-            return
+            return True
         window = self._local_window(m, i)
         pts = np.unique(m.obs_point.data[m.observations_of_images(window)])
         self._bundle_points(m, window, pts, True, max_iterations=cfg.local_ba_iterations)
         continue_points(m, self.tracks, cfg, images=window)
         self._filter(m, pts)
+        return False
 
     def _filter(self, m: Reconstruction, point_ids=None) -> None:
         """The filters after a BA (of `point_ids`, or all points); an image they leave without observations

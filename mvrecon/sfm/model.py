@@ -120,6 +120,8 @@ class Reconstruction:
         self.point_first_obs = _Buffer(np.int64)  # the newest observation of each point, -1 for none
         self.point_nobs = _Buffer(np.int64)  # alive observations of each point
         self.image_nobs = np.zeros(n, np.int64)  # alive observations of each image
+        self.num_points = 0  # alive points
+        self.changed_tracks: list = []  # track ids whose point was made or deleted, for `CandidateRanking`
         self.scanned = 0  # entries visited by queries (observations, keypoints, track elements): the work count
         self._normalized_cache: dict = {}
         self._ba_factors: tuple = (None, {})  # (loss width, observation -> GTSAM factor), sfm/bundle.py
@@ -191,7 +193,9 @@ class Reconstruction:
         self.point_alive.append(np.ones(len(pids), bool))
         self.point_first_obs.append(np.full(len(pids), -1, np.int64))
         self.point_nobs.append(np.zeros(len(pids), np.int64))
+        self.num_points += len(pids)
         self.point_of_track[np.asarray(tracks, dtype=np.int64)] = pids
+        self.changed_tracks.append(np.asarray(tracks, dtype=np.int64))
         self.add_observations(pids[np.asarray(obs_point_local, dtype=np.int64)], obs_image, obs_kp)
         return pids
 
@@ -241,9 +245,12 @@ class Reconstruction:
         pids = pids[self.point_alive.data[pids]]
         if len(pids) == 0:
             return
+        pids = np.unique(pids)
         obs = self.observations_of_points(pids)
         self.point_alive.data[pids] = False
+        self.num_points -= len(pids)
         self.point_of_track[self.point_track.data[pids]] = -1
+        self.changed_tracks.append(self.point_track.data[pids])
         self._clear_observations(obs)
 
     def alive_observations(self) -> np.ndarray:
@@ -371,6 +378,7 @@ class Reconstruction:
         m.obs_next = _Buffer.of(np.full(m.obs_point.n, -1, np.int64))
         m.point_first_obs = _Buffer.of(np.full(m.xyz.n, -1, np.int64))
         m.point_nobs = _Buffer.of(np.zeros(m.xyz.n, np.int64))
+        m.num_points = int(m.point_alive.data.sum())
         obs = m.alive_observations()
         points, images = m.obs_point.data[obs], m.obs_image.data[obs]
         m._chain(points, obs)
