@@ -29,7 +29,7 @@ from .ba_points import select_points
 from .bundle import bundle_adjust as _bundle_adjust
 from .config import MapperConfig
 from .initialize import evaluate_pair, find_initial_pair, initial_pair_rejections, rejected_for_few_inliers
-from .model import Camera, Reconstruction
+from .model import Camera, KeypointSet, Reconstruction
 from .register import CandidateRanking, correspondences_2d3d, rank_candidates, register_image
 from .tracks import build_tracks
 from .triangulate import continue_points, refine_existing_points, retriangulate, tracks_of_image, triangulate_tracks
@@ -116,7 +116,7 @@ class IncrementalMapper:
                                     bool(c.prior_trusted), 0.0) for cid, c in corr.cameras.items()}
         for cam in self.cameras.values():
             cam.prior_focal = cam.focal()
-        self.keypoints = [np.asarray(corr.keypoints.get(i, np.zeros((0, 2))), float) for i in ids]
+        self.keypoints = KeypointSet([corr.keypoints.get(i, np.zeros((0, 2))) for i in ids])
         index_of = {int(i): k for k, i in enumerate(ids)}
         self.pairs = {}
         for p in corr.pairs:

@@ -86,8 +86,20 @@ def _count(counts: np.ndarray, ids, sign: int) -> None:
     counts[u] += sign * c
 
 
+class KeypointSet(list):
+    """Per image (K_i, 2) pixels, COLMAP convention: views into one array (`flat`, image i's rows from
+    `offset[i]`), so that keypoints of many images are gathered in one step. The mapper's models share one."""
+
+    def __init__(self, keypoints):
+        arrays = [np.asarray(k, dtype=float).reshape(-1, 2) for k in keypoints]
+        self.offset = np.r_[0, np.cumsum([len(k) for k in arrays])].astype(np.int64)
+        self.flat = np.concatenate(arrays) if arrays else np.zeros((0, 2))
+        super().__init__(self.flat[a:b] for a, b in zip(self.offset[:-1], self.offset[1:]))
+
+
 class Reconstruction:
-    """A model under construction. keypoints: per image (K_i, 2) pixels, COLMAP convention."""
+    """A model under construction. keypoints: per image (K_i, 2) pixels, COLMAP convention (a list, or a
+    `KeypointSet` to share)."""
 
     def __init__(self, image_ids, names, camera_of, cameras: dict, keypoints, num_tracks: int):
         self.image_ids = np.asarray(image_ids, dtype=np.int64)
@@ -95,14 +107,14 @@ class Reconstruction:
         self.camera_of = np.asarray(camera_of, dtype=np.int64)
         self.cameras = {int(k): Camera(c.model, c.width, c.height, np.array(c.params, float), c.prior_trusted,
                                        c.prior_focal) for k, c in cameras.items()}
-        self.keypoints = [np.asarray(k, dtype=float) for k in keypoints]
+        self.keypoints = keypoints if isinstance(keypoints, KeypointSet) else KeypointSet(keypoints)
         n = len(self.image_ids)
         self.R = np.tile(np.eye(3), (n, 1, 1))
         self.t = np.zeros((n, 3))
         self.registered = np.zeros(n, bool)
         self.registration_order: list[int] = []
         # the observation of each keypoint (-1 for none): one array, `obs_of_kp[i]` a view of image i's part
-        self.kp_offset = np.r_[0, np.cumsum([len(k) for k in self.keypoints])].astype(np.int64)
+        self.kp_offset = self.keypoints.offset
         self.obs_of_kp_flat = np.full(int(self.kp_offset[-1]), -1, np.int64)
         self.obs_of_kp = [self.obs_of_kp_flat[a:b] for a, b in zip(self.kp_offset[:-1], self.kp_offset[1:])]
         self.point_of_track = np.full(num_tracks, -1, np.int64)
@@ -176,6 +188,22 @@ class Reconstruction:
             hit = (key, xy)
             self._normalized_cache[i] = hit
         return hit[1]
+
+    def keypoints_at(self, images, kps) -> np.ndarray:
+        """Pixels (n, 2) of keypoints `kps` of `images` (arrays of one shape, any number of images at once)."""
+        return self.keypoints.flat[self.kp_offset[images] + kps]
+
+    def normalized_at(self, images, kps) -> np.ndarray:
+        """`normalized_keypoints` (n, 2) of keypoints `kps` of `images`: grouped by image with one sort, as a mask
+        per image over a global step's million observations cost images x observations."""
+        images, kps = np.asarray(images, dtype=np.int64), np.asarray(kps, dtype=np.int64)
+        out = np.empty((len(images), 2))
+        order = np.argsort(images, kind="stable")
+        uniq, start = np.unique(images[order], return_index=True)
+        for i, a, b in zip(uniq.tolist(), start.tolist(), [*start[1:].tolist(), len(order)]):
+            rows = order[a:b]
+            out[rows] = self.normalized_keypoints(i)[kps[rows]]
+        return out
 
     def ba_factor_cache(self, loss_width: float) -> dict:
         """Observation -> its bundle-adjustment factor, kept across calls: an observation's image, point,
@@ -324,10 +352,7 @@ class Reconstruction:
         obs = np.asarray(obs, dtype=np.int64)
         images = self.obs_image.data[obs]
         uv, depth = self.project(images, self.xyz.data[self.obs_point.data[obs]])
-        kp = np.empty((len(obs), 2))
-        for i in np.unique(images):
-            m = images == i
-            kp[m] = self.keypoints[i][self.obs_kp.data[obs[m]]]
+        kp = self.keypoints_at(images, self.obs_kp.data[obs])
         err = np.linalg.norm(uv - kp, axis=1)
         err[~np.isfinite(err) | (depth <= 0)] = np.inf
         return err, depth

@@ -46,9 +46,7 @@ def _registered_elements(model, tracks, track_ids):
 def _normalized(model, images, kps, mask):
     """Normalised coordinates of the views, and the mask less the views whose keypoint has no ray."""
     x = np.zeros((*images.shape, 2))
-    for i in np.unique(images[mask]):
-        m = mask & (images == i)
-        x[m] = model.normalized_keypoints(i)[kps[m]]
+    x[mask] = model.normalized_at(images[mask], kps[mask])
     valid = np.isfinite(x).all(axis=-1)
     return np.where(valid[..., None], x, 0.0), mask & valid
 
@@ -71,11 +69,7 @@ def _passes_gate(model, X, images, kps, config, x=None):
         limit = config.tri_max_angle_error_deg
     else:
         uv, depth = model.project(images, X)
-        observed = np.empty((len(images), 2))
-        for i in np.unique(images):
-            m = images == i
-            observed[m] = model.keypoints[i][kps[m]]
-        err = np.linalg.norm(uv - observed, axis=1)
+        err = np.linalg.norm(uv - model.keypoints_at(images, kps), axis=1)
         limit = config.max_reproj_error_px
     return np.isfinite(err) & (depth > 0) & (err <= limit)
 
@@ -172,10 +166,7 @@ def continue_points(model, tracks, config: MapperConfig, images=None, loose: boo
         return 0
     x = None
     if loose:
-        x = np.empty((len(e), 2))
-        for i in np.unique(img):
-            m = img == i
-            x[m] = model.normalized_keypoints(i)[kp[m]]
+        x = model.normalized_at(img, kp)
     good = _passes_gate(model, model.xyz.data[p], img, kp, config, x)
     if loose:
         good[good] = (_refits(model, p[good], img[good], kp[good], config)
