@@ -3,10 +3,11 @@
 Loop per model (COLMAP's IncrementalMapper): pick the best next images by visibility score, register one with
 robust absolute pose, continue existing points into it and triangulate its new tracks, run a local BA over it
 and its most connected neighbours, filter; whenever the model has grown by 10% run a global BA with
-intrinsics,
-retriangulate and filter, and write a snapshot. When no image can be added, the model is finished (a last
-global refinement) and a new model is started from the images that are left, so scenes that do not connect
-give several models. A model needs `min_model_size()` images; when none reaches it, the largest smaller one is
+intrinsics, retriangulate and filter, and write a snapshot (also written when the last is 5 minutes old). When
+no image can be added, the model is finished (a last global refinement) and a new model is started from the
+images that are left, so scenes that do not connect give several models. What one registration costs does not
+grow with the model (the model's indexes, sfm/model.py; `CandidateRanking`): only the global steps, at growth
+ratios, pass over all of it. A model needs `min_model_size()` images; when none reaches it, the largest smaller one is
 kept (COLMAP keeps its first model whatever its size, which locks a first pair that did not grow away from the
 model its images belong in). Every image that ends unregistered gets a reason.
 """
@@ -37,6 +38,10 @@ from .triangulate import continue_points, refine_existing_points, retriangulate,
 log = logging.getLogger("mvrecon.sfm")
 SNAPSHOT_VERSION = 4  # 2: small models kept as candidates (1 dropped them); 3: only the largest of them;
 # 4: registration trials keyed on the model's state (size, refined after a stall)
+# a snapshot is also written after a registration when the last is this old: the growth-ratio snapshots come
+# ever further apart as a model grows (after 100 images, 10 registrations later; after 1000, 100), and a Ctrl-C
+# should not lose more than a few minutes, while writing one costs in proportion to the model
+SNAPSHOT_SECONDS = 300.0
 _FOCAL_SCALES = (1.0, 0.25, 0.35, 0.5, 0.7, 1.4, 2.0, 3.0)  # of a guessed focal, tried at initialisation
 
 
@@ -149,6 +154,7 @@ class IncrementalMapper:
         # per registration: (images, points, seconds since the previous one, entries scanned, global refinement)
         self.registrations: list[tuple[int, int, float, int, bool]] = []
         self._since = (time.perf_counter(), 0)  # (time, model.scanned) at the end of the last registration
+        self.saved_at = time.monotonic()  # when the last snapshot was written
 
     def _bundle(self, m, images, **kwargs):
         out = _bundle_adjust(m, images, self.config, **kwargs)
@@ -205,6 +211,7 @@ class IncrementalMapper:
         return out
 
     def _save(self) -> None:
+        self.saved_at = time.monotonic()
         self.snapshot.save({"finished": [m.state() for m in self.finished],
                             "small": self.small.state() if self.small is not None else None,
                             "current": self.current.state() if self.current is not None else None,
@@ -523,6 +530,8 @@ class IncrementalMapper:
         self._bundle_points(m, window, pts, True, max_iterations=cfg.local_ba_iterations)
         continue_points(m, self.tracks, cfg, images=window)
         self._filter(m, pts)
+        if time.monotonic() - self.saved_at >= SNAPSHOT_SECONDS:
+            self._save()
         return False
 
     def _filter(self, m: Reconstruction, point_ids=None) -> None:

@@ -1,6 +1,7 @@
 """The incremental mapper on pycolmap synthetic scenes with ground truth: accuracy, outputs, seeds, resume."""
 
 import logging
+import pickle
 import re
 from pathlib import Path
 
@@ -807,19 +808,28 @@ def corridor_views(count: int, spacing=0.6, points_per_m=60, seed=0, noise_px=0.
     return corr, gt
 
 
+@pytest.fixture(scope="module")
+def wall():
+    """32 views along a wall (`corridor_views`) mapped in one run: (correspondences, ground truth, the mapper, its
+    result, its progress bars)."""
+    from mvrecon.progress import Bar
+
+    bars = []
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(incremental, "progress", lambda **kw: bars.append(Bar(**kw, disable=True)) or bars[-1])
+        corr, gt = corridor_views(32)
+        mapper = incremental.IncrementalMapper(corr, MapperConfig())
+        result = mapper.run()
+    return corr, gt, mapper, result, bars
+
+
 @pytest.mark.slow
-def test_work_per_registration_does_not_grow_with_the_model(monkeypatch):
+def test_work_per_registration_does_not_grow_with_the_model(wall):
     """Along a 32-view wall, the model's points grow by 60% from its 12-20th images to its 26-32nd, while what a
     registration touches (the entries of the model, tracks and keypoints its queries visit: `scanned`) stays
     the same: the local steps never pass over the whole model. The global refinements at growth ratios do,
     and are left out. The bar shows the images, points and pace of the model."""
-    from mvrecon.progress import Bar
-
-    bars = []
-    monkeypatch.setattr(incremental, "progress", lambda **kw: bars.append(Bar(**kw, disable=True)) or bars[-1])
-    corr, gt = corridor_views(32)
-    mapper = incremental.IncrementalMapper(corr, MapperConfig())
-    result = mapper.run()
+    _, gt, mapper, result, bars = wall
     summary = accuracy_summary(estimated_poses(result), gt)
     assert summary["registered"] == 32 and summary["components"] == 1 and summary["auc@5"] >= 0.9
     rows = np.array(mapper.registrations, dtype=float)  # images, points, seconds, scanned, global refinement
@@ -830,3 +840,43 @@ def test_work_per_registration_does_not_grow_with_the_model(monkeypatch):
     assert late[:, 3].mean() < 1.1 * early[:, 3].mean()  # ... what a registration touched did not
     assert re.fullmatch(r"model 0: 32 img, \d+ pts, \d+\.\d s/img", bars[0].postfix)
     assert f"{result.models[0].num_points} pts" in bars[0].postfix
+
+
+@pytest.mark.slow
+def test_a_long_run_resumes_after_ctrl_c_from_its_last_snapshot(wall, tmp_path, monkeypatch):
+    """Ctrl-C in the 20th registration along the wall; the snapshot written after each registration (as when
+    SNAPSHOT_SECONDS have passed) holds the model as it was, and the resumed run registers only the images it
+    lacked and ends with the model of the run that was never interrupted."""
+    corr, gt, _, whole, _ = wall
+    monkeypatch.setattr(incremental, "SNAPSHOT_SECONDS", 0.0)
+    snapshot = tmp_path / "mapper.pkl"
+    calls = {"n": 0}
+    original = incremental.IncrementalMapper._after_registration
+
+    def interrupted(self, m, i):
+        calls["n"] += 1
+        if calls["n"] == 20:
+            raise KeyboardInterrupt
+        return original(self, m, i)
+
+    monkeypatch.setattr(incremental.IncrementalMapper, "_after_registration", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        map_correspondences(corr, MapperConfig(), snapshot_path=snapshot)
+    monkeypatch.setattr(incremental.IncrementalMapper, "_after_registration", original)
+    saved = int(pickle.loads(snapshot.read_bytes())["state"]["current"]["registered"].sum())
+    assert saved == 2 + 19  # the initial pair and the 19 registrations completed
+
+    registered = []
+    original_register = incremental.register_image
+
+    def counting(model, tracks, image, cfg, seed=0, decide=False):
+        out = original_register(model, tracks, image, cfg, seed, decide)
+        registered.extend([image] if out.ok else [])
+        return out
+
+    monkeypatch.setattr(incremental, "register_image", counting)
+    resumed = map_correspondences(corr, MapperConfig(), snapshot_path=snapshot, resume=True)
+    assert len(registered) == 32 - saved
+    m, w = resumed.models[0], whole.models[0]
+    assert np.array_equal(m.registered, w.registered) and m.num_points == w.num_points
+    assert np.abs(m.R - w.R).max() < 1e-9 and np.abs(m.t - w.t).max() < 1e-9
