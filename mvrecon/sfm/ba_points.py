@@ -21,14 +21,13 @@ def select_points(model: Reconstruction, images: np.ndarray | list[int], per_ima
     if len(obs) == 0:
         return np.zeros(0, np.int64)
     img, pid = model.obs_image.data[obs], model.obs_point.data[obs]
-    cell = np.empty(len(obs), np.int64)
-    for i in np.unique(img):
-        m = img == i
-        cam = model.camera(i)
-        xy = model.keypoints[i][model.obs_kp.data[obs[m]]]
-        gx = np.clip((xy[:, 0] * GRID / cam.width).astype(np.int64), 0, GRID - 1)
-        gy = np.clip((xy[:, 1] * GRID / cam.height).astype(np.int64), 0, GRID - 1)
-        cell[m] = (i * GRID + gy) * GRID + gx
+    cams = sorted(model.cameras)
+    size = np.array([(model.cameras[c].width, model.cameras[c].height) for c in cams], float)
+    xy = model.keypoints_at(img, model.obs_kp.data[obs])
+    wh = size[np.searchsorted(cams, model.camera_of[img])]
+    gx = np.clip((xy[:, 0] * GRID / wh[:, 0]).astype(np.int64), 0, GRID - 1)
+    gy = np.clip((xy[:, 1] * GRID / wh[:, 1]).astype(np.int64), 0, GRID - 1)
+    cell = (img * GRID + gy) * GRID + gx
     err = model.reprojection_errors(obs)[0]
     length = model.point_num_observations()[pid]
     order = np.lexsort((err, -length, cell))  # by cell, best first

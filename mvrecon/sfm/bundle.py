@@ -219,10 +219,7 @@ def _add_views(gtsam, graph, model, window: _Window, huber_px: float, cal_kind: 
     obs, obs_img, obs_pt = window.obs, window.obs_img, window.obs_pt
     noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(huber_px),
                                            gtsam.noiseModel.Isotropic.Sigma(2, 1.0))
-    uv = np.empty((len(obs), 2))
-    for i in np.unique(obs_img):
-        m = obs_img == i
-        uv[m] = model.keypoints[i][window.obs_kp[m]]
+    uv = model.keypoints_at(obs_img, window.obs_kp)
     cache = model.ba_factor_cache(huber_px)
     factors = [cache.get(o) for o in obs.tolist()]
     var_obs = window.variable[obs_img].tolist()

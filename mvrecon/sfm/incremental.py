@@ -3,10 +3,11 @@
 Loop per model (COLMAP's IncrementalMapper): pick the best next images by visibility score, register one with
 robust absolute pose, continue existing points into it and triangulate its new tracks, run a local BA over it
 and its most connected neighbours, filter; whenever the model has grown by 10% run a global BA with
-intrinsics,
-retriangulate and filter, and write a snapshot. When no image can be added, the model is finished (a last
-global refinement) and a new model is started from the images that are left, so scenes that do not connect
-give several models. A model needs `min_model_size()` images; when none reaches it, the largest smaller one is
+intrinsics, retriangulate and filter, and write a snapshot (also written when the last is 5 minutes old). When
+no image can be added, the model is finished (a last global refinement) and a new model is started from the
+images that are left, so scenes that do not connect give several models. What one registration costs does not
+grow with the model (the model's indexes, sfm/model.py; `CandidateRanking`): only the global steps, at growth
+ratios, pass over all of it. A model needs `min_model_size()` images; when none reaches it, the largest smaller one is
 kept (COLMAP keeps its first model whatever its size, which locks a first pair that did not grow away from the
 model its images belong in). Every image that ends unregistered gets a reason.
 """
@@ -14,6 +15,7 @@ model its images belong in). Every image that ends unregistered gets a reason.
 import hashlib
 import logging
 import pickle
+import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -29,14 +31,18 @@ from .ba_points import select_points
 from .bundle import bundle_adjust as _bundle_adjust
 from .config import MapperConfig
 from .initialize import evaluate_pair, find_initial_pair, initial_pair_rejections, rejected_for_few_inliers
-from .model import Camera, Reconstruction
-from .register import correspondences_2d3d, rank_candidates, register_image
+from .model import Camera, KeypointSet, Reconstruction
+from .register import CandidateRanking, correspondences_2d3d, rank_candidates, register_image
 from .tracks import build_tracks
 from .triangulate import continue_points, refine_existing_points, retriangulate, tracks_of_image, triangulate_tracks
 
 log = logging.getLogger("mvrecon.sfm")
 SNAPSHOT_VERSION = 4  # 2: small models kept as candidates (1 dropped them); 3: only the largest of them;
 # 4: registration trials keyed on the model's state (size, refined after a stall)
+# a snapshot is also written after a registration when the last is this old: the growth-ratio snapshots come
+# ever further apart as a model grows (after 100 images, 10 registrations later; after 1000, 100), and a Ctrl-C
+# should not lose more than a few minutes, while writing one costs in proportion to the model
+SNAPSHOT_SECONDS = 300.0
 _FOCAL_SCALES = (1.0, 0.25, 0.35, 0.5, 0.7, 1.4, 2.0, 3.0)  # of a guessed focal, tried at initialisation
 
 
@@ -117,7 +123,7 @@ class IncrementalMapper:
                                     bool(c.prior_trusted), 0.0) for cid, c in corr.cameras.items()}
         for cam in self.cameras.values():
             cam.prior_focal = cam.focal()
-        self.keypoints = [np.asarray(corr.keypoints.get(i, np.zeros((0, 2))), float) for i in ids]
+        self.keypoints = KeypointSet([corr.keypoints.get(i, np.zeros((0, 2))) for i in ids])
         index_of = {int(i): k for k, i in enumerate(ids)}
         self.pairs = {}
         for p in corr.pairs:
@@ -146,6 +152,11 @@ class IncrementalMapper:
         self.stalled_at = -1  # the size at which the current model last stopped growing (`_grow`)
         self.ba_calls, self.ba_seconds = 0, 0.0
         self.undecided: dict[int, str] = {}  # image -> why its pose was ambiguous when it was registered (`_grow`)
+        self.ranking = CandidateRanking(self.tracks)
+        # per registration: (images, points, seconds since the previous one, entries scanned, global refinement)
+        self.registrations: list[tuple[int, int, float, int, bool]] = []
+        self._since = (time.perf_counter(), 0)  # (time, model.scanned) at the end of the last registration
+        self.saved_at = time.monotonic()  # when the last snapshot was written
 
     def _bundle(self, m, images, **kwargs):
         out = _bundle_adjust(m, images, self.config, **kwargs)
@@ -202,6 +213,7 @@ class IncrementalMapper:
         return out
 
     def _save(self) -> None:
+        self.saved_at = time.monotonic()
         self.snapshot.save({"finished": [m.state() for m in self.finished],
                             "small": self.small.state() if self.small is not None else None,
                             "current": self.current.state() if self.current is not None else None,
@@ -252,9 +264,15 @@ class IncrementalMapper:
 
     def _show_progress(self, bar) -> None:
         """The bar counts the images registered now, in the finished models and the current one: each image
-        once, and a discarded model's images (or an image the filters deregistered) no longer."""
+        once, and a discarded model's images (or an image the filters deregistered) no longer; after it, the
+        current model's images and points and the mean seconds of its last 10 registrations."""
         n = len(self._excluded()) + (int(self.current.registered.sum()) if self.current is not None else 0)
         bar.update(n - bar.n)
+        if self.current is not None:
+            recent = [r[2] for r in self.registrations[-10:]]
+            pace = f", {sum(recent) / len(recent):.1f} s/img" if recent else ""
+            bar.set_postfix_str(f"model {len(self.finished)}: {int(self.current.registered.sum())} img, "
+                                f"{self.current.num_points} pts{pace}")
 
     def _excluded(self) -> set:
         out = set()
@@ -441,6 +459,7 @@ class IncrementalMapper:
         the model, where two images waiting for each other would start a second model."""
         cfg = self.config
         excluded = self._excluded()
+        self._since = (time.perf_counter(), m.scanned)
         while True:
             num_reg = int(m.registered.sum())
             state = (num_reg, self.stalled_at == num_reg)  # an image is tried once per state of the model
@@ -448,7 +467,7 @@ class IncrementalMapper:
                     if not m.registered[i] and i not in excluded
                     and self.attempts.get(i, (0, None))[0] < cfg.max_register_trials
                     and self.attempts.get(i, (0, None))[1] != state]
-            ranked = [r for r in rank_candidates(m, self.tracks, pool) if r[1] > 0]
+            ranked = [r for r in self.ranking.rank(m, pool) if r[1] > 0]
             waiting = []
             added = False
             for _, _, i in ranked:
@@ -487,13 +506,17 @@ class IncrementalMapper:
             log.debug("%s: %s", self.names[i], reg.reason)
             return False
         self.reasons.pop(i, None)
-        self._after_registration(m, i)
+        adjusted = self._after_registration(m, i)
+        now, (since, scanned) = time.perf_counter(), self._since
+        self.registrations.append((int(m.registered.sum()), m.num_points, now - since, m.scanned - scanned, adjusted))
+        self._since = (now, m.scanned)
         self._show_progress(bar)
         return True
 
-    def _after_registration(self, m: Reconstruction, i: int) -> None:
+    def _after_registration(self, m: Reconstruction, i: int) -> bool:
         """Triangulate the new image's tracks, then a local BA, or a global one when the model grew enough
-        (a local BA right before a global one would optimise nearly the same problem twice)."""
+        (a local BA right before a global one would optimise nearly the same problem twice); True after a global
+        one."""
         cfg = self.config
         continue_points(m, self.tracks, cfg, images=[i])
         triangulate_tracks(m, self.tracks, tracks_of_image(m, self.tracks, i), cfg, cfg.seed + i)
@@ -503,12 +526,15 @@ class IncrementalMapper:
             self._global_refine(m, growing=True)
             self.last_global = int(m.registered.sum())
             self._save()
-            return
+            return True
         window = self._local_window(m, i)
         pts = np.unique(m.obs_point.data[m.observations_of_images(window)])
         self._bundle_points(m, window, pts, True, max_iterations=cfg.local_ba_iterations)
         continue_points(m, self.tracks, cfg, images=window)
         self._filter(m, pts)
+        if time.monotonic() - self.saved_at >= SNAPSHOT_SECONDS:
+            self._save()
+        return False
 
     def _filter(self, m: Reconstruction, point_ids=None) -> None:
         """The filters after a BA (of `point_ids`, or all points); an image they leave without observations

@@ -5,6 +5,12 @@ Images are addressed by their internal index (position in `image_ids`), points b
 arrays), observations by an observation id. Deleted points and observations stay in the arrays with their
 `alive` flag cleared, so ids never move while the mapper runs; `compacted()` is for writing out.
 Poses are COLMAP's cam_from_world: x_cam = R @ X + t.
+
+The observations of an image (`obs_of_kp`) and of a point (a chain through `obs_next`, from `point_first_obs`)
+are indexed, and the observation counts per image and per point kept up to date, so that the queries the mapper
+makes per registration cost in proportion to the images and points asked about, never to the whole model (at
+300 images, scans of every observation were most of a registration's Python time). `scanned` counts the
+entries those queries visit: the mapper's work count (sfm/incremental.py).
 """
 
 from collections.abc import Sequence
@@ -75,8 +81,26 @@ class _Buffer:
         return b
 
 
+def _count(counts: np.ndarray, ids, sign: int) -> None:
+    """Add `sign` to counts[k] once per occurrence of k in `ids`."""
+    u, c = np.unique(ids, return_counts=True)
+    counts[u] += sign * c
+
+
+class KeypointSet(list):
+    """Per image (K_i, 2) pixels, COLMAP convention: views into one array (`flat`, image i's rows from
+    `offset[i]`), so that keypoints of many images are gathered in one step. The mapper's models share one."""
+
+    def __init__(self, keypoints: Sequence[np.ndarray]):
+        arrays = [np.asarray(k, dtype=float).reshape(-1, 2) for k in keypoints]
+        self.offset = np.r_[0, np.cumsum([len(k) for k in arrays])].astype(np.int64)
+        self.flat = np.concatenate(arrays) if arrays else np.zeros((0, 2))
+        super().__init__(self.flat[a:b] for a, b in zip(self.offset[:-1], self.offset[1:]))
+
+
 class Reconstruction:
-    """A model under construction. keypoints: per image (K_i, 2) pixels, COLMAP convention."""
+    """A model under construction. keypoints: per image (K_i, 2) pixels, COLMAP convention (a list, or a
+    `KeypointSet` to share)."""
 
     def __init__(self, image_ids: Sequence[int] | np.ndarray, names: Sequence[str],
                  camera_of: Sequence[int] | np.ndarray,
@@ -86,13 +110,16 @@ class Reconstruction:
         self.camera_of = np.asarray(camera_of, dtype=np.int64)
         self.cameras = {int(k): Camera(c.model, c.width, c.height, np.array(c.params, float), c.prior_trusted,
                                        c.prior_focal) for k, c in cameras.items()}
-        self.keypoints = [np.asarray(k, dtype=float) for k in keypoints]
+        self.keypoints = keypoints if isinstance(keypoints, KeypointSet) else KeypointSet(keypoints)
         n = len(self.image_ids)
         self.R = np.tile(np.eye(3), (n, 1, 1))
         self.t = np.zeros((n, 3))
         self.registered = np.zeros(n, bool)
         self.registration_order: list[int] = []
-        self.obs_of_kp = [np.full(len(k), -1, np.int64) for k in self.keypoints]
+        # the observation of each keypoint (-1 for none): one array, `obs_of_kp[i]` a view of image i's part
+        self.kp_offset = self.keypoints.offset
+        self.obs_of_kp_flat = np.full(int(self.kp_offset[-1]), -1, np.int64)
+        self.obs_of_kp = [self.obs_of_kp_flat[a:b] for a, b in zip(self.kp_offset[:-1], self.kp_offset[1:])]
         self.point_of_track = np.full(num_tracks, -1, np.int64)
         # registered views of each track when its retriangulation last failed (sfm/triangulate.py)
         self.tri_failed_views = np.zeros(num_tracks, np.int64)
@@ -104,6 +131,13 @@ class Reconstruction:
         self.obs_image = _Buffer(np.int64)
         self.obs_kp = _Buffer(np.int64)
         self.obs_alive = _Buffer(bool)
+        self.obs_next = _Buffer(np.int64)  # the point's next observation (older), -1 at the end of its chain
+        self.point_first_obs = _Buffer(np.int64)  # the newest observation of each point, -1 for none
+        self.point_nobs = _Buffer(np.int64)  # alive observations of each point
+        self.image_nobs = np.zeros(n, np.int64)  # alive observations of each image
+        self.num_points = 0  # alive points
+        self.changed_tracks: list = []  # track ids whose point was made or deleted, for `CandidateRanking`
+        self.scanned = 0  # entries visited by queries (observations, keypoints, track elements): the work count
         self._normalized_cache: dict = {}
         self._ba_factors: tuple = (None, {})  # (loss width, observation -> GTSAM factor), sfm/bundle.py
 
@@ -121,8 +155,7 @@ class Reconstruction:
         """Deregister the images the filters left without any observation (their pose is no longer tied to
         the model, and a bundle adjustment cannot hold a variable without factors), as COLMAP's image filter
         does. Returns them."""
-        counts = np.bincount(self.obs_image.data[self.alive_observations()], minlength=len(self.image_ids))
-        empty = [int(i) for i in np.flatnonzero(self.registered & (counts == 0))]
+        empty = [int(i) for i in np.flatnonzero(self.registered & (self.image_nobs == 0))]
         for i in empty:
             self.registered[i] = False
             self.registration_order.remove(i)
@@ -159,6 +192,22 @@ class Reconstruction:
             self._normalized_cache[i] = hit
         return hit[1]
 
+    def keypoints_at(self, images: np.ndarray, kps: np.ndarray) -> np.ndarray:
+        """Pixels (n, 2) of keypoints `kps` of `images` (arrays of one shape, any number of images at once)."""
+        return self.keypoints.flat[self.kp_offset[images] + kps]
+
+    def normalized_at(self, images: np.ndarray, kps: np.ndarray) -> np.ndarray:
+        """`normalized_keypoints` (n, 2) of keypoints `kps` of `images`: grouped by image with one sort, as a mask
+        per image over a global step's million observations cost images x observations."""
+        images, kps = np.asarray(images, dtype=np.int64), np.asarray(kps, dtype=np.int64)
+        out = np.empty((len(images), 2))
+        order = np.argsort(images, kind="stable")
+        uniq, start = np.unique(images[order], return_index=True)
+        for i, a, b in zip(uniq.tolist(), start.tolist(), [*start[1:].tolist(), len(order)]):
+            rows = order[a:b]
+            out[rows] = self.normalized_keypoints(i)[kps[rows]]
+        return out
+
     def ba_factor_cache(self, loss_width: float) -> dict:
         """Observation -> its bundle-adjustment factor, kept across calls: an observation's image, point,
         keypoint and camera never change, so only the loss width could make a stored factor stale."""
@@ -174,7 +223,11 @@ class Reconstruction:
         pids = self.xyz.append(xyz)
         self.point_track.append(tracks)
         self.point_alive.append(np.ones(len(pids), bool))
+        self.point_first_obs.append(np.full(len(pids), -1, np.int64))
+        self.point_nobs.append(np.zeros(len(pids), np.int64))
+        self.num_points += len(pids)
         self.point_of_track[np.asarray(tracks, dtype=np.int64)] = pids
+        self.changed_tracks.append(np.asarray(tracks, dtype=np.int64))
         self.add_observations(pids[np.asarray(obs_point_local, dtype=np.int64)], obs_image, obs_kp)
         return pids
 
@@ -184,9 +237,23 @@ class Reconstruction:
         self.obs_image.append(images)
         self.obs_kp.append(kps)
         self.obs_alive.append(np.ones(len(oids), bool))
-        for i in np.unique(images):
-            m = images == i
-            self.obs_of_kp[i][kps[m]] = oids[m]
+        self.obs_next.append(np.full(len(oids), -1, np.int64))
+        self._chain(points, oids)
+        _count(self.point_nobs.data, points, 1)
+        _count(self.image_nobs, images, 1)
+        self.obs_of_kp_flat[self.kp_offset[images] + kps] = oids
+
+    def _chain(self, points, oids) -> None:
+        """Put the new observations `oids` of `points` at the head of their points' chains."""
+        order = np.argsort(points, kind="stable")
+        p, o = points[order], oids[order]
+        nxt = np.empty(len(o), np.int64)
+        last = np.r_[p[1:] != p[:-1], True] if len(p) else np.zeros(0, bool)
+        first = np.r_[True, p[1:] != p[:-1]] if len(p) else np.zeros(0, bool)
+        nxt[:-1] = o[1:]
+        nxt[last] = self.point_first_obs.data[p[last]]
+        self.obs_next.data[o] = nxt
+        self.point_first_obs.data[p[first]] = o[first]
 
     def remove_observations(self, obs: np.ndarray) -> None:
         """Drop observations; points that keep fewer than two are deleted with their remaining observation."""
@@ -196,50 +263,63 @@ class Reconstruction:
             return
         self._clear_observations(obs)
         touched = np.unique(self.obs_point.data[obs])
-        counts = self.point_num_observations()
-        self.delete_points(touched[counts[touched] < 2])
+        self.delete_points(touched[self.point_nobs.data[touched] < 2])
 
     def _clear_observations(self, obs) -> None:
         self.obs_alive.data[obs] = False
         images, kps = self.obs_image.data[obs], self.obs_kp.data[obs]
-        for i in np.unique(images):
-            m = images == i
-            self.obs_of_kp[i][kps[m]] = -1
+        _count(self.point_nobs.data, self.obs_point.data[obs], -1)
+        _count(self.image_nobs, images, -1)
+        self.obs_of_kp_flat[self.kp_offset[images] + kps] = -1
 
     def delete_points(self, pids: np.ndarray) -> None:
         pids = np.asarray(pids, dtype=np.int64)
         pids = pids[self.point_alive.data[pids]]
         if len(pids) == 0:
             return
+        pids = np.unique(pids)
+        obs = self.observations_of_points(pids)
         self.point_alive.data[pids] = False
+        self.num_points -= len(pids)
         self.point_of_track[self.point_track.data[pids]] = -1
-        dead = np.zeros(self.xyz.n, bool)
-        dead[pids] = True
-        obs = np.flatnonzero(self.obs_alive.data & dead[self.obs_point.data])
+        self.changed_tracks.append(self.point_track.data[pids])
         self._clear_observations(obs)
 
     def alive_observations(self) -> np.ndarray:
+        self.scanned += self.obs_alive.n
         return np.flatnonzero(self.obs_alive.data)
 
     def alive_points(self) -> np.ndarray:
+        self.scanned += self.point_alive.n
         return np.flatnonzero(self.point_alive.data)
 
     def point_num_observations(self) -> np.ndarray:
-        obs = self.alive_observations()
-        return np.bincount(self.obs_point.data[obs], minlength=self.xyz.n)
+        """Alive observations of every point (a read-only view of the kept counts)."""
+        counts = self.point_nobs.data.view()
+        counts.flags.writeable = False
+        return counts
 
     def observations_of_images(self, images: np.ndarray | list[int]) -> np.ndarray:
-        """Alive observation ids made in any of `images`."""
-        mask = np.zeros(len(self.image_ids), bool)
-        mask[np.asarray(images, dtype=np.int64)] = True
-        obs = self.alive_observations()
-        return obs[mask[self.obs_image.data[obs]]]
+        """Alive observation ids made in any of `images`, ascending."""
+        images = np.unique(np.asarray(images, dtype=np.int64))
+        if len(images) == 0:
+            return np.zeros(0, np.int64)
+        ids = np.concatenate([self.obs_of_kp[i] for i in images.tolist()])
+        self.scanned += len(ids)
+        return np.sort(ids[ids >= 0])
 
     def observations_of_points(self, pids: np.ndarray) -> np.ndarray:
-        mask = np.zeros(self.xyz.n, bool)
-        mask[np.asarray(pids, dtype=np.int64)] = True
-        obs = self.alive_observations()
-        return obs[mask[self.obs_point.data[obs]]]
+        """Alive observation ids of the points `pids`, ascending: their chains, followed in steps over all of
+        them at once (as many steps as the longest chain)."""
+        cur = self.point_first_obs.data[np.unique(np.asarray(pids, dtype=np.int64))]
+        cur = cur[cur >= 0]
+        found = []
+        while len(cur):
+            self.scanned += len(cur)
+            found.append(cur[self.obs_alive.data[cur]])
+            cur = self.obs_next.data[cur]
+            cur = cur[cur >= 0]
+        return np.sort(np.concatenate(found)) if found else np.zeros(0, np.int64)
 
     def padded_observations(self, pids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(points, obs, mask): the given points that have alive observations, and their observation ids as
@@ -276,10 +356,7 @@ class Reconstruction:
         obs = np.asarray(obs, dtype=np.int64)
         images = self.obs_image.data[obs]
         uv, depth = self.project(images, self.xyz.data[self.obs_point.data[obs]])
-        kp = np.empty((len(obs), 2))
-        for i in np.unique(images):
-            m = images == i
-            kp[m] = self.keypoints[i][self.obs_kp.data[obs[m]]]
+        kp = self.keypoints_at(images, self.obs_kp.data[obs])
         err = np.linalg.norm(uv - kp, axis=1)
         err[~np.isfinite(err) | (depth <= 0)] = np.inf
         return err, depth
@@ -326,9 +403,15 @@ class Reconstruction:
         for k in cls._BUFFERS:
             setattr(m, k, _Buffer.of(s[k]))
         m.registration_order = list(s["registration_order"])
-        for i in range(len(m.image_ids)):
-            m.obs_of_kp[i][:] = -1
+        # the indexes of the alive observations (`add_observations` keeps them up to date)
+        m.obs_next = _Buffer.of(np.full(m.obs_point.n, -1, np.int64))
+        m.point_first_obs = _Buffer.of(np.full(m.xyz.n, -1, np.int64))
+        m.point_nobs = _Buffer.of(np.zeros(m.xyz.n, np.int64))
+        m.num_points = int(m.point_alive.data.sum())
         obs = m.alive_observations()
-        for o in obs:
-            m.obs_of_kp[m.obs_image.data[o]][m.obs_kp.data[o]] = o
+        points, images = m.obs_point.data[obs], m.obs_image.data[obs]
+        m._chain(points, obs)
+        _count(m.point_nobs.data, points, 1)
+        _count(m.image_nobs, images, 1)
+        m.obs_of_kp_flat[m.kp_offset[images] + m.obs_kp.data[obs]] = obs
         return m

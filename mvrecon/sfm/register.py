@@ -20,7 +20,7 @@ rules"): essential on the 184 deg fisheye orbit (AUC@5 0.99, 0.51 without), with
 """
 
 import logging
-from collections.abc import Iterable
+from collections.abc import Collection, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -62,12 +62,45 @@ def correspondences_2d3d(model: Reconstruction, tracks: Tracks, image: int) -> t
 def rank_candidates(model: Reconstruction, tracks: Tracks,
                     images: Iterable[int]) -> list[tuple[int, int, int]]:
     """(score, number of 2D-3D matches, image) for the given unregistered images, best first."""
-    out = []
-    for i in images:
-        kps, _ = correspondences_2d3d(model, tracks, i)
-        cam = model.camera(i)
-        out.append((visibility_score(model.keypoints[i][kps], cam.width, cam.height), len(kps), int(i)))
-    return sorted(out, key=lambda s: (-s[0], s[2]))
+    return sorted((_candidate_score(model, tracks, i) for i in images), key=lambda s: (-s[0], s[2]))
+
+
+def _candidate_score(model, tracks, i: int) -> tuple[int, int, int]:
+    kps, _ = correspondences_2d3d(model, tracks, i)
+    cam = model.camera(i)
+    model.scanned += len(tracks.track_of[i])
+    return visibility_score(model.keypoints[i][kps], cam.width, cam.height), len(kps), int(i)
+
+
+class CandidateRanking:
+    """`rank_candidates` of a growing model, each image's score kept until a track of the image gains or loses its
+    point (`Reconstruction.changed_tracks`): a registration changes the points of its neighbours' tracks only, so
+    re-scoring every unregistered image after each one cost in proportion to the images left (0.1 s a
+    registration at 300 images), for the same ranking."""
+
+    def __init__(self, tracks: Tracks):
+        self.tracks, self.model, self.scores = tracks, None, {}
+
+    def rank(self, model: Reconstruction, images: Collection[int]) -> list[tuple[int, int, int]]:
+        if model is not self.model:
+            self.model, self.scores = model, {}
+            model.changed_tracks.clear()
+        elif model.changed_tracks:
+            for i in self._images_of(np.concatenate(model.changed_tracks)).tolist():
+                self.scores.pop(i, None)
+            model.changed_tracks.clear()
+        for i in images:
+            if i not in self.scores:
+                self.scores[i] = _candidate_score(model, self.tracks, i)
+        return sorted((self.scores[i] for i in images), key=lambda s: (-s[0], s[2]))
+
+    def _images_of(self, track_ids) -> np.ndarray:
+        t = np.unique(track_ids)
+        ptr = self.tracks.ptr
+        lengths = ptr[t + 1] - ptr[t]
+        first = np.repeat(ptr[t] - np.cumsum(lengths) + lengths, lengths)
+        self.model.scanned += int(lengths.sum())
+        return np.unique(self.tracks.image[first + np.arange(int(lengths.sum()))])
 
 
 @dataclass

@@ -42,6 +42,24 @@ class Tracks:
         """The track of each element of `image`/`keypoint` (tracks never change, so computed once)."""
         return np.repeat(np.arange(len(self)), self.lengths())
 
+    @cached_property
+    def _element_index(self) -> tuple[np.ndarray, np.ndarray]:
+        """(per keypoint of all images, image by image: its element, -1 when in no track; each image's offset)."""
+        offsets = np.r_[0, np.cumsum([len(t) for t in self.track_of])].astype(np.int64)
+        flat = np.full(int(offsets[-1]), -1, np.int64)
+        flat[offsets[self.image] + self.keypoint] = np.arange(len(self.image))
+        return flat, offsets
+
+    def elements_of_images(self, images: np.ndarray | list[int]) -> np.ndarray:
+        """The elements (ascending) of the keypoints of `images`: what one image's registration changes costs its
+        own keypoints, not a pass over every track."""
+        flat, offsets = self._element_index
+        images = np.unique(np.asarray(images, dtype=np.int64))
+        if len(images) == 0:
+            return np.zeros(0, np.int64)
+        e = np.concatenate([flat[offsets[i]:offsets[i + 1]] for i in images.tolist()])
+        return np.sort(e[e >= 0])
+
 
 def build_tracks(image_ids: np.ndarray | list[int], num_keypoints: np.ndarray | list[int],
                  pairs: list[PairGeometry]) -> Tracks:

@@ -25,11 +25,6 @@ from .tracks import Tracks
 _PAIR_HYPOTHESES = 8
 
 
-def _flat_obs_of_kp(model):
-    offsets = np.r_[0, np.cumsum([len(o) for o in model.obs_of_kp])]
-    return np.concatenate(model.obs_of_kp) if offsets[-1] else np.zeros(0, np.int64), offsets
-
-
 def _registered_elements(model, tracks, track_ids):
     """Padded (n,k) image / keypoint / mask arrays of the registered views of each track."""
     lengths = tracks.lengths()[track_ids]
@@ -53,9 +48,7 @@ def _registered_elements(model, tracks, track_ids):
 def _normalized(model, images, kps, mask):
     """Normalised coordinates of the views, and the mask less the views whose keypoint has no ray."""
     x = np.zeros((*images.shape, 2))
-    for i in np.unique(images[mask]):
-        m = mask & (images == i)
-        x[m] = model.normalized_keypoints(i)[kps[m]]
+    x[mask] = model.normalized_at(images[mask], kps[mask])
     valid = np.isfinite(x).all(axis=-1)
     return np.where(valid[..., None], x, 0.0), mask & valid
 
@@ -78,11 +71,7 @@ def _passes_gate(model, X, images, kps, config, x=None):
         limit = config.tri_max_angle_error_deg
     else:
         uv, depth = model.project(images, X)
-        observed = np.empty((len(images), 2))
-        for i in np.unique(images):
-            m = images == i
-            observed[m] = model.keypoints[i][kps[m]]
-        err = np.linalg.norm(uv - observed, axis=1)
+        err = np.linalg.norm(uv - model.keypoints_at(images, kps), axis=1)
         limit = config.max_reproj_error_px
     return np.isfinite(err) & (depth > 0) & (err <= limit)
 
@@ -166,24 +155,22 @@ def continue_points(model: Reconstruction, tracks: Tracks, config: MapperConfig,
     """Add observations of existing points in registered views of their tracks (restricted to `images` when
     given) that pass the pixel gate, or with `loose` the angular one and then `_refits` or `_coherent`.
     Returns observations added."""
-    pid = model.point_of_track[tracks.element_track]
-    cand = (pid >= 0) & model.registered[tracks.image]
-    if images is not None:
-        wanted = np.zeros(len(model.image_ids), bool)
-        wanted[np.asarray(images, dtype=np.int64)] = True
-        cand &= wanted[tracks.image]
-    flat, offsets = _flat_obs_of_kp(model)
-    cand &= flat[offsets[tracks.image] + tracks.keypoint] < 0
-    e = np.flatnonzero(cand)
+    if images is None:
+        e = np.arange(len(tracks.image))
+    else:
+        e = tracks.elements_of_images(images)
+    model.scanned += len(e)
+    img, kp = tracks.image[e], tracks.keypoint[e]
+    p = model.point_of_track[tracks.element_track[e]]
+    cand = (p >= 0) & model.registered[img]
+    e, img, kp, p = e[cand], img[cand], kp[cand], p[cand]
+    free = model.obs_of_kp_flat[model.kp_offset[img] + kp] < 0
+    e, img, kp, p = e[free], img[free], kp[free], p[free]
     if len(e) == 0:
         return 0
-    img, kp, p = tracks.image[e], tracks.keypoint[e], pid[e]
     x = None
     if loose:
-        x = np.empty((len(e), 2))
-        for i in np.unique(img):
-            m = img == i
-            x[m] = model.normalized_keypoints(i)[kp[m]]
+        x = model.normalized_at(img, kp)
     good = _passes_gate(model, model.xyz.data[p], img, kp, config, x)
     if loose:
         good[good] = (_refits(model, p[good], img[good], kp[good], config)

@@ -1,6 +1,7 @@
 """The incremental mapper on pycolmap synthetic scenes with ground truth: accuracy, outputs, seeds, resume."""
 
 import logging
+import pickle
 import re
 from pathlib import Path
 
@@ -771,3 +772,111 @@ def test_a_set_of_two_or_three_images_keeps_its_model_as_colmap_does():
     assert mapper.min_model_size() == 2
     four = lined_up_views([((0.0, 12.0), (20, 40), 200), ((0.0, 12.0), (20, 40), 200)])
     assert incremental.IncrementalMapper(four).min_model_size() == 3
+
+
+def corridor_views(count: int, spacing=0.6, points_per_m=60, seed=0, noise_px=0.3, window=8):
+    """Correspondences of `count` views side by side along a wall (a street's facade): view k at x = k * spacing
+    looks along +z at points 4-6 m away spread over the whole length, so each view sees about 5 m of it and the
+    model's points grow with its images, while an image's own neighbourhood stays the same size. One trusted
+    640 x 480 camera (f 600); views up to `window` apart are verified pairs, on the points both see. Returns
+    (correspondences, ground-truth poses by name)."""
+    rng = np.random.default_rng(seed)
+    f, width, height = 600.0, 640, 480
+    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]])
+    length = (count - 1) * spacing + 6.0
+    n = int(points_per_m * length)
+    X = np.c_[rng.uniform(-3.0, length - 3.0, n), rng.uniform(-1.8, 1.8, n), rng.uniform(4.0, 6.0, n)]
+    corr = database.Correspondences()
+    corr.cameras[1] = database.CameraInfo(camera_id=1, model="SIMPLE_RADIAL", width=width, height=height,
+                                          params=np.array([f, width / 2, height / 2, 0]), prior_trusted=True)
+    gt, seen = {}, []
+    for k in range(count):
+        t = -np.array([k * spacing, 0.0, 0.0])
+        p = (X + t) @ K.T
+        uv = p[:, :2] / p[:, 2:]
+        visible = np.flatnonzero(((uv > 5) & (uv < [width - 5, height - 5])).all(axis=1))
+        corr.images[k + 1] = database.ImageInfo(image_id=k + 1, name=f"c{k:03d}.png", camera_id=1)
+        corr.keypoints[k + 1] = uv[visible] + rng.normal(0, noise_px, (len(visible), 2))
+        gt[f"c{k:03d}.png"] = (np.eye(3), t)
+        seen.append(visible)
+    for a in range(count):
+        for b in range(a + 1, min(a + window + 1, count)):
+            common, ia, ib = np.intersect1d(seen[a], seen[b], return_indices=True)
+            if len(common) >= 15:
+                corr.pairs.append(database.PairGeometry(image_id1=a + 1, image_id2=b + 1, config="CALIBRATED",
+                                                        inliers=np.c_[ia, ib]))
+    return corr, gt
+
+
+@pytest.fixture(scope="module")
+def wall():
+    """32 views along a wall (`corridor_views`) mapped in one run: (correspondences, ground truth, the mapper, its
+    result, its progress bars)."""
+    from mvrecon.progress import Bar
+
+    bars = []
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(incremental, "progress", lambda **kw: bars.append(Bar(**kw, disable=True)) or bars[-1])
+        corr, gt = corridor_views(32)
+        mapper = incremental.IncrementalMapper(corr, MapperConfig())
+        result = mapper.run()
+    return corr, gt, mapper, result, bars
+
+
+@pytest.mark.slow
+def test_work_per_registration_does_not_grow_with_the_model(wall):
+    """Along a 32-view wall, the model's points grow by 60% from its 12-20th images to its 26-32nd, while what a
+    registration touches (the entries of the model, tracks and keypoints its queries visit: `scanned`) stays
+    the same: the local steps never pass over the whole model. The global refinements at growth ratios do,
+    and are left out. The bar shows the images, points and pace of the model."""
+    _, gt, mapper, result, bars = wall
+    summary = accuracy_summary(estimated_poses(result), gt)
+    assert summary["registered"] == 32 and summary["components"] == 1 and summary["auc@5"] >= 0.9
+    rows = np.array(mapper.registrations, dtype=float)  # images, points, seconds, scanned, global refinement
+    local = rows[rows[:, 4] == 0]
+    early, late = local[(local[:, 0] >= 12) & (local[:, 0] <= 20)], local[local[:, 0] >= 26]
+    assert len(early) >= 4 and len(late) >= 4
+    assert late[:, 1].mean() > 1.5 * early[:, 1].mean()  # the model grew ...
+    assert late[:, 3].mean() < 1.1 * early[:, 3].mean()  # ... what a registration touched did not
+    assert re.fullmatch(r"model 0: 32 img, \d+ pts, \d+\.\d s/img", bars[0].postfix)
+    assert f"{result.models[0].num_points} pts" in bars[0].postfix
+
+
+@pytest.mark.slow
+def test_a_long_run_resumes_after_ctrl_c_from_its_last_snapshot(wall, tmp_path, monkeypatch):
+    """Ctrl-C in the 20th registration along the wall; the snapshot written after each registration (as when
+    SNAPSHOT_SECONDS have passed) holds the model as it was, and the resumed run registers only the images it
+    lacked and ends with the model of the run that was never interrupted."""
+    corr, gt, _, whole, _ = wall
+    monkeypatch.setattr(incremental, "SNAPSHOT_SECONDS", 0.0)
+    snapshot = tmp_path / "mapper.pkl"
+    calls = {"n": 0}
+    original = incremental.IncrementalMapper._after_registration
+
+    def interrupted(self, m, i):
+        calls["n"] += 1
+        if calls["n"] == 20:
+            raise KeyboardInterrupt
+        return original(self, m, i)
+
+    monkeypatch.setattr(incremental.IncrementalMapper, "_after_registration", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        map_correspondences(corr, MapperConfig(), snapshot_path=snapshot)
+    monkeypatch.setattr(incremental.IncrementalMapper, "_after_registration", original)
+    saved = int(pickle.loads(snapshot.read_bytes())["state"]["current"]["registered"].sum())
+    assert saved == 2 + 19  # the initial pair and the 19 registrations completed
+
+    registered = []
+    original_register = incremental.register_image
+
+    def counting(model, tracks, image, cfg, seed=0, decide=False):
+        out = original_register(model, tracks, image, cfg, seed, decide)
+        registered.extend([image] if out.ok else [])
+        return out
+
+    monkeypatch.setattr(incremental, "register_image", counting)
+    resumed = map_correspondences(corr, MapperConfig(), snapshot_path=snapshot, resume=True)
+    assert len(registered) == 32 - saved
+    m, w = resumed.models[0], whole.models[0]
+    assert np.array_equal(m.registered, w.registered) and m.num_points == w.num_points
+    assert np.abs(m.R - w.R).max() < 1e-9 and np.abs(m.t - w.t).max() < 1e-9
