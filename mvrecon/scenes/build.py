@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io.gps import from_enu, gps_exif
 from ..io.images import to_gray
 from ..progress import progress
-from ..io.gps import from_enu, gps_exif
 from . import cameras, layouts, meshes
 from .render import Hits, Renderer, RenderSettings
 from .textures import TextureSpec

@@ -376,9 +376,9 @@ def rings(
     heights,
     target=(0, 0, 0),
 ) -> list:
-    """Cameras on horizontal rings around `target`, one per entry of `heights`, all looking at it: `count`
-    views shared out evenly (a dense capture of an object), each ring turned half a step from the one below
-    so that no two views stand above one another."""
+    """Cameras on horizontal rings around `target`, one per entry of `heights` (above the target), all looking
+    at it: `count` views shared out evenly (a dense capture of an object), each ring turned half a step from
+    the one below so that no two views stand above one another."""
     heights = list(heights)
     sizes = [count // len(heights) + (k < count % len(heights)) for k in range(len(heights))]
     poses = []

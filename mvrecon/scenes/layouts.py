@@ -70,7 +70,8 @@ def survey_site(
     """Rolling terrain under a drone survey, with buildings and trees, covering the cameras' x-y extent plus
     `margin`: terrain tiles of `tile` metres (each its own texture of `texture_size` texels, one texel about
     tile / texture_size metres), a box building in a share `buildings` of the cells of a `building_spacing`
-    grid (walls and roof each their own texture) and trees (a crown on a trunk) scattered between them."""
+    grid (walls and roof each their own texture, half as many texels) and trees (a crown on a trunk) scattered
+    between them."""
     rng = np.random.default_rng(seed)
     textures = _Textures(rng)
     height = terrain(int(rng.integers(1 << 31)), relief)
@@ -88,6 +89,7 @@ def survey_site(
             parts.append(meshes.grid((x0, y0, 0.0), (tile, 0, 0), (0, tile, 0), height(X, Y),
                                      textures.noise(texture_size, GROUND_TINTS)))
     footprints = []
+    half = max(texture_size // 2, 16)
     n_cells = np.maximum(((hi - lo) / building_spacing).astype(int), 1)
     for i in range(n_cells[0]):
         for j in range(n_cells[1]):
@@ -99,13 +101,13 @@ def survey_site(
             corners = np.array([[cx, cy]]) + np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * size / 2 * 1.42
             ground = height(corners[:, 0], corners[:, 1])
             base, top = ground.min() - 0.5, ground.max() + tall
-            walls = [textures.noise(256, WALL_TINTS) for _ in range(4)]
-            parts.append(meshes.box((cx, cy, (base + top) / 2), (size[0], size[1], top - base),
-                                    walls + [textures.noise(256, ROOF_TINTS), walls[0]],
+            faces = [textures.noise(half, WALL_TINTS) for _ in range(4)] + [textures.noise(half, ROOF_TINTS),
+                                                                              textures.noise(16, WALL_TINTS)]
+            parts.append(meshes.box((cx, cy, (base + top) / 2), (size[0], size[1], top - base), faces,
                                     yaw_deg=float(rng.uniform(0, 90))))
             footprints.append((cx, cy, 0.75 * np.hypot(*size)))
     area_ha = np.prod(hi - lo) / 1e4
-    placed = np.array([f for f in footprints]).reshape(-1, 3)
+    placed = np.array(footprints).reshape(-1, 3)
     for _ in range(int(round(trees_per_hectare * area_ha))):
         x, y = rng.uniform(lo, hi)
         if len(placed) and np.any(np.hypot(placed[:, 0] - x, placed[:, 1] - y) < placed[:, 2] + 3.0):
@@ -113,8 +115,10 @@ def survey_site(
         r = rng.uniform(1.5, 3.5)
         trunk = rng.uniform(1.5, 3.0)
         z = float(height(x, y))
-        parts.append(meshes.cylinder((x, y, z - 0.3), 0.3, trunk + r + 0.3, textures.noise(64, WALL_TINTS), 8))
-        parts.append(meshes.uv_sphere((x, y, z + trunk + 0.8 * r), r, textures.noise(128, GROUND_TINTS[:2]), 12))
+        bark = textures.noise(max(texture_size // 8, 16), WALL_TINTS)
+        leaves = textures.noise(max(texture_size // 4, 16), GROUND_TINTS[:2])
+        parts.append(meshes.cylinder((x, y, z - 0.3), 0.3, trunk + r + 0.3, bark, 8))
+        parts.append(meshes.uv_sphere((x, y, z + trunk + 0.8 * r), r, leaves, 12))
     return meshes.merge(parts)
 
 
