@@ -15,6 +15,7 @@ from mvrecon.io.gps import read_gps, to_enu
 from mvrecon.scenes import make_scene
 from mvrecon.scenes.build import build_mesh, build_poses
 from mvrecon.scenes.catalog import load_entry, with_count
+from mvrecon.scenes.render import Renderer
 from tests.helpers import bilinear
 
 SCALE = ("aerial_survey", "street_long", "dense_orbit")
@@ -192,6 +193,30 @@ def test_count_option_changes_the_number_of_views(tmp_path, capsys):
         assert load_reconstruction(out / "gt" / "sparse").num_images() == count
     assert main(["-q", "scene", "make", toml, "-o", str(out), "--count", "1"]) == 2
     assert "count = 1" in capsys.readouterr().err
+
+
+def test_a_scene_made_with_a_count_resumes_after_ctrl_c(tmp_path, monkeypatch):
+    """Ctrl-C at the 4th view of 7: the rerun with the same count renders the other 4 only, and the GPS EXIF
+    of the views kept is the bytes an uninterrupted run writes."""
+    toml = tiny_toml("aerial_survey_small", tmp_path)
+    whole = make_scene(toml, tmp_path / "whole", count=7)
+    renders, render = [], Renderer.render
+
+    def cut(self, *args, **kwargs):
+        renders.append(1)
+        if len(renders) == 4:
+            raise KeyboardInterrupt
+        return render(self, *args, **kwargs)
+
+    monkeypatch.setattr(Renderer, "render", cut)
+    with pytest.raises(KeyboardInterrupt):
+        make_scene(toml, tmp_path / "cut", count=7)
+    renders[:] = [0] * 10  # no more Ctrl-C
+    make_scene(toml, tmp_path / "cut", count=7)
+    del renders[:10]
+    assert len(renders) == 4
+    for image in sorted((whole / "images").iterdir()):
+        assert (tmp_path / "cut" / "images" / image.name).read_bytes() == image.read_bytes()
 
 
 @pytest.mark.slow
