@@ -45,7 +45,8 @@ OBJECT_KEYS = {
     "heightfield": {"origin", "u", "v", "resolution", "relief", "amplitude", "features", "texture",
                     "uv_repeat"},
     "mesh": {"path", "texture", "scale", "translate"},
-    **{name: set(inspect.signature(site).parameters) - {"centres", "seed"} for name, site in layouts.SITES.items()},
+    **{name: set(inspect.signature(site).parameters) - {"centres", "seed"}
+       for name, site in layouts.SITES.items()},
 }
 REPEAT_KEYS = {"repeat", "step"}  # any object: copies in a row or grid (`repeat_offsets`)
 
@@ -151,10 +152,11 @@ def check_entry(entry: dict) -> None:
         gps = _table(entry, "gps", kind, "origin = [latitude, longitude, altitude]")
         _check_keys(gps, ("origin",), GPS_KEYS, "[gps]")
         origin = gps["origin"]
-        if not (isinstance(origin, list) and len(origin) == 3 and all(isinstance(v, (int, float)) for v in origin)
-                and abs(origin[0]) <= 90 and abs(origin[1]) <= 180):
-            raise ValueError(f"[gps] origin = {origin!r}: must be [latitude, longitude, altitude] in degrees, "
-                             "degrees and metres")
+        numbers = isinstance(origin, list) and len(origin) == 3 and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) for v in origin)
+        if not (numbers and abs(origin[0]) <= 90 and abs(origin[1]) <= 180):
+            raise ValueError(f"[gps] origin = {origin!r}: must be [latitude, longitude, altitude] in "
+                             "degrees, degrees and metres")
     objects = entry.get("objects")
     if not objects:
         raise ValueError("no [[objects]] table; a rendered scene needs at least one")
@@ -233,7 +235,9 @@ def _call(func, kwargs: dict, what: str):
     return func(**kwargs)
 
 
-def build_object(spec: dict, seed: int, base_dir: Path, centres: np.ndarray | None = None) -> meshes.TexturedMesh:
+def build_object(
+    spec: dict, seed: int, base_dir: Path, centres: np.ndarray | None = None
+) -> meshes.TexturedMesh:
     """One `[[objects]]` table -> a textured mesh (with `repeat`, its copies: `repeat_offsets`). Texture seeds
     default to `seed` + face index. A site (`layouts.SITES`) is laid out around the camera `centres` (N,3)."""
     spec = dict(spec)
@@ -309,7 +313,8 @@ def build_mesh(entry: dict, base_dir: Path, poses: list | None = None) -> meshes
     centres = None
     if any(o.get("type") in layouts.SITES for o in objects):
         centres = np.array([-R.T @ t for R, t in (build_poses(entry) if poses is None else poses)])
-    return meshes.merge([build_object(o, seed * 1000 + 100 * k, base_dir, centres) for k, o in enumerate(objects)])
+    return meshes.merge([build_object(o, seed * 1000 + 100 * k, base_dir, centres)
+                         for k, o in enumerate(objects)])
 
 
 def build_poses(entry: dict) -> list:
@@ -446,25 +451,27 @@ def _perspective(entry: dict, base_dir: Path, out: Path, names: list[str] | None
 
 
 def gps_positions(entry: dict, poses: list, names: list[str]) -> dict | None:
-    """A drone's GPS fixes of the views of an entry with a [gps] table, or None: the scene's x, y, z are metres
-    east, north and up of `origin` (latitude, longitude, altitude), and each fix is the camera centre plus
-    seeded Gaussian noise of `sigma_horizontal` (per horizontal axis) and `sigma_vertical` metres, independent
-    from view to view. Per image name: the true and the noisy position, in east/north/up metres and in WGS84
-    (degrees, degrees, metres); the noisy one is what the image's EXIF says."""
+    """A drone's GPS fixes of the views of an entry with a [gps] table, or None: the scene's x, y, z are
+    metres east, north and up of `origin` (latitude, longitude, altitude), and each fix is the camera centre
+    plus seeded Gaussian noise of `sigma_horizontal` (per horizontal axis) and `sigma_vertical` metres,
+    independent from view to view. Per image name: the true and the noisy position, in east/north/up metres
+    and in WGS84 (degrees, degrees, metres); the noisy one is what the image's EXIF says."""
     gps = entry.get("gps")
     if gps is None:
         return None
     origin = np.asarray(gps["origin"], float)
     sigma = np.array([gps.get("sigma_horizontal", 2.5)] * 2 + [gps.get("sigma_vertical", 5.0)], float)
     centres = np.array([-R.T @ t for R, t in poses])
-    noisy = centres + np.random.default_rng([int(entry.get("seed", 0)), 0x6795]).normal(size=centres.shape) * sigma
+    rng = np.random.default_rng([int(entry.get("seed", 0)), 0x6795])
+    noisy = centres + rng.normal(size=centres.shape) * sigma
     true_lla, noisy_lla = from_enu(centres, origin), from_enu(noisy, origin)
     images = {
         name: {"true_enu": centres[k].round(6).tolist(), "noisy_enu": noisy[k].round(6).tolist(),
                "true_lla": true_lla[k].round(9).tolist(), "noisy_lla": noisy_lla[k].round(9).tolist()}
         for k, name in enumerate(names)
     }
-    return {"origin": origin.tolist(), "sigma_horizontal_m": float(sigma[0]), "sigma_vertical_m": float(sigma[2]),
+    return {"origin": origin.tolist(), "sigma_horizontal_m": float(sigma[0]),
+            "sigma_vertical_m": float(sigma[2]),
             "frame": "scene x, y, z = metres east, north, up of origin (latitude, longitude, altitude)",
             "images": images}
 

@@ -307,7 +307,7 @@ def survey(
             pitch = np.radians(pitch)
             ahead = np.array([0.0, heading, 0.0])
             look = np.cos(pitch) * np.array([0.0, 0.0, -1.0]) + np.sin(pitch) * ahead
-            R, _ = look_at(c, c + look, up=ahead if pitch < np.radians(80) else (0, 0, 1))
+            R, _ = look_at(c, c + look, up=ahead)  # the image top points along the flight
             R = angle_axis_to_rotmat(np.radians(jitter_deg) * rng.normal(size=3)) @ R
             poses.append((R, -R @ c))
     return poses

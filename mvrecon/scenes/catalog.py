@@ -79,8 +79,8 @@ def with_count(entry: dict, digest: str, count: int) -> tuple[dict, str]:
     many, and the hash of both."""
     trajectory = entry.get("trajectory")
     if not isinstance(trajectory, dict) or "count" not in trajectory:
-        raise InputError(f"{entry.get('name', 'this scene')}: --count needs a trajectory with a count (this one "
-                         "has a fixed set of views)")
+        raise InputError(f"{entry.get('name', 'this scene')}: --count needs a trajectory with a count "
+                         "(this one has a fixed set of views)")
     entry = {**entry, "trajectory": {**trajectory, "count": count}}
     if isinstance(trajectory["count"], int) and trajectory["count"] > 0 and "points" in entry:
         entry["points"] = max(int(round(entry["points"] * count / trajectory["count"])), 1)

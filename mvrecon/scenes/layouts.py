@@ -1,10 +1,10 @@
 """Sites: whole layouts of many objects laid out under or along a scene's cameras, so that they grow with it.
 
 A catalog entry names a site as one `[[objects]]` table (`survey_site`, `street_site`); the site covers the
-camera centres with a margin, so a scene made with more views (`mvrecon scene make NAME --count N`) gets a larger
-site of the same kind. Every surface has its own seeded procedural texture (or a photograph used once), so no
-pattern repeats anywhere in the scene: a repeat would let a pipeline register a view in the wrong place, and that
-would be the renderer's fault, not the pipeline's.
+camera centres with a margin, so a scene made with more views (`mvrecon scene make NAME --count N`) gets a
+larger site of the same kind. Every surface has its own seeded procedural texture (or a photograph used once),
+so no pattern repeats anywhere in the scene: a repeat would let a pipeline register a view in the wrong place,
+and that would be the renderer's fault, not the pipeline's.
 """
 
 import numpy as np
@@ -173,10 +173,10 @@ def street_site(
     for i in range(counts[0]):
         for j in range(counts[1]):
             x0, y0 = outer_lo + step * [i, j]
-            if x0 >= inner_lo[0] and x0 + step[0] <= inner_hi[0] and y0 >= inner_lo[1] and y0 + step[1] <= inner_hi[1]:
+            if np.all(inner_lo <= (x0, y0)) and np.all((x0, y0) + step <= inner_hi):
                 continue  # under the block: never seen
-            parts.append(meshes.quad((x0, y0, 0.0), (step[0], 0, 0), (0, step[1], 0),
-                                     textures.noise(ground_texture_size, ((0.6, 0.6, 0.62), (0.7, 0.65, 0.6)))))
+            road = textures.noise(ground_texture_size, ((0.6, 0.6, 0.62), (0.7, 0.65, 0.6)))
+            parts.append(meshes.quad((x0, y0, 0.0), (step[0], 0, 0), (0, step[1], 0), road))
     return meshes.merge(parts)
 
 

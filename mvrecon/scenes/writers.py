@@ -20,7 +20,8 @@ def write_image(path, image: np.ndarray, jpeg_quality: int = 95, exif: Image.Exi
     pil = Image.fromarray(image)
     extra = {} if exif is None else {"exif": exif}
     if Path(path).suffix.lower() in (".jpg", ".jpeg"):
-        replace_whole(path, lambda tmp: pil.save(tmp, quality=jpeg_quality, subsampling=0, optimize=False, **extra))
+        replace_whole(path, lambda tmp: pil.save(tmp, quality=jpeg_quality, subsampling=0, optimize=False,
+                                                 **extra))
     else:
         replace_whole(path, lambda tmp: pil.save(tmp, compress_level=6, optimize=False, **extra))
 
