@@ -3,6 +3,8 @@
 mvrecon scene list                      names, kinds and descriptions of the catalog's scenes
 mvrecon scene make NAME -o DIR          render scene NAME (or a path to a .toml) into DIR; cached,
                                         resumed after Ctrl-C
+mvrecon scene make NAME -o DIR --count N    the same scene with N views (a larger survey, a longer street,
+                                        a denser orbit)
 """
 
 import argparse
@@ -21,6 +23,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("name", nargs="?", help="make: a catalog name (`mvrecon scene list`) or a .toml path")
     parser.add_argument("-o", "--output",
                         help="make: output folder (created; reused when up to date, continued after Ctrl-C)")
+    parser.add_argument("--count", type=int,
+                        help="make: number of views instead of the scene's own (its trajectory stretches or "
+                             "densifies: a larger survey, a longer street, a denser orbit)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -31,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if not args.name or not args.output:
         raise InputError("scene make: give a scene NAME and an output folder with -o DIR")
-    out = make_scene(args.name, args.output)
+    out = make_scene(args.name, args.output, count=args.count)
     info = read_scene_info(out)
     print(f"{out}: {info['name']} ({info['kind']}, {info.get('images', '?')} images, units: {info['units']})")
     return 0

@@ -14,9 +14,10 @@ import numpy as np
 import pycolmap
 
 from ..geometry.camera import PARAM_NAMES, default_params
+from ..io.gps import from_enu, gps_exif
 from ..io.images import to_gray
 from ..progress import progress
-from . import cameras, meshes
+from . import cameras, layouts, meshes
 from .cameras import OrthographicCamera, PerspectiveCamera
 from .render import Hits, Renderer, RenderSettings
 from .textures import TextureSpec
@@ -32,6 +33,9 @@ TRAJECTORIES = {
     "inward": cameras.inward,
     "stereo": cameras.stereo_pair,
     "tilt": cameras.tilt_series,
+    "survey": cameras.survey,
+    "loop": cameras.loop,
+    "rings": cameras.rings,
 }
 
 
@@ -44,6 +48,8 @@ OBJECT_KEYS = {
     "heightfield": {"origin", "u", "v", "resolution", "relief", "amplitude", "features", "texture",
                     "uv_repeat"},
     "mesh": {"path", "texture", "scale", "translate"},
+    **{name: set(inspect.signature(site).parameters) - {"centres", "seed"}
+       for name, site in layouts.SITES.items()},
 }
 REPEAT_KEYS = {"repeat", "step"}  # any object: copies in a row or grid (`repeat_offsets`)
 
@@ -57,11 +63,13 @@ OBJECT_REQUIRED = {
     "cylinder": ("base", "radius", "height", "texture"),
     "heightfield": ("origin", "u", "v", "texture"),
     "mesh": ("path",),
+    **{name: () for name in layouts.SITES},
 }
 CAMERA_KEYS = {
     "perspective": {"model", "width", "height", "params", "focal", "distortion", "orthographic"},
     "orthographic": {"width", "height", "pixel_size", "orthographic"},
 }
+GPS_KEYS = {"origin", "sigma_horizontal", "sigma_vertical"}
 MIN_VIEWS = 2  # fewer views make no scene to reconstruct (two-view geometry, an SEM pair)
 
 
@@ -141,6 +149,17 @@ def check_entry(entry: dict) -> None:
         if entry.get("image_format", "png") != "png":
             raise ValueError(f"[render] alpha = true needs image_format = \"png\": "
                              f"{entry['image_format']} has no alpha channel")
+    if "gps" in entry:
+        if kind != "perspective":
+            raise ValueError(f"[gps]: GPS positions are for perspective scenes, not {kind}")
+        gps = _table(entry, "gps", kind, "origin = [latitude, longitude, altitude]")
+        _check_keys(gps, ("origin",), GPS_KEYS, "[gps]")
+        origin = gps["origin"]
+        numbers = isinstance(origin, list) and len(origin) == 3 and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) for v in origin)
+        if not (numbers and abs(origin[0]) <= 90 and abs(origin[1]) <= 180):
+            raise ValueError(f"[gps] origin = {origin!r}: must be [latitude, longitude, altitude] in "
+                             "degrees, degrees and metres")
     objects = entry.get("objects")
     if not objects:
         raise ValueError("no [[objects]] table; a rendered scene needs at least one")
@@ -217,14 +236,18 @@ def _call(func, kwargs: dict, what: str):
     return func(**kwargs)
 
 
-def build_object(spec: dict, seed: int, base_dir: Path) -> meshes.TexturedMesh:
+def build_object(
+    spec: dict, seed: int, base_dir: Path, centres: np.ndarray | None = None
+) -> meshes.TexturedMesh:
     """One `[[objects]]` table -> a textured mesh (with `repeat`, its copies: `repeat_offsets`). Texture seeds
-    default to `seed` + face index."""
+    default to `seed` + face index. A site (`layouts.SITES`) is laid out around the camera `centres` (N,3)."""
     spec = dict(spec)
     kind = spec.pop("type", None)
     offsets = repeat_offsets(spec, kind)
     for key in REPEAT_KEYS:
         spec.pop(key, None)
+    if kind in layouts.SITES:
+        return _call(layouts.SITES[kind], {"centres": centres, "seed": seed, **spec}, kind)
     mesh = _build_one(kind, spec, seed, base_dir)
     return mesh if len(offsets) == 1 else meshes.tile(mesh, offsets)
 
@@ -281,12 +304,18 @@ def _build_one(kind, spec: dict, seed: int, base_dir: Path) -> meshes.TexturedMe
     )
 
 
-def build_mesh(entry: dict, base_dir: Path) -> meshes.TexturedMesh:
+def build_mesh(entry: dict, base_dir: Path, poses: list | None = None) -> meshes.TexturedMesh:
+    """The entry's objects in one mesh; sites are laid out around the cameras of `poses` (default: the
+    entry's trajectory)."""
     seed = int(entry.get("seed", 0))
     objects = entry.get("objects", [])
     if not objects:
         raise ValueError("a rendered scene needs at least one [[objects]] table")
-    return meshes.merge([build_object(o, seed * 1000 + 100 * k, base_dir) for k, o in enumerate(objects)])
+    centres = None
+    if any(o.get("type") in layouts.SITES for o in objects):
+        centres = np.array([-R.T @ t for R, t in (build_poses(entry) if poses is None else poses)])
+    return meshes.merge([build_object(o, seed * 1000 + 100 * k, base_dir, centres)
+                         for k, o in enumerate(objects)])
 
 
 def build_poses(entry: dict) -> list:
@@ -294,7 +323,7 @@ def build_poses(entry: dict) -> list:
     kind = traj.pop("type", None)
     if kind not in TRAJECTORIES:
         raise ValueError(f"trajectory type {kind!r}; expected one of {', '.join(TRAJECTORIES)}")
-    if kind in ("hemisphere", "handheld"):
+    if kind in ("hemisphere", "handheld", "survey"):
         traj.setdefault("seed", int(entry.get("seed", 0)))
     return _call(TRAJECTORIES[kind], traj, f"trajectory {kind}")
 
@@ -321,11 +350,12 @@ def render_settings(entry: dict) -> tuple[RenderSettings, float]:
 
 
 def _render_all(
-    renderer: Renderer, cam, poses, names, out: Path, seed: int, jitter: float, grey: bool = False
+    renderer: Renderer, cam, poses, names, out: Path, seed: int, jitter: float, grey: bool = False,
+    exifs: list | None = None,
 ) -> None:
     """Render each view into images/ and gt/depth/, skipping views whose two files are there: make_scene
     leaves only those of an interrupted run of the same entry, and both are written whole (seeded per view,
-    so the views rendered now are the bytes an uninterrupted run gives)."""
+    so the views rendered now are the bytes an uninterrupted run gives). exifs[k]: view k's EXIF block."""
     rng = np.random.default_rng(seed)
     exposures = 1.0 + jitter * rng.uniform(-1.0, 1.0, len(poses))
     (out / "images").mkdir(parents=True, exist_ok=True)
@@ -340,7 +370,7 @@ def _render_all(
         if grey:
             image = np.round(to_gray(image, np.float32))
             image = np.clip(image, 0, 255).astype(np.uint8)
-        write_image(files[k][0], image)
+        write_image(files[k][0], image, exif=None if exifs is None else exifs[k])
         write_depth(files[k][1], depth)
 
 
@@ -402,10 +432,16 @@ def _perspective(entry: dict, base_dir: Path, out: Path, names: list[str] | None
     cam = build_camera(entry)
     poses = build_poses(entry)
     settings, jitter = render_settings(entry)
-    renderer = Renderer(build_mesh(entry, base_dir), settings)
+    renderer = Renderer(build_mesh(entry, base_dir, poses), settings)
     ext = "jpg" if entry.get("image_format", "png") in ("jpg", "jpeg") else "png"
     names = names or [f"{k:04d}.{ext}" for k in range(len(poses))]
-    _render_all(renderer, cam, poses, names, out, seed, jitter)
+    gps = gps_positions(entry, poses, names)
+    exifs = None
+    if gps is not None:
+        (out / "gt").mkdir(parents=True, exist_ok=True)
+        (out / "gt" / "gps.json").write_text(json.dumps(gps, indent=1))
+        exifs = [gps_exif(*gps["images"][n]["noisy_lla"]) for n in names]
+    _render_all(renderer, cam, poses, names, out, seed, jitter, exifs=exifs)
     pts, normals, colors = surface_points(renderer, int(entry.get("points", 4000)), seed + 1)
     obs = [observations(renderer, cam, p, pts, normals) for p in poses]
     write_colmap_model(out / "gt" / "sparse", cam, names, poses, pts, colors, obs)
@@ -414,6 +450,32 @@ def _perspective(entry: dict, base_dir: Path, out: Path, names: list[str] | None
         "camera": {"model": cam.model, "width": cam.width, "height": cam.height, "params": list(cam.params)},
     }
     return info, renderer, cam, poses
+
+
+def gps_positions(entry: dict, poses: list, names: list[str]) -> dict | None:
+    """A drone's GPS fixes of the views of an entry with a [gps] table, or None: the scene's x, y, z are
+    metres east, north and up of `origin` (latitude, longitude, altitude), and each fix is the camera centre
+    plus seeded Gaussian noise of `sigma_horizontal` (per horizontal axis) and `sigma_vertical` metres,
+    independent from view to view. Per image name: the true and the noisy position, in east/north/up metres
+    and in WGS84 (degrees, degrees, metres); the noisy one is what the image's EXIF says."""
+    gps = entry.get("gps")
+    if gps is None:
+        return None
+    origin = np.asarray(gps["origin"], float)
+    sigma = np.array([gps.get("sigma_horizontal", 2.5)] * 2 + [gps.get("sigma_vertical", 5.0)], float)
+    centres = np.array([-R.T @ t for R, t in poses])
+    rng = np.random.default_rng([int(entry.get("seed", 0)), 0x6795])
+    noisy = centres + rng.normal(size=centres.shape) * sigma
+    true_lla, noisy_lla = from_enu(centres, origin), from_enu(noisy, origin)
+    images = {
+        name: {"true_enu": centres[k].round(6).tolist(), "noisy_enu": noisy[k].round(6).tolist(),
+               "true_lla": true_lla[k].round(9).tolist(), "noisy_lla": noisy_lla[k].round(9).tolist()}
+        for k, name in enumerate(names)
+    }
+    return {"origin": origin.tolist(), "sigma_horizontal_m": float(sigma[0]),
+            "sigma_vertical_m": float(sigma[2]),
+            "frame": "scene x, y, z = metres east, north, up of origin (latitude, longitude, altitude)",
+            "images": images}
 
 
 def stereo(entry: dict, base_dir: Path, out: Path) -> dict:

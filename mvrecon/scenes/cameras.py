@@ -282,3 +282,119 @@ def tilt_series(
         t = -R @ p + [0.0, 0.0, distance]
         poses.append((R, t))
     return poses
+
+
+def survey(
+    count: int,
+    altitude: float,
+    along: float,
+    across: float,
+    oblique_every: int = 0,
+    oblique_deg: float = 0.0,
+    jitter: float = 0.0,
+    jitter_deg: float = 0.0,
+    seed: int = 0,
+) -> list:
+    """A drone's lawn-mower survey at `altitude` over the x-y plane, centred on the origin.
+
+    Flight lines run along y (north), `across` apart, flown alternately north and south; the views on a line
+    are `along` apart, the image's vertical axis along the flight (the short side of a landscape frame, as
+    survey drones fly). The grid is about square in metres, so more views cover a larger area at the same
+    overlap (forward overlap = 1 - along / footprint). Every `oblique_every`-th view is pitched `oblique_deg`
+    forward from nadir (0: all nadir). `jitter` (metres, per axis) and `jitter_deg` (yaw, roll, pitch) are a
+    seeded wind's offsets from the plan.
+    """
+    rng = np.random.default_rng(seed)
+    per_line = max(2, int(round(np.sqrt(count * across / along))))
+    lines = max(1, int(np.ceil(count / per_line)))
+    sizes = [count // lines + (k < count % lines) for k in range(lines)]
+    poses = []
+    for line, n in enumerate(sizes):
+        x = (line - (lines - 1) / 2) * across
+        heading = 1.0 if line % 2 == 0 else -1.0
+        ys = (np.arange(n) - (n - 1) / 2) * along * heading
+        for y in ys:
+            k = len(poses)
+            c = np.array([x, y, altitude]) + jitter * rng.normal(size=3)
+            pitch = oblique_deg if oblique_every and k % oblique_every == oblique_every - 1 else 0.0
+            pitch = np.radians(pitch)
+            ahead = np.array([0.0, heading, 0.0])
+            look = np.cos(pitch) * np.array([0.0, 0.0, -1.0]) + np.sin(pitch) * ahead
+            R, _ = look_at(c, c + look, up=ahead)  # the image top points along the flight
+            R = angle_axis_to_rotmat(np.radians(jitter_deg) * rng.normal(size=3)) @ R
+            poses.append((R, -R @ c))
+    return poses
+
+
+def loop(
+    count: int,
+    step: float,
+    height: float,
+    aspect: float = 1.5,
+    corner_radius: float = 4.0,
+    look_distance: float = 10.0,
+    sway: float = 0.0,
+    yaw_wobble_deg: float = 0.0,
+) -> list:
+    """Forward motion once around a block: a rounded rectangle (corners of `corner_radius`, sides in the ratio
+    `aspect`) centred on the origin, `count` views `step` apart, whose length is count * step: the last view
+    stands one step before the first, so the loop closes. Starts in the middle of the south side heading east
+    (counter-clockwise); each camera looks along the path, with a sideways `sway` and a yaw wobble.
+    """
+    r = corner_radius
+    perimeter = count * step
+    ly = (perimeter + 8 * r - 2 * np.pi * r) / (2 * (aspect + 1))
+    lx = aspect * ly
+    if min(lx, ly) <= 2 * r:
+        raise ValueError(f"loop: {count} views {step} apart make a loop too short for corners of radius {r}")
+    sx, sy = lx - 2 * r, ly - 2 * r  # straight parts
+    # the path from the middle of the south side: straights and left-turning quarter circles, as
+    # (straight length or None for a turn, start point, heading at the start)
+    pieces, pos, angle = [], np.array([0.0, -ly / 2]), 0.0
+    for straight in (sx / 2, sy, sx, sy, sx / 2):
+        pieces.append((straight, pos, angle))
+        pos = pos + straight * np.array([np.cos(angle), np.sin(angle)])
+        pieces.append((None, pos, angle))
+        pos = pos + r * np.array([np.cos(angle) - np.sin(angle), np.sin(angle) + np.cos(angle)])
+        angle += np.pi / 2
+    pieces.pop()  # back at the start
+    poses = []
+    for k in range(count):
+        s = k * step
+        for straight, start, a0 in pieces:
+            length = np.pi / 2 * r if straight is None else straight
+            if s <= length:
+                break
+            s -= length
+        if straight is None:
+            a = a0 + s / r
+            centre = start + r * np.array([-np.sin(a0), np.cos(a0)])
+            p = centre + r * np.array([np.sin(a), -np.cos(a)])
+        else:
+            a = a0
+            p = start + s * np.array([np.cos(a0), np.sin(a0)])
+        phase = 2 * np.pi * k / 20.0
+        direction = np.array([np.cos(a), np.sin(a), 0.0])
+        side = np.array([np.sin(a), -np.cos(a), 0.0])
+        c = np.array([p[0], p[1], height]) + sway * np.sin(phase) * side
+        yaw = np.radians(yaw_wobble_deg * np.sin(phase + 1.0))
+        look = np.cos(yaw) * direction + np.sin(yaw) * side
+        poses.append(look_at(c, c + look_distance * look))
+    return poses
+
+
+def rings(
+    count: int,
+    radius: float,
+    heights: Sequence[float],
+    target: Sequence[float] = (0, 0, 0),
+) -> list:
+    """Cameras on horizontal rings around `target`, one per entry of `heights` (above the target), all looking
+    at it: `count` views shared out evenly (a dense capture of an object), each ring turned half a step from
+    the one below so that no two views stand above one another."""
+    heights = list(heights)
+    sizes = [count // len(heights) + (k < count % len(heights)) for k in range(len(heights))]
+    poses = []
+    for k, (n, h) in enumerate(zip(sizes, heights)):
+        poses += orbit(n, radius, h, target, start_deg=180.0 / n * k)
+    return poses

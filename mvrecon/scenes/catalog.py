@@ -76,8 +76,23 @@ def read_scene_info(out_dir: Path | str) -> dict | None:
     return read_json_object(Path(out_dir) / "scene.json")
 
 
-def make_scene(name: str, out_dir: Path | str) -> Path:
-    """Render catalog scene `name` (or a .toml path) into out_dir and return out_dir.
+def with_count(entry: dict, digest: str, count: int) -> tuple[dict, str]:
+    """The entry with `count` views instead of its trajectory's own (the trajectory stretches or densifies:
+    `cameras.survey`, `loop`, `rings`), its ground-truth points scaled alike so that each view keeps about as
+    many, and the hash of both."""
+    trajectory = entry.get("trajectory")
+    if not isinstance(trajectory, dict) or "count" not in trajectory:
+        raise InputError(f"{entry.get('name', 'this scene')}: --count needs a trajectory with a count "
+                         "(this one has a fixed set of views)")
+    entry = {**entry, "trajectory": {**trajectory, "count": count}}
+    if isinstance(trajectory["count"], int) and trajectory["count"] > 0 and "points" in entry:
+        entry["points"] = max(int(round(entry["points"] * count / trajectory["count"])), 1)
+    return entry, hashlib.sha256(f"{digest} count={count}".encode()).hexdigest()
+
+
+def make_scene(name: str, out_dir: Path | str, count: int | None = None) -> Path:
+    """Render catalog scene `name` (or a .toml path) into out_dir and return out_dir; `count` replaces the
+    number of views of its trajectory (`with_count`).
 
     Deterministic: the same TOML gives the same bytes. Cached: when out_dir already holds the complete scene
     made from the same TOML, nothing is recomputed; when it holds an interrupted one, the views rendered are
@@ -88,6 +103,8 @@ def make_scene(name: str, out_dir: Path | str) -> Path:
     from .build import KINDS, check_entry  # noqa: PLC0415 - pycolmap and OpenCV: not for `scene list`
 
     entry, digest, path = load_entry(name)
+    if count is not None:
+        entry, digest = with_count(entry, digest, count)
     out = Path(out_dir)
     record = Record(out)
     if record.get("scene", digest, ["scene.json"]) is not None:

@@ -42,6 +42,10 @@ class TextureSpec:
     size: side of the square texture in texels; near the on-screen size, so texels are not magnified much.
     detail: weight of the multiplicative noise in [0, 1]: 0 keeps the photo, 1 is full-contrast modulation.
     tint: per-channel gain, to tell similar surfaces apart.
+    roughness: when given, the noise's octaves go down to a 2-texel period and each octave keeps this share
+      of the one before, and pure noise is mostly grey at a higher contrast (SIFT sees grey levels only):
+      with 0.8, a green-tinted 512 px noise texture gives ~2000 SIFT keypoints where the default gives ~100.
+      For large procedural surfaces (terrain, walls) without photographs.
     """
 
     photo: str = "noise"
@@ -49,6 +53,7 @@ class TextureSpec:
     size: int = 512
     detail: float = 0.6
     tint: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    roughness: float | None = None
 
     @classmethod
     def parse(cls, value: "str | dict | TextureSpec", default_seed: int = 0) -> "TextureSpec":
@@ -58,7 +63,7 @@ class TextureSpec:
         if isinstance(value, str):
             return cls(photo=value, seed=default_seed)
         if isinstance(value, dict):
-            unknown = set(value) - {"photo", "seed", "size", "detail", "tint"}
+            unknown = set(value) - {"photo", "seed", "size", "detail", "tint", "roughness"}
             if unknown:
                 raise ValueError(f"unknown texture fields {sorted(unknown)}")
             fields = dict(value)
@@ -111,11 +116,17 @@ def fractal_noise(
 
 def make_texture(spec: TextureSpec) -> np.ndarray:
     """The texture of a spec, float32 RGB (size, size, 3) in [0, 1]."""
-    if spec.photo == "noise":
+    rough = {}
+    if spec.roughness is not None:
+        rough = {"octaves": max(int(np.log2(spec.size / 8)) + 1, 1), "persistence": float(spec.roughness)}
+    if spec.photo == "noise" and rough:
+        noise = fractal_noise(spec.size, spec.seed, channels=4, **rough)  # grey grain, then a colour cast
+        texture = np.clip(0.5 + 1.5 * (0.75 * noise[..., :1] + 0.25 * noise[..., 1:] - 0.5), 0.0, 1.0)
+    elif spec.photo == "noise":
         texture = fractal_noise(spec.size, spec.seed, channels=3)
     else:
         photo = cv2.resize(load_photo(spec.photo), (spec.size, spec.size), interpolation=cv2.INTER_CUBIC)
-        grey_noise = fractal_noise(spec.size, spec.seed, channels=1)
+        grey_noise = fractal_noise(spec.size, spec.seed, channels=1, **rough)
         texture = photo * ((1.0 - spec.detail) + spec.detail * 1.6 * grey_noise)
     texture = texture * np.asarray(spec.tint, np.float32)
     return np.ascontiguousarray(np.clip(texture, 0.0, 1.0).astype(np.float32))

@@ -15,14 +15,17 @@ from ..io.pfm import write_pfm
 from .cameras import PerspectiveCamera
 
 
-def write_image(path: Path | str, image: np.ndarray, jpeg_quality: int = 95) -> None:
-    """PNG or JPEG by the file suffix; RGB uint8 (H,W,3) or grey (H,W). Whole or not at all, as a rerun after
-    Ctrl-C keeps the views on disk."""
+def write_image(path: Path | str, image: np.ndarray, jpeg_quality: int = 95, exif: Image.Exif | None = None) -> None:
+    """PNG or JPEG by the file suffix; RGB uint8 (H,W,3) or grey (H,W), with an EXIF block when given (a
+    drone's GPS position: `io.gps.gps_exif`). Whole or not at all, as a rerun after Ctrl-C keeps the views on
+    disk."""
     pil = Image.fromarray(image)
+    extra = {} if exif is None else {"exif": exif}
     if Path(path).suffix.lower() in (".jpg", ".jpeg"):
-        replace_whole(path, lambda tmp: pil.save(tmp, quality=jpeg_quality, subsampling=0, optimize=False))
+        replace_whole(path, lambda tmp: pil.save(tmp, quality=jpeg_quality, subsampling=0, optimize=False,
+                                                 **extra))
     else:
-        replace_whole(path, lambda tmp: pil.save(tmp, compress_level=6, optimize=False))
+        replace_whole(path, lambda tmp: pil.save(tmp, compress_level=6, optimize=False, **extra))
 
 
 def write_colmap_model(

@@ -20,6 +20,7 @@ from mvrecon.scenes.build import build_camera, build_mesh
 from mvrecon.scenes.catalog import load_entry
 from mvrecon.scenes.render import Renderer, RenderSettings
 from mvrecon.scenes.textures import TextureSpec
+from tests.helpers import bilinear
 
 
 @pytest.fixture(scope="module")
@@ -42,22 +43,6 @@ def shrunk_entry(name, tmp_path, replacements):
     path = tmp_path / f"{name}_test.toml"
     path.write_text(text)
     return str(path)
-
-
-def bilinear(image, u, v):
-    """Values of image at COLMAP pixel positions (u, v) and whether all 4 neighbours agree within 2 %."""
-    x, y = u - 0.5, v - 0.5
-    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
-    h, w = image.shape
-    inside = (x0 >= 0) & (y0 >= 0) & (x0 + 1 < w) & (y0 + 1 < h)
-    x0, y0 = np.clip(x0, 0, w - 2), np.clip(y0, 0, h - 2)
-    fx, fy = x - x0, y - y0
-    q = np.stack([image[y0, x0], image[y0, x0 + 1], image[y0 + 1, x0], image[y0 + 1, x0 + 1]])
-    smooth = inside & np.all(np.isfinite(q), axis=0)
-    with np.errstate(invalid="ignore"):
-        smooth &= (q.max(0) - q.min(0)) < 0.02 * q.min(0)
-    value = (q[0] * (1 - fx) + q[1] * fx) * (1 - fy) + (q[2] * (1 - fx) + q[3] * fx) * fy
-    return value, smooth
 
 
 def test_catalog_has_the_required_scenes():
