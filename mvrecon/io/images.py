@@ -63,8 +63,10 @@ class ImageMeta:
     focal_px_from_sensor: float | None = None  # FocalLength * FocalPlaneXResolution, in this image's pixels
 
 
-# a workspace, an export, a scene, a study, degraded copies (their folders are image folders of their own)
-OUTPUT_MARKS = ("database.db", "sparse", "scene.json", "study.json", ".mvrecon-degrade.json")
+# a workspace, an export, a scene, a study (an older one: study.json), degraded copies (their folders are image
+# folders of their own)
+OUTPUT_MARKS = ("database.db", "sparse", "scene.json", ".stages/study.json", "study.json",
+                ".mvrecon-degrade.json")
 
 
 def visible_files(folder: Path | str) -> list[str]:

@@ -12,7 +12,7 @@ is written whole (`io.files`), so a piece cut off by Ctrl-C is never taken for a
 Who keeps which record: a workspace its stages (`workspace.Workspace`, which refuses a changed config instead
 of redoing it); `stereo` its stages in its output folder; `detectors` and `calibrate` one per output file (its
 images, its pairs), next to it; the engine runners one per run folder (`eval.runners`); a scene its views
-(`scenes.catalog`).
+(`scenes.catalog`); a study its settings and its cells' images (`study.study`).
 """
 
 import hashlib

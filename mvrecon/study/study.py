@@ -2,10 +2,11 @@
 
 STUDY layout (everything is cached, so an interrupted study resumes and a wider grid reuses what exists):
 
-    study.json               the settings every cell was made with (a study refuses to mix settings)
+    .stages/study.json       the study's record (`io.record.Record`): "settings", those every cell was made
+                             with (a study refuses to mix settings), and "images/<cell>", recorded once the
+                             cell's images are complete, with the image names it was made from
     images/<cell>/           degraded copies of the images (same names and sub-folders, EXIF kept); the clean
                              cell uses IMAGES
-    images/<cell>.json       written once the cell's images are complete, with the image names it was made from
     runs/<engine>/<cell>/    each engine's workspace (report.json, sparse/), cached by eval.runners
     study.csv                one row per engine x degradation x level (the clean row repeated per degradation)
 
@@ -26,12 +27,13 @@ from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from pathlib import Path
 
+from ..config import config_hash
 from ..errors import InputError
 from ..eval.ground_truth import GroundTruth, load_ground_truth
 from ..eval.metrics import accuracy_summary
 from ..eval.runners import RunResult, forget_if_failed, run_colmap, run_mvrecon
-from ..io.files import read_json_object, write_json
 from ..io.images import list_images
+from ..io.record import Record, digest
 from ..progress import progress
 from .config import StudyConfig
 from .degrade import degrade_folder
@@ -69,59 +71,84 @@ def check_engines(engines: Sequence[str]) -> None:
                          "use --engines colmap")
 
 
-def claim_study_dir(study_dir: Path, config: StudyConfig) -> None:
-    """Create STUDY or check it was made with the same settings (results from different settings never mix)."""
+RECORD = "study.json"  # STUDY/.stages/RECORD
+SETTINGS = "settings"  # the record's piece of the settings every cell was made with
+LEGACY = "study.json"  # at the top of a study made by an older mvrecon version (with images/<cell>.json markers)
+
+
+def claim_study_dir(study_dir: Path, config: StudyConfig) -> Record:
+    """The study's record, made or checked to hold the same settings (results from different settings never
+    mix). A study folder of an older mvrecon version (STUDY/study.json) is refused: its cells' markers are not
+    read any more."""
     study_dir.mkdir(parents=True, exist_ok=True)
-    path = study_dir / "study.json"
+    record = Record(study_dir, RECORD)
+    legacy = study_dir / LEGACY
+    if legacy.is_file() and not record.path.exists():
+        raise InputError(f"{legacy}: a study of an older mvrecon version, whose record is not read any more; use "
+                         "another STUDY folder, or delete this one to start over")
+    if record.damaged or (record.names() and record.config(SETTINGS) is None):
+        # the cells were made under settings it no longer says: cannot be mixed
+        raise InputError(f"{record.path}: damaged (not a record of the study's settings); use another STUDY "
+                         "folder, or delete this one to start over")
     identity = config.identity()
-    if path.is_file():
-        old = read_json_object(path)
-        if old is None:  # the cells were made under settings it no longer says: cannot be mixed
-            raise InputError(f"{path}: damaged (not a JSON object of the study's settings); use another STUDY "
-                             "folder, or delete this one to start over")
-        differing = sorted(k for k in identity if old.get(k) != identity[k])
-        if differing:
-            raise InputError(f"{study_dir}: made with a different {', '.join(differing)}; use another STUDY folder")
-    else:
-        write_json(path, identity, indent=1)
+    changes = record.differences(SETTINGS, identity)
+    if changes:
+        fields = sorted({change.split(":")[0].split(".")[0] for change in changes})
+        raise InputError(f"{study_dir}: made with a different {', '.join(fields)} ({'; '.join(changes)}); use "
+                         "another STUDY folder")
+    if record.config(SETTINGS) is None:
+        record.put(SETTINGS, config_hash(identity), config=identity)
+    return record
 
 
-def prepare_images(study_dir: Path, config: StudyConfig, cells: list[Cell], names: list[str]) -> dict[str, Path]:
-    """The image folder of each cell, degrading the ones not on disk yet (the clean cell is IMAGES itself).
+def prepare_images(study_dir: Path, config: StudyConfig, cells: list[Cell], names: list[str],
+                   record: Record | None = None) -> dict[str, Path]:
+    """The image folder of each cell, degrading the ones not complete yet (the clean cell is IMAGES itself).
 
     `names`: the study's images (`io.images.list_images` of IMAGES); a cell made earlier from other names is
-    refused (its runs would count other images)."""
+    refused (its runs would count other images). `record`: the study's (`claim_study_dir`); a cell is complete
+    when its piece "images/<cell>" is recorded under the same degradation, seed and names and its images are all
+    there; it is dropped before the cell's folder is written again."""
+    record = record if record is not None else Record(study_dir, RECORD)
     folders = {}
     todo = []
     for cell in cells:
         if cell.is_clean:
             folders[cell.key] = Path(config.images).resolve()
             continue
-        folder = study_dir / "images" / cell.key
-        folders[cell.key] = folder
-        marker = study_dir / "images" / f"{cell.key}.json"
-        if marker.is_file():
-            _check_cell_images(folder, marker, names, config.images)
-        else:
+        folders[cell.key] = study_dir / "images" / cell.key
+        if record.get(_piece(cell), _cell_key(cell, config, names), _cell_files(cell, names)) is None:
+            _check_cell_images(folders[cell.key], record.report(_piece(cell)), names, config.images)
             todo.append(cell)
     for cell in progress(todo, desc="degrade cells", unit="cell"):
         deg = cell.degradation(config.base)
+        record.drop(_piece(cell))
         degrade_folder(config.images, folders[cell.key], deg, seed=config.seed, progress_desc=cell.key, names=names)
-        write_json(study_dir / "images" / f"{cell.key}.json",  # whole: a cut-off marker would claim the cell
-                   {"degradation": deg.to_dict(), "order": deg.active(), "seed": config.seed, "images": names},
-                   indent=1)
+        record.put(_piece(cell), _cell_key(cell, config, names),
+                   {"degradation": deg.to_dict(), "order": deg.active(), "seed": config.seed, "images": names})
     return folders
 
 
-def _check_cell_images(folder: Path, marker: Path, names: list[str], images) -> None:
-    """InputError when a finished cell was made from other images than IMAGES gives now (added or removed files,
-    or a study made before sub-folders were searched, whose cells hold only the top-level images)."""
-    made = read_json_object(marker) or {}
-    if "images" in made:
-        recorded, current = set(made["images"]), set(names)
-        missing, extra = [n for n in names if n not in recorded], [n for n in made["images"] if n not in current]
-    else:  # a cell marked before the names were recorded: its folder tells
-        missing, extra = [n for n in names if not (folder / n).is_file()], []
+def _piece(cell: Cell) -> str:
+    return f"images/{cell.key}"
+
+
+def _cell_key(cell: Cell, config: StudyConfig, names: list[str]) -> str:
+    return digest(cell.degradation(config.base).to_dict(), config.seed, names)
+
+
+def _cell_files(cell: Cell, names: list[str]) -> list[str]:
+    return [f"images/{cell.key}/{name}" for name in names]
+
+
+def _check_cell_images(folder: Path, made: dict | None, names: list[str], images) -> None:
+    """InputError when a finished cell (its record's report `made`, None when not recorded) was made from other
+    images than IMAGES gives now (added or removed files)."""
+    recorded = (made or {}).get("images")
+    if not isinstance(recorded, list):
+        return
+    known, current = set(recorded), set(names)
+    missing, extra = [n for n in names if n not in known], [n for n in recorded if n not in current]
     if missing or extra:
         what = "; ".join(f"{label} {', '.join(group[:3])}{' ...' if len(group) > 3 else ''}"
                          for label, group in (("without", missing), ("with", extra)) if group)
@@ -276,9 +303,9 @@ def run_study(config: StudyConfig, grid: Grid, study_dir: Path | str, command: s
     check_engines(config.engines)
     image_names, skipped = listing if listing is not None else list_images(config.images)
     load_reference(config, image_names)  # fail on a bad ground truth before hours of runs
-    claim_study_dir(study_dir, config)
+    record = claim_study_dir(study_dir, config)
     cells = grid.cells()
-    folders = prepare_images(study_dir, config, cells, image_names)
+    folders = prepare_images(study_dir, config, cells, image_names, record)
     if retry_failed:
         for name in forget_failed_runs(study_dir, config.engines, cells):
             log.info("retrying %s (it failed before)", name)

@@ -10,6 +10,7 @@ import pytest
 from mvrecon.cli import main
 from mvrecon.errors import InputError
 from mvrecon.io.images import list_images
+from mvrecon.io.record import Record
 from mvrecon.study.degrade import Degradation, degrade_image
 from mvrecon.study.grid import Cell, Grid, parse_levels
 from mvrecon.study.plots import detailed_window
@@ -108,7 +109,7 @@ def test_study_report_is_self_contained_with_breaking_points(study_with_gt):
     assert (study_with_gt / "contact_sheet.png").stat().st_size > 10_000
     for engine in ("mvrecon", "colmap"):  # each engine ran as itself (COLMAP: the incremental mapper)
         assert json.loads((study_with_gt / "runs" / engine / "clean" / "report.json").read_text())["engine"] == engine
-    made = json.loads((study_with_gt / "images" / "noise-30.json").read_text())
+    made = Record(study_with_gt, "study.json").report("images/noise-30")
     assert made["degradation"]["noise_sigma"] == 30.0 and made["order"] == ["noise"]
 
 
@@ -233,13 +234,26 @@ def test_study_of_images_only_in_sub_folders_and_cells_made_from_other_images(ti
     assert "images/noise-3: made from other images than" in capsys.readouterr().err
     (images / "b" / "6.png").unlink()
     assert main(args) == 0
-    # a cell made before sub-folders were searched (its marker has no names; it holds the top level only)
-    marker = study / "images" / "noise-3.json"
-    marker.write_text(json.dumps({k: v for k, v in json.loads(marker.read_text()).items() if k != "images"}))
-    assert main(args) == 0
+    # a finished cell whose images were partly deleted is made again; a cell recorded under other names is refused
     shutil.rmtree(study / "images" / "noise-3" / "b")
+    assert main(args) == 0
+    assert list_images(study / "images" / "noise-3")[0] == list_images(images)[0]
+    record = Record(study, "study.json")
+    made = record.report("images/noise-3")
+    record.put("images/noise-3", "another key", {**made, "images": made["images"][:3]})
     assert main(args) == 2
     assert "(without b/3.png, b/4.png, b/5.png)" in capsys.readouterr().err
+
+
+def test_study_folder_of_an_older_version_is_refused(tiny_scene, tmp_path, capsys):
+    study = tmp_path / "s"
+    (study / "images").mkdir(parents=True)
+    (study / "study.json").write_text(json.dumps({"seed": 0}))
+    (study / "images" / "noise-3.json").write_text(json.dumps({"seed": 0, "images": ["0.png"]}))
+    assert main(["study", "-q", str(tiny_scene), "-o", str(study), "--engines", "mvrecon", "--noise", "0,3"]) == 2
+    err = capsys.readouterr().err
+    assert f"{study / 'study.json'}: a study of an older mvrecon version" in err and "delete this one" in err
+    assert not (study / ".stages").exists() and not (study / "images" / "noise-3").exists()
 
 
 def test_detailed_window_finds_the_textured_patch():
