@@ -17,7 +17,7 @@ def test_config_hash_overrides_and_diff(tmp_path):
     assert changed.sift.max_num_features == 1000 and changed.pairs == "sequential:3"
     assert cfgmod.config_hash(changed) != cfgmod.config_hash(base)
     assert cfgmod.diff(cfgmod.to_dict(base), cfgmod.to_dict(changed)) == [
-        "pairs: exhaustive -> sequential:3", "sift.max_num_features: 8192 -> 1000"]
+        "pairs: auto -> sequential:3", "sift.max_num_features: 8192 -> 1000"]
     toml.write_text("[sift]\nmax_features = 1\n")
     with pytest.raises(InputError, match="unknown option 'max_features' in SiftConfig"):
         cfgmod.with_overrides(base, cfgmod.load_toml(toml), source=str(toml))
