@@ -320,19 +320,14 @@ def plot(rows: list[Row], path: Path) -> None:
 
 INTRO = """# Scale: 100 to 1,000 images
 
-What a large image set asks of you, and how mvrecon's time and memory grow with the number of images, measured
-against COLMAP (pycolmap) on the same rendered scenes.
+What a large image set asks of you, and how mvrecon's time and memory grow with the images, measured against
+COLMAP (pycolmap) on the same rendered scenes.
 
-- **Pairs.** Matching every pair of 1,000 images is half a million pairs. `mvrecon reconstruct` chooses the
-  pairs itself (`--pairs auto`, the default): every pair for a small set, and for a large one pairs by GPS
-  position, by capture order with loop closures, or by image retrieval, from what the images offer (the log
-  says which and why). Give `--pairs` yourself when you know better: `sequential:K` for a video, `spatial:K`
-  for geotagged photos, `retrieval:K` for an unordered collection ([frontend.md](frontend.md)).
-- **Memory.** The *peak MB* column below is that of the whole run, its worker processes included. The
-  features are computed by one process per core: `--workers N` runs fewer. An interrupted run keeps its
-  features and matches, and `--resume` continues its mapping from the last snapshot.
-- **Time.** Each stage's wall time grows with the images as the exponent table says (1: linear, 2:
-  quadratic); multiply the 1,000-image time by (N / 1,000) ** exponent for a first guess at N images.
+- **Pairs.** `--pairs auto` (the default) picks pairs by GPS, capture order or retrieval above 50 images; give
+  `sequential:K`, `spatial:K` or `retrieval:K` when you know better ([pairs.md](pairs.md)).
+- **Memory.** *peak MB* below includes the worker processes, one per core: `--workers N` runs fewer. An
+  interrupted run keeps its features and matches; `--resume` continues its mapping.
+- **Time.** Multiply the 1,000-image time by (N / 1,000) ** exponent (table below) for a first guess at N images.
 """
 
 HOW = """
