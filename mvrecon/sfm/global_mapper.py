@@ -33,7 +33,7 @@ from .ba_points import select_points
 from .bundle import bundle_adjust
 from .config import MapperConfig
 from .incremental import MappingResult
-from .model import Camera, Reconstruction
+from .model import Reconstruction, images_and_cameras
 from .register import register_image
 from .rotation_averaging import average_rotations
 from .tracks import build_tracks
@@ -52,14 +52,8 @@ _MAX_DIRECTION_ERROR_DEG = 10.0  # a translation direction this far off the solv
 class GlobalMapper:
     def __init__(self, corr: Correspondences, config: MapperConfig = MapperConfig()):
         self.config = config
-        ids = sorted(corr.images)
-        self.image_ids = np.array(ids, dtype=np.int64)
-        self.names = [corr.images[i].name for i in ids]
-        self.camera_of = np.array([corr.images[i].camera_id for i in ids], dtype=np.int64)
-        self.cameras = {cid: Camera(c.model, int(c.width), int(c.height), np.asarray(c.params, float),
-                                    bool(c.prior_trusted), 0.0) for cid, c in corr.cameras.items()}
-        for cam in self.cameras.values():
-            cam.prior_focal = cam.focal()
+        self.image_ids, self.names, self.camera_of, self.cameras = images_and_cameras(corr)
+        ids = self.image_ids.tolist()
         self.keypoints = [np.asarray(corr.keypoints.get(i, np.zeros((0, 2))), float) for i in ids]
         self.pairs = oriented_pairs(self.image_ids, corr.pairs)
         self.tracks = build_tracks(self.image_ids, [len(k) for k in self.keypoints], corr.pairs)

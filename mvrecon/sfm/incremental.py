@@ -31,7 +31,7 @@ from .ba_points import select_points
 from .bundle import bundle_adjust as _bundle_adjust
 from .config import MapperConfig
 from .initialize import evaluate_pair, find_initial_pair, initial_pair_rejections, rejected_for_few_inliers
-from .model import Camera, KeypointSet, Reconstruction
+from .model import KeypointSet, Reconstruction, images_and_cameras
 from .register import CandidateRanking, correspondences_2d3d, rank_candidates, register_image
 from .tracks import build_tracks
 from .triangulate import continue_points, refine_existing_points, retriangulate, tracks_of_image, triangulate_tracks
@@ -115,14 +115,8 @@ class IncrementalMapper:
     def __init__(self, corr: Correspondences, config: MapperConfig = MapperConfig(),
                  snapshot_path: Path | str | None = None):
         self.config = config
-        ids = sorted(corr.images)
-        self.image_ids = np.array(ids, dtype=np.int64)
-        self.names = [corr.images[i].name for i in ids]
-        self.camera_of = np.array([corr.images[i].camera_id for i in ids], dtype=np.int64)
-        self.cameras = {cid: Camera(c.model, int(c.width), int(c.height), np.asarray(c.params, float),
-                                    bool(c.prior_trusted), 0.0) for cid, c in corr.cameras.items()}
-        for cam in self.cameras.values():
-            cam.prior_focal = cam.focal()
+        self.image_ids, self.names, self.camera_of, self.cameras = images_and_cameras(corr)
+        ids = self.image_ids.tolist()
         self.keypoints = KeypointSet([corr.keypoints.get(i, np.zeros((0, 2))) for i in ids])
         index_of = {int(i): k for k, i in enumerate(ids)}
         self.pairs = {}

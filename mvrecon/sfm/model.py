@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..database import Correspondences
 from ..geometry import camera as cammodel
 
 _UNDISTORT_TOLERANCE_PX = 1e-3  # a keypoint whose ray reprojects farther than this has no ray (see below)
@@ -48,6 +49,19 @@ class Camera:
         else:
             p[0] = focal
         self.params = p
+
+
+def images_and_cameras(corr: Correspondences) -> tuple[np.ndarray, list[str], np.ndarray, dict[int, Camera]]:
+    """What both mappers start from: the database's image ids in ascending order (a model's internal index is the
+    position in it), their names and camera ids, and a `Camera` per database camera whose prior focal is its
+    starting one."""
+    ids = sorted(corr.images)
+    cameras = {cid: Camera(c.model, int(c.width), int(c.height), np.asarray(c.params, float),
+                           bool(c.prior_trusted), 0.0) for cid, c in corr.cameras.items()}
+    for cam in cameras.values():
+        cam.prior_focal = cam.focal()
+    return (np.array(ids, dtype=np.int64), [corr.images[i].name for i in ids],
+            np.array([corr.images[i].camera_id for i in ids], dtype=np.int64), cameras)
 
 
 class _Buffer:
