@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from .images import header_exif
+
 _GPS_IFD = 0x8825  # the EXIF pointer to the GPS block
 # GPS tags (EXIF 2.3, section 4.6.6)
 _LAT_REF, _LAT, _LON_REF, _LON, _ALT_REF, _ALT = 1, 2, 3, 4, 5, 6
@@ -54,9 +56,7 @@ def read_gps(path: Path | str) -> tuple[float, float, float] | None:
     the ground plane is still a useful prior for choosing pairs."""
     try:
         with Image.open(path) as im:
-            if im.format == "PNG" and "exif" not in im.info:  # see io.images._exif: avoids decoding the pixels
-                return None
-            gps = im.getexif().get_ifd(_GPS_IFD)
+            gps = header_exif(im).get_ifd(_GPS_IFD)
     except (OSError, SyntaxError, ValueError):
         return None
     try:

@@ -22,6 +22,7 @@ import re
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -158,10 +159,11 @@ def plan_pairs(spec: str, names: list[str], descriptors: Callable[[str], np.ndar
                positions: Positions | None = None) -> PairPlan:
     """The pairs of a spec string and the strategy that chose them. `descriptors(name)`: an image's (n,d)
     descriptors, which retrieval, loop detection and `auto` need (each image's are read twice);
-    `positions(name)`: its GPS position or None, which `spatial` and `auto` need."""
+    `positions(name)`: its GPS position or None, which `spatial` and `auto` need (each image's read once)."""
     check_spec(spec)
     names = sorted(names)
     vectors = _Vectors(names, descriptors)
+    positions = cache(positions) if positions is not None else None  # `auto` and `spatial` both ask: one read
     reason = "given"
     if spec == "auto":
         spec, reason = choose_auto(names, vectors, positions)

@@ -33,7 +33,7 @@ from .ba_points import select_points
 from .bundle import bundle_adjust
 from .config import MapperConfig
 from .incremental import MappingResult
-from .model import Reconstruction, images_and_cameras
+from .model import Reconstruction, image_status, images_and_cameras
 from .register import register_image
 from .rotation_averaging import average_rotations
 from .tracks import build_tracks
@@ -328,28 +328,9 @@ class GlobalMapper:
         return []
 
     # ----- report -----
-    def _status(self, models) -> dict:
-        model_of = {}
-        for k, m in enumerate(models):
-            for i in np.flatnonzero(m.registered).tolist():
-                model_of.setdefault(i, k)
-        paired = np.zeros(len(self.image_ids), bool)
-        for a, b in self.pairs:
-            paired[a] = paired[b] = True
-        out = {}
-        for i, name in enumerate(self.names):
-            if i in model_of:
-                out[name] = {"status": "registered", "model": model_of[i], "reason": None}
-                continue
-            if len(self.keypoints[i]) == 0:
-                reason = "no keypoints: a featureless image (blank, or out of focus)"
-            elif not paired[i]:
-                reason = "no verified pairs with any other image"
-            else:
-                reason = self.reasons.get(i, "not part of any model's consistent view graph")
-            out[name] = {"status": "unregistered", "model": None, "reason": reason}
-        return out
-
+    def _status(self, models: list[Reconstruction]) -> dict:
+        return image_status(self.names, self.keypoints, self.pairs, models,
+                            lambda i: self.reasons.get(i, "not part of any model's consistent view graph"))
 
 def map_correspondences_globally(corr: Correspondences, config: MapperConfig = MapperConfig()) -> MappingResult:
     """Run the global mapper on a database's correspondences (see `database.read_correspondences`)."""

@@ -31,7 +31,7 @@ from .ba_points import select_points
 from .bundle import bundle_adjust as _bundle_adjust
 from .config import MapperConfig
 from .initialize import evaluate_pair, find_initial_pair, initial_pair_rejections, rejected_for_few_inliers
-from .model import KeypointSet, Reconstruction, images_and_cameras
+from .model import KeypointSet, Reconstruction, image_status, images_and_cameras
 from .register import CandidateRanking, correspondences_2d3d, rank_candidates, register_image
 from .tracks import build_tracks
 from .triangulate import continue_points, refine_existing_points, retriangulate, tracks_of_image, triangulate_tracks
@@ -673,40 +673,26 @@ class IncrementalMapper:
 
     # ----- report -----
     def _status(self) -> dict:
-        model_of = {}
-        for k, m in enumerate(self.finished):
-            for i in np.flatnonzero(m.registered):
-                model_of.setdefault(int(i), k)
-        paired = np.zeros(len(self.image_ids), bool)
-        for a, b in self.pairs:
-            paired[a] = paired[b] = True
         in_tracks = np.array([np.any(t >= 0) for t in self.tracks.track_of], bool)
-        out = {}
-        for i, name in enumerate(self.names):
-            if i in model_of:
-                out[name] = {"status": "registered", "model": model_of[i], "reason": None}
-                if i in self.undecided:
-                    out[name]["note"] = (f"registered when no other image could be, with the pose its registered "
-                                         f"views support most: {self.undecided[i]}")
-                continue
-            if len(self.keypoints[i]) == 0:
-                reason = "no keypoints: a featureless image (blank, or out of focus)"
-            elif not paired[i]:
-                reason = "no verified pairs with any other image"
-            elif not in_tracks[i]:
-                reason = "no consistent feature tracks (all its matches conflict)"
-            elif i in self.reasons:
-                reason = self.reasons[i]
-            elif i in self.init_rejections and not self.finished:
-                reason = f"no initial pair accepted: {self.init_rejections[i]}"
-            elif i in self.init_rejections:
-                reason = ("too few 2D-3D matches: it shares no triangulated points with a model, and no "
-                          f"initial pair was accepted among the images left: {self.init_rejections[i]}")
-            else:
-                reason = "too few 2D-3D matches: it shares no triangulated points with a model"
-            out[name] = {"status": "unregistered", "model": None, "reason": reason}
-        return out
 
+        def reason(i: int) -> str:
+            if not in_tracks[i]:
+                return "no consistent feature tracks (all its matches conflict)"
+            if i in self.reasons:
+                return self.reasons[i]
+            if i in self.init_rejections and not self.finished:
+                return f"no initial pair accepted: {self.init_rejections[i]}"
+            if i in self.init_rejections:
+                return ("too few 2D-3D matches: it shares no triangulated points with a model, and no "
+                        f"initial pair was accepted among the images left: {self.init_rejections[i]}")
+            return "too few 2D-3D matches: it shares no triangulated points with a model"
+
+        out = image_status(self.names, self.keypoints, self.pairs, self.finished, reason)
+        for i, why in self.undecided.items():
+            if out[self.names[i]]["status"] == "registered":
+                out[self.names[i]]["note"] = (f"registered when no other image could be, with the pose its "
+                                              f"registered views support most: {why}")
+        return out
 
 def _swapped(p):
     return replace(p, image_id1=p.image_id2, image_id2=p.image_id1, inliers=p.inliers[:, ::-1].copy(),

@@ -13,7 +13,7 @@ makes per registration cost in proportion to the images and points asked about, 
 entries those queries visit: the mapper's work count (sfm/incremental.py).
 """
 
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -62,6 +62,33 @@ def images_and_cameras(corr: Correspondences) -> tuple[np.ndarray, list[str], np
         cam.prior_focal = cam.focal()
     return (np.array(ids, dtype=np.int64), [corr.images[i].name for i in ids],
             np.array([corr.images[i].camera_id for i in ids], dtype=np.int64), cameras)
+
+
+def image_status(names: Sequence[str], keypoints: Sequence[np.ndarray], pairs: Iterable[tuple[int, int]],
+                 models: Sequence["Reconstruction"], reason: Callable[[int], str]) -> dict:
+    """Every image's entry of report.json: registered, in the first of `models` holding it, or unregistered with
+    the reason. The reasons every mapper shares come first (no keypoints, no verified pair among `pairs`, image
+    index pairs); `reason(i)` gives the mapper's own for the rest."""
+    model_of = {}
+    for k, m in enumerate(models):
+        for i in np.flatnonzero(m.registered).tolist():
+            model_of.setdefault(i, k)
+    paired = np.zeros(len(names), bool)
+    for a, b in pairs:
+        paired[a] = paired[b] = True
+    out = {}
+    for i, name in enumerate(names):
+        if i in model_of:
+            out[name] = {"status": "registered", "model": model_of[i], "reason": None}
+            continue
+        if len(keypoints[i]) == 0:
+            why = "no keypoints: a featureless image (blank, or out of focus)"
+        elif not paired[i]:
+            why = "no verified pairs with any other image"
+        else:
+            why = reason(i)
+        out[name] = {"status": "unregistered", "model": None, "reason": why}
+    return out
 
 
 class _Buffer:
