@@ -1,11 +1,16 @@
 """Filters run after bundle adjustment: bad observations, weakly triangulated points, degenerate cameras."""
 
+import logging
+from collections.abc import Callable
+
 import numpy as np
 
 from ..geometry import camera as cammodel
 from ..geometry.triangulation import reaches_triangulation_angle
 from .config import MapperConfig
 from .model import Reconstruction
+
+log = logging.getLogger(__name__)
 
 
 def filter_observations(model: Reconstruction, config: MapperConfig,
@@ -76,3 +81,25 @@ def non_square_cameras(model: Reconstruction, max_aspect_ratio: float = 1.5) -> 
         if not cam.prior_trusted and not 1 / max_aspect_ratio <= aspect <= max_aspect_ratio:
             bad.append(int(cid))
     return bad
+
+
+def plausible_bundle(model: Reconstruction, focal: bool, distortion: bool,
+                     adjust: Callable[[bool, bool], None]) -> None:
+    """`adjust(refine_focal, refine_distortion)`, a bundle adjustment of `model`, undone when it leaves a camera
+    implausible (`degenerate_cameras`) and repeated with the distortion fixed, then with all intrinsics fixed:
+    a guessed focal and the distortion can trade off against each other in a small model, and dropping the
+    images would not repair the camera they share. Poses, points and cameras end as the first plausible
+    adjustment left them, or as they were when none was."""
+    saved = (model.R.copy(), model.t.copy(), model.xyz.data.copy(),
+             {c: cam.params.copy() for c, cam in model.cameras.items()})
+    for intr, dist in dict.fromkeys([(focal, distortion), (focal, False), (False, False)]):
+        adjust(intr, dist)
+        bad = degenerate_cameras(model)
+        if not bad:
+            return
+        log.info("bundle adjustment with %s refined left camera(s) %s implausible (%s); undone",
+                 "focal and distortion" if dist else "the focal" if intr else "no intrinsics", bad,
+                 ", ".join(f"params {np.round(model.cameras[c].params, 3)}" for c in bad))
+        model.R[:], model.t[:], model.xyz.data[:] = saved[0], saved[1], saved[2]
+        for c, params in saved[3].items():
+            model.cameras[c].params = params.copy()

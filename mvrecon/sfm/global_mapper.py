@@ -273,8 +273,8 @@ class GlobalMapper:
         n = int(m.registered.sum())
         focal = intrinsics and cfg.refine_intrinsics and n >= cfg.focal_min_images
         distortion = distortion and n >= cfg.distortion_min_images
-        saved = (m.R.copy(), m.t.copy(), m.xyz.data.copy(), {c: cam.params.copy() for c, cam in m.cameras.items()})
-        for intr, dist in dict.fromkeys([(focal, distortion), (focal, False), (False, False)]):
+
+        def adjust(intr: bool, dist: bool) -> None:
             points = m.alive_points()
             quota = cfg.ba_points_per_image_early if coarse else cfg.ba_points_per_image
             if subset and quota > 0:
@@ -286,13 +286,8 @@ class GlobalMapper:
                 refine_existing_points(m, np.setdiff1d(m.alive_points(), points))
             self.ba_calls += 1
             self.ba_seconds += out.seconds
-            bad = filtering.degenerate_cameras(m)
-            if not bad:
-                return
-            log.info("bundle adjustment left camera(s) %s implausible; undone", bad)
-            m.R[:], m.t[:], m.xyz.data[:] = saved[0], saved[1], saved[2]
-            for c, params in saved[3].items():
-                m.cameras[c].params = params.copy()
+
+        filtering.plausible_bundle(m, focal, distortion, adjust)
 
     def _filter(self, m: Reconstruction, config: MapperConfig) -> None:
         filtering.filter_observations(m, config)

@@ -576,20 +576,13 @@ class IncrementalMapper:
         n = int(m.registered.sum())
         intrinsics = cfg.refine_intrinsics and n >= cfg.focal_min_images
         distortion = n >= cfg.distortion_min_images
-        saved = (m.R.copy(), m.t.copy(), m.xyz.data.copy(), {c: cam.params.copy() for c, cam in m.cameras.items()})
-        for intr, dist in dict.fromkeys([(intrinsics, distortion), (intrinsics, False), (False, False)]):
+
+        def adjust(intr: bool, dist: bool) -> None:
             self._bundle_points(m, m.registered_images(), m.alive_points(), growing, keep,
                                 refine_intrinsics=intr, refine_distortion=dist,
                                 max_iterations=cfg.global_ba_iterations, relative_tolerance=relative_tolerance)
-            bad = filtering.degenerate_cameras(m)
-            if not bad:
-                return
-            log.info("bundle adjustment with %s refined left camera(s) %s implausible (%s); undone",
-                     "focal and distortion" if dist else "the focal", bad,
-                     ", ".join(f"params {np.round(m.cameras[c].params, 3)}" for c in bad))
-            m.R[:], m.t[:], m.xyz.data[:] = saved[0], saved[1], saved[2]
-            for c, params in saved[3].items():
-                m.cameras[c].params = params.copy()
+
+        filtering.plausible_bundle(m, intrinsics, distortion, adjust)
 
     def _close_loops(self, m: Reconstruction) -> None:
         """Views of existing points that the drift of growth left past the 4 px gate rejoin through the loose
