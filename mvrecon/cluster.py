@@ -314,5 +314,6 @@ def open_cluster(spec: ClusterSpec, *, connect_timeout: float = 30.0) -> Iterato
         yield cluster
     finally:
         client.close()
-        if local is not None:
+        if local is not None:  # its workers have nothing left to save: a slow one is ended without a warning
+            logging.getLogger("distributed.nanny").setLevel(logging.ERROR)
             local.close()

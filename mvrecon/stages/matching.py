@@ -248,8 +248,8 @@ def _match_all(config: FrontendConfig, path, db, todo: list[tuple[int, int]], ca
 
 def _match_on_cluster(config: FrontendConfig, path, todo: list[tuple[int, int]], cache: _PairFeatures,
                       cluster: Cluster, batch_size: int, on_batch: Callable[[int], None] | None) -> int:
-    """`_match_all` on a Dask cluster: tasks of `batch_size` consecutive pairs (neighbours share images), a few
-    per worker in flight, each batch written to the database as it comes back, and each pair once (a task that
+    """`_match_all` on a Dask cluster: tasks of up to `batch_size` consecutive pairs (neighbours share images), a
+    few per worker in flight, each batch written to the database as it comes back, and each pair once (a task that
     Dask ran again after its worker died may come back twice). An image's keypoints and descriptors go to the
     cluster once, as a task of their own (`Cluster.keep`): its pairs' tasks use them from the worker that holds
     them, or a copy fetched once per worker, and they are released when the image's last pair is written."""
@@ -264,9 +264,12 @@ def _match_on_cluster(config: FrontendConfig, path, todo: list[tuple[int, int]],
                                    cache.cameras[i], cache.fixed[i], key=f"mvrecon-image-{run}-{i}")
         return held[i]
 
+    # at least 4 tasks per worker thread, so that the last ones do not leave workers idle
+    size = max(1, min(batch_size, len(todo) // (4 * cluster.workers)))
+
     def tasks():
-        for k in range(0, len(todo), batch_size):
-            pairs = todo[k:k + batch_size]
+        for k in range(0, len(todo), size):
+            pairs = todo[k:k + size]
             yield pairs, {i: image(i) for pair in pairs for i in pair}, config
 
     written, dropped = set(), 0
