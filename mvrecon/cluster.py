@@ -38,7 +38,8 @@ _SECURITY_KEYS = {"tls_ca_file": ("ca-file", "tls-ca-file"), "tls_client_cert": 
 
 
 class ClusterLost(InputError):
-    """The scheduler or the connection to it was lost during a run: what was written so far is kept."""
+    """The scheduler or the connection to it was lost during a run, or workers kept dying on a task: what was
+    written so far is kept."""
 
 
 @dataclass(frozen=True)
@@ -218,8 +219,9 @@ class Cluster:
 
     def unordered(self, func: Callable, items: Iterable, *, window: int | None = None) -> Iterator[tuple]:
         """(item, `func(item)`) for every item, as they complete; at most `window` items in flight (default: two
-        per worker thread, and two). An exception `func` raised, or Dask's KilledWorker, is raised here."""
-        from distributed import as_completed  # noqa: PLC0415
+        per worker thread, and two). An exception `func` raised is raised here; a task Dask gave up on after
+        its workers died (`distributed.scheduler.allowed-failures`) raises ClusterLost."""
+        from distributed import KilledWorker, as_completed  # noqa: PLC0415
 
         items = iter(items)
         window = window or 2 * self.workers + 2
@@ -242,7 +244,12 @@ class Cluster:
             while item_of:
                 future = self._call(lambda: next(done))
                 item = item_of.pop(future.key)
-                result = self._result(future)
+                try:
+                    result = self._result(future)
+                except KilledWorker as exc:
+                    raise ClusterLost(f"--cluster {self.spec.address}: Dask gave a task up after the workers "
+                                      f"running it died ({exc}); the work written so far is kept: rerun the same "
+                                      "command to continue") from None
                 submit()
                 yield item, result
         finally:
