@@ -24,8 +24,13 @@ from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .errors import InputError
+
+if TYPE_CHECKING:
+    import distributed
+    from distributed.security import Security
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +101,7 @@ def is_loopback(host: str) -> bool:
     return bool(infos) and all(ipaddress.ip_address(info[4][0]).is_loopback for info in infos)
 
 
-def load_security(path: Path | str):
+def load_security(path: Path | str) -> "Security":
     """A `distributed.security.Security` requiring encryption, from a TOML or YAML file naming the CA, the
     client's certificate and its key (`ca-file`, `cert`, `key`; paths relative to the file). InputError naming
     the file when it cannot be read, a key is unknown or missing, or a named file does not exist."""
@@ -143,7 +148,8 @@ class Cluster:
     `workers`: the worker threads of the cluster when it was connected. `sent_bytes` / `received_bytes`: what
     this client sent with its tasks and received as results (dask's sizeof), for the benchmark."""
 
-    def __init__(self, client, spec: ClusterSpec, local=None):
+    def __init__(self, client: "distributed.Client", spec: ClusterSpec,
+                 local: "distributed.LocalCluster | None" = None):
         self.client, self.spec, self._local = client, spec, local
         self.workers = max(1, sum(client.nthreads().values()))
         self.sent_bytes = self.received_bytes = 0
@@ -167,7 +173,7 @@ class Cluster:
             return int(getattr(dask_worker, "transfer_outgoing_bytes_total", 0))
         return sum(self._call(lambda: self.client.run(outgoing)).values())
 
-    def keep(self, func: Callable, *args, key: str):
+    def keep(self, func: Callable, *args, key: str) -> "distributed.Future":
         """A future of `func(*args)`, computed on a worker and kept there (and copied to the workers whose tasks
         need it) until `release`. Submitted as a task, not scattered: a worker that dies holding it costs its
         recomputation from the task, where scattered data would be lost with the tasks that need it."""
