@@ -9,11 +9,11 @@
 features stage), without the mapping, which is the same in both: a subprocess timed whole, once with the local
 process pool and once on `--cluster` (default local:2), alternated --repeats times; the medians per stage and
 their ratio (target: local:2 within 1.2x of the pool on a 2-core machine).
-(2) Cost model: one run of the two stages in this process on a LocalCluster (`--cluster`), under
-`distributed.get_task_stream`: per stage the tasks, the worker compute per task, the bytes the client sent and
-received (`Cluster.sent_bytes`, dask's sizeof), the bytes the workers sent one another, the images the workers
-read from the shared folder, and the client's (and, on a LocalCluster, the scheduler's) CPU per task: the part
-that does not shrink with more machines (it writes every result into the one database).
+(2) Cost model: in the last cluster run, under `distributed.get_task_stream`: per stage the tasks, the worker
+compute per task, the bytes the client sent and received (`Cluster.sent_bytes`, dask's sizeof), the bytes the
+workers sent one another, the images the workers read from the shared folder, and the client's (and, on a
+LocalCluster, the scheduler's) CPU per task: the part that does not shrink with more machines (it writes every
+result into the one database).
 (3) Prediction of each stage's wall time on N machines of --cores cores each:
     T(N) = max(compute / (N x cores), client CPU, client bytes / bandwidth, image bytes / bandwidth)
 the bandwidth being --bandwidth MB/s (default 110: one 1 Gbit/s link into the client and into the file server
@@ -80,28 +80,42 @@ def front_end_times(images: Path, ws: Path, address: str | None) -> dict:
 
 
 def run_front_end(images: Path, ws: Path, address: str | None) -> None:
-    """The subprocess of `front_end_times`: prints {"features": s, "matching": s} as its last line."""
+    """The subprocess of `front_end_times`: prints {"features": s, "matching": s} as its last line, and with a
+    cluster its start (s), its worker threads and per stage the costs of `stage_costs`."""
     config, out = FrontendConfig(), {}
     start = time.perf_counter()
     ws = Workspace(ws).create()
     with ws.lock(), open_cluster(ClusterSpec(address)) if address else contextlib.nullcontext() as cluster:
-        extract_features(config, images, ws, cluster=cluster)
-        out["features"] = time.perf_counter() - start
-        start = time.perf_counter()
-        match(config, ws, cluster=cluster)
-        out["matching"] = time.perf_counter() - start
+        if cluster is not None:
+            out["started"], out["workers"], out["costs"] = time.perf_counter() - start, cluster.workers, {}
+        for stage in ("features", "matching"):
+            with stage_costs(cluster, stage, images, out) if cluster else contextlib.nullcontext():
+                if stage == "features":
+                    extract_features(config, images, ws, cluster=cluster)
+                else:
+                    match(config, ws, cluster=cluster)
+            out[stage] = time.perf_counter() - start
+            start = time.perf_counter()
     print(json.dumps(out))
 
 
 def overhead(images: Path, work: Path, address: str, repeats: int) -> dict:
-    """{"pool": [runs], "cluster": [runs]} of `front_end_times`, alternated (the pool first in odd rounds)."""
-    runs = {"pool": [], "cluster": []}
+    """{"pool": [runs], "cluster": [runs]} of `front_end_times`, alternated (the pool first in odd rounds). Each
+    run is saved in WORK/runs.json as it ends; the rounds found there (of the same images and cluster) are kept,
+    so an interrupted benchmark goes on where it stopped."""
+    saved = work / "runs.json"
+    key = {"images": str(images.resolve()), "cluster": address}
+    old = json.loads(saved.read_text()) if saved.is_file() else {}
+    runs = old["runs"] if old.get("key") == key else {"pool": [], "cluster": []}
     for k in range(repeats):
         order = ["pool", "cluster"] if k % 2 == 0 else ["cluster", "pool"]
         for kind in order:
+            if len(runs[kind]) > k:
+                continue
             runs[kind].append(front_end_times(images, work / f"ws-{kind}", address if kind == "cluster" else None))
-            print(f"round {k + 1} {kind}: " + ", ".join(f"{s} {v:.1f} s" for s, v in runs[kind][-1].items()),
-                  flush=True)
+            saved.write_text(json.dumps({"key": key, "runs": runs}))
+            print(f"round {k + 1} {kind}: " + ", ".join(f"{s} {runs[kind][-1][s]:.1f} s"
+                                                        for s in ("features", "matching", "total")), flush=True)
     return runs
 
 
@@ -115,46 +129,32 @@ def cpu_seconds() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def cost_model(images: Path, work: Path, address: str) -> tuple[dict, float, int]:
-    """Per stage the measured costs of one run on the cluster (see the module's text); the cluster's start
-    (s); its worker threads."""
-    ws = work / "ws-model"
-    shutil.rmtree(ws, ignore_errors=True)
-    config = FrontendConfig()
-    start = time.perf_counter()
-    with open_cluster(ClusterSpec(address)) as cluster:
-        started = time.perf_counter() - start
-        stages = {}
-        for stage in ("features", "matching"):
-            sent, received, peer, tasks = cluster.sent_bytes, cluster.received_bytes, cluster.peer_bytes(), 0
-            cpu, wall = cpu_seconds(), time.perf_counter()
-            with get_task_stream(cluster.client) as stream:
-                if stage == "features":
-                    extract_features(config, images, ws, cluster=cluster)
-                else:
-                    match(config, ws, cluster=cluster)
-            wall, cpu = time.perf_counter() - wall, cpu_seconds() - cpu
-            compute = transfer = 0.0
-            for record in stream.data:
-                if stage_of(record["key"]) != stage:
-                    continue
-                tasks += 1
-                for step in record["startstops"]:
-                    if step["action"] == "compute":
-                        compute += step["stop"] - step["start"]
-                    elif step["action"] == "transfer":
-                        transfer += step["stop"] - step["start"]
-            image_bytes = sum(p.stat().st_size for p in images.rglob("*") if p.is_file()) \
-                if stage == "features" else 0
-            received = cluster.received_bytes - received
-            peer = cluster.peer_bytes() - peer - received  # what workers sent, less the results fetched from them
-            stages[stage] = {"wall_s": wall, "tasks": tasks, "compute_s": compute, "transfer_s": transfer,
-                             "client_cpu_s": cpu, "sent_mb": (cluster.sent_bytes - sent) / 1e6,
-                             "received_mb": received / 1e6, "peer_mb": max(0, peer) / 1e6,
-                             "image_mb": image_bytes / 1e6}
-        workers = cluster.workers
-    stages["_ws"] = str(ws)
-    return stages, started, workers
+@contextlib.contextmanager
+def stage_costs(cluster, stage: str, images: Path, out: dict):
+    """The costs of the stage run in the block, into out["costs"][stage]: its tasks, their compute and transfer
+    seconds on the workers (Dask's task stream), this process's CPU seconds (the client, and a LocalCluster's
+    scheduler), the MB the client sent and received, the MB the workers sent one another, the images' MB."""
+    sent, received, peer = cluster.sent_bytes, cluster.received_bytes, cluster.peer_bytes()
+    cpu = cpu_seconds()
+    with get_task_stream(cluster.client) as stream:
+        yield
+    cpu = cpu_seconds() - cpu
+    tasks, compute, transfer = 0, 0.0, 0.0
+    for record in stream.data:
+        if stage_of(record["key"]) != stage:
+            continue
+        tasks += 1
+        for step in record["startstops"]:
+            if step["action"] == "compute":
+                compute += step["stop"] - step["start"]
+            elif step["action"] == "transfer":
+                transfer += step["stop"] - step["start"]
+    image_bytes = sum(p.stat().st_size for p in images.rglob("*") if p.is_file()) if stage == "features" else 0
+    received = cluster.received_bytes - received
+    peer = cluster.peer_bytes() - peer - received  # what workers sent, less the results fetched from them
+    out["costs"][stage] = {"tasks": tasks, "compute_s": compute, "transfer_s": transfer, "client_cpu_s": cpu,
+                           "sent_mb": (cluster.sent_bytes - sent) / 1e6, "received_mb": received / 1e6,
+                           "peer_mb": max(0, peer) / 1e6, "image_mb": image_bytes / 1e6}
 
 
 def predict(stage: dict, machines: int, cores: int, bandwidth_mbs: float) -> tuple[float, str]:
@@ -175,15 +175,15 @@ def report(images: Path, runs: dict, model: dict, started: float, workers: int, 
     lines.append("| stage | local pool (s) | cluster (s) | cluster / pool |")
     lines.append("|---|---|---|---|")
     for stage in ("features", "matching", "total"):  # total: the whole process, Python's start-up included
-        pool = statistics.median(r[stage] for r in runs["pool"])
-        clus = statistics.median(r[stage] for r in runs["cluster"])
+        pool = statistics.median(r[stage] for r in runs["pool"][:args.repeats])
+        clus = statistics.median(r[stage] for r in runs["cluster"][:args.repeats])
         lines.append(f"| {stage} | {pool:.1f} | {clus:.1f} | {clus / pool:.2f} |")
-    total_ratio = statistics.median(r["total"] for r in runs["cluster"]) / \
-        statistics.median(r["total"] for r in runs["pool"])
+    total_ratio = statistics.median(r["total"] for r in runs["cluster"][:args.repeats]) / \
+        statistics.median(r["total"] for r in runs["pool"][:args.repeats])
     lines.append(f"\nOverhead target (cluster within 1.2x of the pool's wall time): "
                  f"{'met' if total_ratio <= 1.2 else 'NOT met'} ({total_ratio:.2f}x). The cluster's features time "
-                 f"includes starting it ({started:.1f} s in the cost-model run).\n")
-    lines.append("Measured costs (one run in one process on the cluster):\n")
+                 f"includes starting it ({started:.1f} s in the last run).\n")
+    lines.append("Measured costs (the last cluster run):\n")
     lines.append("| stage | tasks | compute / task (s) | client CPU / task (ms) | client sent (MB) | "
                  "client received (MB) | worker to worker (MB) | images read by workers (MB) |")
     lines.append("|---|---|---|---|---|---|---|---|")
@@ -255,8 +255,9 @@ def main(argv=None) -> int:
     args.cluster = args.cluster or "local:2"
     args.work.mkdir(parents=True, exist_ok=True)
     runs = overhead(args.images, args.work, args.cluster, args.repeats)
-    model, started, workers = cost_model(args.images, args.work, args.cluster)
-    mapping_s = mvrecon("map", "-o", model["_ws"]) if args.map else None
+    last = runs["cluster"][args.repeats - 1]  # the costs of the last cluster run
+    model, started, workers = last["costs"], last["started"], last["workers"]
+    mapping_s = mvrecon("map", "-o", str(args.work / "ws-cluster")) if args.map else None
     (args.work / "figures.json").write_text(json.dumps({"runs": runs, "model": model, "cluster_start_s": started,
                                                         "mapping_s": mapping_s}, indent=1))
     text = report(args.images, runs, model, started, workers, mapping_s, args)
