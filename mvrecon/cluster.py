@@ -145,15 +145,19 @@ def load_security(path: Path | str) -> "Security":
 class Cluster:
     """A connected Dask cluster: its client, and the LocalCluster started for it (`local:N`), closed with it.
 
-    `workers`: the worker threads of the cluster when it was connected. `sent_bytes` / `received_bytes`: what
-    this client sent with its tasks and received as results (dask's sizeof), for the benchmark."""
+    `sent_bytes` / `received_bytes`: what this client sent with its tasks and received as results (dask's
+    sizeof), for the benchmark."""
 
     def __init__(self, client: "distributed.Client", spec: ClusterSpec,
                  local: "distributed.LocalCluster | None" = None):
         self.client, self.spec, self._local = client, spec, local
-        self.workers = max(1, sum(client.nthreads().values()))
         self.sent_bytes = self.received_bytes = 0
         self.tasks = 0
+
+    @property
+    def workers(self) -> int:
+        """The worker threads of the cluster now (at least 1: a cluster whose workers are still starting)."""
+        return max(1, sum(self._call(self.client.nthreads).values()))
 
     def __repr__(self) -> str:
         return f"Cluster({self.spec.address}, {self.workers} worker threads)"
@@ -163,7 +167,11 @@ class Cluster:
         return self.client.run(os.getpid)
 
     def workers_see(self, folder: Path | str) -> bool:
-        """Whether every worker sees `folder` at the same path (a shared file system, or this machine)."""
+        """Whether every worker sees `folder` at the same path (a shared file system, or this machine); asked
+        once a worker has joined (a cluster whose workers are still starting is waited for)."""
+        if not self.client.nthreads():
+            log.info("cluster %s: waiting for its first worker", self.spec.address)
+            self._call(lambda: self.client.wait_for_workers(1))
         seen = self._call(lambda: self.client.run(os.path.isdir, str(Path(folder).resolve())))
         return bool(seen) and all(seen.values())
 
@@ -254,8 +262,8 @@ class Cluster:
                     result = self._result(future)
                 except KilledWorker as exc:
                     raise ClusterLost(f"--cluster {self.spec.address}: Dask gave a task up after the workers "
-                                      f"running it died ({exc}); the work written so far is kept: rerun the same "
-                                      "command to continue") from None
+                                      f"running it died ({_one_line(exc)}); the work written so far is kept: "
+                                      "rerun the same command to continue") from None
                 submit()
                 yield item, result
         finally:
@@ -287,11 +295,15 @@ class Cluster:
             return func()
         except (CommClosedError, CancelledError) as exc:
             raise ClusterLost(f"--cluster {self.spec.address}: the connection to the scheduler was lost "
-                              f"({type(exc).__name__}: {exc}); the work written so far is kept: rerun the "
+                              f"({type(exc).__name__}: {_one_line(exc)}); the work written so far is kept: rerun the "
                               "same command (reconstruct with --resume) to continue") from None
 
 
 _END = object()
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split())
 
 
 @contextmanager
@@ -303,6 +315,9 @@ def open_cluster(spec: ClusterSpec, *, connect_timeout: float = 30.0) -> Iterato
 
     if not log.isEnabledFor(logging.DEBUG):  # Dask's news of workers coming and going, unless -v -v
         logging.getLogger("distributed").setLevel(logging.WARNING)
+        # the tracebacks of a lost scheduler's reconnection: ClusterLost says it in one line
+        for name in ("distributed.client", "distributed.utils"):
+            logging.getLogger(name).setLevel(logging.CRITICAL)
     start = time.perf_counter()
     security = None
     if spec.security and spec.security != INSECURE:

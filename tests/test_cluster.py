@@ -9,9 +9,10 @@ import sqlite3
 
 import pycolmap
 import pytest
+from distributed import LocalCluster
 
 from mvrecon.cli import main
-from mvrecon.cluster import Cluster, ClusterSpec, load_security, open_cluster, parse_cluster
+from mvrecon.cluster import Cluster, ClusterLost, ClusterSpec, load_security, open_cluster, parse_cluster
 from mvrecon.errors import InputError
 from mvrecon.geometry.rotation import rotation_error_deg
 from mvrecon.pipeline import ReconstructConfig, reconstruct
@@ -164,3 +165,24 @@ def test_a_security_file_names_existing_certificates(tmp_path):
     yaml_file.write_text("ca-file: ca.pem\ncert: cert.pem\n")
     with pytest.raises(InputError, match="missing key"):
         load_security(yaml_file)
+
+
+def test_a_lost_scheduler_ends_the_run_in_one_line_and_the_rerun_continues(object_orbit_small, local_run, cluster,
+                                                                           tmp_path):
+    ws, images, written = tmp_path / "ws", object_orbit_small / "images", []
+    # a scheduler of its own, reached by its tcp:// address on loopback as a remote one is
+    other = LocalCluster(n_workers=1, threads_per_worker=1, host="127.0.0.1", dashboard_address=None)
+    with open_cluster(parse_cluster(other.scheduler_address)) as remote:
+        assert remote.workers == 1 and remote.workers_see(images)
+
+        def lose_the_scheduler(name: str):
+            written.append(name)
+            if len(written) == 3:
+                other.close()
+
+        with pytest.raises(ClusterLost, match="connection to the scheduler was lost.*rerun"):
+            extract_features(FrontendConfig(), images, ws, cluster=remote, on_image=lose_the_scheduler)
+    assert 3 <= len(table_rows(ws / "database.db", "keypoints")) < 10
+    summary = extract_features(FrontendConfig(), images, ws, cluster=cluster)
+    assert summary.num_images == 10 and summary.num_extracted == 10 - len(written)
+    assert_same_database(local_run / "database.db", ws / "database.db", ["images", "keypoints", "descriptors"])
