@@ -102,8 +102,7 @@ def test_a_worker_killed_during_matching_loses_no_pair(object_orbit_small, local
     assert_same_database(local_run / "database.db", ws / "database.db")
     map_workspace(MapperConfig(), ws)
     assert_same_model(local_run / "sparse" / "0", ws / "sparse" / "0")
-    assert killed[0] not in cluster.worker_pids().values()  # the nanny started another worker
-    cluster.client.wait_for_workers(2, timeout=60)
+    assert killed[0] not in cluster.worker_pids().values()  # gone (its nanny starts another, in its own time)
 
 
 def test_workers_that_do_not_see_the_folder_get_the_images(object_orbit_small, local_run, cluster, tmp_path,
