@@ -78,6 +78,7 @@ def test_a_cluster_run_gives_the_local_database_and_model(object_orbit_small, lo
     assert descriptor_bytes < cluster.sent_bytes - sent < 2.5 * descriptor_bytes
 
 
+@pytest.mark.slow
 def test_a_worker_killed_during_matching_loses_no_pair(object_orbit_small, local_run, cluster, tmp_path):
     ws, config = tmp_path / "ws", FrontendConfig()
     ws.mkdir()  # the local run's features, its matching not yet done
@@ -166,6 +167,7 @@ def test_a_security_file_names_existing_certificates(tmp_path):
         load_security(yaml_file)
 
 
+@pytest.mark.slow
 def test_a_lost_scheduler_ends_the_run_in_one_line_and_the_rerun_continues(object_orbit_small, local_run, cluster,
                                                                            tmp_path):
     ws, images, written = tmp_path / "ws", object_orbit_small / "images", []
