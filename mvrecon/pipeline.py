@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from . import database as dbmod
+from .cluster import Cluster
 from .config import config_hash, to_dict
 from .errors import DiskFull, InputError
 from .executor import StageClock
@@ -41,8 +42,9 @@ class ReconstructConfig:
 
 
 def reconstruct(config: ReconstructConfig, image_dir: Path | str, out_dir: Path | str, *, text: bool = False,
-                resume: bool = False, overwrite: bool = False) -> dict:
+                resume: bool = False, overwrite: bool = False, cluster: Cluster | None = None) -> dict:
     """Images -> features -> matches -> models: OUT/database.db, sparse/N/, points.ply, report.json.
+    With `cluster` (mvrecon/cluster.py) the features and matches are computed there and written here.
 
     A finished run with the same config is not redone (its report is returned); an interrupted one resumes:
     features and matches already in the database are kept, and mapping continues from its snapshot when
@@ -72,10 +74,11 @@ def reconstruct(config: ReconstructConfig, image_dir: Path | str, out_dir: Path 
 
         try:
             features = extract_features(config.frontend, image_dir, ws, overwrite=overwrite,
-                                        before_changes=before_changes, alongside=load_later_stages)
+                                        before_changes=before_changes, alongside=load_later_stages,
+                                        cluster=cluster)
             log.info("%s", features.text())
             clock.done("features")
-            matches = match(config.frontend, ws, overwrite=overwrite)
+            matches = match(config.frontend, ws, overwrite=overwrite, cluster=cluster)
             log.info("%s", matches.text())
             clock.done("matching")
             summary = map_workspace(mapper, ws, image_dir=image_dir, text=text, resume=resume,

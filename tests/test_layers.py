@@ -29,7 +29,7 @@ PACKAGE = Path(mvrecon.__file__).resolve().parent
 # bottom first; a module belongs to the entry whose longest name is a prefix of its own
 LAYERS = [
     ("support", ["mvrecon", "mvrecon.errors", "mvrecon.interrupts", "mvrecon.progress", "mvrecon.memory",
-                 "mvrecon.zlib_order", "mvrecon.config", "mvrecon.executor",
+                 "mvrecon.zlib_order", "mvrecon.config", "mvrecon.executor", "mvrecon.cluster",
                  "mvrecon.startup"]),
     ("geometry", ["mvrecon.geometry"]),
     ("io", ["mvrecon.io"]),

@@ -8,6 +8,7 @@ instead of redefining flags, so the same words mean the same thing everywhere. T
 """
 
 import argparse
+import contextlib
 import dataclasses
 import logging
 import math
@@ -17,6 +18,7 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from ..cameras import CAMERA_MODES, CameraConfig, parse_camera_params
+from ..cluster import INSECURE, open_cluster, parse_cluster
 from ..config import check_tables, load_toml, with_field, with_overrides
 from ..errors import InputError
 from ..geometry.camera import MODELS
@@ -132,6 +134,28 @@ def add_run_options(parser: argparse.ArgumentParser, *, config_help: str = RUN_C
     g.add_argument("--workers", type=int, default=None, help="parallel processes (default: all cores)")
     g.add_argument("--overwrite", action="store_true",
                    help="recompute instead of refusing when the workspace was made with other settings")
+    add_cluster_options(parser)
+
+
+def add_cluster_options(parser: argparse.ArgumentParser) -> None:
+    g = parser.add_argument_group("cluster (docs/distributed.md)")
+    g.add_argument("--cluster", default=None, metavar="ADDRESS",
+                   help="run the features and matching on Dask: local:N (N worker processes on this machine, "
+                        "listening on 127.0.0.1 only) or a running scheduler's tcp://HOST:8786 / tls://HOST:8786 "
+                        "(default: a process pool on this machine)")
+    g.add_argument("--cluster-security", default=None, metavar="FILE",
+                   help="TOML or YAML file naming the TLS ca-file, cert and key of a remote scheduler; "
+                        f"'{INSECURE}' accepts an unauthenticated scheduler on a network you trust")
+
+
+def cluster_from_args(args: argparse.Namespace):
+    """A context manager giving the cluster of --cluster, connected (mvrecon.cluster.open_cluster), or None
+    without --cluster; the address and security file are checked when this is called, before any work."""
+    if not getattr(args, "cluster", None):
+        if getattr(args, "cluster_security", None):
+            raise InputError("--cluster-security: needs --cluster")
+        return contextlib.nullcontext(None)
+    return open_cluster(parse_cluster(args.cluster, args.cluster_security))
 
 
 def add_frontend_options(parser: argparse.ArgumentParser) -> None:

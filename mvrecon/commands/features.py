@@ -16,6 +16,7 @@ from ._options import (
     add_feature_options,
     add_run_options,
     add_workspace,
+    cluster_from_args,
     frontend_config_from_args,
     warn_if_config_unread,
 )
@@ -35,7 +36,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     warn_if_config_unread(args, "features", ("camera", "sift", "workers"))
-    summary = extract_features(frontend_config_from_args(args), args.images, args.workspace,
-                               overwrite=args.overwrite)
+    config = frontend_config_from_args(args)
+    with cluster_from_args(args) as cluster:
+        summary = extract_features(config, args.images, args.workspace, overwrite=args.overwrite,
+                                   cluster=cluster)
     logging.getLogger("mvrecon").info("%s", summary.text())  # as every command's summary: -q hides it
     return 0

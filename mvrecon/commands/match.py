@@ -15,6 +15,7 @@ from ._options import (
     add_matching_options,
     add_run_options,
     add_workspace,
+    cluster_from_args,
     frontend_config_from_args,
     warn_if_config_unread,
 )
@@ -32,6 +33,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     warn_if_config_unread(args, "match", ("pairs", "matcher", "verify", "workers"))
-    summary = match(frontend_config_from_args(args), args.workspace, overwrite=args.overwrite)
+    config = frontend_config_from_args(args)
+    with cluster_from_args(args) as cluster:
+        summary = match(config, args.workspace, overwrite=args.overwrite, cluster=cluster)
     logging.getLogger("mvrecon").info("%s", summary.text())  # as every command's summary: -q hides it
     return 0

@@ -22,7 +22,14 @@ from ..errors import InputError
 from ..pipeline import ReconstructConfig, reconstruct
 from ..sfm.config import MAPPERS, OPTIMIZERS, MapperConfig
 from ..stages.common import FrontendConfig
-from ._options import add_frontend_options, add_workspace, config_file, frontend_config_from_args, non_negative_int
+from ._options import (
+    add_frontend_options,
+    add_workspace,
+    cluster_from_args,
+    config_file,
+    frontend_config_from_args,
+    non_negative_int,
+)
 
 ORDER = 30
 ON_INTERRUPT = ("features and matches done are kept; rerun the same command to continue, with --resume "
@@ -78,8 +85,9 @@ def run(args: argparse.Namespace) -> int:
     from_file = config_file(args)  # read once for both configs
     config = ReconstructConfig(frontend=frontend_config_from_args(args, from_file),
                                mapper=mapper_config(args, from_file))
-    report = reconstruct(config, args.images, args.output, text=args.text, resume=args.resume,
-                         overwrite=args.overwrite)
+    with cluster_from_args(args) as cluster:
+        report = reconstruct(config, args.images, args.output, text=args.text, resume=args.resume,
+                             overwrite=args.overwrite, cluster=cluster)
     log = logging.getLogger("mvrecon")
     registered = sum(1 for s in report["images"].values() if s["status"] == "registered")
     if not report["models"]:

@@ -5,6 +5,6 @@
 - mapping.py: verified pairs -> models (the incremental mapper, sfm/incremental.py);
 - report.py: report.json, written at the end of a run and read back to not redo a finished one.
 
-pipeline.py runs them in order. A second mapper (a global one) plugs in at mapping.py's `_run_mapper`; another
-backend for the workers (a cluster) at features.py's `_hand_out` and matching.py's pool.
+pipeline.py runs them in order. A second mapper (a global one) plugs in at mapping.py's `_run_mapper`. With a
+Dask cluster (mvrecon/cluster.py) features.py's `_hand_out` and matching.py's `_match_all` send their work there.
 """

@@ -2,10 +2,13 @@
 
 `extract_features(config, image_dir, workspace)` detects SIFT in every image not yet in the database,
 committing one image at a time, so an interrupted run loses at most the images in progress. The images are
-handed to an `executor.WorkerPool` (`_hand_out`): the place where another backend (a cluster) would take them.
+handed to an `executor.WorkerPool`, or to a Dask cluster (`--cluster`, mvrecon/cluster.py), at `_hand_out`.
 """
 
+import contextlib
 import logging
+import shutil
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -17,6 +20,7 @@ import numpy as np
 
 from .. import database as dbmod
 from ..cameras import group_cameras
+from ..cluster import Cluster
 from ..config import to_dict
 from ..errors import InputError
 from ..executor import WorkerPool
@@ -91,12 +95,50 @@ def _extract_job(job):
         return name, f"{path}: {type(exc).__name__}: {exc}"
 
 
-def _hand_out(pool: WorkerPool, jobs: list[tuple]):
-    """`_extract_job`'s results for `jobs`, computed by `pool`: as many images at a time as the memory
-    available holds (`_extraction_memory_mb`), and an image whose worker died twice skipped with the
-    reason."""
-    return pool.map(_extract_job, jobs, name=lambda job: str(job[0]), cost=_extraction_memory_mb,
-                    died=lambda job, why: (job[1], f"{job[0]}: the worker extracting it died twice: {why}"))
+def _extract_sent(sent):
+    """Worker of a cluster that does not see the image folder: (`_extract_job`'s job, the image's bytes, the
+    mask's bytes or None) -> `_extract_job`'s result, the bytes written to a temporary folder of the worker
+    under the file's own name (its format is told by its suffix)."""
+    job, image_bytes, mask_bytes = sent
+    path, name, sift_config, mask, threads = job
+    folder = Path(tempfile.mkdtemp(prefix="mvrecon-image-"))
+    try:
+        local = folder / Path(path).name
+        local.write_bytes(image_bytes)
+        local_mask = None
+        if mask_bytes is not None:
+            local_mask = folder / ("mask-" + Path(mask).name)
+            local_mask.write_bytes(mask_bytes)
+        result = _extract_job((local, name, sift_config, local_mask, threads))
+        if isinstance(result[1], str):  # a message names the user's file, not the worker's copy
+            result = (result[0], result[1].replace(str(local), str(path)))
+        return result
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def _with_bytes(jobs: list[tuple]):
+    """`_extract_sent`'s items for `jobs`, each file read when its item is handed out."""
+    for job in jobs:
+        mask = job[3]
+        yield job, Path(job[0]).read_bytes(), None if mask is None else Path(mask).read_bytes()
+
+
+def _hand_out(pool: WorkerPool | Cluster, jobs: list[tuple], folder: Path | None = None):
+    """`_extract_job`'s results for `jobs`, in their order, computed by `pool`: as many images at a time as the
+    memory available holds (`_extraction_memory_mb`), and an image whose worker died twice skipped with the
+    reason. On a cluster whose workers do not all see `folder` at the same path, the client reads each image
+    and sends its bytes (`_extract_sent`)."""
+    def died(job, why):
+        return job[1], f"{job[0]}: the worker extracting it died twice: {why}"
+
+    if isinstance(pool, Cluster):
+        if folder is not None and not pool.workers_see(folder):
+            log.info("%s: not seen by every worker of the cluster; the images are sent to them", folder)
+            return pool.map(_extract_sent, _with_bytes(jobs), name=lambda sent: str(sent[0][0]),
+                            died=lambda sent, why: died(sent[0], why))
+        return pool.map(_extract_job, jobs, name=lambda job: str(job[0]), died=died)
+    return pool.map(_extract_job, jobs, name=lambda job: str(job[0]), cost=_extraction_memory_mb, died=died)
 
 
 def _extraction_memory_mb(job) -> float:
@@ -106,12 +148,16 @@ def _extraction_memory_mb(job) -> float:
     return extraction_memory_mb(width, height, sift_config, reduced)
 
 
-def _extraction_jobs(folder: Path, names, config: FrontendConfig, masks: dict, workers: int) -> list[tuple]:
+def _extraction_jobs(folder: Path, names, config: FrontendConfig, masks: dict, workers: int, *,
+                     one_thread: bool = False) -> list[tuple]:
     """`_extract_job`'s jobs. In a pool, each image runs on one OpenCV thread (a worker per core), except the
     last `workers` images, which run on `workers` threads each: when a worker takes one of them no image is left
     for the others, whose cores would stand idle until it ends (templeSparseRing: 20-65 ms of a core). OpenCV's
     SIFT gives the same keypoints and descriptors on any number of threads (it sorts them). In-process
-    (`workers <= 1`) the threads are left as they are."""
+    (`workers <= 1`) the threads are left as they are. With `one_thread` (a cluster) every image runs on one
+    thread: a worker thread per core, and the cores of one machine are not those of the whole cluster."""
+    if one_thread:
+        return [(folder / n, n, config.sift, masks.get(n), 1) for n in names]
     tail = len(names) - workers
     return [(folder / n, n, config.sift, masks.get(n), None if workers <= 1 else workers if k >= tail else 1)
             for k, n in enumerate(names)]
@@ -189,15 +235,17 @@ def _too_few(folder: Path, usable: int, failed: dict[str, str]):
 def extract_features(config: FrontendConfig, image_dir: Path | str, workspace: Workspace | Path | str, *,
                      overwrite: bool = False, on_image: Callable[[str], None] | None = None,
                      before_changes: Callable[[], None] | None = None,
-                     alongside: Callable[[], None] | None = None) -> FeatureSummary:
+                     alongside: Callable[[], None] | None = None, cluster: Cluster | None = None) -> FeatureSummary:
     """Detect SIFT in every image of `image_dir` not yet in the workspace; `on_image(name)` after each commit.
     Refused settings or input raise InputError before anything in the workspace changes; `before_changes()` is
     called just before the first change. `alongside()` runs in a thread of this process while the workers
-    extract (see startup.load_later_stages)."""
+    extract (see startup.load_later_stages). With `cluster` the images are extracted there, one task per image
+    (mvrecon/cluster.py), and written here as they come back, in the images' order, as with the local pool."""
     start = time.perf_counter()
     ws = as_workspace(workspace)
     # the pool starts first: its start overlaps the set-up in _extract_all
-    with ws.lock(), WorkerPool(worker_count(config)) as pool:
+    with ws.lock(), (contextlib.nullcontext(cluster) if cluster is not None else WorkerPool(worker_count(config))) \
+            as pool:
         summary = _extract_all(config, Path(image_dir), ws, overwrite, on_image, pool, before_changes, alongside)
     summary.seconds = time.perf_counter() - start
     return summary
@@ -217,7 +265,7 @@ def _in_thread(func: Callable[[], None] | None):
 
 
 def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite: bool,
-                 on_image: Callable[[str], None] | None, pool: WorkerPool,
+                 on_image: Callable[[str], None] | None, pool: WorkerPool | Cluster,
                  before_changes: Callable[[], None] | None = None,
                  alongside: Callable[[], None] | None = None) -> FeatureSummary:
     names, skipped = require_images(folder)
@@ -231,10 +279,11 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
     # Everything that can refuse the run is checked before anything in the workspace is deleted or rewritten:
     # the stage's config, a database this workspace has no record of (Workspace.check_stage), the cameras.
     redo = bool(ws.check_stage("features", record, overwrite))
-    jobs = _extraction_jobs(folder, names, config, masks, pool.workers)
+    jobs = _extraction_jobs(folder, names, config, masks, pool.workers,
+                            one_thread=isinstance(pool, Cluster))
     # Without a database nothing is extracted yet: every image goes to the workers now, so that probing the
     # images and creating the database (which imports pycolmap) overlap SIFT instead of delaying it.
-    results = _hand_out(pool, jobs) if redo or not ws.database_path.exists() else None
+    results = _hand_out(pool, jobs, folder) if redo or not ws.database_path.exists() else None
     metas = _probe(folder, names, failed)
     names = [n for n in names if n in metas]
     check_masks(masks, folder, metas)
@@ -257,8 +306,9 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
         todo = [n for n in names if n not in existing or not dbmod.has_features(db, existing[n].image_id)]
         wanted = set(todo)  # an image handed over early may have failed its probe since
         if results is None:
-            jobs = _extraction_jobs(folder, [n for n in names if n in wanted], config, masks, pool.workers)
-            results = _hand_out(pool, jobs)
+            jobs = _extraction_jobs(folder, [n for n in names if n in wanted], config, masks, pool.workers,
+                                    one_thread=isinstance(pool, Cluster))
+            results = _hand_out(pool, jobs, folder)
         # started once the workers have their jobs and this thread has done its set-up: an import holds the
         # GIL, which the pool's threads need to hand out the jobs
         with _in_thread(alongside):

@@ -2,13 +2,14 @@
 
 `match(config, workspace)` matches and verifies every selected pair not yet in the database, committing one
 batch of pairs at a time, so an interrupted run loses at most the batch in progress. The pairs run on a thread
-pool (`_match_all`): the place where another backend (a cluster) would take them.
+pool (`_match_all`), or on a Dask cluster in batches of pairs (`_match_on_cluster`, `--cluster`).
 """
 
 import hashlib
 import logging
 import time
-from collections import OrderedDict, deque
+import uuid
+from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -17,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import database as dbmod
+from ..cluster import Cluster
 from ..config import to_dict
 from ..executor import blas_threads
 from ..io.gps import read_gps
@@ -75,6 +77,18 @@ def _match_one(task):
     return matches, verify_pair(kp1, kp2, matches, cam1, cam2, config.verify), len(putative) - len(matches)
 
 
+def _image_features(keypoints: np.ndarray, descriptors: np.ndarray, camera, fixed: np.ndarray) -> tuple:
+    """Worker of a cluster: an image as `_match_one` takes it. The client sends the descriptors as stored (128
+    bytes a feature) and the worker prepares them, once for all the pairs of the image it runs."""
+    return keypoints.astype(np.float64), prepare_descriptors(descriptors), camera, fixed
+
+
+def _match_batch(task) -> list[tuple]:
+    """Worker of a cluster: (pairs, image id -> `_image_features`, config) -> [(pair, `_match_one`'s result)]."""
+    pairs, features, config = task
+    return [(pair, _match_one((features[pair[0]], features[pair[1]], config))) for pair in pairs]
+
+
 # more images than this matched exhaustively get the advice of a pair selection that grows linearly (COLMAP's
 # guide gives exhaustive matching "up to several hundreds" of images; 200 are 19,900 pairs)
 _MANY_FOR_EXHAUSTIVE = 200
@@ -83,11 +97,12 @@ _MANY_FOR_EXHAUSTIVE = 200
 @holding_workspace
 def match(config: FrontendConfig, workspace: Workspace | Path | str, *, overwrite: bool = False,
           on_batch: Callable[[int], None] | None = None, batch_size: int = 16,
-          max_cached_images: int = 256) -> MatchSummary:
+          max_cached_images: int = 256, cluster: Cluster | None = None) -> MatchSummary:
     """Match and verify every selected pair not yet in the workspace; `on_batch(pairs_done)` after each commit.
 
     Descriptors are read once per image and kept (at most `max_cached_images`, least recently used dropped;
-    re-reading one costs far less than the matrix product of a pair)."""
+    re-reading one costs far less than the matrix product of a pair). With `cluster` the pairs are matched
+    there, `batch_size` pairs a task (`_match_on_cluster`)."""
     start = time.perf_counter()
     ws = as_workspace(workspace)
     check_spec(config.pairs)
@@ -119,7 +134,10 @@ def match(config: FrontendConfig, workspace: Workspace | Path | str, *, overwrit
                                                 cameras[images[i].camera_id].height) for i in every})
         cache = _PairFeatures(db, todo, positions, fixed, {i: cameras[images[i].camera_id] for i in every},
                               max_cached_images)
-        dropped = _match_all(config, ws.database_path, db, todo, cache, batch_size, on_batch)
+        if cluster is not None:
+            dropped = _match_on_cluster(config, ws.database_path, todo, cache, cluster, batch_size, on_batch)
+        else:
+            dropped = _match_all(config, ws.database_path, db, todo, cache, batch_size, on_batch)
         verified, configs = _verified_pairs(db, images, pairs)
     return MatchSummary(num_images=len(images), num_pairs=len(pairs), num_matched=len(todo), inliers=verified,
                         configs=configs, seconds=time.perf_counter() - start, fixed_dropped=dropped,
@@ -224,6 +242,52 @@ def _match_all(config: FrontendConfig, path, db, todo: list[tuple[int, int]], ca
             for _, future in in_flight:  # an interrupt waits only for the pairs already running
                 future.cancel()
             raise
+    bar.close()
+    return dropped
+
+
+def _match_on_cluster(config: FrontendConfig, path, todo: list[tuple[int, int]], cache: _PairFeatures,
+                      cluster: Cluster, batch_size: int, on_batch: Callable[[int], None] | None) -> int:
+    """`_match_all` on a Dask cluster: tasks of up to `batch_size` consecutive pairs (neighbours share images), a
+    few per worker in flight, each batch written to the database as it comes back, and each pair once (a task that
+    Dask ran again after its worker died may come back twice). An image's keypoints and descriptors go to the
+    cluster once, as a task of their own (`Cluster.keep`): its pairs' tasks use them from the worker that holds
+    them, or a copy fetched once per worker, and they are released when the image's last pair is written."""
+    bar = progress(total=len(todo), desc="matching", unit="pair")
+    remaining = Counter(i for pair in todo for i in pair)
+    held = {}  # image id -> future of `_image_features`
+    run = uuid.uuid4().hex[:8]  # keys of this run's data, apart from another client's on the same scheduler
+
+    def image(i: int):
+        if i not in held:
+            held[i] = cluster.keep(_image_features, cache.positions[i], dbmod.read_descriptors(cache.db, i),
+                                   cache.cameras[i], cache.fixed[i], key=f"mvrecon-image-{run}-{i}")
+        return held[i]
+
+    # at least 4 tasks per worker thread, so that the last ones do not leave workers idle
+    size = max(1, min(batch_size, len(todo) // (4 * cluster.workers)))
+
+    def tasks():
+        for k in range(0, len(todo), size):
+            pairs = todo[k:k + size]
+            yield pairs, {i: image(i) for pair in pairs for i in pair}, config
+
+    written, dropped = set(), 0
+    try:
+        for (pairs, _, _), results in cluster.unordered(_match_batch, tasks()):
+            batch = [(pair, found) for pair, found in results if pair not in written]
+            dropped += _write_batch(cache.db, path, batch)
+            written.update(pair for pair, _ in batch)
+            for pair, _ in batch:
+                for i in pair:
+                    remaining[i] -= 1
+                    if remaining[i] == 0:
+                        cluster.release([held.pop(i)])
+            bar.update(len(batch))
+            if on_batch is not None:
+                on_batch(len(written))
+    finally:
+        cluster.release(held.values())
     bar.close()
     return dropped
 
