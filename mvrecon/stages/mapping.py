@@ -23,6 +23,7 @@ from ..sfm.config import MapperConfig
 from ..sfm.model import Reconstruction
 from ..workspace import Workspace
 from .common import as_workspace, holding_workspace
+from .partitioned import map_in_parts
 
 log = logging.getLogger(__name__)
 
@@ -86,7 +87,8 @@ def map_workspace(config: MapperConfig, workspace: Workspace | Path | str, *,
         snapshot.unlink(missing_ok=True)
         resume = False
     ws.begin_stage("mapping", record, overwrite)
-    result = _run_mapper(corr, config, snapshot, resume)
+    result = map_in_parts(corr, config, ws, resume) if config.partition_size else \
+        _run_mapper(corr, config, snapshot, resume)
     _write_models(ws, result.models, image_dir, text, keypoint_colors)
     stats = []
     for m in result.models:
