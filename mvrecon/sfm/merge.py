@@ -70,10 +70,14 @@ def merge_parts(corr: Correspondences, config: MapperConfig, results: list[PartR
         for p in tree:
             for i in pieces[p].image_ids.tolist():
                 reasons.setdefault(index_of[i], why)
+    taken = np.zeros(len(mapper.image_ids), bool)  # images of the models already made (larger trees)
     for tree in trees:
         frames = _frames(tree, links)
         m = _assemble(mapper, [pieces[p] for p in tree], [keyed[p] for p in tree], [frames[p] for p in tree],
-                      index_of)
+                      index_of, taken)
+        taken |= m.registered
+        if m.registered.sum() < 2:
+            continue
         log.info("merged %d part model(s) into a model of %d images, %d points", len(tree),
                  int(m.registered.sum()), len(m.alive_points()))
         mapper.finish(m)
@@ -84,6 +88,10 @@ def merge_parts(corr: Correspondences, config: MapperConfig, results: list[PartR
         return mapper.reasons.get(i) or reasons.get(i) or part_reason.get(i, "registered in no part's model")
 
     status = image_status(mapper.names, mapper.keypoints, mapper.pairs, models, reason)
+    for i, why in reasons.items():  # the images of a separate model say why it stayed apart
+        entry = status[mapper.names[i]]
+        if entry["status"] == "registered" and entry["model"] != 0:
+            entry["note"] = f"in a separate model: {why}"
     return MappingResult(models, status, {"parts": len(results), "part_models": len(pieces),
                                           "links": len(links), "merged_models": len(trees),
                                           "ba_calls": mapper.ba_calls, "ba_seconds": mapper.ba_seconds})
@@ -180,8 +188,9 @@ def _compose(outer: Sim3, inner: Sim3) -> Sim3:
 
 
 def _assemble(mapper: IncrementalMapper, pieces: list[PartModel], keyed: list[dict], frames: list[Sim3],
-              index_of: dict) -> Reconstruction:
-    """The model of one tree's part models on the whole set (module docstring, step 3)."""
+              index_of: dict, taken: np.ndarray) -> Reconstruction:
+    """The model of one tree's part models on the whole set (module docstring, step 3), without the images
+    `taken` by a model made before (an image is in one model only)."""
     m = Reconstruction(mapper.image_ids, mapper.names, mapper.camera_of, mapper.cameras, mapper.keypoints,
                        len(mapper.tracks))
     counts = [pm.observations_per_image() for pm in pieces]
@@ -192,7 +201,8 @@ def _assemble(mapper: IncrementalMapper, pieces: list[PartModel], keyed: list[di
                 best_piece[i] = k
     for k, (pm, T) in enumerate(zip(pieces, frames)):
         for row, i in enumerate(pm.image_ids.tolist()):
-            if best_piece[i] == k:  # x_cam = R X + t in the part's frame; X_root = s Rs X + ts
+            # x_cam = R X + t in the part's frame, X_root = s Rs X + ts
+            if best_piece[i] == k and not taken[index_of[i]]:
                 R = pm.R[row] @ T.R.T
                 m.register(index_of[i], R, T.scale * pm.t[row] - R @ T.t)
     for cid in np.unique(m.camera_of[m.registered]).tolist():

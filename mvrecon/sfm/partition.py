@@ -28,7 +28,7 @@ from .config import MIN_PARTITION_SIZE
 from .view_graph import oriented_pairs
 
 MIN_OVERLAP = 4  # images a core grows by at least
-OVERLAP_SHARE = 0.25  # of P, the images a core grows by
+OVERLAP_SHARE = 0.3  # of P, the images a core grows by
 _BALANCE = 1 / 3  # each side of a bisection keeps at least this share of the images
 
 
@@ -73,7 +73,7 @@ def partition_view_graph(W: np.ndarray, size: int) -> Partition:
     for c in range(int(label.max()) + 1 if n else 0):
         cores.extend(_bisect(W, np.flatnonzero(label == c), core_size))
     cores.sort(key=lambda core: int(core.min()))
-    parts = [_grow(W, core, size) for core in cores]
+    parts = [_grow(W, core, cores, size) for core in cores]
     return Partition(size, cores, parts)
 
 
@@ -122,11 +122,23 @@ def _best_cut(W: np.ndarray, order: np.ndarray, low: int, high: int) -> int:
     return best_k
 
 
-def _grow(W: np.ndarray, core: np.ndarray, size: int) -> np.ndarray:
-    """`core` with the outside images that have the most inliers with it, up to `size` images in all."""
+def _grow(W: np.ndarray, core: np.ndarray, cores: list[np.ndarray], size: int) -> np.ndarray:
+    """`core` with up to `size - len(core)` outside images, taken in turn from each neighbouring core (strongest
+    first), each time that core's image with the most inliers with `core`: every boundary gets its share of the
+    overlap, the weak ones too (a weak boundary is where a link is hardest to find)."""
     strength = W[:, core].sum(axis=1)
     strength[core] = 0.0
+    queues = []
+    for other in cores:
+        near = other[strength[other] > 0]
+        if len(near):
+            queues.append((float(strength[near].sum()), list(near[np.argsort(-strength[near], kind="stable")])))
+    queues = [q for _, q in sorted(queues, key=lambda q: -q[0])]
+    chosen: list[int] = []
     room = size - len(core)
-    outside = np.flatnonzero(strength > 0)
-    chosen = outside[np.argsort(-strength[outside], kind="stable")[:room]]
+    while room > 0 and any(queues):
+        for q in queues:
+            if q and room > 0:
+                chosen.append(int(q.pop(0)))
+                room -= 1
     return np.sort(np.r_[core, chosen]).astype(np.int64)
