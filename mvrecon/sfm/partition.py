@@ -3,16 +3,17 @@
 The graph: images as nodes, verified pairs as edges weighted by their inlier counts (`view_graph.oriented_pairs`).
 Each connected component is cut in two by spectral bisection (the Fiedler vector of the normalised Laplacian,
 cut where the normalised cut is smallest among the splits that leave the fewest cores possible), and the halves
-are cut again until every *core* has at most P - O images. Each core then grows into its *part* by the O images
-outside it that have the most inliers with it (ties by index), so that a part holds at most P images.
+are cut again until every *core* has at most P - O images. Each core then grows into its *part* of up to P
+images (so by O images or more) with outside images taken in turn from each neighbouring core, each time that
+core's image with the most inliers with it.
 
 The overlap rule, O = max(MIN_OVERLAP, ceil(OVERLAP_SHARE * P)): merging two parts needs a similarity transform,
-and that needs shared images registered in both (three camera centres, and their rotations as a check) with the
+and that needs shared images registered in both (camera centres, and their rotations as a check) with the
 points they share. The images most strongly matched to a core are the ones its part's mapper registers with the
-most 2D-3D matches, and they are the boundary images of the neighbouring cores, which those parts register
-too; growing by them gives the shared images where the merge looks for them. A quarter of P (at least 4) leaves
-each boundary of a part cut in two (a sequence) 2+ shared images, and 3+ for the usual case of a core with one
-or two strong neighbours; less than three shared images cannot fix a similarity transform at all.
+most 2D-3D matches, and they are the boundary images of the neighbouring cores, which those parts register too;
+taking them in turn from every neighbouring core gives each boundary shared images from both sides, the weak
+boundaries too (a street's corners: where the spectral cut falls, and where a link is hardest to find; taking
+the strongest images whatever their core left such a boundary one shared image and the parts unmerged).
 """
 
 import math
