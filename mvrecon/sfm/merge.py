@@ -54,7 +54,7 @@ def merge_parts(corr: Correspondences, config: MapperConfig, results: list[PartR
     mapper = IncrementalMapper(corr, config)
     index_of = {int(i): k for k, i in enumerate(mapper.image_ids.tolist())}
     pieces = [pm for r in results for pm in r.models if len(pm.image_ids) >= 2]
-    keyed = [_track_points(pm, mapper, index_of) for pm in pieces]
+    keyed = [_observed(pm, mapper, index_of) for pm in pieces]
     links, failures = {}, {}
     for a in range(len(pieces)):
         for b in range(a + 1, len(pieces)):
@@ -97,21 +97,35 @@ def merge_parts(corr: Correspondences, config: MapperConfig, results: list[PartR
                                           "ba_calls": mapper.ba_calls, "ba_seconds": mapper.ba_seconds})
 
 
-def _track_points(pm: PartModel, mapper: IncrementalMapper, index_of: dict) -> dict:
-    """Full track id -> the part model's point row on it (the point with most observations of the track)."""
-    images = np.array([index_of[int(i)] for i in pm.obs_image.tolist()], np.int64)
-    tracks = np.array([mapper.tracks.track_of[i][k] for i, k in zip(images.tolist(), pm.obs_kp.tolist())],
-                      np.int64) if len(images) else np.zeros(0, np.int64)
+@dataclass
+class _Observed:
+    """A part model's observations on the whole set: internal image index, keypoint, full track (-1: none) and
+    point row of each; and the full tracks it has a point on (ascending), with that point's row (the point
+    with most observations of the track)."""
+
+    images: np.ndarray
+    kps: np.ndarray
+    tracks: np.ndarray
+    rows: np.ndarray
+    track_ids: np.ndarray
+    track_rows: np.ndarray
+
+
+def _observed(pm: PartModel, mapper: IncrementalMapper, index_of: dict) -> _Observed:
+    lookup = np.array([index_of[int(i)] for i in pm.obs_image.tolist()], np.int64).reshape(-1)
+    offsets = np.r_[0, np.cumsum([len(t) for t in mapper.tracks.track_of])].astype(np.int64)
+    flat = np.concatenate(mapper.tracks.track_of) if len(offsets) > 1 else np.zeros(0, np.int64)
+    tracks = flat[offsets[lookup] + pm.obs_kp] if len(lookup) else np.zeros(0, np.int64)
     keep = tracks >= 0
     pairs, counts = np.unique(np.c_[tracks[keep], pm.obs_point[keep]], axis=0, return_counts=True)
-    out = {}
-    for (track, row), n in zip(pairs.tolist(), counts.tolist()):
-        if track not in out or n > out[track][1]:
-            out[track] = (row, n)
-    return {t: r for t, (r, _) in out.items()}
+    order = np.lexsort((-counts, pairs[:, 0])) if len(pairs) else np.zeros(0, np.int64)
+    pairs = pairs[order]
+    first = np.r_[True, pairs[1:, 0] != pairs[:-1, 0]] if len(pairs) else np.zeros(0, bool)
+    return _Observed(lookup, pm.obs_kp, tracks, pm.obs_point, pairs[first, 0].reshape(-1),
+                     pairs[first, 1].reshape(-1))
 
 
-def _link(pa: PartModel, pb: PartModel, ka: dict, kb: dict, seed: int) -> "Link | str | None":
+def _link(pa: PartModel, pb: PartModel, ka: _Observed, kb: _Observed, seed: int) -> "Link | str | None":
     """The transform taking `pb` into `pa`'s frame (module docstring, step 1), or why there is none (None when
     they share no image at all)."""
     shared, ia, ib = np.intersect1d(pa.image_ids, pb.image_ids, return_indices=True)
@@ -119,9 +133,9 @@ def _link(pa: PartModel, pb: PartModel, ka: dict, kb: dict, seed: int) -> "Link 
         return None
     if len(shared) < SHARED_IMAGES_LEAST:
         return f"{len(shared)} shared registered image(s), < {SHARED_IMAGES_LEAST}"
-    tracks = sorted(set(ka) & set(kb))
-    src = np.r_[pb.centers()[ib], pb.xyz[[kb[t] for t in tracks]].reshape(-1, 3)]
-    dst = np.r_[pa.centers()[ia], pa.xyz[[ka[t] for t in tracks]].reshape(-1, 3)]
+    tracks, ta, tb = np.intersect1d(ka.track_ids, kb.track_ids, return_indices=True)
+    src = np.r_[pb.centers()[ib], pb.xyz[kb.track_rows[tb]]]
+    dst = np.r_[pa.centers()[ia], pa.xyz[ka.track_rows[ta]]]
     if len(src) < 3:
         return f"{len(shared)} shared images and {len(tracks)} shared points, too few for a transform"
     spread = float(np.median(np.linalg.norm(dst - np.median(dst, axis=0), axis=1)))
@@ -187,7 +201,7 @@ def _compose(outer: Sim3, inner: Sim3) -> Sim3:
     return Sim3(outer.scale * inner.scale, outer.R @ inner.R, outer.scale * outer.R @ inner.t + outer.t)
 
 
-def _assemble(mapper: IncrementalMapper, pieces: list[PartModel], keyed: list[dict], frames: list[Sim3],
+def _assemble(mapper: IncrementalMapper, pieces: list[PartModel], keyed: list[_Observed], frames: list[Sim3],
               index_of: dict, taken: np.ndarray) -> Reconstruction:
     """The model of one tree's part models on the whole set (module docstring, step 3), without the images
     `taken` by a model made before (an image is in one model only)."""
@@ -209,37 +223,36 @@ def _assemble(mapper: IncrementalMapper, pieces: list[PartModel], keyed: list[di
         holders = [sum(int(m.camera_of[index_of[i]] == cid) for i in pm.image_ids.tolist()) for pm in pieces]
         params = pieces[int(np.argmax(holders))].cameras[cid]
         m.cameras[cid].params = np.array(params, float)
-    _add_points(m, mapper, pieces, keyed, frames, index_of)
+    _add_points(m, pieces, keyed, frames)
     filtering.filter_observations(m, _gated(mapper.config))
     m.deregister_empty_images()
     return m
 
 
-def _add_points(m: Reconstruction, mapper: IncrementalMapper, pieces, keyed, frames, index_of) -> None:
-    """One point per full track seen by a part model, with the union of the part models' observations on it."""
-    where: dict[int, tuple[int, int, int]] = {}  # track -> (observations, piece, row)
-    views: dict[int, dict[int, int]] = {}  # track -> image -> keypoint
-    for k, pm in enumerate(pieces):
-        nobs = np.bincount(pm.obs_point, minlength=len(pm.xyz))
-        for track, row in keyed[k].items():
-            if track not in where or nobs[row] > where[track][0]:
-                where[track] = (int(nobs[row]), k, row)
-        for i, kp in zip(pm.obs_image.tolist(), pm.obs_kp.tolist()):
-            img = index_of[i]
-            track = int(mapper.tracks.track_of[img][kp])
-            if track >= 0 and m.registered[img]:
-                views.setdefault(track, {}).setdefault(img, kp)
-    tracks = [t for t in sorted(where) if len(views.get(t, ())) >= 2]
-    if not tracks:
-        return
-    xyz = np.array([frames[where[t][1]].apply(pieces[where[t][1]].xyz[where[t][2]][None])[0] for t in tracks])
-    local, images, kps = [], [], []
-    for n, t in enumerate(tracks):
-        for img, kp in views[t].items():
-            local.append(n)
-            images.append(img)
-            kps.append(kp)
-    m.add_points(xyz, np.array(tracks, np.int64), np.array(local), np.array(images), np.array(kps))
+def _add_points(m: Reconstruction, pieces: list[PartModel], keyed: list[_Observed], frames: list[Sim3]) -> None:
+    """One point per full track seen by a part model, with the union of the part models' observations on it in
+    the model's registered images, placed where the part model with most observations of it put it."""
+    xyz, tracks, nobs, images = [], [], [], []
+    for pm, ob, T in zip(pieces, keyed, frames):
+        count = np.bincount(pm.obs_point, minlength=len(pm.xyz))
+        xyz.append(T.apply(pm.xyz[ob.track_rows]).reshape(-1, 3))
+        tracks.append(ob.track_ids)
+        nobs.append(count[ob.track_rows])
+        keep = (ob.tracks >= 0) & m.registered[ob.images]
+        images.append(np.c_[ob.tracks[keep], ob.images[keep], ob.kps[keep]])
+    xyz, tracks, nobs = np.concatenate(xyz), np.concatenate(tracks), np.concatenate(nobs)
+    best = np.lexsort((-nobs, tracks))  # per track, the part model's point with most observations first
+    first = np.r_[True, tracks[best][1:] != tracks[best][:-1]] if len(best) else np.zeros(0, bool)
+    track_ids, where = tracks[best][first], xyz[best][first]
+    views = np.unique(np.concatenate(images), axis=0)  # (track, image, keypoint), each view once
+    views = views[np.r_[True, (views[1:, :2] != views[:-1, :2]).any(axis=1)]] if len(views) else views
+    counted = np.bincount(views[:, 0], minlength=len(m.point_of_track)) if len(views) else np.zeros(0, int)
+    seen = np.isin(track_ids, np.flatnonzero(counted >= 2))
+    track_ids, where = track_ids[seen], where[seen]
+    views = views[np.isin(views[:, 0], track_ids)]
+    if len(track_ids):
+        local = np.searchsorted(track_ids, views[:, 0])
+        m.add_points(where, track_ids, local, views[:, 1], views[:, 2])
 
 
 def _gated(config: MapperConfig) -> MapperConfig:
