@@ -8,6 +8,7 @@ keyed by database image ids, so that the merge needs nothing of the part's inter
 """
 
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -55,7 +56,7 @@ class PartResult:
     seconds: float
 
 
-def map_part(database: str | Path, image_ids, config: MapperConfig) -> PartResult:
+def map_part(database: str | Path, image_ids: Iterable[int], config: MapperConfig) -> PartResult:
     """Map the images `image_ids` (database ids) of the COLMAP database at `database` with the mapper
     `config.mapper`, using only the verified pairs between them; no snapshot, no bar of its own."""
     start = time.perf_counter()

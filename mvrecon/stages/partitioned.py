@@ -9,6 +9,7 @@ so that `--resume` after Ctrl-C maps only the parts not yet finished; without it
 
 import logging
 import pickle
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -18,12 +19,18 @@ from ..executor import WorkerPool, default_workers
 from ..io.files import replace_whole
 from ..io.record import Record, digest
 from ..progress import progress
+from ..sfm.config import MapperConfig
 from ..workspace import Workspace
+
+if TYPE_CHECKING:  # GTSAM: loaded only once the pool's workers have forked
+    from ..sfm.incremental import MappingResult
+    from ..sfm.parts import PartResult
 
 log = logging.getLogger(__name__)
 
 
-def map_in_parts(corr: Correspondences, config, ws: Workspace, resume: bool, workers: int | None = None):
+def map_in_parts(corr: Correspondences, config: MapperConfig, ws: Workspace, resume: bool,
+                 workers: int | None = None) -> "MappingResult":
     """The mapping of `corr` (read from `ws`'s database) in parts of at most `config.partition_size` images, as
     `MappingResult` (sfm/incremental.py); the parts run in `workers` processes (default: one per core)."""
     workers = default_workers() if workers is None else workers
@@ -67,7 +74,7 @@ def map_in_parts(corr: Correspondences, config, ws: Workspace, resume: bool, wor
     return merge_parts(corr, config, results)
 
 
-def map_part_item(item: tuple):
+def map_part_item(item: tuple) -> "PartResult":
     """`map_part(*item)` (sfm/parts.py), the pool's task: one tuple (database path, image ids, settings)."""
     from ..sfm.parts import map_part  # noqa: PLC0415 - GTSAM, loaded in the worker
 
