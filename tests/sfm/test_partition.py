@@ -138,3 +138,8 @@ def test_parts_of_a_synthetic_database_merge_into_one_accurate_model(tmp_path):
     assert all(s["status"] == "registered" for s in summary.status.values())
     record = Record(tmp_path / "snapshots" / "parts")
     assert len(record.names()) >= 3
+
+
+def test_a_partition_size_too_small_to_map_is_refused(tmp_path, capsys):
+    assert main(["map", "-o", str(tmp_path), "--partition-size", "5"]) == 2
+    assert "--partition-size: partition size must be 0 (no parts) or at least 10, not 5" in capsys.readouterr().err
