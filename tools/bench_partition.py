@@ -2,7 +2,7 @@
 database.
 
     python tools/bench_partition.py --scene street_long --count 100 --sizes 30
-    python tools/bench_partition.py --scene-dir /work/scratch/scenes/aerial_survey-300 --sizes 50,100
+    python tools/bench_partition.py --scene-dir /work/scratch/scenes/aerial_survey-300 --sizes 100 --whole RUN
 
 The scene (a rendered catalog scene: images/ and gt/sparse/; `--scene NAME --count N` renders it into WORK,
 cached) is matched once by `mvrecon reconstruct` (default front end), which also gives the unpartitioned
@@ -62,6 +62,9 @@ def main(argv=None) -> int:
     ap.add_argument("--scene", default="street_long", help="catalog scene to render (without --scene-dir)")
     ap.add_argument("--count", type=int, default=100, help="views of --scene")
     ap.add_argument("--scene-dir", type=Path, default=None, help="an already rendered scene (read only)")
+    ap.add_argument("--whole", type=Path, default=None,
+                    help="an unpartitioned mvrecon run of the scene (read only): its database and model are used "
+                         "instead of running `mvrecon reconstruct`")
     ap.add_argument("--sizes", default="30", help="partition sizes P, comma-separated")
     ap.add_argument("--work", type=Path, default=Path("/tmp/bench_partition"))
     ap.add_argument("--no-colmap", action="store_true", help="skip pycolmap.hierarchical_mapping")
@@ -72,9 +75,12 @@ def main(argv=None) -> int:
         mvrecon("scene", "make", args.scene, "-o", str(scene), "--count", str(args.count))
     name = scene.name
     images, gt = scene / "images", load_ground_truth(scene / "gt" / "sparse")
-    whole = args.work / f"{name}-whole"
+    whole = args.whole or args.work / f"{name}-whole"
     if not (whole / "report.json").is_file():
         mvrecon("reconstruct", str(images), "-o", str(whole))
+    database = args.work / f"{name}-database"  # a copy: pycolmap opens it for writing
+    database.mkdir(parents=True, exist_ok=True)
+    shutil.copy2(whole / "database.db", database / "database.db")
     rows = {"whole": figures(sparse_models(whole / "sparse"), gt, mapping_seconds(whole))}
     for size in sizes:
         parted = args.work / f"{name}-parts-{size}"
@@ -86,7 +92,7 @@ def main(argv=None) -> int:
         mvrecon("map", "-o", str(parted), "--partition-size", str(size), "--overwrite", "--image-dir", str(images))
         rows[f"parts P={size}"] = figures(sparse_models(parted / "sparse"), gt, mapping_seconds(parted))
         if not args.no_colmap:
-            recs, seconds = hierarchical(whole, images, size, args.work / f"{name}-colmap-{size}")
+            recs, seconds = hierarchical(database, images, size, args.work / f"{name}-colmap-{size}")
             rows[f"COLMAP hierarchical P={size}"] = figures(recs, gt, seconds)
     print(f"{name}: {len(gt)} images")
     print(f"{'run':32s} {'registered':>10s} {'models':>6s} {'AUC@1':>6s} {'AUC@5':>6s} {'mapping s':>9s}")
