@@ -36,7 +36,7 @@ def map_in_parts(corr: Correspondences, config: MapperConfig, ws: Workspace, res
     workers = default_workers() if workers is None else workers
     with WorkerPool(workers) as pool:  # forked before GTSAM loads
         from ..sfm.merge import merge_parts  # noqa: PLC0415 - GTSAM, after the workers fork
-        from ..sfm.partition import pair_weights, partition_view_graph  # noqa: PLC0415
+        from ..sfm.partition import pair_weights, partition_view_graph  # noqa: PLC0415 - OpenCV, after the fork
         from ..sfm.parts import PartResult  # noqa: PLC0415
 
         ids = np.array(sorted(corr.images), np.int64)
