@@ -12,7 +12,7 @@ tells which of COLMAP's cameras it cannot verify without a focal length (`colmap
 
 import os
 import sqlite3
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -279,8 +279,10 @@ def read_images(db: sqlite3.Connection) -> dict[int, ImageInfo]:
             for i, name, c in db.execute("SELECT image_id, name, camera_id FROM images ORDER BY image_id")}
 
 
-def read_correspondences(path: Path | str, min_inliers: int = 0, *, mapped: bool = True) -> Correspondences:
-    """Load cameras, images, keypoint positions and verified pairs (with at least `min_inliers` inliers).
+def read_correspondences(path: Path | str, min_inliers: int = 0, *, mapped: bool = True,
+                         image_ids: Iterable[int] | None = None) -> Correspondences:
+    """Load cameras, images, keypoint positions and verified pairs (with at least `min_inliers` inliers);
+    with `image_ids`, only those images and the pairs between them (a part of a partitioned mapping).
 
     `mapped`: the correspondences are for mvrecon's mapper, so a camera of a model it does not model is an
     InputError here, before any work (COLMAP has more models: FULL_OPENCV, FOV, the radial fisheyes...);
@@ -294,6 +296,9 @@ def read_correspondences(path: Path | str, min_inliers: int = 0, *, mapped: bool
         if mapped:
             _check_camera_models(path, out.cameras)
         out.images = read_images(db)
+        if image_ids is not None:
+            wanted = {int(i) for i in image_ids}
+            out.images = {i: info for i, info in out.images.items() if i in wanted}
         for image_id in out.images:
             out.keypoints[image_id] = read_keypoints(db, image_id)[:, :2].copy()
         for pair, rows, cols, data, config, F, E, H in db.execute(
@@ -301,6 +306,8 @@ def read_correspondences(path: Path | str, min_inliers: int = 0, *, mapped: bool
             if rows == 0 or rows < min_inliers:
                 continue
             id1, id2 = pair_images(pair)
+            if image_ids is not None and (id1 not in out.images or id2 not in out.images):
+                continue
             out.pairs.append(PairGeometry(
                 image_id1=id1, image_id2=id2, config=_config_name(config),
                 inliers=_array(data, rows, cols, np.uint32).astype(np.int64), F=_matrix_or_none(F),

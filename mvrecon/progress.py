@@ -10,7 +10,8 @@ import logging
 import shutil
 import sys
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from typing import TextIO
 
 _enabled = True
@@ -20,6 +21,17 @@ _shown = None  # the bar currently drawn on stderr's last line, if any
 def set_enabled(enabled: bool) -> None:
     global _enabled
     _enabled = enabled
+
+
+@contextmanager
+def hidden() -> Iterator[None]:
+    """No bar drawn inside the block (work run as one item of a stage that shows its own bar)."""
+    global _enabled
+    was, _enabled = _enabled, False
+    try:
+        yield
+    finally:
+        _enabled = was
 
 
 def clear_line(record: logging.LogRecord | None = None) -> bool:

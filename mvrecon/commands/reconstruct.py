@@ -45,6 +45,10 @@ def add_mapper_options(parser: argparse.ArgumentParser, *, standalone: bool = Tr
     g.add_argument("--mapper", choices=MAPPERS, default=None,
                    help="incremental (default: image by image, as COLMAP's) or global (all poses at once by "
                         "rotation and translation averaging, then bundle adjustment; see docs/global-mapper.md)")
+    g.add_argument("--partition-size", type=non_negative_int, default=None, metavar="P",
+                   help="map the view graph in overlapping parts of at most P images (at least 10), each its own "
+                        "task on the process pool, then merge them by similarity transforms and refine the whole "
+                        "by one bundle adjustment (default 0: the whole set at once)")
     g.add_argument("--optimizer", choices=OPTIMIZERS, default=None,
                    help="GTSAM optimizer for bundle adjustment: plain Levenberg-Marquardt with the points "
                         "eliminated first (lm, default) or SfmLevenbergMarquardt with Schur elimination (sfm)")
@@ -64,7 +68,8 @@ def mapper_config(args: argparse.Namespace,
     `from_file`: what `config_file(args)` returned, when the caller has read the file already."""
     table = (from_file or config_file(args))[1]
     config = with_overrides(MapperConfig(), table, source=f"{args.config}: mapper")
-    flags = {"seed": args.seed, "optimizer": args.optimizer, "mapper": args.mapper}
+    flags = {"seed": args.seed, "optimizer": args.optimizer, "mapper": args.mapper,
+             "partition_size": args.partition_size}
     if args.fix_intrinsics:
         flags["refine_intrinsics"] = False
     config = with_overrides(config, {k: v for k, v in flags.items() if v is not None}, source="command line")

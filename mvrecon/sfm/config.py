@@ -7,6 +7,7 @@ from ..errors import InputError
 
 OPTIMIZERS = ("lm", "sfm")  # MapperConfig.optimizer's choices
 MAPPERS = ("incremental", "global")  # MapperConfig.mapper's choices
+MIN_PARTITION_SIZE = 10  # MapperConfig.partition_size's least (but 0): smaller parts are too small to map
 
 
 @dataclass(frozen=True)
@@ -76,6 +77,8 @@ class MapperConfig:
     distortion_min_images: int = bounded(6, 2)
     # "incremental": image by image (sfm/incremental.py); "global": all poses at once (sfm/global_mapper.py)
     mapper: str = "incremental"
+    # images per part of a partitioned mapping (sfm/partition.py: parts mapped alone, then merged); 0: no parts
+    partition_size: int = bounded(0, 0)
     # "lm": Levenberg-Marquardt with points eliminated first; "sfm": gtsam.SfmLevenbergMarquardtOptimizer
     optimizer: str = "lm"
     # images a model needs, at most 0.8 x the images, else the largest one stays (COLMAP: min_model_size)
@@ -90,6 +93,9 @@ class MapperConfig:
         exist."""
         if self.mapper not in MAPPERS:
             raise InputError(f"{source}: mapper must be one of {', '.join(MAPPERS)}, not {self.mapper!r}")
+        if 0 < self.partition_size < MIN_PARTITION_SIZE:
+            raise InputError(f"{source or '--partition-size'}: partition size must be 0 (no parts) or at "
+                             f"least {MIN_PARTITION_SIZE}, not {self.partition_size}")
         if self.optimizer not in OPTIMIZERS:
             raise InputError(f"{source}: mapper optimizer must be one of {', '.join(OPTIMIZERS)}, "
                              f"not {self.optimizer!r}")

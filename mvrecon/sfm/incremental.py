@@ -629,6 +629,12 @@ class IncrementalMapper:
         for i in np.flatnonzero(m.registered).tolist():
             self.reasons[i] = f"its model stayed at {n} images{started}under min_model_size {least}, and was discarded"
 
+    def finish(self, m: Reconstruction) -> None:
+        """Finish a model assembled outside this mapper on its images, tracks and cameras (the merge of a
+        partitioned mapping, sfm/merge.py) as the mapper finishes its own: loops closed, the final global
+        refinement and filters, cameras checked; kept in `finished`, or discarded with a reason per image."""
+        self._finish_model(m)
+
     def _drop_non_square_cameras(self, m: Reconstruction) -> None:
         """Deregister the images of cameras whose fx / fy ended more than 1.5x apart (`non_square_cameras`: wrong
         matches, not a lens), then refine what is left once more; COLMAP deregisters the images of bogus cameras

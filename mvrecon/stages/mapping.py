@@ -1,8 +1,9 @@
 """The mapping stage: the verified pairs in the workspace's database -> models in sparse/N/ and points.ply.
 
 `map_workspace(config, workspace)` runs the incremental mapper (sfm/incremental.py), or the global one
-(sfm/global_mapper.py) with `mapper = "global"`, through `_run_mapper`. With `resume`, incremental mapping
-continues from the workspace's snapshot.
+(sfm/global_mapper.py) with `mapper = "global"`, through `_run_mapper`; with `partition_size` P and more than P
+images, either maps overlapping parts of the view graph and merges them (stages/partitioned.py). With `resume`,
+incremental mapping continues from the workspace's snapshot, partitioned mapping from its finished parts.
 """
 
 import logging
@@ -23,6 +24,7 @@ from ..sfm.config import MapperConfig
 from ..sfm.model import Reconstruction
 from ..workspace import Workspace
 from .common import as_workspace, holding_workspace
+from .partitioned import map_in_parts
 
 log = logging.getLogger(__name__)
 
@@ -86,7 +88,10 @@ def map_workspace(config: MapperConfig, workspace: Workspace | Path | str, *,
         snapshot.unlink(missing_ok=True)
         resume = False
     ws.begin_stage("mapping", record, overwrite)
-    result = _run_mapper(corr, config, snapshot, resume)
+    if config.partition_size and len(corr.images) > config.partition_size:
+        result = map_in_parts(corr, config, ws, resume)
+    else:
+        result = _run_mapper(corr, config, snapshot, resume)
     _write_models(ws, result.models, image_dir, text, keypoint_colors)
     stats = []
     for m in result.models:
