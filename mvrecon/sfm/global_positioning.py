@@ -1,0 +1,203 @@
+"""Global positioning of the global mapper: camera centres and points at once from the tracks (GLOMAP's key step).
+
+With the rotations known (rotation_averaging.py), each observation of a track gives the world-frame unit
+direction v from its camera's centre C to the point X. All centres and points are found together by minimising
+sum rho(|v - s (X - C)|^2) over the observations, one scale s >= 0 per observation (GLOMAP's BATA-style
+residual: it cannot shrink to zero, and a far point costs no more than a near one), rho Huber's loss at 0.1,
+started from random centres and points as GLOMAP does. The problem is solved by Levenberg-Marquardt on the
+normal equations, the scales and then the points eliminated (a Schur complement), so each step solves one
+3 x cameras system.
+
+Why points and not pair directions: a pair's translation direction is a fit to its matches alone and, on a ring
+of cameras with narrow views, many are degrees off in ways that no outlier test sees; a track seen by several
+cameras ties their centres together directly, and collinear motion (a street) is no degeneracy for it.
+templeSparseRing (16 views, 24 deg field of view): AUC@5 0.16 from pair directions, see docs/global-mapper.md.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .model import Reconstruction
+from .tracks import Tracks
+
+_TRACKS_PER_IMAGE = 200  # tracks are taken longest first while one of their images holds fewer than this
+_MIN_OBSERVATIONS = 6  # a camera with fewer selected observations is left out of the problem
+_HUBER = 0.1  # GLOMAP's loss width, on the unit directions
+_ITERATIONS = 100
+_MIN_SCALE = 1e-5
+
+
+@dataclass
+class PositioningResult:
+    centers: np.ndarray  # (n,3) camera centres, NaN outside `solved`
+    solved: np.ndarray  # (n,) bool
+    points: int  # tracks used
+    observations: int
+
+
+def select_tracks(tracks: Tracks, usable: np.ndarray, per_image: int = _TRACKS_PER_IMAGE) -> np.ndarray:
+    """Track ids with >= 2 elements in `usable` images, longest first, each taken while one of its usable images
+    holds fewer than `per_image` taken tracks: every camera gets tracks, the longest constrain most."""
+    inside = usable[tracks.image]
+    length = np.add.reduceat(inside.astype(np.int64), tracks.ptr[:-1]) if len(tracks) else np.zeros(0, np.int64)
+    length[np.diff(tracks.ptr) == 0] = 0
+    candidates = np.flatnonzero(length >= 2)
+    candidates = candidates[np.argsort(-length[candidates], kind="stable")]
+    held = np.zeros(len(usable), np.int64)
+    taken = []
+    for t in candidates.tolist():
+        images = tracks.image[tracks.ptr[t]:tracks.ptr[t + 1]]
+        images = images[usable[images]]
+        if held[images].min() < per_image:
+            held[images] += 1
+            taken.append(t)
+    return np.array(taken, dtype=np.int64)
+
+
+def global_positions(model: Reconstruction, R: np.ndarray, solved: np.ndarray, tracks: Tracks,
+                     seed: int = 0) -> PositioningResult:
+    """Camera centres of the `solved` images (rotations R, cam_from_world) from their tracks (see the module
+    docstring), the model's current calibration turning keypoints into rays. Images with too few observations
+    are left out; the centres are up to a similarity."""
+    n = len(R)
+    centers = np.full((n, 3), np.nan)
+    chosen = select_tracks(tracks, solved)
+    if len(chosen) == 0:
+        return PositioningResult(centers, np.zeros(n, bool), 0, 0)
+    starts, ends = tracks.ptr[chosen], tracks.ptr[chosen + 1]
+    element = np.concatenate([np.arange(a, b) for a, b in zip(starts.tolist(), ends.tolist())])
+    point = np.repeat(np.arange(len(chosen)), ends - starts)
+    image, kp = tracks.image[element], tracks.keypoint[element]
+    keep = solved[image]
+    image, kp, point = image[keep], kp[keep], point[keep]
+    x = model.normalized_at(image, kp)
+    ok = np.isfinite(x).all(axis=1)
+    image, point, x = image[ok], point[ok], x[ok]
+    # a camera with too few observations cannot be placed; a point left with < 2 views constrains nothing
+    for _ in range(3):
+        counts = np.bincount(image, minlength=n)
+        views = np.bincount(point, minlength=len(chosen))
+        good = (counts[image] >= _MIN_OBSERVATIONS) & (views[point] >= 2)
+        if good.all():
+            break
+        image, point, x = image[good], point[good], x[good]
+    placed = np.zeros(n, bool)
+    placed[image] = True
+    if placed.sum() < 2:
+        return PositioningResult(centers, np.zeros(n, bool), 0, 0)
+    cams = np.flatnonzero(placed)
+    local = np.full(n, -1)
+    local[cams] = np.arange(len(cams))
+    pts, point = np.unique(point, return_inverse=True)
+    rays = np.c_[x, np.ones(len(x))]
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    v = np.einsum("kji,kj->ki", R[image], rays)  # world frame: R^T ray
+    C, _ = solve_positions(local[image], point, v, len(cams), len(pts), seed)
+    centers[cams] = C
+    return PositioningResult(centers, placed, len(pts), len(v))
+
+
+def _cost(r: np.ndarray) -> tuple[float, np.ndarray]:
+    """Huber cost of the residual norms and the IRLS weights."""
+    norm = np.linalg.norm(r, axis=1)
+    big = norm > _HUBER
+    cost = np.where(big, 2 * _HUBER * norm - _HUBER ** 2, norm ** 2)
+    w = np.where(big, _HUBER / np.maximum(norm, 1e-300), 1.0)
+    return float(cost.sum()), w
+
+
+def solve_positions(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams: int, num_points: int,
+                    seed: int = 0, iterations: int = _ITERATIONS) -> tuple[np.ndarray, np.ndarray]:
+    """(centres (num_cams,3), points (num_points,3)) minimising sum Huber(|v_k - s_k (X_point[k] - C_cam[k])|)
+    from a random start (uniform in [-1, 1]^3, scales 1); camera 0 is held at its start (the gauge), and the
+    centres are returned with zero mean and unit RMS distance from it."""
+    rng = np.random.default_rng(seed)
+    C = rng.uniform(-1, 1, (num_cams, 3))
+    X = rng.uniform(-1, 1, (num_points, 3))
+    s = np.ones(len(v))
+    lam = 1e-4
+    e = X[point] - C[cam]
+    cost, w = _cost(v - s[:, None] * e)
+    eye = np.eye(3)
+    order = np.argsort(point, kind="stable")
+    bounds = np.r_[0, np.cumsum(np.bincount(point, minlength=num_points))]
+    # every ordered pair (k, l) of observations of one point: the points' part of the reduced camera system
+    length = np.diff(bounds)[point[order]]
+    first = np.repeat(np.arange(len(order)), length)
+    within = np.arange(len(first)) - np.repeat(np.r_[0, np.cumsum(length)[:-1]], length)
+    pair_k, pair_l = order[first], order[bounds[point[order[first]]] + within]
+    flat = _block_index(cam[pair_k], cam[pair_l], num_cams)
+    diag = _block_index(np.arange(num_cams), np.arange(num_cams), num_cams)
+    free = np.arange(3, 3 * num_cams)
+    for _ in range(iterations):
+        r = v - s[:, None] * e
+        # gradient of half the cost, g = J^T W r, with J_C = s I, J_X = -s I, J_s = -e; Gauss-Newton blocks
+        ws = w * s
+        g_C = np.zeros((num_cams, 3))
+        np.add.at(g_C, cam, ws[:, None] * r)
+        g_X = np.zeros((num_points, 3))
+        np.add.at(g_X, point, -ws[:, None] * r)
+        g_s = -w * np.einsum("ki,ki->k", e, r)
+        d = w * s * s
+        h_s = w * np.einsum("ki,ki->k", e, e) * (1 + lam) + 1e-12
+        # the scales eliminated: each couples (C, X) by b = w s [-e; e]
+        c = (ws ** 2 / h_s)[:, None, None] * np.einsum("ki,kj->kij", e, e)
+        block = d[:, None, None] * eye - c
+        H_CC = np.zeros((num_cams, 3, 3))
+        np.add.at(H_CC, cam, block)
+        H_XX = np.zeros((num_points, 3, 3))
+        np.add.at(H_XX, point, block)
+        Q = -block  # the (C, X) block of each observation
+        shift = (ws * g_s / h_s)[:, None] * e
+        rhs_C = np.zeros((num_cams, 3))
+        np.add.at(rhs_C, cam, -shift)
+        rhs_C -= g_C
+        rhs_X = np.zeros((num_points, 3))
+        np.add.at(rhs_X, point, shift)
+        rhs_X -= g_X
+        H_CC[:, [0, 1, 2], [0, 1, 2]] *= 1 + lam
+        H_XX[:, [0, 1, 2], [0, 1, 2]] = H_XX[:, [0, 1, 2], [0, 1, 2]] * (1 + lam) + 1e-12
+        Xinv = np.linalg.inv(H_XX)
+        # the points eliminated: S = H_CC - sum over a point's observation pairs of Q_k Xinv Q_l^T
+        QX = np.einsum("kij,kjl->kil", Q, Xinv[point])
+        blocks = -np.einsum("kij,klj->kil", QX[pair_k], Q[pair_l])
+        S = np.bincount(flat.ravel(), blocks.ravel(), minlength=9 * num_cams ** 2)
+        S += np.bincount(diag.ravel(), H_CC.ravel(), minlength=9 * num_cams ** 2)
+        S = S.reshape(3 * num_cams, 3 * num_cams)
+        np.add.at(rhs_C, cam, -np.einsum("kij,kj->ki", QX, rhs_X[point]))
+        dC = np.zeros(3 * num_cams)
+        try:
+            dC[free] = np.linalg.solve(S[np.ix_(free, free)], rhs_C.ravel()[free])
+        except np.linalg.LinAlgError:
+            lam *= 10
+            continue
+        dC = dC.reshape(num_cams, 3)
+        rhs_X2 = rhs_X.copy()
+        np.add.at(rhs_X2, point, -np.einsum("kji,kj->ki", Q, dC[cam]))
+        dX = np.einsum("pij,pj->pi", Xinv, rhs_X2)
+        ds = (-g_s - ws * np.einsum("ki,ki->k", e, dX[point] - dC[cam])) / h_s
+        C_new, X_new = C + dC, X + dX
+        s_new = np.maximum(s + ds, _MIN_SCALE)
+        e_new = X_new[point] - C_new[cam]
+        cost_new, w_new = _cost(v - s_new[:, None] * e_new)
+        if cost_new < cost:
+            converged = cost - cost_new < 1e-7 * cost
+            C, X, s, e, w, cost = C_new, X_new, s_new, e_new, w_new, cost_new
+            lam = max(lam / 3, 1e-9)
+            if converged:
+                break
+        else:
+            lam *= 4
+            if lam > 1e8:
+                break
+    C0 = C.mean(axis=0)
+    scale = np.sqrt(np.mean(np.sum((C - C0) ** 2, axis=1))) or 1.0
+    return (C - C0) / scale, (X - C0) / scale
+
+
+def _block_index(rows: np.ndarray, cols: np.ndarray, n: int) -> np.ndarray:
+    """(m,3,3) flat indices of the 3x3 blocks (rows[k], cols[k]) of a (3n,3n) matrix."""
+    r = 3 * rows[:, None, None] + np.arange(3)[None, :, None]
+    c = 3 * cols[:, None, None] + np.arange(3)[None, None, :]
+    return r * (3 * n) + c
