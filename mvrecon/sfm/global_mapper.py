@@ -38,7 +38,7 @@ from . import filtering
 from .ba_points import select_points
 from .bundle import bundle_adjust
 from .config import MapperConfig
-from .global_positioning import global_positions
+from .global_positioning import global_positions, outlier_cameras
 from .incremental import MappingResult
 from .model import Reconstruction, image_status, images_and_cameras
 from .register import register_image
@@ -53,6 +53,7 @@ _GATES_PX = (16.0, 8.0)  # reprojection gates of the first rounds, before the co
 _COARSE_ITERATIONS = 15  # LM iterations of a coarse model's BA
 _CALIBRATION_PASSES = 3  # coarse models that refine a guessed focal (`_calibrate_by_bundle`)
 _MAX_ROTATION_ERROR_DEG = 5.0  # GLOMAP's threshold on a pair's rotation residual
+_MIN_VIEWS = 3  # images of a consistent view graph the mapper makes a model of
 _MAX_DIRECTION_ERROR_DEG = 10.0  # a translation direction this far off the solved baseline is dropped
 # where the final model's centres come from: "tracks" (global_positioning.py) or "pairs" (translation
 # averaging, which the coarse models that calibrate a guessed focal always use); "pairs" is kept for
@@ -192,6 +193,12 @@ class GlobalMapper:
                                    f"(median triangulation angle < {cfg.min_tri_angle_deg:g} deg): a camera turning "
                                    "in place, whose camera positions the global mapper cannot find")
             return None, component
+        if component.sum() < _MIN_VIEWS:
+            for i in np.flatnonzero(component).tolist():
+                self.reasons.setdefault(i, f"its consistent view graph is a single pair: the global mapper places "
+                                           f"cameras from {_MIN_VIEWS} or more images linked by pairs, and one pair "
+                                           "is only a two-view model; map it with --mapper incremental")
+            return None, component
         if coarse or POSITIONS == "pairs":
             tij = np.array(with_baseline, dtype=np.int64)
             d = -np.einsum("mji,mj->mi", rot.R[tij[:, 1]], np.array([graph.edges[k].t for k in with_baseline]))
@@ -200,9 +207,12 @@ class GlobalMapper:
         else:
             pos = global_positions(self._new_model(cameras), rot.R, component, self.tracks, cfg.seed)
             start = self._clock("global_positioning", start)
+            for i, why in outlier_cameras(pos).items():
+                pos.solved[i] = False
+                self.reasons[i] = why
         for i in np.flatnonzero(component & ~pos.solved).tolist():
-            self.reasons[i] = ("no position: its pairs with a baseline do not link it to the model's other cameras "
-                               "(too few, too short, or their translation directions are outliers)")
+            self.reasons.setdefault(i, "no position: its pairs with a baseline do not link it to the model's other "
+                                       "cameras (too few, too short, or their translation directions are outliers)")
         placed = pos.solved & component
         if placed.sum() < 2:
             return None, component
