@@ -12,15 +12,18 @@ GLOMAP's pipeline on GTSAM and the incremental mapper's own parts:
    translation averaging (translation_averaging.py: the pairs' directions, `gtsam.MFAS`,
    `gtsam.TranslationRecovery`) instead: tracks fit a focal far off as well as the right one (on templeSparseRing,
    768 px for the true 1520, a coarse model from tracks moved the focal by 1%, one from pairs to 1100). Measured
-   on the same databases, tracks against pairs for the final model: templeSparseRing AUC@5 0.746 against 0.156,
-   equal on herzjesu (0.940), templeRing (0.849) and street (0.994, a camera moving straight ahead),
-   object_orbit_small 0.988 against 0.993.
+   on the same databases, tracks against pairs for the final model (AUC@5): templeSparseRing 0.741 against
+   0.156, herzjesu 0.940 and 0.940, templeRing 0.847 and 0.849, street (a camera moving straight ahead) 0.994
+   and 0.994, object_orbit_small 0.988 and 0.993.
 4. Tracks (tracks.py) triangulated (triangulate.py) in rounds with the reprojection gate narrowing from 16 px to
    the config's, each round followed by a global bundle adjustment (bundle.py: the incremental mapper's factors,
    intrinsics refined as there) and the filters (filtering.py).
-5. Catastrophic poses: an image that keeps too few observations fitting within the gate after the rounds (fewer
-   than abs_pose_min_inliers, or under abs_pose_min_inlier_ratio of its triangulated matches) is taken out of
-   the model with that reason and the model is refined again, rather than written at a flipped or far-away pose.
+5. Catastrophic poses: a camera whose rays miss the points of its tracks after global positioning
+   (`global_positioning.outlier_cameras`), and an image that keeps too few observations fitting within the gate
+   after the rounds (fewer than abs_pose_min_inliers, or under abs_pose_min_inlier_ratio of its triangulated
+   matches), are taken out of the model with that reason and the model is refined again, rather than written at
+   a flipped or far-away pose; each may come back by absolute pose against the points.
+A consistent view graph of fewer than three images (a single pair) is no model: its images say so.
 The images the first model leaves (other components of the view graph, or images whose pairs were outliers)
 are mapped again as the next model, as the incremental mapper starts new models; every image left
 unregistered gets a reason.
@@ -210,9 +213,11 @@ class GlobalMapper:
             for i, why in outlier_cameras(pos).items():
                 pos.solved[i] = False
                 self.reasons[i] = why
+        unplaced = ("its pairs with a baseline do not link it to the model's other cameras (too few, too short, or "
+                    "their translation directions are outliers)" if coarse or POSITIONS == "pairs" else
+                    "too few observations of tracks it shares with the model's other cameras")
         for i in np.flatnonzero(component & ~pos.solved).tolist():
-            self.reasons.setdefault(i, "no position: its pairs with a baseline do not link it to the model's other "
-                                       "cameras (too few, too short, or their translation directions are outliers)")
+            self.reasons.setdefault(i, f"no position: {unplaced}")
         placed = pos.solved & component
         if placed.sum() < 2:
             return None, component

@@ -3,15 +3,17 @@
 With the rotations known (rotation_averaging.py), each observation of a track gives the world-frame unit
 direction v from its camera's centre C to the point X. All centres and points are found together by minimising
 sum rho(|v - s (X - C)|^2) over the observations, one scale s >= 0 per observation (GLOMAP's BATA-style
-residual: it cannot shrink to zero, and a far point costs no more than a near one), rho Huber's loss at 0.1,
-started from random centres and points as GLOMAP does. The problem is solved by Levenberg-Marquardt on the
-normal equations, the scales and then the points eliminated (a Schur complement), so each step solves one
-3 x cameras system.
+residual: it cannot shrink to zero, and a far point costs no more than a near one), rho Huber's loss at 0.1
+(GLOMAP's) from random centres and points as GLOMAP starts, then Cauchy's at 0.01 from there, which lets the rays
+of a camera whose rotation is wrong go rather than bend every point towards them. The problem is solved by
+Levenberg-Marquardt on the normal equations, the scales and then the points eliminated (a Schur complement), so
+each step solves one 3 x cameras system.
 
 Why points and not pair directions: a pair's translation direction is a fit to its matches alone and, on a ring
 of cameras with narrow views, many are degrees off in ways that no outlier test sees; a track seen by several
 cameras ties their centres together directly, and collinear motion (a street) is no degeneracy for it.
-templeSparseRing (16 views, 24 deg field of view): AUC@5 0.16 from pair directions, see docs/global-mapper.md.
+templeSparseRing (16 views, 24 deg field of view): AUC@5 0.156 from pair directions, 0.741 from tracks
+(docs/global-mapper.md).
 """
 
 from dataclasses import dataclass
