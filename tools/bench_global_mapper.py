@@ -3,13 +3,16 @@
     python tools/bench_global_mapper.py WORK                         # every set with a database in WORK
     python tools/bench_global_mapper.py WORK --only object_orbit_small,strecha_herzjesu_P8
     python tools/bench_global_mapper.py WORK --engines mvrecon-global,colmap-global
+    python tools/bench_global_mapper.py WORK --engines mvrecon-global,mvrecon-global-pairs   # tracks vs pairs
 
 WORK is tools/bench_mapper.py's work folder: WORK/<set>/database/database.db (mvrecon's front end, default
 settings), the catalog scenes' ground truth in WORK/scenes/<set>/gt/sparse, the shared sets' in
 ../shared/data/<set>. Per set and engine it prints the images registered (in all models, and in the largest),
 the relative-pose AUC@1 and AUC@5 against the ground truth (eval.metrics: a pair with an unregistered image or
 split across models counts 180 deg) and the mapping wall time: mvrecon's mappers called in this process on the
-database's correspondences (reading the database not counted), pycolmap's `global_mapping` and
+database's correspondences (reading the database not counted; mvrecon-global-pairs is the global mapper with
+the final model's centres from translation averaging of the pairs' directions instead of global positioning
+from the tracks), pycolmap's `global_mapping` and
 `incremental_mapping` on a copy of the database (seed 0). Wall and CPU time (all the process's threads) of
 each; each engine runs once per set: on a shared machine the wall times are noisy, the CPU times less so.
 """
@@ -27,12 +30,14 @@ sys.path.insert(0, str(ROOT))
 from mvrecon import database  # noqa: E402  (mvrecon before pycolmap: see the README)
 from mvrecon.eval.ground_truth import find_ground_truth, load_ground_truth_for  # noqa: E402
 from mvrecon.eval.metrics import accuracy_summary  # noqa: E402
+from mvrecon.sfm import global_mapper  # noqa: E402
 from mvrecon.sfm.config import MapperConfig  # noqa: E402
 from mvrecon.sfm.global_mapper import map_correspondences_globally  # noqa: E402
 from mvrecon.sfm.incremental import map_correspondences  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 ENGINES = ("mvrecon-global", "mvrecon-incremental", "colmap-global", "colmap-incremental")
+OTHER_ENGINES = ("mvrecon-global-pairs",)  # only when named in --engines
 
 
 def ground_truth(work: Path, name: str):
@@ -46,7 +51,8 @@ def ground_truth(work: Path, name: str):
 def run_mvrecon(db: Path, engine: str) -> tuple[list[dict], float, float]:
     corr = database.read_correspondences(db)
     start, cpu = time.perf_counter(), time.process_time()
-    if engine == "mvrecon-global":
+    if engine.startswith("mvrecon-global"):
+        global_mapper.POSITIONS = "pairs" if engine == "mvrecon-global-pairs" else "tracks"
         result = map_correspondences_globally(corr, MapperConfig(mapper="global"))
     else:
         result = map_correspondences(corr, MapperConfig())
@@ -83,7 +89,8 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("work", type=Path, help="tools/bench_mapper.py's work folder")
     parser.add_argument("--only", default="", help="comma-separated set names")
-    parser.add_argument("--engines", default=",".join(ENGINES), help=f"comma-separated, of {', '.join(ENGINES)}")
+    parser.add_argument("--engines", default=",".join(ENGINES),
+                        help=f"comma-separated, of {', '.join(ENGINES + OTHER_ENGINES)}")
     args = parser.parse_args(argv)
     names = [n for n in args.only.split(",") if n] or sorted(
         p.parent.parent.name for p in args.work.glob("*/database/database.db"))

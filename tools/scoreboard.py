@@ -4,6 +4,7 @@
     python tools/scoreboard.py --only object_orbit_small middlebury_templeRing
     python tools/scoreboard.py --max-pixels 1e6     # skip sets with larger images (the Strecha sets are 6 Mpx)
     python tools/scoreboard.py --cached-only        # rewrite the table from finished runs only (after Ctrl-C)
+    python tools/scoreboard.py --global-mappers     # also both global mappers (mvrecon-global, COLMAP global)
 
 Each scene's comparison goes to WORK/<scene>/ (index.html, metrics.json, runs/); finished runs are reused, so a
 second call only runs what is missing (delete WORK/<scene> to redo one). docs/scoreboard.md is rewritten after
@@ -11,7 +12,9 @@ every scene with one row per scene: both engines' registered images, AUC@1/5, po
 and the time ratio, plus the machine and the date. Scenes with ground truth are scored against it; the others
 against COLMAP's model (then COLMAP's AUC is the reference and reads "ref"), unless it holds fewer images than
 mvrecon's or under half of them (then the model with the most images is the reference, or none is: `compare`'s
-`choose_reference`, whose note goes to the row).
+`choose_reference`, whose note goes to the row). With --global-mappers each row has two more columns: the global
+mappers' registered images and AUC@5 (`mvrecon --mapper global` / pycolmap's `global_mapping`), beside the
+incremental ones.
 """
 
 import argparse
@@ -69,12 +72,13 @@ def pixels(image_dir: Path) -> tuple[float, int]:
     return float(meta.width * meta.height), len(names)
 
 
-def run_scene(name, images, gt, work: Path, timeout: float | None) -> dict:
+def run_scene(name, images, gt, work: Path, timeout: float | None, global_mappers: bool = False) -> dict:
     from mvrecon.eval.compare import CompareConfig, compare_images
     from mvrecon.eval.report import write_report
 
     report_dir = work / name
-    comparison = compare_images(images, report_dir, gt=gt, config=CompareConfig(timeout_s=timeout))
+    config = CompareConfig(timeout_s=timeout, colmap_global=global_mappers, mvrecon_global=global_mappers)
+    comparison = compare_images(images, report_dir, gt=gt, config=config)
     write_report(comparison, report_dir)
     return comparison.metrics
 
@@ -90,23 +94,28 @@ def _fmt(metric, value, role="engine"):
     return format_value(metric, value)
 
 
-def finished(report_dir: Path) -> bool:
+INCREMENTAL = ("mvrecon", "colmap", "colmap-same-matches")
+GLOBAL = ("mvrecon-global", "colmap-global")
+
+
+def finished(report_dir: Path, global_mappers: bool = False) -> bool:
     """Whether every engine run of a scene's comparison finished (or timed out) earlier."""
     from mvrecon.eval.runners import run_meta
 
-    return all(run_meta(report_dir / "runs" / e).get("finished") for e in ("mvrecon", "colmap", "colmap-same-matches"))
+    engines = INCREMENTAL + (GLOBAL if global_mappers else ())
+    return all(run_meta(report_dir / "runs" / e).get("finished") for e in engines)
 
 
-def table_row(name: str, origin: str, m: dict, work: Path) -> tuple[str, str]:
+def table_row(name: str, origin: str, m: dict, work: Path, global_mappers: bool = False) -> tuple[str, str]:
     """The scene's markdown row, and the path of its HTML report."""
     from mvrecon.eval.report import other_models_text
 
-    mv, cm = m["engines"].get("mvrecon", {}), m["engines"].get("colmap", {})
-
-    def pair(metric):
+    def pair(metric, engines=("mvrecon", "colmap")):
         return " / ".join(_fmt(metric, e.get("summary", {}).get(metric), e.get("role", "engine"))
                           + (other_models_text(e.get("summary", {})) if metric == "registered" else "")
-                          for e in (mv, cm))
+                          for e in (m["engines"].get(k, {}) for k in engines))
+
+    mv = m["engines"].get("mvrecon", {})
 
     n = len(m["images"])
     reference = m["reference"]["name"]
@@ -118,15 +127,18 @@ def table_row(name: str, origin: str, m: dict, work: Path) -> tuple[str, str]:
         notes.append(m["reference"]["note"])
     failed = "; ".join(notes)
     link = Path(work / name / "index.html").resolve()
+    extra = f"{pair('registered', GLOBAL)} | {pair('auc@5', GLOBAL)} | " if global_mappers else ""
     return (f"| {name} | {origin} | {n} | {gt} | {pair('registered')} | {pair('auc@1')} | {pair('auc@5')} | "
-            f"{pair('points')} | {pair('mean_reprojection_error_px')} | {pair('wall_s')} | {ratio} | "
+            f"{pair('points')} | {pair('mean_reprojection_error_px')} | {pair('wall_s')} | {ratio} | {extra}"
             f"{failed or '—'} |"), str(link)
 
 
-def write_scoreboard(path: Path, rows: list[str], skipped: list[str], machine: dict, command: str) -> None:
+def write_scoreboard(path: Path, rows: list[str], skipped: list[str], machine: dict, command: str,
+                     global_mappers: bool = False) -> None:
+    extra = "global registered (mvrecon / COLMAP) | global AUC@5 | " if global_mappers else ""
     header = ("| scene | source | images | scored | registered (mvrecon / COLMAP) | AUC@1 | AUC@5 | points | "
-              "reproj. error px | wall s | time ratio | notes |\n"
-              "|---|---|---|---|---|---|---|---|---|---|---|---|\n")
+              f"reproj. error px | wall s | time ratio | {extra}notes |\n"
+              f"|---|---|---|---|---|---|---|---|---|---|---|{'---|---|' if global_mappers else ''}---|\n")
     text = f"""# Scoreboard: mvrecon vs COLMAP (pycolmap), measured
 
 Generated by `{command}` on {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.
@@ -157,6 +169,7 @@ def shown_command(args: argparse.Namespace) -> str:
     flags.append(f"--timeout {args.timeout:g}")
     flags += [f"{flag} {' '.join(names)}" for flag, names in (("--only", args.only), ("--skip", args.skip)) if names]
     flags += ["--cached-only"] if args.cached_only else []
+    flags += ["--global-mappers"] if args.global_mappers else []
     return "python tools/scoreboard.py " + " ".join(flags)
 
 
@@ -173,6 +186,8 @@ def main(argv=None) -> int:
     parser.add_argument("--timeout", type=float, default=1800, help="seconds per engine run (default 1800)")
     parser.add_argument("--cached-only", action="store_true",
                         help="only report scenes whose runs all finished earlier; run nothing new")
+    parser.add_argument("--global-mappers", action="store_true",
+                        help="also run both global mappers and show their registered images and AUC@5")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     from mvrecon.eval.compare import machine_info
@@ -196,23 +211,23 @@ def main(argv=None) -> int:
             size, count = pixels(images)
             if args.max_pixels and size > args.max_pixels:
                 skipped.append(f"{name} ({count} images of {size / 1e6:.1f} Mpx > --max-pixels)")
-                write_scoreboard(args.out, rows, skipped, machine_info(), command)
+                write_scoreboard(args.out, rows, skipped, machine_info(), command, args.global_mappers)
                 continue
-            if args.cached_only and not finished(args.work / name):
+            if args.cached_only and not finished(args.work / name, args.global_mappers):
                 skipped.append(f"{name} (not run yet)")
                 continue
             print(f"== {name}: {count} images, {size / 1e6:.1f} Mpx, ground truth: {gt or 'none'}", flush=True)
             start = time.perf_counter()
-            metrics = run_scene(name, images, gt, args.work, args.timeout)
+            metrics = run_scene(name, images, gt, args.work, args.timeout, args.global_mappers)
         except KeyboardInterrupt:
             skipped += [f"{n} (interrupted before it finished)" for n, _ in plan[k:]]
-            write_scoreboard(args.out, rows, skipped, machine_info(), command)
+            write_scoreboard(args.out, rows, skipped, machine_info(), command, args.global_mappers)
             print(f"interrupted; wrote {args.out} with the {len(rows)} scene(s) that finished")
             return 130
-        row, link = table_row(name, origin, metrics, args.work)
+        row, link = table_row(name, origin, metrics, args.work, args.global_mappers)
         rows.append(row)
         print(row, f"({time.perf_counter() - start:.0f} s; report {link})", flush=True)
-        write_scoreboard(args.out, rows, skipped, machine_info(), command)
+        write_scoreboard(args.out, rows, skipped, machine_info(), command, args.global_mappers)
     (args.work / "scoreboard.json").write_text(json.dumps({"rows": rows, "skipped": skipped}, indent=1))
     print(f"wrote {args.out}")
     return 0

@@ -1,8 +1,9 @@
 """Compare mvrecon with COLMAP on the same images (or compare existing models), with an HTML report.
 
-  mvrecon compare IMAGES -o REPORT [--gt GT] [--colmap-global]
+  mvrecon compare IMAGES -o REPORT [--gt GT] [--colmap-global | --global-mappers]
       runs mvrecon end to end, pycolmap end to end (extract_features, match_exhaustive, incremental_mapping;
-      --colmap-global adds global_mapping) and COLMAP's incremental mapper on mvrecon's database ("same matches"),
+      --colmap-global adds global_mapping; --global-mappers adds it and mvrecon's global mapper, `--mapper
+      global`, as engine mvrecon-global) and COLMAP's incremental mapper on mvrecon's database ("same matches"),
       with the same camera settings; the runs go to REPORT/runs/ and a finished run is reused, not redone.
       --mvrecon-args "--upright" (one string) gives mvrecon's run more flags, checked before anything runs.
   mvrecon compare --models A [B ...] [--labels ...] [--gt GT] -o REPORT
@@ -50,6 +51,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "numbers; a repeated name gets a ' added)")
     # the options of runs on IMAGES default to None, so that --models can tell one given and refuse it
     parser.add_argument("--colmap-global", action="store_true", help="also run pycolmap's global mapper")
+    parser.add_argument("--global-mappers", action="store_true",
+                        help="also run both global mappers: mvrecon's (--mapper global) and pycolmap's")
     parser.add_argument("--no-same-matches", action="store_true",
                         help="skip COLMAP's mapper on mvrecon's database")
     parser.add_argument("--camera-mode", choices=CAMERA_MODES,
@@ -70,8 +73,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="run again the engines whose run in OUTPUT failed (otherwise a failure is kept)")
 
 
-RUN_ONLY = ("colmap_global", "no_same_matches", "camera_mode", "camera_model", "camera_params", "seed", "masks",
-            "mvrecon_args", "timeout", "retry_failed")  # the dests only a run on IMAGES uses
+RUN_ONLY = ("colmap_global", "global_mappers", "no_same_matches", "camera_mode", "camera_model", "camera_params",
+            "seed", "masks", "mvrecon_args", "timeout", "retry_failed")  # the dests only a run on IMAGES uses
 
 
 def check_mvrecon_args(options: RunOptions) -> None:
@@ -131,7 +134,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--mvrecon-args: {exc}") from None
     options = RunOptions(**chosen, camera_params=params, mvrecon_args=extra,
                          masks=str(Path(args.masks).resolve()) if args.masks else "")
-    config = CompareConfig(options=options, colmap_global=args.colmap_global,
+    config = CompareConfig(options=options, colmap_global=args.colmap_global or args.global_mappers,
+                           mvrecon_global=args.global_mappers,
                            same_matches=not args.no_same_matches, timeout_s=args.timeout)
     if args.images:
         check_mvrecon_args(options)

@@ -53,6 +53,7 @@ STAGES = ("features", "matching", "mapping")
 class CompareConfig:
     options: RunOptions = RunOptions()  # camera settings and seed, the same for every engine
     colmap_global: bool = False  # also run pycolmap's global mapper (GLOMAP)
+    mvrecon_global: bool = False  # also run mvrecon's global mapper (`--mapper global`)
     same_matches: bool = True  # also run COLMAP's incremental mapper on mvrecon's database
     inlier_fraction: float = 0.05  # Sim3 RANSAC inlier threshold, as a fraction of the reference's extent
     timeout_s: float | None = None  # per run; a run over time is reported as failed, with that reason
@@ -120,7 +121,8 @@ def compare_images(image_dir: Path | str, report_dir: Path | str, gt: Path | str
     skipped = {n: r for n, r in skipped.items() if Path(n).suffix.lower() in IMAGE_EXTENSIONS}
     gt_poses = load_ground_truth_for(gt, names) if gt else None
     runs_dir = report_dir / "runs"
-    steps = ["mvrecon", "colmap"] + (["colmap-global"] if config.colmap_global else []) \
+    steps = ["mvrecon", "colmap"] + (["mvrecon-global"] if config.mvrecon_global else []) \
+        + (["colmap-global"] if config.colmap_global else []) \
         + (["colmap-same-matches"] if config.same_matches else [])
     mvrecon_db = runs_dir / "mvrecon" / "database.db"  # what the same-matches run maps
     for step in steps:  # a folder of a run with other settings is refused before any engine spends time
@@ -131,8 +133,8 @@ def compare_images(image_dir: Path | str, report_dir: Path | str, gt: Path | str
     for step in steps:
         bar.set_postfix_str(step)
         timeout, opts = config.timeout_s, config.options
-        if step == "mvrecon":
-            runs.append(run_mvrecon(image_dir, runs_dir / step, opts, timeout))
+        if step in ("mvrecon", "mvrecon-global"):
+            runs.append(run_mvrecon(image_dir, runs_dir / step, opts, timeout, global_mapper=step != "mvrecon"))
         elif step == "colmap":
             runs.append(run_colmap(image_dir, runs_dir / step, opts, False, timeout))
         elif step == "colmap-global":

@@ -154,13 +154,18 @@ def colmap_fisheye_warning(options: RunOptions, image_dir: Path | str, names: li
 
 
 def run_mvrecon(image_dir: Path | str, out_dir: Path | str, options: RunOptions = RunOptions(),
-                timeout: float | None = None, code: Path | str | None = None) -> RunResult:
-    """`mvrecon reconstruct IMAGE_DIR -o OUT_DIR` with the options' camera settings and seed.
+                timeout: float | None = None, code: Path | str | None = None,
+                global_mapper: bool = False) -> RunResult:
+    """`mvrecon reconstruct IMAGE_DIR -o OUT_DIR` with the options' camera settings and seed; engine "mvrecon",
+    or "mvrecon-global" with `global_mapper` (`--mapper global`, after the options' extra flags).
 
     Known intrinsics (`camera_params`) are held fixed, as `run_colmap` holds them in COLMAP's bundle adjustment.
     `code`: the mvrecon source tree to run (`code_environment`), else the one installed."""
     cmd = [sys.executable, "-m", "mvrecon.cli", *reconstruct_args(image_dir, out_dir, options)]
-    return _run("mvrecon", cmd, Path(image_dir), Path(out_dir), options, timeout, tree=code)
+    if global_mapper:
+        cmd += ["--mapper", "global"]
+    return _run("mvrecon-global" if global_mapper else "mvrecon", cmd, Path(image_dir), Path(out_dir), options,
+                timeout, tree=code)
 
 
 def reconstruct_args(image_dir: Path | str, out_dir: Path | str, options: RunOptions) -> list[str]:

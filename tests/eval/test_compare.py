@@ -564,7 +564,8 @@ def test_bad_mvrecon_args_are_refused_before_any_engine_runs(tmp_path, capsys):
 def test_models_refuse_the_options_of_runs(runs, tmp_path, capsys):
     images, gt, colmap, same = runs
     base = ["compare", "--models", str(colmap.out_dir), str(same.out_dir), "-o", str(tmp_path / "r")]
-    for extra, named in ((["--colmap-global"], "--colmap-global"), (["--seed", "3"], "--seed"),
+    for extra, named in ((["--colmap-global"], "--colmap-global"), (["--global-mappers"], "--global-mappers"),
+                         (["--seed", "3"], "--seed"),
                          (["--camera-params", "1200,320,240,0"], "--camera-params"),
                          (["--seed", "0", "--timeout", "5"], "--seed, --timeout")):
         assert main(base + extra) == 2, extra
@@ -710,6 +711,19 @@ def test_compare_images_runs_all_three_and_scores_them_like_the_metrics_do(runs,
     ratio = m["engines"]["mvrecon"]["summary"]["time_ratio_vs_colmap"]
     assert ratio == pytest.approx(mv.wall_s / colmap.wall_s)
     assert m["engines"]["mvrecon"]["stages"].keys() >= {"features", "matching", "mapping"}
+
+
+@pytest.mark.slow
+def test_compare_lists_the_global_mappers_beside_the_incremental_ones(runs):
+    images, gt, colmap, _ = runs
+    root = colmap.out_dir.parents[1]
+    config = CompareConfig(options=OPTS, colmap_global=True, mvrecon_global=True, same_matches=False)
+    m = compare_images(images, root, gt=gt, config=config).metrics
+    assert list(m["engines"]) == ["mvrecon", "colmap", "mvrecon-global", "colmap-global"]
+    assert run_meta(root / "runs" / "mvrecon-global")["command"][-2:] == ["--mapper", "global"]
+    for name in ("mvrecon-global", "colmap-global"):  # each global mapper's model, against the ground truth
+        got = m["engines"][name]["summary"]
+        assert m["engines"][name]["error"] is None and got["registered"] == 8 and got["auc@5"] > 0.9, (name, got)
 
 
 def test_colmap_gets_mvrecons_auto_camera_groups(runs):
