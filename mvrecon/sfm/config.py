@@ -7,6 +7,7 @@ from ..errors import InputError
 
 OPTIMIZERS = ("lm", "sfm")  # MapperConfig.optimizer's choices
 MAPPERS = ("incremental", "global")  # MapperConfig.mapper's choices
+FRAMES = ("enu", "ecef")  # MapperConfig.frame's choices: the frame of a model with position priors
 
 
 @dataclass(frozen=True)
@@ -84,12 +85,19 @@ class MapperConfig:
     max_models: int = bounded(10, 1)
     # seeds every random choice (RANSAC), so equal inputs give equal models (COLMAP: random_seed)
     seed: int = bounded(0, 0)
+    # with camera position priors (GPS, --pose-priors): the model's frame, "enu" (metres east, north, up of the
+    # origin in report.json) or "ecef" (earth-centred metres); sfm/georef.py
+    frame: str = "enu"
+    # an image whose centre ends farther than this many sigmas from its position prior is flagged in the report
+    prior_max_sigmas: float = bounded(4.0, 0.0, low_open=True)
 
     def validate(self, source: str | None) -> None:
         """An InputError naming `source` (the config file that set it) for an optimizer or mapper that does not
         exist."""
         if self.mapper not in MAPPERS:
             raise InputError(f"{source}: mapper must be one of {', '.join(MAPPERS)}, not {self.mapper!r}")
+        if self.frame not in FRAMES:
+            raise InputError(f"{source}: mapper frame must be one of {', '.join(FRAMES)}, not {self.frame!r}")
         if self.optimizer not in OPTIMIZERS:
             raise InputError(f"{source}: mapper optimizer must be one of {', '.join(OPTIMIZERS)}, "
                              f"not {self.optimizer!r}")
