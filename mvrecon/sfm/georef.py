@@ -80,18 +80,24 @@ def spread_enough(positions: np.ndarray, sigmas: np.ndarray) -> bool:
     return bool(s[1] >= MIN_SPREAD_SIGMAS * float(np.median(sigmas[:, :2])))
 
 
-def fit_similarity(model: Reconstruction, priors: CenterPriors, seed: int = 0) -> tuple[Sim3, np.ndarray] | None:
-    """The similarity from the model's frame to the priors' (RANSAC over the registered images' centres, inliers
-    within INLIER_SIGMAS of their prior), with the inlier mask over `priors.in_model(model)`; None when the
-    images with a prior do not span two directions."""
-    js, pos, sig = priors.in_model(model)
-    if not spread_enough(pos, sig):
+def align_centres(centres: np.ndarray, positions: np.ndarray, sigmas: np.ndarray,
+                  seed: int = 0) -> tuple[Sim3, np.ndarray] | None:
+    """The similarity taking camera `centres` onto their known `positions` (RANSAC, inliers within
+    INLIER_SIGMAS of their sigmas' norm), with the inlier mask; None when the positions do not span two
+    directions (`spread_enough`)."""
+    if not spread_enough(positions, sigmas):
         return None
-    threshold = INLIER_SIGMAS * float(np.median(np.linalg.norm(sig, axis=1)))
+    threshold = INLIER_SIGMAS * float(np.median(np.linalg.norm(sigmas, axis=1)))
     try:
-        return ransac_umeyama(model.centers()[js], pos, threshold=threshold, seed=seed)
+        return ransac_umeyama(centres, positions, threshold=threshold, seed=seed)
     except (ValueError, np.linalg.LinAlgError):
         return None
+
+
+def fit_similarity(model: Reconstruction, priors: CenterPriors, seed: int = 0) -> tuple[Sim3, np.ndarray] | None:
+    """`align_centres` of the model's registered images with a prior."""
+    js, pos, sig = priors.in_model(model)
+    return align_centres(model.centers()[js], pos, sig, seed)
 
 
 def transform_model(model: Reconstruction, T: Sim3) -> None:
