@@ -94,6 +94,64 @@ def align_centres(centres: np.ndarray, positions: np.ndarray, sigmas: np.ndarray
         return None
 
 
+def upright_alignment(centres: np.ndarray, ups: np.ndarray, positions: np.ndarray, sigmas: np.ndarray,
+                      seed: int = 0) -> tuple[Sim3, np.ndarray] | None:
+    """The similarity taking camera `centres` onto `positions` that lie along one line (a street), where the
+    roll about the line is not determined by them: the cameras' mean up direction (`ups`, the image's -y axis
+    in the model) is taken as the vertical, as photos are mostly taken upright, and heading, scale and
+    offset are fitted (RANSAC over pairs, inliers within INLIER_SIGMAS). None when the cameras do not agree on
+    an up direction or the positions are not spread along their line."""
+    up = ups.mean(axis=0)
+    if np.linalg.norm(up) < 0.7 or len(positions) < 3:
+        return None
+    up /= np.linalg.norm(up)
+    spread = np.linalg.svd(positions - positions.mean(axis=0), compute_uv=False)[0] / np.sqrt(len(positions))
+    if spread < MIN_SPREAD_SIGMAS * float(np.median(sigmas[:, :2])):
+        return None
+    axis = np.cross(up, [0.0, 0.0, 1.0])
+    angle = np.arctan2(np.linalg.norm(axis), up[2])
+    level = _rotation(axis, angle)  # the model's up onto +z
+    c = centres @ level.T
+    zm, zp = c[:, 0] + 1j * c[:, 1], positions[:, 0] + 1j * positions[:, 1]
+    threshold = INLIER_SIGMAS * float(np.median(np.linalg.norm(sigmas, axis=1)))
+    rng = np.random.default_rng(seed)
+
+    def fit(mask):
+        am, ap = zm[mask].mean(), zp[mask].mean()
+        a = np.vdot(zm[mask] - am, zp[mask] - ap) / max(float(np.sum(np.abs(zm[mask] - am) ** 2)), 1e-300)
+        yaw = np.array([[a.real, -a.imag, 0.0], [a.imag, a.real, 0.0], [0.0, 0.0, abs(a)]]) / max(abs(a), 1e-300)
+        rot = yaw @ level
+        scale = abs(a)
+        t = positions[mask].mean(axis=0) - scale * centres[mask].mean(axis=0) @ rot.T
+        return Sim3(scale, rot, t)
+
+    best, best_count = np.ones(len(zm), bool), -1
+    for _ in range(200):
+        pair = rng.choice(len(zm), 2, replace=False)
+        if abs(zm[pair[0]] - zm[pair[1]]) < 1e-12:
+            continue
+        mask = np.zeros(len(zm), bool)
+        mask[pair] = True
+        T = fit(mask)
+        inl = np.linalg.norm(T.apply(centres) - positions, axis=1) < threshold
+        if inl.sum() > best_count:
+            best, best_count = inl, int(inl.sum())
+    if best_count < 3:
+        return None
+    T = fit(best)
+    inliers = np.linalg.norm(T.apply(centres) - positions, axis=1) < threshold
+    return (fit(inliers), inliers) if inliers.sum() >= 3 else (T, best)
+
+
+def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    n = np.linalg.norm(axis)
+    if n < 1e-12:
+        return np.eye(3) if angle < np.pi / 2 else np.diag([1.0, -1.0, -1.0])
+    k = axis / n
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
 def fit_similarity(model: Reconstruction, priors: CenterPriors, seed: int = 0) -> tuple[Sim3, np.ndarray] | None:
     """`align_centres` of the model's registered images with a prior."""
     js, pos, sig = priors.in_model(model)
@@ -150,11 +208,20 @@ def georeference_models(models: list, priors: CenterPriors | None, *, frame: str
     for m in models:
         m.priors = priors
         georeference(m, seed)
+        if not m.georeferenced:  # priors along one line (a street): the cameras' up fixes the roll
+            js, pos, sig = priors.in_model(m)
+            fit = upright_alignment(m.centers()[js], -m.R[js, 1, :], pos, sig, seed)
+            if fit is not None:
+                transform_model(m, fit[0])
+                m.georeferenced = True
+                log.info("model georeferenced by its cameras' up direction and %d priors along a line "
+                         "(scale %.4g)", len(pos), fit[0].scale)
         entry = {"georeferenced": bool(m.georeferenced), "priors": 0}
         out["models"].append(entry)
         if not m.georeferenced:
             entry["reason"] = ("its registered images with a position prior do not span two directions (fewer "
-                               "than 3, or along one line): the model stays in its own frame")
+                               "than 3, or along one line with cameras that are not upright): the model stays "
+                               "in its own frame")
             log.warning("a model of %d images is not georeferenced: %s", int(m.registered.sum()), entry["reason"])
             continue
         residuals = prior_residuals(m, priors)
