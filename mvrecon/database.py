@@ -23,6 +23,7 @@ from .errors import InputError
 from .geometry.camera import CAMERA_MODEL_IDS, MODELS
 from .interrupts import ctrl_c_deferred
 from .io.files import require_room
+from .io.pose_priors import COORDINATE_SYSTEMS, PosePrior, default_covariance
 from .io.sqlite import connect_readonly
 
 # COLMAP's two-view configurations as pycolmap 4.2 numbers them (tests/io/test_formats.py checks them)
@@ -148,6 +149,7 @@ class Correspondences:
     images: dict[int, ImageInfo] = field(default_factory=dict)
     keypoints: dict[int, np.ndarray] = field(default_factory=dict)  # image_id -> (N,2) pixels, COLMAP convention
     pairs: list[PairGeometry] = field(default_factory=list)
+    priors: dict[int, PosePrior] = field(default_factory=dict)  # image_id -> camera position prior
 
 
 @contextmanager
@@ -279,6 +281,44 @@ def read_images(db: sqlite3.Connection) -> dict[int, ImageInfo]:
             for i, name, c in db.execute("SELECT image_id, name, camera_id FROM images ORDER BY image_id")}
 
 
+_CAMERA_SENSOR = 0  # COLMAP's SensorType.CAMERA: a pose prior belongs to an image (data id) of a camera (sensor id)
+_SYSTEM_NAMES = {v: k for k, v in COORDINATE_SYSTEMS.items()}
+
+
+def write_pose_priors(db: sqlite3.Connection, priors: dict[int, PosePrior]) -> None:
+    """Replace the database's pose priors by `priors` (image id -> prior), in COLMAP's layout (pycolmap's
+    `Database.read_pose_prior` reads them: position and covariance as float64 blobs, no gravity)."""
+    images = read_images(db)
+    rows = [(i, images[i].camera_id, _CAMERA_SENSOR, np.asarray(p.position, np.float64).tobytes(),
+             np.asarray(p.covariance, np.float64).tobytes(), np.full(3, np.nan).tobytes(),
+             COORDINATE_SYSTEMS[p.coordinate_system]) for i, p in sorted(priors.items())]
+    with ctrl_c_deferred():
+        db.execute("BEGIN")
+        db.execute("DELETE FROM pose_priors")
+        db.executemany("INSERT INTO pose_priors (pose_prior_id, corr_data_id, corr_sensor_id, corr_sensor_type, "
+                       "position, position_covariance, gravity, coordinate_system) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                       [(k + 1, *row) for k, row in enumerate(rows)])
+        db.execute("COMMIT")
+
+
+def read_pose_priors(db: sqlite3.Connection) -> dict[int, PosePrior]:
+    """image id -> prior of each image with a usable position prior (COLMAP's or ours; a missing covariance, as
+    COLMAP writes from EXIF, reads as io.pose_priors' default sigmas)."""
+    out = {}
+    for image_id, position, cov, system in db.execute(
+            "SELECT corr_data_id, position, position_covariance, coordinate_system FROM pose_priors "
+            f"WHERE corr_sensor_type = {_CAMERA_SENSOR}"):
+        pos = np.frombuffer(position or b"", np.float64)
+        name = _SYSTEM_NAMES.get(int(system))
+        if pos.shape != (3,) or not np.all(np.isfinite(pos)) or name not in ("WGS84", "CARTESIAN"):
+            continue
+        c = np.frombuffer(cov or b"", np.float64)
+        usable = c.size == 9 and np.all(np.isfinite(c)) and np.all(np.diag(c.reshape(3, 3)) > 0)
+        out[int(image_id)] = PosePrior(position=pos.copy(), coordinate_system=name,
+                                       covariance=c.reshape(3, 3).copy() if usable else default_covariance())
+    return out
+
+
 def read_correspondences(path: Path | str, min_inliers: int = 0, *, mapped: bool = True,
                          image_ids: Iterable[int] | None = None) -> Correspondences:
     """Load cameras, images, keypoint positions and verified pairs (with at least `min_inliers` inliers);
@@ -299,6 +339,7 @@ def read_correspondences(path: Path | str, min_inliers: int = 0, *, mapped: bool
         if image_ids is not None:
             wanted = {int(i) for i in image_ids}
             out.images = {i: info for i, info in out.images.items() if i in wanted}
+        out.priors = {i: p for i, p in read_pose_priors(db).items() if i in out.images}
         for image_id in out.images:
             out.keypoints[image_id] = read_keypoints(db, image_id)[:, :2].copy()
         for pair, rows, cols, data, config, F, E, H in db.execute(

@@ -10,6 +10,7 @@ Each stage is callable from Python, the CLI and tests alike, `stage(config, inpu
 - `map_workspace(config, workspace)`: verified pairs -> models (stages/mapping.py).
 """
 
+import hashlib
 import logging
 import shutil
 from dataclasses import dataclass
@@ -41,6 +42,14 @@ class ReconstructConfig:
     mapper: MapperConfig = MapperConfig()
 
 
+def _file_hash(path: str) -> str:
+    """The content of a settings file as a run's hash records it (an edited file is another config)."""
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the pose priors: {exc}") from None
+
+
 def reconstruct(config: ReconstructConfig, image_dir: Path | str, out_dir: Path | str, *, text: bool = False,
                 resume: bool = False, overwrite: bool = False, cluster: Cluster | None = None) -> dict:
     """Images -> features -> matches -> models: OUT/database.db, sparse/N/, points.ply, report.json.
@@ -55,6 +64,8 @@ def reconstruct(config: ReconstructConfig, image_dir: Path | str, out_dir: Path 
     full = {"frontend": to_dict(config.frontend), "mapper": to_dict(mapper)}
     if config.frontend.masks:
         full["masks"] = masks_folder(config.frontend)
+    if config.frontend.pose_priors:
+        full["pose_priors"] = _file_hash(config.frontend.pose_priors)
     full_hash = config_hash(full)
     report_path = out / "report.json"
     finished = None if overwrite else finished_report(out, full_hash, Path(image_dir))

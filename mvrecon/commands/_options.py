@@ -99,6 +99,9 @@ def add_feature_options(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--masks", default=None, metavar="DIR",
                    help="no features where a mask is black, in COLMAP's layout: the mask of IMAGES/sub/a.jpg is "
                         "DIR/sub/a.jpg.png, in the image's stored frame or upright (people, sky, a lens hood)")
+    g.add_argument("--pose-priors", default=None, metavar="CSV",
+                   help="camera positions (name,lat,lon,alt or name,x,y,z with optional sigma columns; see "
+                        "docs/georef.md) as the position priors instead of the images' EXIF GPS")
 
 
 def add_matching_options(parser: argparse.ArgumentParser) -> None:
@@ -178,6 +181,7 @@ _FLAG_FIELDS = {  # argparse dest -> (config section, field)
     "max_error": ("verify", "max_error"),
     "min_inliers": ("verify", "min_num_inliers"),
     "masks": (None, "masks"),
+    "pose_priors": (None, "pose_priors"),
     "workers": (None, "workers"),
 }
 _FLAG_NAMES = {"root_sift": "--no-root-sift"}  # argparse dest -> flag, where not "--" + dest with dashes

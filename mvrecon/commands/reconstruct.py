@@ -20,7 +20,7 @@ from pathlib import Path
 from ..config import with_overrides
 from ..errors import InputError
 from ..pipeline import ReconstructConfig, reconstruct
-from ..sfm.config import MAPPERS, OPTIMIZERS, MapperConfig
+from ..sfm.config import FRAMES, MAPPERS, OPTIMIZERS, MapperConfig
 from ..stages.common import FrontendConfig
 from ._options import (
     add_frontend_options,
@@ -49,6 +49,9 @@ def add_mapper_options(parser: argparse.ArgumentParser, *, standalone: bool = Tr
                    help="map the view graph in overlapping parts of at most P images (at least 10), each its own "
                         "task on the process pool, then merge them by similarity transforms and refine the whole "
                         "by one bundle adjustment (default 0: the whole set at once)")
+    g.add_argument("--frame", choices=FRAMES, default=None,
+                   help="with camera position priors (EXIF GPS or --pose-priors): the model in metres east, north, "
+                        "up of the origin in report.json (enu, default) or earth-centred (ecef); docs/georef.md")
     g.add_argument("--optimizer", choices=OPTIMIZERS, default=None,
                    help="GTSAM optimizer for bundle adjustment: plain Levenberg-Marquardt with the points "
                         "eliminated first (lm, default) or SfmLevenbergMarquardt with Schur elimination (sfm)")
@@ -69,7 +72,7 @@ def mapper_config(args: argparse.Namespace,
     table = (from_file or config_file(args))[1]
     config = with_overrides(MapperConfig(), table, source=f"{args.config}: mapper")
     flags = {"seed": args.seed, "optimizer": args.optimizer, "mapper": args.mapper,
-             "partition_size": args.partition_size}
+             "partition_size": args.partition_size, "frame": args.frame}
     if args.fix_intrinsics:
         flags["refine_intrinsics"] = False
     config = with_overrides(config, {k: v for k, v in flags.items() if v is not None}, source="command line")

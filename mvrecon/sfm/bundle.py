@@ -16,6 +16,11 @@ guessed focal changes its depth-to-baseline ratio (templeRing: it doubles), and 
 walk to its new depth, a little each LM step (34 iterations instead of 11). With more images it stays tight: a
 soft one there sent imc_reichstag's focal BAs (a camera per image) to higher costs and AUC@5 0.75 -> 0.53.
 
+Camera-centre priors (georef.py): once a model is georeferenced, each optimised image with a position prior gets a
+GPSFactor on its pose's translation (the camera centre) with the prior's sigmas under a Cauchy loss, so that a
+fix many sigmas off barely pulls; with three or more such images spread in two directions the priors anchor the
+gauge and the pose and scale priors above are left out.
+
 The graph is built once per call in a single pass over the observation arrays; `optimizer="sfm"` runs
 gtsam.SfmLevenbergMarquardtOptimizer with Schur elimination of the points, "lm" plain Levenberg-Marquardt.
 """
@@ -31,6 +36,7 @@ import gtsam
 import numpy as np
 
 from .config import MapperConfig
+from .georef import spread_enough
 from .model import Reconstruction
 
 log = logging.getLogger("mvrecon.sfm")
@@ -139,7 +145,8 @@ def bundle_adjust(model: Reconstruction, variable_images: np.ndarray | list[int]
     for k, p in zip(point_keys, points.tolist()):
         values.insertPoint3(k, xyz[p])  # `insert` would store a dynamic Vector, cast at every access
     _add_views(gtsam, graph, model, window, config.huber_px, cal_kind, fixed_cams)
-    _fix_gauge(gtsam, graph, model, window.variable, len(fixed_cams))
+    if not _add_center_priors(gtsam, graph, model, window.variable):
+        _fix_gauge(gtsam, graph, model, window.variable, len(fixed_cams))
 
     iterations = max_iterations or config.global_ba_iterations
     # points first (the Schur complement, and no COLAMD run per call), then poses, calibrations last: every
@@ -292,6 +299,24 @@ def _optimize(gtsam, graph, values, kind: str, iterations: int, relative_toleran
         # the Sfm optimizer raises (with no message) when a trial step puts a point behind a camera
         log.warning("SfmLevenbergMarquardtOptimizer failed; retrying this bundle adjustment with plain LM")
         return _optimize(gtsam, graph, values, "lm", iterations, relative_tolerance, ordering, initial_lambda)
+
+
+PRIOR_CAUCHY_K = 3.0  # the Cauchy loss's width on a centre prior, in sigmas
+
+
+def _add_center_priors(gtsam, graph, model, variable) -> bool:
+    """A robust centre prior (see the module docstring) for each variable image with one, in a georeferenced
+    model; True when they anchor the gauge (three or more, spread in two directions)."""
+    if not model.georeferenced or model.priors is None:
+        return False
+    js, pos, sig = model.priors.in_model(model)
+    keep = variable[js]
+    js, pos, sig = js[keep], pos[keep], sig[keep]
+    loss = gtsam.noiseModel.mEstimator.Cauchy.Create(PRIOR_CAUCHY_K)
+    for j, p, s in zip(js.tolist(), pos, sig):
+        noise = gtsam.noiseModel.Robust.Create(loss, gtsam.noiseModel.Diagonal.Sigmas(np.asarray(s, float)))
+        graph.add(gtsam.GPSFactor(gtsam.symbol("x", j), np.asarray(p, float), noise))
+    return spread_enough(pos, sig)
 
 
 def _fix_gauge(gtsam, graph, model, variable, num_fixed_images) -> None:

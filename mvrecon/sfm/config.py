@@ -8,6 +8,7 @@ from ..errors import InputError
 OPTIMIZERS = ("lm", "sfm")  # MapperConfig.optimizer's choices
 MAPPERS = ("incremental", "global")  # MapperConfig.mapper's choices
 MIN_PARTITION_SIZE = 10  # MapperConfig.partition_size's least (but 0): smaller parts are too small to map
+FRAMES = ("enu", "ecef")  # MapperConfig.frame's choices: the frame of a model with position priors
 
 
 @dataclass(frozen=True)
@@ -87,6 +88,11 @@ class MapperConfig:
     max_models: int = bounded(10, 1)
     # seeds every random choice (RANSAC), so equal inputs give equal models (COLMAP: random_seed)
     seed: int = bounded(0, 0)
+    # with camera position priors (GPS, --pose-priors): the model's frame, "enu" (metres east, north, up of the
+    # origin in report.json) or "ecef" (earth-centred metres); sfm/georef.py
+    frame: str = "enu"
+    # an image whose centre ends farther than this many sigmas from its position prior is flagged in the report
+    prior_max_sigmas: float = bounded(4.0, 0.0, low_open=True)
 
     def validate(self, source: str | None) -> None:
         """An InputError naming `source` (the config file that set it) for an optimizer or mapper that does not
@@ -96,6 +102,8 @@ class MapperConfig:
         if 0 < self.partition_size < MIN_PARTITION_SIZE:
             raise InputError(f"{source or '--partition-size'}: partition size must be 0 (no parts) or at "
                              f"least {MIN_PARTITION_SIZE}, not {self.partition_size}")
+        if self.frame not in FRAMES:
+            raise InputError(f"{source}: mapper frame must be one of {', '.join(FRAMES)}, not {self.frame!r}")
         if self.optimizer not in OPTIMIZERS:
             raise InputError(f"{source}: mapper optimizer must be one of {', '.join(OPTIMIZERS)}, "
                              f"not {self.optimizer!r}")

@@ -30,6 +30,7 @@ from . import filtering
 from .ba_points import select_points
 from .bundle import bundle_adjust as _bundle_adjust
 from .config import MapperConfig
+from .georef import CenterPriors, georeference
 from .initialize import evaluate_pair, find_initial_pair, initial_pair_rejections, rejected_for_few_inliers
 from .model import KeypointSet, Reconstruction, image_status, images_and_cameras
 from .register import CandidateRanking, correspondences_2d3d, rank_candidates, register_image
@@ -108,6 +109,8 @@ def _signature(corr, config: MapperConfig) -> tuple:
         inl = np.ascontiguousarray(p.inliers, np.int64)
         add("pair", int(p.image_id1), int(p.image_id2), p.config, inl.shape)
         h.update(inl.tobytes())
+    for iid, prior in sorted(corr.priors.items()):  # none without priors: the signature stays as it was
+        add("prior", int(iid), prior.coordinate_system, prior.position.tolist(), prior.covariance.tolist())
     return (config_hash(config), len(corr.images), len(corr.pairs), h.hexdigest())
 
 
@@ -126,6 +129,7 @@ class IncrementalMapper:
                 self.pairs[(a, b) if a < b else (b, a)] = p if a < b else _swapped(p)
         self.tracks = build_tracks(self.image_ids, [len(k) for k in self.keypoints], corr.pairs)
         self.snapshot = _Snapshot(snapshot_path, _signature(corr, config))
+        self.priors = CenterPriors.of(corr.priors)  # camera position priors (georef.py), None without
         self.finished: list[Reconstruction] = []
         # the largest model finished under min_model_size (the first of equals), kept only if no model reaches it
         self.small: Reconstruction | None = None
@@ -189,6 +193,7 @@ class IncrementalMapper:
         iterations to get there, against 1630 px in the 13-image model)."""
         m = Reconstruction(self.image_ids, self.names, self.camera_of, self.cameras, self.keypoints,
                            len(self.tracks))
+        m.priors = self.priors
         for cid, params in self._calibrated_cameras().items():
             cam = m.cameras[cid]
             cam.params, cam.prior_trusted = params.copy(), True
@@ -582,6 +587,7 @@ class IncrementalMapper:
                                 refine_intrinsics=intr, refine_distortion=dist,
                                 max_iterations=cfg.global_ba_iterations, relative_tolerance=relative_tolerance)
 
+        georeference(m, cfg.seed)  # into the priors' frame once they allow it (no-op without priors)
         filtering.plausible_bundle(m, intrinsics, distortion, adjust)
 
     def _close_loops(self, m: Reconstruction) -> None:

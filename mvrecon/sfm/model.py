@@ -181,6 +181,8 @@ class Reconstruction:
         self.scanned = 0  # entries visited by queries (observations, keypoints, track elements): the work count
         self._normalized_cache: dict = {}
         self._ba_factors: tuple = (None, {})  # (loss width, observation -> GTSAM factor), sfm/bundle.py
+        self.priors = None  # georef.CenterPriors of the images, or None
+        self.georeferenced = False  # moved into the priors' frame: the BAs hold the centres to them (georef.py)
 
     # ----- images -----
     def register(self, i: int, R: np.ndarray, t: np.ndarray) -> None:
@@ -430,6 +432,7 @@ class Reconstruction:
         s.update({k: getattr(self, k).data.copy() for k in self._BUFFERS})
         s["names"] = list(self.names)
         s["registration_order"] = list(self.registration_order)
+        s["priors"], s["georeferenced"] = self.priors, self.georeferenced
         s["cameras"] = {k: (c.model, c.width, c.height, c.params.copy(), c.prior_trusted, c.prior_focal)
                         for k, c in self.cameras.items()}
         return s
@@ -444,6 +447,7 @@ class Reconstruction:
         for k in cls._BUFFERS:
             setattr(m, k, _Buffer.of(s[k]))
         m.registration_order = list(s["registration_order"])
+        m.priors, m.georeferenced = s.get("priors"), bool(s.get("georeferenced", False))
         # the indexes of the alive observations (`add_observations` keeps them up to date)
         m.obs_next = _Buffer.of(np.full(m.obs_point.n, -1, np.int64))
         m.point_first_obs = _Buffer.of(np.full(m.xyz.n, -1, np.int64))

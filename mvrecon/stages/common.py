@@ -29,6 +29,9 @@ class FrontendConfig:
     # folder of masks (io/masks.py); out of the hash, so that runs without masks keep their records, and
     # recorded by the features stage and reconstruct's hash when given
     masks: str = field(default="", metadata={"hash": False})
+    # a CSV file of camera positions (io/pose_priors.py) that replaces the images' EXIF GPS as the database's pose
+    # priors; out of the hash like `masks`, and recorded in reconstruct's hash by its content when given
+    pose_priors: str = field(default="", metadata={"hash": False})
 
 
 def worker_count(config: FrontendConfig) -> int:

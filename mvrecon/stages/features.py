@@ -35,6 +35,7 @@ from ..io.images import (
     read_image_for_detection,
 )
 from ..io.masks import check_masks, find_masks, keypoints_outside_mask, mask_path
+from ..io.pose_priors import exif_priors, read_priors_csv
 from ..progress import progress
 from ..workspace import Workspace
 from .common import FrontendConfig, as_workspace, stats_text, worker_count
@@ -288,6 +289,7 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
     names = [n for n in names if n in metas]
     check_masks(masks, folder, metas)
     groups = group_cameras(names, metas, config.camera)
+    priors = _pose_priors(config, folder, names)
     if before_changes is not None:
         before_changes()
     if ws.begin_stage("features", record, overwrite):
@@ -331,12 +333,22 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
                     on_image(name)
         counts = {n: dbmod.num_keypoints(db, existing[n].image_id) for n in names if n in existing}
         counts = {n: c for n, c in counts.items() if n not in failed}
+        dbmod.write_pose_priors(db, {existing[n].image_id: p for n, p in priors.items() if n in counts})
+        if priors:
+            log.info("pose priors: %d of %d images (%s)", len(priors), len(counts), config.pose_priors or "EXIF GPS")
         num_cameras = len({existing[n].camera_id for n in counts})
     write_json(ws.path / STAMPS, stamps)
     if len(counts) < 2:
         _too_few(folder, len(counts), failed)
     return FeatureSummary(num_images=len(counts), num_extracted=extracted, keypoints=counts, failed=failed,
                           skipped=skipped, num_cameras=num_cameras, keypoint_colors=colors)
+
+
+def _pose_priors(config: FrontendConfig, folder: Path, names: list[str]) -> dict:
+    """name -> pose prior for the database (COLMAP's pose_priors table): the camera positions of the
+    `pose_priors` CSV file when given (a bad file refused here, before any change), else those of the images'
+    EXIF GPS (io/pose_priors.py). Rewritten on every run, so that they follow the file."""
+    return read_priors_csv(config.pose_priors, names) if config.pose_priors else exif_priors(folder, names)
 
 
 def _probe(folder: Path, names: list[str], failed: dict[str, str]) -> dict:

@@ -19,8 +19,10 @@ from ..cameras import report_entry
 from ..config import to_dict
 from ..errors import InputError
 from ..io.colmap_model import warn_text_names, write_models, write_points_ply
+from ..io.files import write_json
 from ..matching.overlay import fixed_keypoints, same_view
 from ..sfm.config import MapperConfig
+from ..sfm.georef import CenterPriors, georeference_models
 from ..sfm.model import Reconstruction
 from ..workspace import Workspace
 from .common import as_workspace, holding_workspace
@@ -37,6 +39,7 @@ class MapSummary:
     status: dict  # image name -> {"status", "model", "reason"}
     model_stats: list  # per model: registered, points, mean_track_length, mean_reprojection_error_px, cameras
     seconds: float = 0.0
+    georef: dict | None = None  # with position priors: sfm.georef.georeference_models' report entry
 
     def text(self) -> str:
         n = sum(1 for s in self.status.values() if s["status"] == "registered")
@@ -92,14 +95,30 @@ def map_workspace(config: MapperConfig, workspace: Workspace | Path | str, *,
         result = map_in_parts(corr, config, ws, resume)
     else:
         result = _run_mapper(corr, config, snapshot, resume)
+    georef = georeference_models(result.models, CenterPriors.of(corr.priors), frame=config.frame,
+                                 max_sigmas=config.prior_max_sigmas, seed=config.seed)
     _write_models(ws, result.models, image_dir, text, keypoint_colors)
+    _write_georef(ws, georef)
     stats = []
     for m in result.models:
         s = m.stats()
         stats.append({**{k: s[k] for k in ("registered", "points", "mean_track_length",
                                            "mean_reprojection_error_px")}, "cameras": camera_entries(m)})
     return MapSummary(models=result.models, status=result.status, model_stats=stats,
-                      seconds=time.perf_counter() - start)
+                      seconds=time.perf_counter() - start, georef=georef)
+
+
+GEOREF = "georef.json"  # in the workspace: the frame of the models and its origin, with position priors
+
+
+def _write_georef(ws: Workspace, georef: dict | None) -> None:
+    """The workspace's record of the models' frame (frame and ENU origin), or none without priors."""
+    path = ws.path / GEOREF
+    if georef is None:
+        path.unlink(missing_ok=True)
+        return
+    write_json(path, {"frame": georef["frame"], "origin": georef["origin"],
+                      "models": [{k: v for k, v in m.items() if k != "flagged"} for m in georef["models"]]}, indent=1)
 
 
 def _run_mapper(corr, config, snapshot: Path, resume: bool):

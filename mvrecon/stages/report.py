@@ -29,6 +29,8 @@ def write_report(out_dir: Path | str, *, config_hash: str, seed: int, summary: M
               "database": database or {"made_by": "mvrecon"}}
     if pairs is not None:
         report["pairs"] = pairs
+    if summary.georef is not None:
+        report["georef"] = summary.georef
     write_json(Path(out_dir) / "report.json", report, indent=1)
     return report
 
