@@ -26,6 +26,7 @@ from ..database import Correspondences
 from ..geometry.camera import num_distortion_terms
 from ..io.files import replace_whole
 from ..progress import progress
+from ..startup import hand_back_freed_memory
 from . import filtering
 from .ba_points import select_points
 from .bundle import bundle_adjust as _bundle_adjust
@@ -520,7 +521,7 @@ class IncrementalMapper:
         continue_points(m, self.tracks, cfg, images=[i])
         triangulate_tracks(m, self.tracks, tracks_of_image(m, self.tracks, i), cfg, cfg.seed + i)
         log.debug("registered %s (%d images, %d points)", self.names[i], int(m.registered.sum()),
-                  len(m.alive_points()))
+                  m.num_points)
         if m.registered.sum() >= cfg.global_ba_growth * self.last_global:
             self._global_refine(m, growing=True)
             self.last_global = int(m.registered.sum())
@@ -572,6 +573,7 @@ class IncrementalMapper:
             if changed < min_change * max(int(alive_before.sum()), 1):
                 break
         self.since_global = set()
+        hand_back_freed_memory()
 
     def _growth_images(self, m: Reconstruction) -> np.ndarray | None:
         """The images a global BA during growth optimises: None (every image) up to growth_ba_max_images
