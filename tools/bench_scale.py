@@ -328,6 +328,12 @@ COLMAP (pycolmap) on the same rendered scenes.
 - **Memory.** *peak MB* below includes the worker processes, one per core: `--workers N` runs fewer. An
   interrupted run keeps its features and matches; `--resume` continues its mapping.
 - **Time.** Multiply the 1,000-image time by (N / 1,000) ** exponent (table below) for a first guess at N images.
+- **Mapping.** Past 100 registered images, a global bundle adjustment during growth moves 100 images (those
+  registered since the last one and the images sharing the most points with them) and holds the others;
+  `growth_ba_max_images` in the `[mapper]` table of `--config` sets the number (0: every image). The model's
+  last refinement moves every image and point, and holds the run's peak memory: GTSAM's solver keeps, per 3D
+  point, a dense block over the cameras that see it, so that memory grows with points x views per point squared
+  (a 150-view orbit, 29,000 points seen 10 times on average: 0.8 GB).
 """
 
 HOW = """

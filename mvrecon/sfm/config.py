@@ -55,6 +55,9 @@ class MapperConfig:
     global_ba_iterations: int = bounded(50, 1)
     # a global BA runs when the registered count grows by this factor (COLMAP: ba_global_images_ratio)
     global_ba_growth: float = bounded(1.1, 1.0, low_open=True)
+    # above this many registered images a global BA during growth optimises this many: those registered
+    # since the last one and the images sharing the most points with them, the others held (0: every image)
+    growth_ba_max_images: int = bounded(100, 0)
     # LM stops when an iteration lowers the cost by less than this (1e-4: same models, 30% more BA time)
     ba_relative_tolerance: float = bounded(1e-3, 0.0, 1.0, low_open=True)
     # the final refinement's tolerance when a camera is a four-term lens, whose focal and k1..k4 trade off

@@ -26,6 +26,7 @@ from ..database import Correspondences
 from ..geometry.camera import num_distortion_terms
 from ..io.files import replace_whole
 from ..progress import progress
+from ..startup import hand_back_freed_memory
 from . import filtering
 from .ba_points import select_points
 from .bundle import bundle_adjust as _bundle_adjust
@@ -146,6 +147,7 @@ class IncrementalMapper:
         self.reasons: dict[int, str] = {}
         self.current: Reconstruction | None = None
         self.last_global = 0
+        self.since_global: set[int] = set()  # images registered since the current model's last global refinement
         self.attempts: dict[int, tuple] = {}  # image -> (failed trials, the model's state at the last one)
         self.stalled_at = -1  # the size at which the current model last stopped growing (`_grow`)
         self.ba_calls, self.ba_seconds = 0, 0.0
@@ -218,6 +220,7 @@ class IncrementalMapper:
                             "current": self.current.state() if self.current is not None else None,
                             "tried_init": set(self.tried_init), "reasons": dict(self.reasons),
                             "last_global": self.last_global, "attempts": dict(self.attempts),
+                            "since_global": set(self.since_global),
                             "stalled_at": self.stalled_at, "undecided": dict(self.undecided),
                             "dropped_starts": set(self.dropped_starts), "start_key": self.start_key,
                             "init_min_inliers": self.init_config.init_min_inliers})
@@ -229,6 +232,7 @@ class IncrementalMapper:
         self.tried_init, self.reasons = s["tried_init"], s["reasons"]
         self.last_global, self.attempts, self.stalled_at = s["last_global"], s["attempts"], s["stalled_at"]
         self.undecided = s["undecided"]
+        self.since_global = s.get("since_global", set())
         self.dropped_starts, self.start_key = s.get("dropped_starts", set()), s.get("start_key")
         self.init_config = replace(self.config, init_min_inliers=s.get("init_min_inliers",
                                                                         self.config.init_min_inliers))
@@ -318,6 +322,7 @@ class IncrementalMapper:
                          self.names[init.image1], self.names[init.image2], points, least)
                 continue
             self.current, self.last_global, self.attempts, self.start_key = m, 2, {}, key
+            self.since_global = set()
             self.stalled_at = -1
             self._save()
             return True
@@ -505,6 +510,7 @@ class IncrementalMapper:
             log.debug("%s: %s", self.names[i], reg.reason)
             return False
         self.reasons.pop(i, None)
+        self.since_global.add(i)
         adjusted = self._after_registration(m, i)
         now, (since, scanned) = time.perf_counter(), self._since
         self.registrations.append((int(m.registered.sum()), m.num_points, now - since, m.scanned - scanned, adjusted))
@@ -520,7 +526,7 @@ class IncrementalMapper:
         continue_points(m, self.tracks, cfg, images=[i])
         triangulate_tracks(m, self.tracks, tracks_of_image(m, self.tracks, i), cfg, cfg.seed + i)
         log.debug("registered %s (%d images, %d points)", self.names[i], int(m.registered.sum()),
-                  len(m.alive_points()))
+                  m.num_points)
         if m.registered.sum() >= cfg.global_ba_growth * self.last_global:
             self._global_refine(m, growing=True)
             self.last_global = int(m.registered.sum())
@@ -556,34 +562,66 @@ class IncrementalMapper:
 
     def _global_refine(self, m: Reconstruction, rounds: int = 1, growing: bool = False,
                        min_change: float = 0.0, relative_tolerance=None) -> None:
-        """Up to `rounds` of global BA (on a point subset while `growing`; LM to `relative_tolerance` when given),
-        retriangulation and filtering; stops early once a round adds and removes fewer than `min_change` of
-        the observations (COLMAP's iterative global refinement)."""
+        """Up to `rounds` of global BA (while `growing`: on a point subset, and of `_growth_images` once the
+        model is large; LM to `relative_tolerance` when given), retriangulation and filtering (of the
+        optimised images' tracks and points); stops early once a round adds and removes fewer than `min_change`
+        of the observations (COLMAP's iterative global refinement)."""
         cfg = self.config
+        images = self._growth_images(m) if growing else None
         for _ in range(rounds):
             alive_before, n_before = m.obs_alive.data.copy(), m.obs_alive.n
-            self._global_bundle(m, growing, relative_tolerance=relative_tolerance)
-            retriangulate(m, self.tracks, cfg, cfg.seed)
-            self._filter(m)
+            self._global_bundle(m, growing, relative_tolerance=relative_tolerance, images=images)
+            retriangulate(m, self.tracks, cfg, cfg.seed, images=images)
+            self._filter(m, None if images is None else self._points_of(m, images))
             changed = (m.obs_alive.n - n_before) + int((alive_before & ~m.obs_alive.data[:n_before]).sum())
             log.debug("global refinement changed %d of %d observations", changed, int(alive_before.sum()))
             if changed < min_change * max(int(alive_before.sum()), 1):
                 break
+        self.since_global = set()
+        hand_back_freed_memory()
 
-    def _global_bundle(self, m: Reconstruction, growing: bool, keep=(), relative_tolerance=None) -> None:
-        """Global BA of every registered image. One that leaves a camera implausible (focal 10x off its prior
-        or |k| > 1, COLMAP's bogus-camera test) is undone and repeated with the distortion fixed, then with all
-        intrinsics fixed: in a small model a guessed focal and the distortion trade off against each other
-        (templeRing blurred: k1 -1.7 as the focal doubled), and dropping the images would not repair the
-        camera they share. Fires only on the degraded temples: a plausible camera (blurred: f 1599, k1 0 for
-        the true 1520, 0; without: 1669, -1.26) for poses 0.004-0.024 lower in AUC@5 ("Mapper rules")."""
+    def _growth_images(self, m: Reconstruction) -> np.ndarray | None:
+        """The images a global BA during growth optimises: None (every image) up to growth_ba_max_images
+        registered images; beyond, that many: the images registered since the last global refinement (the
+        latest registered when there are none, or too many) and the registered images sharing the most points
+        with them. The others are held, so the BA, its retriangulation and its filters cost in proportion to the
+        subset (intrinsics too are held: `bundle_adjust` refines a camera only when all its images move), and
+        the model's end still refines every image (`_finish_model`)."""
+        cap = self.config.growth_ba_max_images
+        if cap <= 0 or int(m.registered.sum()) <= cap:
+            return None
+        recent = [i for i in m.registration_order if i in self.since_global] or m.registration_order
+        chosen = np.array(recent[-cap:], np.int64)
+        if len(chosen) < cap:
+            counts = np.bincount(m.obs_image.data[m.observations_of_points(self._points_of(m, chosen))],
+                                 minlength=len(m.image_ids))
+            counts[chosen] = 0
+            best = np.argsort(-counts, kind="stable")[:cap - len(chosen)]
+            chosen = np.r_[chosen, best[counts[best] > 0]]
+        return np.sort(chosen)
+
+    @staticmethod
+    def _points_of(m: Reconstruction, images) -> np.ndarray:
+        return np.unique(m.obs_point.data[m.observations_of_images(images)])
+
+    def _global_bundle(self, m: Reconstruction, growing: bool, keep=(), relative_tolerance=None,
+                       images: np.ndarray | None = None) -> None:
+        """Global BA of every registered image (or of `images`, the others held). One that leaves a camera
+        implausible (focal 10x off its prior or |k| > 1, COLMAP's bogus-camera test) is undone and repeated with
+        the distortion fixed, then with all intrinsics fixed: in a small model a guessed focal and the
+        distortion trade off against each other (templeRing blurred: k1 -1.7 as the focal doubled), and dropping
+        the images would not repair the camera they share. Fires only on the degraded temples: a plausible
+        camera (blurred: f 1599, k1 0 for the true 1520, 0; without: 1669, -1.26) for poses 0.004-0.024 lower
+        in AUC@5 ("Mapper rules")."""
         cfg = self.config
         n = int(m.registered.sum())
         intrinsics = cfg.refine_intrinsics and n >= cfg.focal_min_images
         distortion = n >= cfg.distortion_min_images
+        variable = m.registered_images() if images is None else images
+        points = m.alive_points() if images is None else self._points_of(m, images)
 
         def adjust(intr: bool, dist: bool) -> None:
-            self._bundle_points(m, m.registered_images(), m.alive_points(), growing, keep,
+            self._bundle_points(m, variable, points, growing, keep,
                                 refine_intrinsics=intr, refine_distortion=dist,
                                 max_iterations=cfg.global_ba_iterations, relative_tolerance=relative_tolerance)
 

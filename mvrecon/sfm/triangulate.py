@@ -223,9 +223,11 @@ def tracks_of_image(model: Reconstruction, tracks: Tracks, image: int) -> np.nda
 
 
 def retriangulate(model: Reconstruction, tracks: Tracks, config: MapperConfig,
-                  seed: int = 0) -> tuple[int, int]:
+                  seed: int = 0, images: np.ndarray | list[int] | None = None) -> tuple[int, int]:
     """Continue all points into every registered view and triangulate the tracks still without a point
-    (COLMAP's retriangulation after global BA, which recovers points lost to earlier poor poses).
+    (COLMAP's retriangulation after global BA, which recovers points lost to earlier poor poses). With
+    `images`, only the tracks through those images: after a bundle adjustment of a subset, the tracks it could
+    have changed, at a cost in proportion to the subset rather than to every track.
 
     A track that fails is tried again only once it has gained a registered view, or once a camera has
     changed (any parameter by more than 0.5%, relative to max(|value|, 1)) since the tracks were last all
@@ -234,20 +236,36 @@ def retriangulate(model: Reconstruction, tracks: Tracks, config: MapperConfig,
     Python time on opensfm_lund (29 images, 1024 x 768); but tracks spoilt by a wrong focal or distortion do
     triangulate once the camera is found (wide_orbit_small's AUC@1 fell from 0.45 to 0.40 without the reset).
     """
-    added_obs = continue_points(model, tracks, config)
+    added_obs = continue_points(model, tracks, config, images=images)
     params = np.concatenate([model.cameras[c].params for c in sorted(model.cameras)])
     before = model.tri_failed_params
     if len(before) != len(params) or np.max(np.abs(params - before) / np.maximum(np.abs(before), 1)) > 5e-3:
         model.tri_failed_views[:] = 0
         model.tri_failed_params = params.copy()
-    registered_count = np.bincount(tracks.element_track, weights=model.registered[tracks.image],
-                                   minlength=len(tracks)).astype(np.int64)
-    cand = np.flatnonzero((registered_count >= 2) & (model.point_of_track < 0)
-                          & (registered_count > model.tri_failed_views))
+    if images is None:
+        track_ids = np.arange(len(tracks))
+        registered_count = np.bincount(tracks.element_track, weights=model.registered[tracks.image],
+                                       minlength=len(tracks)).astype(np.int64)
+    else:
+        track_ids = np.unique(tracks.element_track[tracks.elements_of_images(images)])
+        registered_count = _registered_views(model, tracks, track_ids)
+    open_ = ((registered_count >= 2) & (model.point_of_track[track_ids] < 0)
+             & (registered_count > model.tri_failed_views[track_ids]))
+    cand, registered_count = track_ids[open_], registered_count[open_]
     made = triangulate_tracks(model, tracks, cand, config, seed)
-    failed = cand[model.point_of_track[cand] < 0]
-    model.tri_failed_views[failed] = registered_count[failed]
+    failed = model.point_of_track[cand] < 0
+    model.tri_failed_views[cand[failed]] = registered_count[failed]
     return made, added_obs
+
+
+def _registered_views(model: Reconstruction, tracks: Tracks, track_ids: np.ndarray) -> np.ndarray:
+    """The registered views of each of `track_ids`, visiting only their elements."""
+    lengths = tracks.ptr[track_ids + 1] - tracks.ptr[track_ids]
+    owner = np.repeat(np.arange(len(track_ids)), lengths)
+    elements = tracks.ptr[track_ids][owner] + np.arange(len(owner)) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    model.scanned += len(elements)
+    return np.bincount(owner, weights=model.registered[tracks.image[elements]],
+                       minlength=len(track_ids)).astype(np.int64)
 
 
 def refine_existing_points(model: Reconstruction, point_ids: np.ndarray, iterations: int = 3) -> None:

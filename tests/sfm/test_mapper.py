@@ -880,3 +880,33 @@ def test_a_long_run_resumes_after_ctrl_c_from_its_last_snapshot(wall, tmp_path, 
     m, w = resumed.models[0], whole.models[0]
     assert np.array_equal(m.registered, w.registered) and m.num_points == w.num_points
     assert np.abs(m.R - w.R).max() < 1e-9 and np.abs(m.t - w.t).max() < 1e-9
+
+
+@pytest.mark.slow
+def test_global_bundle_adjustments_during_growth_optimise_a_bounded_subset(monkeypatch):
+    """Past growth_ba_max_images (8 here) a global BA during growth moves at most 8 images: those registered
+    since the last one and the images sharing the most points with them, the rest held; the model's final BA
+    still moves every image, and the 24-view wall keeps the accuracy of BAs of every image (its trusted camera
+    held: the focal is what a wall barely observes, and a bounded BA holds it)."""
+    corr, gt = corridor_views(24)
+    calls = []
+    original = incremental._bundle_adjust
+
+    def recording(model, images, config, **kwargs):
+        calls.append((int(model.registered.sum()), np.unique(images).tolist(), set(mapper.since_global)))
+        return original(model, images, config, **kwargs)
+
+    monkeypatch.setattr(incremental, "_bundle_adjust", recording)
+    mapper = incremental.IncrementalMapper(corr, MapperConfig(growth_ba_max_images=8, refine_intrinsics=False))
+    result = mapper.run()
+    summary = accuracy_summary(estimated_poses(result), gt)
+    assert summary["registered"] == 24 and summary["components"] == 1
+    assert summary["auc@5"] >= 0.98 and summary["auc@1"] >= 0.93  # 0.988 and 0.941 with BAs of every image
+    bounded = [(n, images, recent) for n, images, recent in calls if n > 8 and len(images) > 6]
+    assert len(bounded) >= 3  # growth ratios 1.1 between 9 and 24 images
+    for n, images, recent in bounded[:-1]:
+        if n < 24:
+            assert len(images) == 8 and recent <= set(images)
+    assert calls[-1][1] == list(range(24))  # the final BA: every image
+    held = [n - len(images) for n, images, _ in bounded if len(images) == 8]
+    assert max(held) >= 12  # the held images grow with the model, the optimised ones do not
