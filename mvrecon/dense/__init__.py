@@ -9,6 +9,6 @@ mesh, in COLMAP's dense workspace layout (`run_dense`).
 - run.py: `run_dense`, the steps in order, in worker processes, resumable.
 """
 
-from .run import DenseSettings, DenseSummary, run_dense
+from .run import DenseSettings, DenseSummary, dense_from_run, run_dense
 
-__all__ = ["DenseSettings", "DenseSummary", "run_dense"]
+__all__ = ["DenseSettings", "DenseSummary", "dense_from_run", "run_dense"]

@@ -29,6 +29,7 @@ from ..io.images import write_image
 from ..io.ply import write_ply
 from ..io.record import Record, code_digest, digest
 from ..progress import progress
+from ..workspace import Workspace
 from .fuse import DepthView, fuse, geometric_filter
 from .mesh import poisson_mesh
 from .select import select_sources
@@ -264,6 +265,28 @@ def run_dense(model_dir: Path | str, image_dir: Path | str, out_dir: Path | str,
     record.prune()
     summary.seconds = time.perf_counter() - t_start
     return summary
+
+
+def dense_from_run(run_dir: Path | str, out_dir: Path | str | None = None, *, model_dir: Path | str | None = None,
+                   image_dir: Path | str | None = None, **options) -> DenseSummary:
+    """`run_dense` on the output folder of `mvrecon reconstruct`: its largest model (RUN/sparse/0 unless
+    `model_dir`), the images it was made from (recorded by its features stage, unless `image_dir`), its
+    database; into RUN/dense unless `out_dir`. `options` go to `run_dense`. InputError naming the folder when
+    it is not a run with a model."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise InputError(f"{run_dir}: no such run folder (the output folder of `mvrecon reconstruct`)")
+    model = Path(model_dir) if model_dir else run_dir / "sparse" / "0"
+    if not (model / "images.bin").is_file() and not (model / "images.txt").is_file():
+        raise InputError(f"{model}: no sparse model here (run `mvrecon reconstruct` first, or pass --model)")
+    if image_dir is None:
+        features = Workspace(run_dir).stage_config("features")
+        if not features or "images" not in features:
+            raise InputError(f"{run_dir}: cannot tell where its images are; pass --image-dir")
+        image_dir = features["images"]
+    out = Path(out_dir) if out_dir else run_dir / "dense"
+    with Workspace(run_dir).lock():  # another run writing the folder (a `reconstruct --overwrite`) is refused
+        return run_dense(model, image_dir, out, database=run_dir / "database.db", **options)
 
 
 def _fuse_and_mesh(dense_dir: Path, views: list[View], selections, settings: DenseSettings, mesh: bool) -> dict:
