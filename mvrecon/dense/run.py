@@ -33,7 +33,7 @@ from ..workspace import Workspace
 from .fuse import DepthView, fuse, geometric_filter
 from .mesh import poisson_mesh
 from .select import select_sources
-from .sweep import normals_from_depth, sweep_depth
+from .sweep import normals_from_depth, pyramid_depth, warm_up
 from .views import View, read_views, undistort_into
 
 log = logging.getLogger(__name__)
@@ -44,22 +44,20 @@ BEST_K = 2  # each plane's cost: the mean of the best BEST_K source costs (a pix
 
 @dataclass
 class DenseSettings:
-    """What the depth maps are made with. `planes` 0: as many as the widest source's disparity range in pixels,
-    within [min_planes, max_planes]."""
+    """What the depth maps are made with (`sweep.pyramid_depth`, `fuse.geometric_filter`)."""
 
     views: int = 8
     window: int = 7
-    planes: int = 0
-    min_planes: int = 96
-    max_planes: int = 256
+    coarse_size: int = 400
     max_cost: float = 0.5
     rel_tolerance: float = 0.01
+    max_reprojection: float = 2.0
     min_consistent: int = 2
 
 
 @dataclass
 class DenseSummary:
-    """What `run_dense` made: the dense folder, per view its depth map's figures (sources, planes, valid and
+    """What `run_dense` made: the dense folder, per view its depth map's figures (sources, valid and
     kept shares of pixels, seconds) or the reason it has none, the fused points and the mesh."""
 
     dense_dir: Path
@@ -102,39 +100,33 @@ def _relative(ref: View, src: View) -> tuple[np.ndarray, np.ndarray]:
     return R, src.t - R @ ref.t
 
 
-def plane_count(ref: View, sources: list[View], depth_range: tuple[float, float], settings: DenseSettings) -> int:
-    """Planes so that neighbouring planes move a pixel about one pixel in the widest-baseline source."""
-    if settings.planes > 0:
-        return settings.planes
-    near, far = depth_range
-    baseline = max(np.linalg.norm(ref.center - s.center) for s in sources)
-    disparity = ref.K[0, 0] * baseline * (1.0 / near - 1.0 / far)
-    return int(np.clip(np.ceil(disparity), settings.min_planes, settings.max_planes))
-
-
 def _photometric_job(job) -> dict:
     """Worker: the photometric depth and normal maps of one view, written to the workspace."""
-    dense_dir, ref, sources, depth_range, planes, settings = job
+    dense_dir, ref, sources, depth_range, settings = job
     t0 = time.perf_counter()
     cost_sources = sources[:COST_SOURCES]
-    depth, _ = sweep_depth(_grey(dense_dir, ref.name), [_grey(dense_dir, s.name) for s in cost_sources], ref.K,
-                           [s.K for s in cost_sources], [_relative(ref, s) for s in cost_sources], depth_range,
-                           planes, window=settings.window, best_k=BEST_K, max_cost=settings.max_cost)
+    c0 = time.process_time()
+    depth, _ = pyramid_depth(_grey(dense_dir, ref.name), [_grey(dense_dir, s.name) for s in cost_sources], ref.K,
+                             [s.K for s in cost_sources], [_relative(ref, s) for s in cost_sources], depth_range,
+                             coarse_size=settings.coarse_size, window=settings.window, best_k=BEST_K,
+                             max_cost=settings.max_cost)
     _write_maps(dense_dir, ref, depth, "photometric")
-    return {"valid": float(np.mean(depth > 0)), "planes": planes, "seconds": time.perf_counter() - t0}
+    return {"valid": float(np.mean(depth > 0)), "seconds": time.perf_counter() - t0,
+            "cpu_seconds": time.process_time() - c0}
 
 
 def _geometric_job(job) -> dict:
     """Worker: the geometric depth and normal maps of one view (its depths confirmed by its sources)."""
     dense_dir, ref, sources, settings = job
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     ref_view = DepthView(ref, read_colmap_array(depth_path(dense_dir, ref.name, "photometric")))
     src_views = [DepthView(s, read_colmap_array(depth_path(dense_dir, s.name, "photometric"))) for s in sources]
     depth = geometric_filter(ref_view, src_views, rel_tolerance=settings.rel_tolerance,
-                             min_consistent=settings.min_consistent)
+                             max_reprojection=settings.max_reprojection, min_consistent=settings.min_consistent)
     _write_maps(dense_dir, ref, depth, "geometric")
     _write_preview(dense_dir, ref.name, depth)
-    return {"kept": float(np.mean(depth > 0)), "seconds": time.perf_counter() - t0}
+    return {"kept": float(np.mean(depth > 0)), "seconds": time.perf_counter() - t0,
+            "cpu_seconds": time.process_time() - c0}
 
 
 def _write_maps(dense_dir: Path, view: View, depth: np.ndarray, kind: str) -> None:
@@ -206,15 +198,15 @@ def run_dense(model_dir: Path | str, image_dir: Path | str, out_dir: Path | str,
             summary.skipped[view.name] = sel.reason
             continue
         sources = [all_views[i] for i in sel.sources]
-        planes = plane_count(view, sources[:COST_SOURCES], sel.depth_range, settings)
-        keys[view.name] = digest(model_key, code, view.name, sel.sources, sel.depth_range, planes,
-                                 vars(settings))
+        keys[view.name] = digest(model_key, code, view.name, sel.sources, sel.depth_range, vars(settings))
         files = [depth_path(dense_dir, view.name, "photometric").relative_to(dense_dir)]
         if record.get(f"photometric/{view.name}", keys[view.name], files) is None:
             record.drop(f"photometric/{view.name}")
-            jobs[view.name] = (dense_dir, view, sources, sel.depth_range, planes, settings)
+            jobs[view.name] = (dense_dir, view, sources, sel.depth_range, settings)
     t_depth = time.perf_counter()
     photometric = {name: record.report(f"photometric/{name}") for name in keys if name not in jobs}
+    if jobs:
+        warm_up()  # the numba kernels compiled and cached once, before the workers load them
     with WorkerPool(min(workers, max(len(jobs), 1))) as pool:
         results = pool.map(_photometric_job, list(jobs.values()), name=lambda job: job[1].name)
         for name, report in progress(zip(jobs, results), total=len(jobs), desc="depth maps", unit="view"):
@@ -248,9 +240,9 @@ def run_dense(model_dir: Path | str, image_dir: Path | str, out_dir: Path | str,
     for name, report in geometric.items():
         view = by_name[name]
         summary.views[name] = {"sources": [all_views[i].name for i in selections[view.index].sources],
-                               "planes": photometric[name]["planes"], "valid": photometric[name]["valid"],
-                               "kept": report["kept"],
-                               "seconds": photometric[name]["seconds"] + report["seconds"]}
+                               "valid": photometric[name]["valid"], "kept": report["kept"],
+                               "seconds": photometric[name]["seconds"] + report["seconds"],
+                               "cpu_seconds": photometric[name]["cpu_seconds"] + report["cpu_seconds"]}
         summary.megapixels += view.width * view.height / 1e6
 
     # fusion and mesh
@@ -296,7 +288,8 @@ def _fuse_and_mesh(dense_dir: Path, views: list[View], selections, settings: Den
         depth_views.append(DepthView(view, read_colmap_array(depth_path(dense_dir, view.name, "geometric")),
                                      read_colmap_array(normal_path(dense_dir, view.name, "geometric")),
                                      bgr[:, :, ::-1], tuple(selections[view.index].sources)))
-    xyz, rgb, normals = fuse(depth_views, rel_tolerance=settings.rel_tolerance)
+    xyz, rgb, normals = fuse(depth_views, rel_tolerance=settings.rel_tolerance,
+                             max_reprojection=settings.max_reprojection)
     replace_whole(dense_dir / "fused.ply", lambda tmp: write_ply(tmp, xyz, rgb, normals))
     report = {"points": len(xyz)}
     if mesh and len(xyz) >= 100:
