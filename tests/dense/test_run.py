@@ -75,3 +75,12 @@ def test_dense_on_a_plane(tmp_path):
 def test_a_folder_without_a_model_is_refused(tmp_path):
     with pytest.raises(InputError, match="no COLMAP model"):
         run_dense(tmp_path, tmp_path, tmp_path / "dense")
+
+
+def test_the_command_refuses_a_folder_without_a_run_or_model(tmp_path, capsys):
+    from mvrecon.cli import main
+
+    assert main(["-q", "dense", str(tmp_path / "missing")]) == 2
+    assert "missing: no such run folder" in capsys.readouterr().err
+    assert main(["-q", "dense", str(tmp_path)]) == 2
+    assert f"{tmp_path / 'sparse' / '0'}: no sparse model here" in capsys.readouterr().err
