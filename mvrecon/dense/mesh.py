@@ -20,6 +20,11 @@ def poisson_mesh(points: np.ndarray, colors: np.ndarray, normals: np.ndarray, pa
         cloud.estimate_normals()
     else:
         cloud.normals = o3d.utility.Vector3dVector(normals)
+    # Poisson at `depth` resolves 2^depth cells along the longest side: points much closer than that add time
+    # (minutes for millions of fused points), not detail
+    extent = float(np.max(np.ptp(np.asarray(points, float), axis=0))) if len(points) else 0.0
+    if extent > 0:
+        cloud = cloud.voxel_down_sample(extent / 2 ** (depth + 1))
     mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(cloud, depth=depth)
     density = np.asarray(density)
     if len(density):
