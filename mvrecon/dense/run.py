@@ -13,6 +13,8 @@ and the others go on.
 """
 
 import logging
+import multiprocessing
+import signal
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -100,8 +102,17 @@ def _relative(ref: View, src: View) -> tuple[np.ndarray, np.ndarray]:
     return R, src.t - R @ ref.t
 
 
+def _quiet_end() -> None:
+    """In a worker: end quietly on the pool's SIGTERM. This module imports pycolmap (the export), whose glog
+    installs a handler that prints a stack dump when the pool ends its workers (executor._init_worker resets
+    the signal, but before the job's module is imported). In-process (one worker) the run's own handler stays."""
+    if multiprocessing.parent_process() is not None:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 def _photometric_job(job) -> dict:
     """Worker: the photometric depth and normal maps of one view, written to the workspace."""
+    _quiet_end()
     dense_dir, ref, sources, depth_range, settings = job
     t0 = time.perf_counter()
     cost_sources = sources[:COST_SOURCES]
@@ -117,6 +128,7 @@ def _photometric_job(job) -> dict:
 
 def _geometric_job(job) -> dict:
     """Worker: the geometric depth and normal maps of one view (its depths confirmed by its sources)."""
+    _quiet_end()
     dense_dir, ref, sources, settings = job
     t0, c0 = time.perf_counter(), time.process_time()
     ref_view = DepthView(ref, read_colmap_array(depth_path(dense_dir, ref.name, "photometric")))
