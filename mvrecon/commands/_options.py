@@ -161,6 +161,15 @@ def cluster_from_args(args: argparse.Namespace):
     return open_cluster(parse_cluster(args.cluster, args.cluster_security))
 
 
+def add_dense_options(parser, prefix: str = "") -> None:
+    """The dense options of `dense` (--max-image-size, --views) and `reconstruct --dense` (prefix "dense-":
+    its --max-image-size is SIFT's)."""
+    parser.add_argument(f"--{prefix}max-image-size", type=positive_int, default=1600,
+                        help="undistorted images (and depth maps) fit this long side (default 1600)")
+    parser.add_argument(f"--{prefix}views", type=positive_int, default=8,
+                        help="source views per depth map, chosen from the sparse model (default 8)")
+
+
 def add_frontend_options(parser: argparse.ArgumentParser) -> None:
     add_camera_options(parser)
     add_feature_options(parser)

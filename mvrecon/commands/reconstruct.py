@@ -23,6 +23,7 @@ from ..pipeline import ReconstructConfig, reconstruct
 from ..sfm.config import FRAMES, MAPPERS, OPTIMIZERS, MapperConfig
 from ..stages.common import FrontendConfig
 from ._options import (
+    add_dense_options,
     add_frontend_options,
     add_workspace,
     cluster_from_args,
@@ -85,6 +86,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_workspace(parser, "output folder (the workspace)", dest="output")
     add_frontend_options(parser)
     add_mapper_options(parser, standalone=False)
+    g = parser.add_argument_group("dense")
+    g.add_argument("--dense", action="store_true",
+                   help="then run `mvrecon dense` on the largest model: depth maps, fused.ply and mesh.ply in "
+                        "OUT/dense")
+    add_dense_options(g, prefix="dense-")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -102,6 +108,13 @@ def run(args: argparse.Namespace) -> int:
         return no_model(args.output, report["images"])
     log.info("%s: %d of %d images registered in %d model(s): sparse/, points.ply, report.json",
              args.output, registered, len(report["images"]), len(report["models"]))
+    if args.dense:
+        # OpenCV and numba load after the feature workers have forked (executor._get_context)
+        from ..dense import dense_from_run  # noqa: PLC0415 - see above
+
+        summary = dense_from_run(args.output, image_dir=args.images, max_image_size=args.dense_max_image_size,
+                                 views=args.dense_views)
+        log.info("%s", summary.text())
     return 0
 
 

@@ -1,0 +1,369 @@
+"""Depth of one view by a plane sweep: fronto-parallel planes of the reference camera, evenly spaced in inverse
+depth, each source image warped onto the reference through the plane's homography (OpenCV), the zero-mean
+normalised cross-correlation (NCC) over a square window computed from box sums, and per plane the mean of the
+`best_k` lowest costs over the source views that see the pixel (a pixel hidden in one source is judged by the
+others; one near the image border by the one source whose image covers it). Each pixel
+keeps its best plane, refined between planes by a parabola through the costs of its neighbours.
+
+The per-pixel arithmetic runs in numba kernels fused over the whole image: one pass per (plane, source) for the
+NCC, one per plane for the best-k aggregation and the running minimum, so no cost volume is held in memory (a
+1-Mpx view at 200 planes would need 0.8 GB).
+"""
+
+import math
+
+import cv2
+import numpy as np
+from numba import njit
+
+INVALID = 3.0  # cost of a pixel whose window falls outside a source or has no texture (NCC costs are in [0, 2])
+
+
+@njit(cache=True, nogil=True)
+def _ncc_cost(mu_r, var_r, b1, b2, b12, H, width, height, min_var, out):  # pragma: no cover - compiled
+    """out[y, x] = 1 - NCC of the reference window and the warped source window; INVALID where the pixel's
+    source position (H @ (x, y, 1)) is outside the source image or either window has no texture."""
+    rows, cols = mu_r.shape
+    for y in range(rows):
+        for x in range(cols):
+            w = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+            if w <= 0:
+                out[y, x] = INVALID
+                continue
+            u = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / w
+            v = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / w
+            if u < 0 or v < 0 or u > width - 1 or v > height - 1:
+                out[y, x] = INVALID
+                continue
+            var_s = b2[y, x] - b1[y, x] * b1[y, x]
+            vr = var_r[y, x]
+            if var_s < min_var or vr < min_var:
+                out[y, x] = INVALID
+                continue
+            ncc = (b12[y, x] - mu_r[y, x] * b1[y, x]) / math.sqrt(vr * var_s)
+            out[y, x] = 1.0 - min(max(ncc, -1.0), 1.0)
+
+
+@njit(cache=True, nogil=True)
+def _aggregate(costs, best_k, plane, prev, best, index, left, right):  # pragma: no cover - compiled
+    """Mean of the best_k lowest source costs of each pixel at `plane`, and the running minimum over the planes:
+    best cost, its plane, and the costs of the planes either side (for the parabola)."""
+    n, rows, cols = costs.shape
+    k = min(best_k, n)
+    buf = np.empty(k, np.float32)
+    for y in range(rows):
+        for x in range(cols):
+            for s in range(k):
+                buf[s] = 2.0
+            for s in range(n):  # insertion into the k lowest so far (n is a handful)
+                v = min(costs[s, y, x], 2.0)
+                j = k - 1
+                if v >= buf[j]:
+                    continue
+                while j > 0 and buf[j - 1] > v:
+                    buf[j] = buf[j - 1]
+                    j -= 1
+                buf[j] = v
+            c = 0.0
+            m = 0
+            for s in range(k):
+                if buf[s] < 2.0 or m == 0:  # the sources that see the pixel; one is enough near the border
+                    c += buf[s]
+                    m += 1
+            c /= m
+            if index[y, x] == plane - 1:
+                right[y, x] = c
+            if c < best[y, x]:
+                best[y, x] = c
+                index[y, x] = plane
+                left[y, x] = prev[y, x]
+                right[y, x] = np.inf
+            prev[y, x] = c
+
+
+@njit(cache=True, nogil=True)
+def _refine(best, index, left, right, q0, dq, max_cost, depth):  # pragma: no cover - compiled
+    """Depth from the best plane and a parabola through its neighbours' costs; 0 where the best cost is above
+    max_cost (COLMAP's mark of no depth)."""
+    rows, cols = best.shape
+    for y in range(rows):
+        for x in range(cols):
+            if index[y, x] < 0 or best[y, x] > max_cost:
+                depth[y, x] = 0.0
+                continue
+            offset = 0.0
+            lc, c, rc = left[y, x], best[y, x], right[y, x]
+            if np.isfinite(lc) and np.isfinite(rc):
+                curvature = lc - 2.0 * c + rc
+                if curvature > 1e-9:
+                    offset = min(max(0.5 * (lc - rc) / curvature, -0.5), 0.5)
+            q = q0 + (index[y, x] + offset) * dq
+            depth[y, x] = 1.0 / q if q > 0 else 0.0
+
+
+def plane_homography(K_ref: np.ndarray, K_src: np.ndarray, R: np.ndarray, t: np.ndarray,
+                     depth: float) -> np.ndarray:
+    """Reference pixel -> source pixel for the plane z = depth of the reference camera; (R, t) takes reference
+    camera coordinates to the source's."""
+    n = np.array([0.0, 0.0, 1.0])
+    return K_src @ (R + np.outer(t, n) / depth) @ np.linalg.inv(K_ref)
+
+
+def sweep_depth(ref: np.ndarray, sources: list[np.ndarray], K_ref: np.ndarray, K_srcs: list[np.ndarray],
+                relative: list[tuple[np.ndarray, np.ndarray]], depth_range: tuple[float, float], planes: int, *,
+                window: int = 7, best_k: int = 2, max_cost: float = 0.5,
+                min_std: float = 0.004) -> tuple[np.ndarray, np.ndarray]:
+    """(depth, cost) of the grey float32 reference image `ref` (values in [0, 1]) against the grey `sources`:
+    depth 0 where no plane reached an NCC cost below `max_cost`; cost is the best aggregated cost (1 - NCC).
+    `relative[i]` = (R, t) from reference camera to source i's; `depth_range` the (near, far) swept."""
+    near, far = depth_range
+    q0, q1 = 1.0 / far, 1.0 / near
+    dq = (q1 - q0) / max(planes - 1, 1)
+    rows, cols = ref.shape
+    box = dict(ksize=(window, window), borderType=cv2.BORDER_REFLECT)
+    mu_r = cv2.blur(ref, **box)
+    var_r = cv2.blur(ref * ref, **box) - mu_r * mu_r
+    costs = np.empty((len(sources), rows, cols), np.float32)
+    best = np.full((rows, cols), np.inf, np.float32)
+    index = np.full((rows, cols), -1, np.int32)
+    left = np.full((rows, cols), np.inf, np.float32)
+    right = np.full((rows, cols), np.inf, np.float32)
+    prev = np.full((rows, cols), np.inf, np.float32)
+    min_var = np.float32(min_std * min_std)
+    for p in range(planes):
+        d = 1.0 / (q0 + p * dq)
+        for s, (src, K_src, (R, t)) in enumerate(zip(sources, K_srcs, relative)):
+            H = plane_homography(K_ref, K_src, R, t, d)
+            warped = cv2.warpPerspective(src, H, (cols, rows), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                         borderMode=cv2.BORDER_REPLICATE)
+            b1 = cv2.blur(warped, **box)
+            b2 = cv2.blur(warped * warped, **box)
+            b12 = cv2.blur(ref * warped, **box)
+            _ncc_cost(mu_r, var_r, b1, b2, b12, H, src.shape[1], src.shape[0], min_var, costs[s])
+        _aggregate(costs, best_k, p, prev, best, index, left, right)
+    depth = np.zeros((rows, cols), np.float32)
+    _refine(best, index, left, right, q0, dq, max_cost, depth)
+    return depth, best
+
+
+def normals_from_depth(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Unit normals (H, W, 3) in the camera frame, facing the camera, from the depth map's neighbouring points
+    (central differences); zero where a neighbour has no depth."""
+    rows, cols = depth.shape
+    y, x = np.mgrid[0:rows, 0:cols].astype(np.float32)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    pts = np.stack([(x - cx) / fx * depth, (y - cy) / fy * depth, depth], axis=2)
+    dx = np.zeros_like(pts)
+    dy = np.zeros_like(pts)
+    dx[:, 1:-1] = pts[:, 2:] - pts[:, :-2]
+    dy[1:-1] = pts[2:] - pts[:-2]
+    n = np.cross(dx, dy)
+    known = depth > 0
+    ok = known.copy()
+    ok[:, 1:-1] &= known[:, 2:] & known[:, :-2]
+    ok[1:-1] &= known[2:] & known[:-2]
+    ok[[0, -1], :] = False
+    ok[:, [0, -1]] = False
+    norm = np.linalg.norm(n, axis=2, keepdims=True)
+    n = np.where(ok[..., None] & (norm > 0), n / np.maximum(norm, 1e-12), 0.0)
+    facing = np.sum(n * pts, axis=2) > 0  # a normal points back at the camera: n . X < 0
+    n[facing] *= -1
+    return n.astype(np.float32)
+
+
+@njit(cache=True, nogil=True)
+def _local_search(ref, srcs, sizes, A, b, q_init, offsets, dq, radius, step, best_k, min_var,
+                  out_q, out_cost):  # pragma: no cover - compiled
+    """Per pixel, the inverse depths q_init + offsets * dq tried against every source by NCC over a window of
+    (2 radius / step + 1)^2 samples (bilinear in the sources); out_q the best, refined by a parabola, out_cost
+    its best-k aggregated cost. A source pixel is A @ (x, y, 1) + b * q (homogeneous) for the fronto-parallel
+    plane at inverse depth q."""
+    rows, cols = ref.shape
+    n_src = srcs.shape[0]
+    n_cand = offsets.shape[0]
+    k = min(best_k, n_src)
+    costs = np.empty(n_src, np.float32)
+    cand = np.empty(n_cand, np.float32)
+    kbuf = np.empty(k, np.float32)
+    for y in range(rows):
+        for x in range(cols):
+            sr = 0.0
+            srr = 0.0
+            n = 0
+            for dy in range(-radius, radius + 1, step):
+                yy = min(max(y + dy, 0), rows - 1)
+                for dx in range(-radius, radius + 1, step):
+                    xx = min(max(x + dx, 0), cols - 1)
+                    v = ref[yy, xx]
+                    sr += v
+                    srr += v * v
+                    n += 1
+            mr = sr / n
+            vr = srr / n - mr * mr
+            q0 = q_init[y, x]
+            if vr < min_var or not q0 > 0:
+                out_q[y, x] = q0
+                out_cost[y, x] = INVALID
+                continue
+            for c in range(n_cand):
+                q = q0 + offsets[c] * dq
+                if q <= 0:
+                    cand[c] = 2.0
+                    continue
+                for s in range(n_src):
+                    width, height = sizes[s, 0], sizes[s, 1]
+                    bx = A[s, 0, 0] * x + A[s, 0, 1] * y + A[s, 0, 2] + b[s, 0] * q
+                    by = A[s, 1, 0] * x + A[s, 1, 1] * y + A[s, 1, 2] + b[s, 1] * q
+                    bw = A[s, 2, 0] * x + A[s, 2, 1] * y + A[s, 2, 2] + b[s, 2] * q
+                    ss = 0.0
+                    sss = 0.0
+                    srs = 0.0
+                    ok = True
+                    for dy in range(-radius, radius + 1, step):
+                        yy = min(max(y + dy, 0), rows - 1)
+                        for dx in range(-radius, radius + 1, step):
+                            pw = bw + A[s, 2, 0] * dx + A[s, 2, 1] * dy
+                            if pw <= 0:
+                                ok = False
+                                break
+                            u = (bx + A[s, 0, 0] * dx + A[s, 0, 1] * dy) / pw
+                            v = (by + A[s, 1, 0] * dx + A[s, 1, 1] * dy) / pw
+                            if u < 0 or v < 0 or u >= width - 1 or v >= height - 1:
+                                ok = False
+                                break
+                            u0 = int(u)
+                            v0 = int(v)
+                            fu = u - u0
+                            fv = v - v0
+                            sv = ((1 - fu) * (1 - fv) * srcs[s, v0, u0] + fu * (1 - fv) * srcs[s, v0, u0 + 1]
+                                  + (1 - fu) * fv * srcs[s, v0 + 1, u0] + fu * fv * srcs[s, v0 + 1, u0 + 1])
+                            rv = ref[yy, min(max(x + dx, 0), cols - 1)]
+                            ss += sv
+                            sss += sv * sv
+                            srs += rv * sv
+                        if not ok:
+                            break
+                    if not ok:
+                        costs[s] = 2.0
+                        continue
+                    ms = ss / n
+                    vs = sss / n - ms * ms
+                    if vs < min_var:
+                        costs[s] = 2.0
+                        continue
+                    ncc = (srs / n - mr * ms) / math.sqrt(vr * vs)
+                    costs[s] = 1.0 - min(max(ncc, -1.0), 1.0)
+                for j in range(k):
+                    kbuf[j] = 2.0
+                for s in range(n_src):
+                    val = costs[s]
+                    j = k - 1
+                    if val >= kbuf[j]:
+                        continue
+                    while j > 0 and kbuf[j - 1] > val:
+                        kbuf[j] = kbuf[j - 1]
+                        j -= 1
+                    kbuf[j] = val
+                total = 0.0
+                m = 0
+                for j in range(k):
+                    if kbuf[j] < 2.0 or m == 0:
+                        total += kbuf[j]
+                        m += 1
+                cand[c] = total / m
+            best = 0
+            for c in range(1, n_cand):
+                if cand[c] < cand[best]:
+                    best = c
+            sub = 0.0
+            if 0 < best < n_cand - 1:
+                curvature = cand[best - 1] - 2.0 * cand[best] + cand[best + 1]
+                if curvature > 1e-9:
+                    sub = min(max(0.5 * (cand[best - 1] - cand[best + 1]) / curvature, -0.5), 0.5)
+            out_q[y, x] = q0 + (offsets[best] + sub) * dq
+            out_cost[y, x] = cand[best]
+
+
+def scaled(image: np.ndarray, K: np.ndarray, factor: float) -> tuple[np.ndarray, np.ndarray]:
+    """The image resized by `factor` (area averaging) and its camera matrix (pixel centres kept)."""
+    if factor == 1.0:
+        return image, K
+    rows, cols = image.shape
+    size = (max(1, round(cols * factor)), max(1, round(rows * factor)))
+    small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+    sx, sy = size[0] / cols, size[1] / rows
+    Ks = K.copy()
+    Ks[0, 0] *= sx
+    Ks[1, 1] *= sy
+    Ks[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+    Ks[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+    return small, Ks
+
+
+def pyramid_depth(ref: np.ndarray, sources: list[np.ndarray], K_ref: np.ndarray, K_srcs: list[np.ndarray],
+                  relative: list[tuple[np.ndarray, np.ndarray]], depth_range: tuple[float, float], *,
+                  coarse_size: int = 400, pixels_per_plane: float = 1.0, max_planes: int = 192,
+                  window: int = 7, best_k: int = 2, max_cost: float = 0.5, min_std: float = 0.004,
+                  radius: int = 4, step: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """(depth, cost) as `sweep_depth`, coarse to fine: the sweep on the images scaled so the long side is about
+    `coarse_size` (planes `pixels_per_plane` apart in the widest source's disparity there), then at each
+    doubling of the resolution up to full size a local search of 5 inverse depths around the upsampled estimate,
+    at half the previous spacing (`_local_search`, windows of radius `radius` sampled every `step` pixels). Far
+    fewer evaluations than a full-resolution sweep: 1 Mpx views at a few seconds each."""
+    rows, cols = ref.shape
+    levels = 0
+    while max(rows, cols) / 2 ** (levels + 1) >= coarse_size * 0.75:
+        levels += 1
+    factor = 0.5**levels
+    near, far = depth_range
+    small_ref, small_K = scaled(ref, K_ref, factor)
+    small_src = [scaled(s, K, factor) for s, K in zip(sources, K_srcs)]
+    baseline = max(np.linalg.norm(t) for _, t in relative)
+    disparity = small_K[0, 0] * baseline * (1.0 / near - 1.0 / far)
+    planes = int(np.clip(np.ceil(disparity / pixels_per_plane), 32, max_planes))
+    depth, cost = sweep_depth(small_ref, [s for s, _ in small_src], small_K, [K for _, K in small_src], relative,
+                              depth_range, planes, window=window, best_k=best_k, max_cost=np.inf,
+                              min_std=min_std)
+    dq = (1.0 / near - 1.0 / far) / max(planes - 1, 1)
+    offsets = np.arange(-2.0, 3.0)
+    min_var = np.float32(min_std * min_std)
+    for level in range(levels - 1, -1, -1):
+        factor = 0.5**level
+        lref, lK = scaled(ref, K_ref, factor)
+        lsrc = [scaled(s, K, factor) for s, K in zip(sources, K_srcs)]
+        q = np.where(depth > 0, 1.0 / np.maximum(depth, 1e-12), 0.0).astype(np.float32)
+        q = cv2.resize(q, (lref.shape[1], lref.shape[0]), interpolation=cv2.INTER_NEAREST)
+        dq *= 0.5
+        stack, sizes, A, b = _source_stack(lsrc, lK, relative)
+        out_q = np.zeros_like(q)
+        cost = np.zeros_like(q)
+        _local_search(lref, stack, sizes, A, b, q, offsets, dq, radius, step, best_k, min_var, out_q, cost)
+        depth = np.where(out_q > 0, 1.0 / np.maximum(out_q, 1e-12), 0.0).astype(np.float32)
+    depth[~(cost <= max_cost)] = 0.0
+    return depth, cost
+
+
+def _source_stack(sources: list[tuple[np.ndarray, np.ndarray]], K_ref: np.ndarray,
+                  relative: list[tuple[np.ndarray, np.ndarray]]):
+    """The source images in one zero-padded array, their sizes, and per source A = K_s R K_ref^-1, b = K_s t."""
+    rows = max(s.shape[0] for s, _ in sources)
+    cols = max(s.shape[1] for s, _ in sources)
+    stack = np.zeros((len(sources), rows, cols), np.float32)
+    sizes = np.zeros((len(sources), 2), np.int64)
+    A = np.zeros((len(sources), 3, 3))
+    b = np.zeros((len(sources), 3))
+    K_inv = np.linalg.inv(K_ref)
+    for i, ((image, K), (R, t)) in enumerate(zip(sources, relative)):
+        stack[i, : image.shape[0], : image.shape[1]] = image
+        sizes[i] = image.shape[1], image.shape[0]
+        A[i] = K @ R @ K_inv
+        b[i] = K @ t
+    return stack, sizes, A, b
+
+
+def warm_up() -> None:
+    """Compile the kernels (numba caches them on disk) on a tiny problem: worker processes started afterwards
+    load them instead of compiling them each, and never write the cache at the same time."""
+    image = np.random.default_rng(0).random((24, 32)).astype(np.float32)
+    K = np.array([[30.0, 0, 16], [0, 30.0, 12], [0, 0, 1]])
+    pyramid_depth(image, [image], K, [K], [(np.eye(3), np.array([0.1, 0, 0]))], (1.0, 2.0), coarse_size=8)
