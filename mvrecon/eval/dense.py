@@ -32,6 +32,7 @@ from ..errors import InputError
 from ..geometry import camera as cammodel
 from ..geometry.sim3 import Sim3
 from ..io.colmap_array import read_colmap_array
+from ..io.ply import read_ply_points
 from . import metrics as M
 from .models import load_reconstruction, poses
 
@@ -282,3 +283,23 @@ def depth_agreement(dense_dir: Path | str, tolerance: float = DEPTH_TOLERANCE,
         out[name] = {"valid": float(np.mean(np.isfinite(depth) & (depth > 0))),
                      "confirmed": float(confirmed.mean()) if len(X) else 0.0}
     return out
+
+
+def score_workspace(dense_dir: Path | str, scene_dir: Path | str, truth: DenseTruth | None = None) -> dict:
+    """Everything a dense workspace (DENSE: sparse/, stereo/depth_maps/, fused.ply) scores against the rendered
+    scene SCENE_DIR: the alignment's scale and inliers, the fused cloud's `DenseScore`, each view's depth
+    score and their mean. `truth`: `scene_truth(scene_dir)`, when the caller has it already."""
+    dense_dir, scene_dir = Path(dense_dir), Path(scene_dir)
+    fused = dense_dir / "fused.ply"
+    if not fused.is_file():
+        raise InputError(f"{dense_dir}: no fused.ply")
+    truth = truth if truth is not None else scene_truth(scene_dir)
+    gt = poses(load_reconstruction(scene_dir / "gt" / "sparse"))
+    est = poses(dense_model(dense_dir))
+    to_truth = frame_alignment(est, gt)
+    points, _ = read_ply_points(fused)
+    depth = depth_scores(dense_dir, scene_dir, to_truth)
+    return {"alignment_scale": to_truth.scale, "views": len(est),
+            "fused": score_cloud(to_truth.apply(points), truth).as_dict(),
+            "depth_within_1pct": float(np.mean(list(depth.values()))) if depth else 0.0,
+            "depth_per_view": depth}

@@ -16,6 +16,7 @@ from mvrecon.geometry.rotation import rotation_error_deg
 from mvrecon.geometry.sim3 import Sim3
 from mvrecon.interrupts import import_open3d
 from mvrecon.io.colmap_array import write_colmap_array
+from mvrecon.io.ply import write_ply
 from mvrecon.scenes.build import build_mesh
 from mvrecon.scenes.catalog import load_entry
 
@@ -172,3 +173,21 @@ def test_depth_scores_of_the_true_depth_are_one_and_of_a_wrong_half_a_half(exact
     assert agreement["0003.png"]["confirmed"] < agreement["0004.png"]["confirmed"] - 0.3
     assert agreement["0004.png"]["valid"] == pytest.approx(np.isfinite(np.load(
         object_orbit_small / "gt" / "depth" / "0004.npy")).mean())
+
+
+def test_a_workspace_of_the_truth_scores_one_in_its_own_frame(exact_workspace, object_orbit_small, truth,
+                                                             tmp_path):
+    workspace = tmp_path / "dense"
+    shutil.copytree(exact_workspace, workspace)
+    gt = poses(load_reconstruction(object_orbit_small / "gt" / "sparse"))
+    to_dense = frame_alignment(gt, poses(dense.dense_model(workspace)))
+    write_ply(workspace / "fused.ply", to_dense.apply(truth.points))
+    result = dense.score_workspace(workspace, object_orbit_small, truth)
+    assert result["alignment_scale"] == pytest.approx(1 / 2.5, rel=1e-6)
+    assert result["views"] == 10 and result["depth_within_1pct"] > 0.999
+    fused = result["fused"]
+    assert fused["points"] == len(truth.points)
+    assert min(fused[f"fscore@{p}%"] for p in ("0.2", "0.5", "1")) > 0.999
+    (workspace / "fused.ply").unlink()
+    with pytest.raises(InputError, match="no fused.ply"):
+        dense.score_workspace(workspace, object_orbit_small, truth)
