@@ -31,6 +31,7 @@ from scipy.spatial import cKDTree
 from ..errors import InputError
 from ..geometry import camera as cammodel
 from ..geometry.sim3 import Sim3
+from ..interrupts import import_open3d
 from ..io.colmap_array import read_colmap_array
 from ..io.ply import read_ply_points
 from . import metrics as M
@@ -52,6 +53,12 @@ class View:
     height: int
     R: np.ndarray
     t: np.ndarray
+
+    @property
+    def corner_radius(self) -> float:
+        """The largest normalised radius (tan of the angle off the axis) the image's corners see."""
+        corners = np.array([[0, 0], [self.width, 0], [0, self.height], [self.width, self.height]], float)
+        return float(np.max(np.hypot(*cammodel.pixels_to_normalized(self.model, self.params, corners).T)))
 
     def world_points(self, depth: np.ndarray, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """World points (N,3) of the pixels (every `stride`-th row and column) with a positive finite z-depth,
@@ -77,6 +84,8 @@ class View:
         col = np.floor(uv[:, 0] * w / self.width)
         row = np.floor(uv[:, 1] * h / self.height)
         inside = (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)  # NaN compares False
+        with np.errstate(invalid="ignore", divide="ignore"):  # distortion folds far-off-axis points back in
+            inside &= np.hypot(X_cam[:, 0] / z, X_cam[:, 1] / z) <= 1.05 * self.corner_radius
         index = np.full(len(points), -1, np.int64)
         index[inside] = row[inside].astype(np.int64) * w + col[inside].astype(np.int64)
         return index, z
@@ -303,3 +312,36 @@ def score_workspace(dense_dir: Path | str, scene_dir: Path | str, truth: DenseTr
             "fused": score_cloud(to_truth.apply(points), truth).as_dict(),
             "depth_within_1pct": float(np.mean(list(depth.values()))) if depth else 0.0,
             "depth_per_view": depth}
+
+
+def render_points(view: View, points: np.ndarray, colors: np.ndarray, shape: tuple[int, int],
+                  background: int = 255) -> np.ndarray:
+    """An (H,W,3) uint8 picture of coloured points (N,3) seen by `view` at `shape` (a view's size scaled: half
+    size closes the gaps between a dense cloud's points), the nearest point winning each pixel."""
+    h, w = shape
+    image = np.full((h * w, 3), background, np.uint8)
+    index, z = view.project(np.asarray(points, float).reshape(-1, 3), shape)
+    ok = np.flatnonzero(index >= 0)
+    order = ok[np.argsort(-z[ok], kind="stable")]  # far to near: the nearest is written last
+    image[index[order]] = np.asarray(colors)[order]
+    return image.reshape(h, w, 3)
+
+
+def render_mesh(view: View, vertices: np.ndarray, triangles: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """An (H,W) grey picture in [0, 1] of a mesh seen by `view` at `shape`, lit from the camera (1: no
+    surface), for a mesh's figure without a display (ray-cast, as the scene renderer draws)."""
+    o3d = import_open3d()
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),
+                        o3d.core.Tensor(np.asarray(triangles, np.uint32)))
+    h, w = shape
+    rows, cols = np.mgrid[0:h, 0:w]
+    uv = np.stack([(cols.ravel() + 0.5) * view.width / w, (rows.ravel() + 0.5) * view.height / h], 1)
+    xy = cammodel.pixels_to_normalized(view.model, view.params, uv)
+    directions = np.concatenate([xy, np.ones((len(xy), 1))], 1) @ view.R  # camera to world: R^T d
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    origins = np.broadcast_to(-view.R.T @ view.t, directions.shape)
+    hits = scene.cast_rays(o3d.core.Tensor(np.concatenate([origins, directions], 1).astype(np.float32)))
+    normals = hits["primitive_normals"].numpy()
+    shade = 0.25 + 0.75 * np.abs(np.sum(normals * directions, axis=1))
+    return np.where(np.isfinite(hits["t_hit"].numpy()), shade, 1.0).reshape(h, w)
