@@ -345,3 +345,34 @@ def render_mesh(view: View, vertices: np.ndarray, triangles: np.ndarray, shape: 
     normals = hits["primitive_normals"].numpy()
     shade = 0.25 + 0.75 * np.abs(np.sum(normals * directions, axis=1))
     return np.where(np.isfinite(hits["t_hit"].numpy()), shade, 1.0).reshape(h, w)
+
+
+def ply_vertex_count(path: Path | str) -> int | None:
+    """The vertex count a PLY file's header declares (its points, without reading them), or None."""
+    try:
+        with open(path, "rb") as f:
+            for _ in range(64):
+                line = f.readline().decode("ascii", "replace").split()
+                if line[:2] == ["element", "vertex"] and len(line) == 3:
+                    return int(line[2])
+                if line[:1] == ["end_header"]:
+                    return None
+    except (OSError, ValueError):
+        return None
+    return None
+
+
+def workspace_summary(dense_dir: Path | str) -> dict | None:
+    """What a dense workspace holds, for a report: its folder, depth maps, fused points (None: no fused.ply)
+    and whether it has a mesh; None when DENSE_DIR is no dense workspace (no sparse/, or no depth map and no
+    fused.ply)."""
+    dense_dir = Path(dense_dir)
+    if not (dense_dir / "sparse").is_dir():
+        return None
+    names = {p.name.rsplit(".", 2)[0] for p in (dense_dir / "stereo" / "depth_maps").glob("*.bin")}
+    fused = dense_dir / "fused.ply"
+    if not names and not fused.is_file():
+        return None
+    return {"folder": str(dense_dir), "depth_maps": len(names),
+            "fused_points": ply_vertex_count(fused) if fused.is_file() else None,
+            "mesh": (dense_dir / "mesh.ply").is_file()}
