@@ -108,6 +108,20 @@ def timing(row: dict, dense_dir: Path, record: dict) -> None:
                 "peak_mb": record["peak_mb"]})
 
 
+def cached_truth(scene: Path, path: Path) -> D.DenseTruth:
+    """`eval.dense.scene_truth` of the scene, kept in PATH for the scene made from the same TOML."""
+    key = json.loads((scene / "scene.json").read_text())["hash"] + f" {D.SPACING_FRACTION}"
+    if path.is_file():
+        data = np.load(path)
+        if str(data["key"]) == key:
+            return D.DenseTruth(points=data["points"], views=data["views"], extent=float(data["extent"]),
+                                spacing=float(data["spacing"]))
+    truth = D.scene_truth(scene)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, key=key, points=truth.points, views=truth.views, extent=truth.extent, spacing=truth.spacing)
+    return truth
+
+
 def measure_scene(name: str, work: Path, args, code: Path, version: str, figures: Path | None) -> dict:
     scene = make_scene(name, work / "scenes" / name)
     out = work / "runs" / name
@@ -117,7 +131,7 @@ def measure_scene(name: str, work: Path, args, code: Path, version: str, figures
     if record["error"]:
         return {**row, "error": record["error"]}
     timing(row, out / "dense", record)
-    truth = D.scene_truth(scene)
+    truth = cached_truth(scene, work / "truth" / f"{name}.npz")
     scores = D.score_workspace(out / "dense", scene, truth)
     row.update({"depth_within_1pct": scores["depth_within_1pct"], **scores["fused"],
                 "depth_per_view": scores["depth_per_view"]})
