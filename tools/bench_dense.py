@@ -1,41 +1,46 @@
 """Dense benchmark: `mvrecon dense` on rendered scenes scored against their truth, and on real photographs.
 
-    python tools/bench_dense.py                                   # object_orbit_small, object_orbit, room; Strecha
+    python tools/bench_dense.py                                   # 3 catalog scenes, 2 Strecha sets
     python tools/bench_dense.py --scenes object_orbit_small --real none   # a subset (comma-separated)
     python tools/bench_dense.py --dense-args "--max-image-size 1024"       # flags for `mvrecon dense`
     python tools/bench_dense.py --figures docs                    # pictures: docs/dense_NAME.png
     python tools/bench_dense.py --code ../other-checkout          # the mvrecon source tree to run
 
-Per catalog scene: the scene is rendered (`mvrecon scene make NAME`, cached in WORK/scenes/NAME), then, each in
-its own subprocess, `mvrecon reconstruct` (eval.runners.run_mvrecon, cached in WORK/runs/NAME) and
-`mvrecon dense OUT -o OUT/dense` (eval.runners.measured_process: the wall time of the whole process, the peak
-memory of its process tree). The dense output is scored by eval.dense.score_workspace: the fused cloud, brought
-into the truth's frame by the similarity of its cameras onto the true ones, against the surface the views see
+Per catalog scene: the scene is rendered (`mvrecon scene make NAME`, cached in WORK/scenes/NAME), then, each
+in its own subprocess, `mvrecon reconstruct` (eval.runners.run_mvrecon, cached in WORK/runs/NAME) and `mvrecon
+dense OUT -o OUT/dense` (eval.runners.measured_process: the wall time of the whole process, the peak memory of
+its process tree). The dense output is scored by eval.dense.score_workspace: the fused cloud, brought into the
+truth's frame by the similarity of its cameras onto the true ones, against the surface the views see
 (accuracy, completeness and F-score at 0.2%, 0.5% and 1% of the scene extent, ETH3D's definitions), and each
 depth map (the share of the view's truth pixels whose depth it gives within 1%). Time per view and per
-megapixel divide the dense wall time by the depth maps and by their pixels.
+megapixel divide the dense wall time by the depth maps and by their pixels; CPU s/Mpx is the CPU time of the
+dense process and its workers per megapixel, which a shared machine's load changes far less than wall time (on
+an idle 2-core machine wall time is about half of it).
 
 Per real set (Strecha fountain_P11 and herzjesu_P8 from --data, when present; else a line says why not):
 reconstruct and dense as above, the sparse model's camera centres against the published cameras (median error,
 % of their extent: how far the model can be trusted), the depth maps' agreement between views (the share of a
 view's depths that another view's map confirms within 1%), and the fused cloud's and the mesh's sizes.
 
-Targets (issue 60), a pass/FAIL column: on the orbit and room scenes F@1% >= 0.9 and F@0.5% >= 0.75; dense under
-10 s per 1-Mpx view. The table is printed (markdown) and, with --json, written with every per-view number.
+Targets (issue 60), a pass/FAIL column: on the orbit and room scenes F@1% >= 0.9 and F@0.5% >= 0.75; dense
+under 10 s per 1-Mpx view. The table is printed (markdown) and, with --json, written with every per-view
+number.
 
-Cache (WORK, default out/bench_dense): scenes and sparse runs are reused; a dense run is reused when its record
-(OUT/dense_run.json) holds the same command and code version and its fused.ply exists. Delete WORK/runs/NAME
-to measure a row again. Exit code 0 whatever the verdicts; 2 on bad arguments.
+Cache (WORK, default out/bench_dense): scenes and sparse runs are reused; a dense run is reused when its
+record (OUT/dense_run.json) holds the same command and code version and its fused.ply exists. Delete
+WORK/runs/NAME to measure a row again. Exit code 0 whatever the verdicts; 2 on bad arguments.
 """
 
 import argparse
 import json
+import resource
 import shlex
 import sys
 from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -72,15 +77,18 @@ def run_dense(out: Path, dense_args: list[str], code: Path, version: str, timeou
         record = json.loads(record_path.read_text())
         if record.get("command") == cmd[1:] and record.get("version") == version:
             return record
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     code_, peak, wall = measured_process(cmd, out / "dense.log", timeout, tree=code)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
     error = None
     if code_ is None:
         error = f"timed out after {timeout:g} s"
     elif code_ != 0:
         lines = [ln for ln in (out / "dense.log").read_text(errors="replace").splitlines() if ln.strip()]
         error = f"exit code {code_}: {(lines or ['no output'])[-1][:300]}"
-    record = {"command": cmd[1:], "version": version, "exit_code": code_, "wall_s": wall, "peak_mb": peak,
-              "error": error}
+    record = {"command": cmd[1:], "version": version, "exit_code": code_, "wall_s": wall, "cpu_s": cpu,
+              "peak_mb": peak, "error": error}
     if error is None:
         record_path.write_text(json.dumps(record, indent=1))
     return record
@@ -104,7 +112,9 @@ def reconstruct(images: Path, out: Path, camera_model: str, code: Path, timeout:
 def timing(row: dict, dense_dir: Path, record: dict) -> None:
     views, mpx = depth_pixels(dense_dir)
     row.update({"depth_maps": views, "mpx_per_view": mpx / max(views, 1), "dense_wall_s": record["wall_s"],
-                "s_per_view": record["wall_s"] / max(views, 1), "s_per_mpx": record["wall_s"] / max(mpx, 1e-9),
+                "s_per_view": record["wall_s"] / max(views, 1),
+                "s_per_mpx": record["wall_s"] / max(mpx, 1e-9),
+                "cpu_s_per_mpx": record.get("cpu_s", float("nan")) / max(mpx, 1e-9),
                 "peak_mb": record["peak_mb"]})
 
 
@@ -118,7 +128,8 @@ def cached_truth(scene: Path, path: Path) -> D.DenseTruth:
                                 spacing=float(data["spacing"]))
     truth = D.scene_truth(scene)
     path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(path, key=key, points=truth.points, views=truth.views, extent=truth.extent, spacing=truth.spacing)
+    np.savez(path, key=key, points=truth.points, views=truth.views, extent=truth.extent,
+             spacing=truth.spacing)
     return truth
 
 
@@ -140,7 +151,8 @@ def measure_scene(name: str, work: Path, args, code: Path, version: str, figures
     return row
 
 
-def measure_real(key: str, data: Path, work: Path, args, code: Path, version: str, figures: Path | None) -> dict:
+def measure_real(key: str, data: Path, work: Path, args, code: Path, version: str,
+                 figures: Path | None) -> dict:
     folder = data / REAL[key]
     row = {"scene": key}
     if not (folder / "images").is_dir():
@@ -150,7 +162,8 @@ def measure_real(key: str, data: Path, work: Path, args, code: Path, version: st
     gt = load_ground_truth(folder / "gt_dense_cameras")
     al = M.align_and_compare(run.poses[0], gt)
     if al is not None:
-        row["sparse_centre_error_pct"] = float(100 * np.median(list(al.center_errors.values())) / al.scene_extent)
+        errors = list(al.center_errors.values())
+        row["sparse_centre_error_pct"] = float(100 * np.median(errors) / al.scene_extent)
     row["registered"] = f"{len(run.poses[0])}/{len(gt)}"
     record = run_dense(out, args.dense_args, code, version, args.timeout)
     if record["error"]:
@@ -159,7 +172,8 @@ def measure_real(key: str, data: Path, work: Path, args, code: Path, version: st
     agreement = D.depth_agreement(out / "dense")
     row.update({"depth_valid": float(np.mean([a["valid"] for a in agreement.values()])),
                 "depth_confirmed": float(np.mean([a["confirmed"] for a in agreement.values()])),
-                "agreement_per_view": agreement, "points": len(read_ply_points(out / "dense" / "fused.ply")[0])})
+                "agreement_per_view": agreement,
+                "points": D.ply_vertex_count(out / "dense" / "fused.ply")})
     mesh = out / "dense" / "mesh.ply"
     if mesh.is_file():
         m = import_open3d().io.read_triangle_mesh(str(mesh))
@@ -192,8 +206,8 @@ def _save(panels: list[tuple[str, np.ndarray]], path: Path) -> Path:
     matplotlib.use("Agg")
     from matplotlib.figure import Figure  # noqa: PLC0415 - pictures only
 
-    cols = 2
-    rows = (len(panels) + 1) // cols
+    cols = 2 if len(panels) == 4 else len(panels)
+    rows = (len(panels) + cols - 1) // cols
     h, w = panels[0][1].shape[:2]
     fig = Figure(figsize=(cols * 5.0, rows * 5.0 * h / w + 0.3 * rows))
     for k, (title, image) in enumerate(panels):
@@ -203,7 +217,8 @@ def _save(panels: list[tuple[str, np.ndarray]], path: Path) -> Path:
         ax.axis("off")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
+    fig.savefig(path, dpi=72)
+    Image.open(path).convert("RGB").quantize(256).save(path, optimize=True)  # a third of the bytes
     return path
 
 
@@ -219,7 +234,7 @@ def scene_figure(name: str, scene: Path, dense_dir: Path, truth: D.DenseTruth, f
     fused = to_truth.apply(fused)
     z = (truth.points - (-view.R.T @ view.t)) @ view.R[2]
     low, high = np.quantile(z[z > 0], [0.01, 0.99])
-    panels = [(f"{name}: image {name_view}", read_image(scene / "images" / name_view)),
+    panels = [(f"{name}: image {name_view}", read_image(scene / "images" / name_view)[::3, ::3]),
               ("ground truth samples (colour: depth)",
                D.render_points(view, truth.points, _depth_colours(view, truth.points, low, high), shape)),
               ("fused.ply (same colours; white: nothing)",
@@ -239,7 +254,7 @@ def real_figure(key: str, dense_dir: Path, folder: Path) -> Path:
     shape = (view.height // 3, view.width // 3)
     points, colors = read_ply_points(dense_dir / "fused.ply")
     colors = colors if colors is not None else np.full((len(points), 3), 80, np.uint8)
-    panels = [(f"{key}: image {name_view}", read_image(dense_dir / "images" / name_view)),
+    panels = [(f"{key}: image {name_view}", read_image(dense_dir / "images" / name_view)[::3, ::3]),
               ("fused.ply", D.render_points(view, points, colors, shape))]
     mesh = _mesh_arrays(dense_dir / "mesh.ply")
     if mesh is not None:
@@ -268,8 +283,8 @@ def verdict(row: dict) -> str:
 
 
 def scene_table(rows: list[dict]) -> str:
-    head = ("| scene | views | Mpx/view | depth within 1% | acc/comp/F @0.2% | acc/comp/F @0.5% | acc/comp/F @1% "
-            "| fused points | dense s | s/view | s/Mpx | peak MB | targets |")
+    head = ("| scene | views | Mpx/view | depth within 1% | acc/comp/F @0.2% | acc/comp/F @0.5% "
+            "| acc/comp/F @1% | fused points | dense s | s/view | s/Mpx | CPU s/Mpx | peak MB | targets |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in rows:
         if r.get("error"):
@@ -279,15 +294,17 @@ def scene_table(rows: list[dict]) -> str:
         def trio(p):
             return "/".join(f"{r[f'{k}@{p}%']:.3f}" for k in ("accuracy", "completeness", "fscore"))
 
-        lines.append(f"| {r['scene']} | {r['depth_maps']} | {r['mpx_per_view']:.2f} | {r['depth_within_1pct']:.3f} "
-                     f"| {trio('0.2')} | {trio('0.5')} | {trio('1')} | {r['points']} | {r['dense_wall_s']:.0f} "
-                     f"| {r['s_per_view']:.1f} | {r['s_per_mpx']:.1f} | {r['peak_mb']:.0f} | {verdict(r)} |")
+        lines.append(f"| {r['scene']} | {r['depth_maps']} | {r['mpx_per_view']:.2f} "
+                     f"| {r['depth_within_1pct']:.3f} | {trio('0.2')} | {trio('0.5')} | {trio('1')} "
+                     f"| {r['points']} | {r['dense_wall_s']:.0f} "
+                     f"| {r['s_per_view']:.1f} | {r['s_per_mpx']:.1f} | {r['cpu_s_per_mpx']:.1f} "
+                     f"| {r['peak_mb']:.0f} | {verdict(r)} |")
     return "\n".join(lines)
 
 
 def real_table(rows: list[dict]) -> str:
-    head = ("| set | registered | sparse centre error (% extent) | views | Mpx/view | depth valid | depth confirmed "
-            "| fused points | mesh vertices | dense s | s/Mpx | peak MB |")
+    head = ("| set | registered | sparse centre error (% extent) | views | Mpx/view | depth valid "
+            "| depth confirmed | fused points | mesh vertices | dense s | s/Mpx | CPU s/Mpx | peak MB |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in rows:
         if r.get("skipped") or r.get("error"):
@@ -296,7 +313,8 @@ def real_table(rows: list[dict]) -> str:
         lines.append(f"| {r['scene']} | {r['registered']} | {_f(r.get('sparse_centre_error_pct'), '.3f')} "
                      f"| {r['depth_maps']} | {r['mpx_per_view']:.2f} | {r['depth_valid']:.3f} "
                      f"| {r['depth_confirmed']:.3f} | {r['points']} | {r.get('mesh_vertices', '-')} "
-                     f"| {r['dense_wall_s']:.0f} | {r['s_per_mpx']:.1f} | {r['peak_mb']:.0f} |")
+                     f"| {r['dense_wall_s']:.0f} | {r['s_per_mpx']:.1f} | {r['cpu_s_per_mpx']:.1f} "
+                     f"| {r['peak_mb']:.0f} |")
     return "\n".join(lines)
 
 
@@ -310,9 +328,11 @@ def names(text: str, known) -> list[str]:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--scenes", default=",".join(SCENES), help="catalog scenes, comma-separated ('none': none)")
+    p.add_argument("--scenes", default=",".join(SCENES),
+                   help="catalog scenes, comma-separated ('none': none)")
     p.add_argument("--real", default=",".join(REAL), help=f"real sets of {', '.join(REAL)} ('none': none)")
-    p.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data", help="folder of the real sets")
+    p.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data",
+                   help="folder of the real sets")
     p.add_argument("--work", type=Path, default=ROOT / "out" / "bench_dense", help="scenes and runs (cached)")
     p.add_argument("--code", type=Path, default=ROOT, help="the mvrecon source tree to run")
     p.add_argument("--dense-args", default="", help="extra flags for `mvrecon dense` (one string)")
@@ -341,8 +361,8 @@ def main(argv=None) -> int:
             real_rows.append({"scene": key, "error": failure(exc)})
     command = "python tools/bench_dense.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
     machine = machine_info()
-    say(f"\n{datetime.now(timezone.utc):%Y-%m-%d}, code {version}, {machine['cpu']}, {machine['cores']} cores: "
-        f"`{command.strip()}`\n")
+    say(f"\n{datetime.now(timezone.utc):%Y-%m-%d}, code {version}, {machine['cpu']}, "
+        f"{machine['cores']} cores: `{command.strip()}`\n")
     if rows:
         say(scene_table(rows) + "\n")
     if real_rows:
