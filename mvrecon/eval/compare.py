@@ -31,6 +31,7 @@ from ..io.files import printable_name
 from ..io.images import IMAGE_EXTENSIONS, list_images
 from ..progress import progress
 from . import metrics as M
+from .dense import workspace_summary
 from .ground_truth import load_ground_truth_for
 from .models import load_reconstruction, model_stats, reconstruction_from_poses, sparse_models
 from .runners import (
@@ -351,7 +352,8 @@ def _evaluate_run(run: RunResult, role: str, image_names, ref_poses: dict, confi
     for key in ACCURACY_KEYS:
         summary.setdefault(key, None)
     return ({"role": role, "error": run.error, "out_dir": str(run.out_dir), "summary": summary, "stages": stages,
-             "per_image": per_image, "relative_pose_errors_deg": relative, "alignment": alignment}, geometry)
+             "per_image": per_image, "relative_pose_errors_deg": relative, "alignment": alignment,
+             "dense": workspace_summary(run.out_dir / "dense")}, geometry)
 
 
 def _counts(run: RunResult) -> dict:

@@ -7,9 +7,14 @@ files hold. The 3D view is a plotly figure with plotly.js inlined: a real WebGL 
 import io
 import math
 from collections.abc import Iterable
+from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
+from ..io.colmap_array import read_colmap_array
+from ..io.ply import read_ply_points
+from . import dense as D
 from . import metrics as M
 
 ENGINE_COLORS = {"mvrecon": "#1f77b4", "colmap": "#ff7f0e", "colmap-global": "#9467bd",
@@ -244,3 +249,46 @@ def scene_3d_html(geometry: dict, extent: float | None = None) -> str:
                       paper_bgcolor="white")
     return pio.to_html(fig, include_plotlyjs=True, full_html=False, div_id="scene3d",
                        config={"displaylogo": False, "responsive": True})
+
+
+def _png_of(image: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(image).save(buf, format="PNG", optimize=True)
+    return buf.getvalue()
+
+
+def depth_thumbnails(dense_dir: Path | str, limit: int = 24, width: int = 160) -> list[tuple[str, bytes]]:
+    """(image name, PNG) of a dense workspace's depth maps (the first `limit` by name), `width` pixels wide,
+    near yellow to far blue over each map's 2nd-98th percentile, white where there is no depth."""
+    from matplotlib import colormaps  # noqa: PLC0415 - matplotlib: figures only
+
+    out = []
+    names = sorted({p.name.rsplit(".", 2)[0] for p in (Path(dense_dir) / "stereo" / "depth_maps").glob("*.bin")})
+    for name in names[:limit]:
+        depth = read_colmap_array(D.depth_map_path(dense_dir, name))
+        step = max(1, int(math.ceil(depth.shape[1] / width)))
+        small = depth[::step, ::step]
+        valid = np.isfinite(small) & (small > 0)
+        low, high = np.quantile(small[valid], [0.02, 0.98]) if valid.any() else (0.0, 1.0)
+        rgb = colormaps["viridis_r"](np.clip((small - low) / max(high - low, 1e-12), 0, 1))[..., :3]
+        rgb[~valid] = 1.0
+        out.append((name, _png_of(np.round(rgb * 255).astype(np.uint8))))
+    return out
+
+
+def fused_view_png(dense_dir: Path | str, width: int = 640) -> tuple[str, bytes] | None:
+    """(image name, PNG) of the fused cloud in its own colours, seen by the middle camera of the dense
+    workspace at about `width` pixels; None without fused.ply or cameras."""
+    dense_dir = Path(dense_dir)
+    if not (dense_dir / "fused.ply").is_file():
+        return None
+    views = D.model_views(D.dense_model(dense_dir))
+    if not views:
+        return None
+    name = sorted(views)[len(views) // 2]
+    view = views[name]
+    scale = min(1.0, width / view.width)
+    points, colors = read_ply_points(dense_dir / "fused.ply")
+    colors = colors if colors is not None else np.full((len(points), 3), 90, np.uint8)
+    shape = (max(1, round(view.height * scale)), max(1, round(view.width * scale)))
+    return name, _png_of(D.render_points(view, points, colors, shape))

@@ -136,6 +136,32 @@ def _skipped(m: dict) -> str:
             f"<table id='skipped' class='grid unreg'><tr><th>image</th><th>reason</th></tr>{rows}</table>")
 
 
+def _dense(m: dict) -> str:
+    """A section per engine whose run folder holds a dense workspace (`mvrecon dense`): its depth maps as
+    thumbnails and its fused cloud seen by one of its cameras; nothing when no run has one."""
+    parts = []
+    for n, e in m["engines"].items():
+        d = e.get("dense")
+        if not d:
+            continue
+        points = "no fused.ply" if d["fused_points"] is None else f"{d['fused_points']:,} fused points"
+        head = (f"<h3>{html.escape(n)}</h3><p class='meta'><code>{html.escape(d['folder'])}</code>: "
+                f"{d['depth_maps']} depth maps, {points}{', mesh.ply' if d['mesh'] else ''}</p>")
+        thumbs = "".join(f"<figure class='thumb'><img alt='depth map {html.escape(name)}' "
+                         f"src='data:image/png;base64,{base64.b64encode(png).decode()}'>"
+                         f"<figcaption>{html.escape(name)}</figcaption></figure>"
+                         for name, png in figures.depth_thumbnails(d["folder"]))
+        view = figures.fused_view_png(d["folder"])
+        cloud = "" if view is None else (f"<p class='meta'>fused.ply seen by the camera of {html.escape(view[0])}"
+                                         f":</p>{_img(view[1], 'fused cloud')}")
+        parts.append(f"<div class='dense' data-engine='{html.escape(n)}'>{head}"
+                     f"<div class='thumbs'>{thumbs}</div>{cloud}</div>")
+    if not parts:
+        return ""
+    return ("<h2 id='dense'>Dense reconstruction</h2><p class='meta'>Depth maps near (yellow) to far (blue), "
+            "white where a view has no depth.</p>" + "".join(parts))
+
+
 def _per_image_table(m: dict) -> str:
     engines = [n for n, e in m["engines"].items() if e["role"] != "reference"]
     head = "".join(f"<th colspan=2>{html.escape(n)}</th>" for n in engines)
@@ -167,6 +193,7 @@ td.winner{background:#e3f4e1;font-weight:600} .star{color:#2e7d32}
 table.small{font-size:12px} table.unreg td{text-align:left}
 img{max-width:100%;border:1px solid #eee;margin:8px 0}
 .meta{color:#555;font-size:14px;line-height:1.5} #scene3d{border:1px solid #eee}
+figure.thumb{display:inline-block;margin:4px;font-size:11px;color:#555;text-align:center} figure.thumb img{margin:0}
 """
 
 
@@ -219,6 +246,7 @@ against pycolmap's own alignment ("our Sim3 vs pycolmap's": largest disagreement
 <h2>Images not registered</h2>
 {_unregistered(m)}
 {_skipped(m)}
+{_dense(m)}
 
 <h2>3D view (aligned to the reference)</h2>
 <p class="meta">Drag to rotate, scroll to zoom; click a legend entry to hide or show a model's cameras or points.</p>

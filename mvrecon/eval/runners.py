@@ -337,25 +337,15 @@ def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout,
     log.debug("running %s on %s -> %s", engine, source, out_dir)
     wall, peaks = 0.0, []
     for attempt in (1, 2):
-        code, error, start, end = None, None, time.perf_counter(), None
-        with open(out_dir / "run.log", "w") as logf:
-            env, cwd = code_environment(tree)
-            proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, start_new_session=True, env=env,
-                                    cwd=cwd)
-            try:
-                code, peak_mb, end = _wait_measuring_memory(proc, timeout)
-                peaks.append(peak_mb)
-                if code != 0 and not _ran_without_model(out_dir, code):
-                    error = _failure_line(out_dir / "run.log", code)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
-                error = f"timed out after {timeout:g} s"
-            except BaseException:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
-                raise
-        wall += (end if end is not None else time.perf_counter()) - start
+        error = None
+        code, peak_mb, wall_s = measured_process(cmd, out_dir / "run.log", timeout, tree)
+        if code is None:
+            error = f"timed out after {timeout:g} s"
+        else:
+            peaks.append(peak_mb)
+            if code != 0 and not _ran_without_model(out_dir, code):
+                error = _failure_line(out_dir / "run.log", code)
+        wall += wall_s
         if code is None or code >= 0:
             break
         # killed (the out-of-memory killer, a crash): once more, as the feature pool does with an image; an
@@ -371,6 +361,29 @@ def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout,
               "attempts": attempt}
     run_record.put(RUN, config_hash(identity), report, wall, config=identity)
     return _result(engine, out_dir, {**identity, **report})
+
+
+def measured_process(cmd: list[str], log_path: Path | str, timeout: float | None = None,
+                     tree: Path | str | None = None) -> tuple[int | None, float, float]:
+    """Run `cmd` in its own session, its output into `log_path`, and return (exit code, or None when it ran
+    over `timeout` seconds and was killed; peak memory of its process tree in MB; wall time in s). `tree`: the
+    mvrecon source tree it imports (`code_environment`). Ctrl-C kills the whole tree before it propagates."""
+    start, end = time.perf_counter(), None
+    with open(log_path, "w") as logf:
+        env, cwd = code_environment(tree)
+        proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, start_new_session=True, env=env,
+                                cwd=cwd)
+        try:
+            code, peak_mb, end = _wait_measuring_memory(proc, timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+            code, peak_mb = None, float("nan")
+        except BaseException:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+            raise
+    return code, peak_mb, (end if end is not None else time.perf_counter()) - start
 
 
 def _ran_without_model(out_dir: Path, code: int) -> bool:
