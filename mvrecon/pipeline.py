@@ -93,7 +93,8 @@ def reconstruct(config: ReconstructConfig, image_dir: Path | str, out_dir: Path 
             log.info("%s", matches.text())
             clock.done("matching")
             summary = map_workspace(mapper, ws, image_dir=image_dir, text=text, resume=resume,
-                                    overwrite=overwrite, keypoint_colors=features.keypoint_colors)
+                                    overwrite=overwrite, keypoint_colors=features.keypoint_colors,
+                                    cluster=cluster)
         except DiskFull:  # the features and matches written so far are kept for the rerun
             raise
         except InputError as exc:  # rejected input (no verified pairs, say), or refused settings

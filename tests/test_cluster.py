@@ -187,3 +187,21 @@ def test_a_lost_scheduler_ends_the_run_in_one_line_and_the_rerun_continues(objec
     summary = extract_features(FrontendConfig(), images, ws, cluster=cluster)
     assert summary.num_images == 10 and summary.num_extracted == 10 - len(written)
     assert_same_database(local_run / "database.db", ws / "database.db", ["images", "keypoints", "descriptors"])
+
+
+def test_the_parts_of_a_partitioned_mapping_run_on_the_cluster_as_on_the_pool(cluster, tmp_path):
+    """24 views of pycolmap's synthetic scene in parts of at most 10, mapped once by the process pool and once on
+    the cluster: the same registered images and rotations, every part a task of the cluster."""
+    from tests.sfm.test_mapper import synthetic_database
+
+    pool_ws, cluster_ws = tmp_path / "pool", tmp_path / "cluster"
+    for ws in (pool_ws, cluster_ws):
+        ws.mkdir()
+        synthetic_database(ws / "database.db", num_images=24, num_points=800)
+    config = MapperConfig(seed=3, partition_size=10)
+    map_workspace(config, pool_ws)
+    sent = cluster.sent_bytes
+    on_cluster = map_workspace(config, cluster_ws, cluster=cluster)
+    assert cluster.sent_bytes > sent  # the parts went to the cluster's workers
+    assert sum(s["status"] == "registered" for s in on_cluster.status.values()) == 24
+    assert_same_model(pool_ws / "sparse" / "0", cluster_ws / "sparse" / "0")

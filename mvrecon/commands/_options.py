@@ -143,9 +143,9 @@ def add_run_options(parser: argparse.ArgumentParser, *, config_help: str = RUN_C
 def add_cluster_options(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("cluster (docs/distributed.md)")
     g.add_argument("--cluster", default=None, metavar="ADDRESS",
-                   help="run the features and matching on Dask: local:N (N worker processes on this machine, "
-                        "listening on 127.0.0.1 only) or a running scheduler's tcp://HOST:8786 / tls://HOST:8786 "
-                        "(default: a process pool on this machine)")
+                   help="run the features, matching and the parts of --partition-size on Dask: local:N (N worker "
+                        "processes on this machine, listening on 127.0.0.1 only) or a running scheduler's "
+                        "tcp://HOST:8786 / tls://HOST:8786 (default: a process pool on this machine)")
     g.add_argument("--cluster-security", default=None, metavar="FILE",
                    help="TOML or YAML file naming the TLS ca-file, cert and key of a remote scheduler; "
                         f"'{INSECURE}' accepts an unauthenticated scheduler on a network you trust")

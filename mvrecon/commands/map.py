@@ -20,7 +20,7 @@ from ..io.files import read_json_object
 from ..stages.mapping import map_workspace
 from ..stages.report import write_report
 from ..workspace import Workspace
-from ._options import add_workspace
+from ._options import add_cluster_options, add_workspace, cluster_from_args
 from .reconstruct import add_mapper_options, mapper_config, no_model
 
 ORDER = 31
@@ -34,6 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "the workspace's record, if it still exists; else the points stay black, with a "
                              "warning)")
     add_mapper_options(parser)
+    add_cluster_options(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -42,8 +43,9 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"{args.image_dir}: no such image folder (--image-dir)")
     earlier = read_json_object(Path(args.workspace) / "report.json")  # before this run replaces it
     clock = StageClock()
-    summary = map_workspace(config, args.workspace, image_dir=args.image_dir, text=args.text,
-                            resume=args.resume, overwrite=args.overwrite)
+    with cluster_from_args(args) as cluster:
+        summary = map_workspace(config, args.workspace, image_dir=args.image_dir, text=args.text,
+                                resume=args.resume, overwrite=args.overwrite, cluster=cluster)
     stage = clock.done("mapping")
     counts = database_counts(f"{args.workspace}/database.db")
     try:

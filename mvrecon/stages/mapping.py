@@ -16,6 +16,7 @@ import numpy as np
 
 from .. import database as dbmod
 from ..cameras import report_entry
+from ..cluster import Cluster
 from ..config import to_dict
 from ..errors import InputError
 from ..io.colmap_model import warn_text_names, write_models, write_points_ply
@@ -60,13 +61,14 @@ class MapSummary:
 @holding_workspace
 def map_workspace(config: MapperConfig, workspace: Workspace | Path | str, *,
                   image_dir: Path | str | None = None, text: bool = False, resume: bool = False,
-                  overwrite: bool = False,
-                  keypoint_colors: dict[str, np.ndarray] | None = None) -> MapSummary:
+                  overwrite: bool = False, keypoint_colors: dict[str, np.ndarray] | None = None,
+                  cluster: Cluster | None = None) -> MapSummary:
     """Run the mapper (`config.mapper`) on the workspace's database and write `sparse/N/` and `points.ply`.
 
     With `resume`, mapping continues from the last snapshot in the workspace (`snapshots/mapper.pkl`);
     without it mapping starts over. The points are coloured from `keypoint_colors`
-    (FeatureSummary's) when it covers a model's images, otherwise from the images in `image_dir`.
+    (FeatureSummary's) when it covers a model's images, otherwise from the images in `image_dir`. With
+    `cluster` (mvrecon/cluster.py) and `config.partition_size`, the parts are mapped there.
     """
     start = time.perf_counter()
     ws = as_workspace(workspace)
@@ -92,7 +94,7 @@ def map_workspace(config: MapperConfig, workspace: Workspace | Path | str, *,
         resume = False
     ws.begin_stage("mapping", record, overwrite)
     if config.partition_size and len(corr.images) > config.partition_size:
-        result = map_in_parts(corr, config, ws, resume)
+        result = map_in_parts(corr, config, ws, resume, cluster=cluster)
     else:
         result = _run_mapper(corr, config, snapshot, resume)
     georef = georeference_models(result.models, CenterPriors.of(corr.priors), frame=config.frame,

@@ -7,12 +7,14 @@ Each finished part is kept in the workspace (`snapshots/parts/part-K.pkl`, recor
 so that `--resume` after Ctrl-C maps only the parts not yet finished; without it every part is mapped again.
 """
 
+import contextlib
 import logging
 import pickle
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..cluster import Cluster
 from ..config import config_hash
 from ..database import Correspondences
 from ..executor import WorkerPool, default_workers
@@ -30,11 +32,14 @@ log = logging.getLogger(__name__)
 
 
 def map_in_parts(corr: Correspondences, config: MapperConfig, ws: Workspace, resume: bool,
-                 workers: int | None = None) -> "MappingResult":
+                 workers: int | None = None, cluster: Cluster | None = None) -> "MappingResult":
     """The mapping of `corr` (read from `ws`'s database) in parts of at most `config.partition_size` images, as
-    `MappingResult` (sfm/incremental.py); the parts run in `workers` processes (default: one per core)."""
+    `MappingResult` (sfm/incremental.py); the parts run in `workers` processes (default: one per core), or as
+    tasks of `cluster` (mvrecon/cluster.py), whose workers read the parts' images and pairs from the workspace's
+    database: they must see the workspace at the same path."""
     workers = default_workers() if workers is None else workers
-    with WorkerPool(workers) as pool:  # forked before GTSAM loads
+    runner = contextlib.nullcontext(cluster) if cluster is not None else WorkerPool(workers)
+    with runner as pool:  # forked before GTSAM loads
         from ..sfm.merge import merge_parts  # noqa: PLC0415 - GTSAM, after the workers fork
         from ..sfm.partition import pair_weights, partition_view_graph  # noqa: PLC0415 - OpenCV, after the fork
         from ..sfm.parts import PartResult  # noqa: PLC0415

@@ -191,3 +191,17 @@ def test_a_workspace_of_the_truth_scores_one_in_its_own_frame(exact_workspace, o
     (workspace / "fused.ply").unlink()
     with pytest.raises(InputError, match="no fused.ply"):
         dense.score_workspace(workspace, object_orbit_small, truth)
+
+
+@pytest.mark.slow
+def test_the_fused_cloud_of_a_small_catalog_scene_scores_f_at_one_percent_of_0_85(object_orbit_small, truth,
+                                                                                   tmp_path):
+    """`mvrecon dense` on the scene's exact sparse model: its fused cloud, scored against the rendered truth."""
+    from mvrecon.dense import run_dense
+
+    summary = run_dense(object_orbit_small / "gt" / "sparse", object_orbit_small / "images", tmp_path / "dense",
+                        mesh=False)
+    assert not summary.skipped
+    result = dense.score_workspace(tmp_path / "dense", object_orbit_small, truth)
+    assert result["fused"]["fscore@1%"] >= 0.85
+    assert result["depth_within_1pct"] > 0.4
