@@ -2,7 +2,7 @@
 database.
 
     python tools/bench_partition.py --scene street_long --count 100 --sizes 30
-    python tools/bench_partition.py --scene-dir /work/scratch/scenes/aerial_survey-300 --sizes 100 --whole RUN
+    python tools/bench_partition.py --scene-dir SCENE --sizes 100 --whole RUN   # a rendered scene, an earlier run
 
 The scene (a rendered catalog scene: images/ and gt/sparse/; `--scene NAME --count N` renders it into WORK,
 cached) is matched once by `mvrecon reconstruct` (default front end), which also gives the unpartitioned
