@@ -45,6 +45,32 @@ def _ncc_cost(mu_r, var_r, b1, b2, b12, H, width, height, min_var, out):  # prag
 
 
 @njit(cache=True, nogil=True)
+def _mean_of_best(costs, buf):  # pragma: no cover - compiled
+    """Mean of the len(buf) lowest of one pixel's source costs, counting only sources that see the pixel (cost
+    below 2; INVALID counts as 2), and at least the lowest one, so that a pixel near the border is judged by the
+    one source whose image covers it. `buf`: scratch space of the k wanted."""
+    k = buf.shape[0]
+    for j in range(k):
+        buf[j] = 2.0
+    for s in range(costs.shape[0]):  # insertion into the k lowest so far (the sources are a handful)
+        v = min(costs[s], 2.0)
+        j = k - 1
+        if v >= buf[j]:
+            continue
+        while j > 0 and buf[j - 1] > v:
+            buf[j] = buf[j - 1]
+            j -= 1
+        buf[j] = v
+    total = 0.0
+    m = 0
+    for j in range(k):
+        if buf[j] < 2.0 or m == 0:
+            total += buf[j]
+            m += 1
+    return total / m
+
+
+@njit(cache=True, nogil=True)
 def _aggregate(costs, best_k, plane, prev, best, index, left, right):  # pragma: no cover - compiled
     """Mean of the best_k lowest source costs of each pixel at `plane`, and the running minimum over the planes:
     best cost, its plane, and the costs of the planes either side (for the parabola)."""
@@ -53,24 +79,7 @@ def _aggregate(costs, best_k, plane, prev, best, index, left, right):  # pragma:
     buf = np.empty(k, np.float32)
     for y in range(rows):
         for x in range(cols):
-            for s in range(k):
-                buf[s] = 2.0
-            for s in range(n):  # insertion into the k lowest so far (n is a handful)
-                v = min(costs[s, y, x], 2.0)
-                j = k - 1
-                if v >= buf[j]:
-                    continue
-                while j > 0 and buf[j - 1] > v:
-                    buf[j] = buf[j - 1]
-                    j -= 1
-                buf[j] = v
-            c = 0.0
-            m = 0
-            for s in range(k):
-                if buf[s] < 2.0 or m == 0:  # the sources that see the pixel; one is enough near the border
-                    c += buf[s]
-                    m += 1
-            c /= m
+            c = _mean_of_best(costs[:, y, x], buf)
             if index[y, x] == plane - 1:
                 right[y, x] = c
             if c < best[y, x]:
@@ -253,24 +262,7 @@ def _local_search(ref, srcs, sizes, A, b, q_init, offsets, dq, radius, step, bes
                         continue
                     ncc = (srs / n - mr * ms) / math.sqrt(vr * vs)
                     costs[s] = 1.0 - min(max(ncc, -1.0), 1.0)
-                for j in range(k):
-                    kbuf[j] = 2.0
-                for s in range(n_src):
-                    val = costs[s]
-                    j = k - 1
-                    if val >= kbuf[j]:
-                        continue
-                    while j > 0 and kbuf[j - 1] > val:
-                        kbuf[j] = kbuf[j - 1]
-                        j -= 1
-                    kbuf[j] = val
-                total = 0.0
-                m = 0
-                for j in range(k):
-                    if kbuf[j] < 2.0 or m == 0:
-                        total += kbuf[j]
-                        m += 1
-                cand[c] = total / m
+                cand[c] = _mean_of_best(costs, kbuf)
             best = 0
             for c in range(1, n_cand):
                 if cand[c] < cand[best]:
