@@ -148,6 +148,7 @@ class IncrementalMapper:
         self.current: Reconstruction | None = None
         self.last_global = 0
         self.since_global: set[int] = set()  # images registered since the current model's last global refinement
+        self.full_at = 0  # registered images at the current model's last global refinement of every image
         self.attempts: dict[int, tuple] = {}  # image -> (failed trials, the model's state at the last one)
         self.stalled_at = -1  # the size at which the current model last stopped growing (`_grow`)
         self.ba_calls, self.ba_seconds = 0, 0.0
@@ -220,7 +221,7 @@ class IncrementalMapper:
                             "current": self.current.state() if self.current is not None else None,
                             "tried_init": set(self.tried_init), "reasons": dict(self.reasons),
                             "last_global": self.last_global, "attempts": dict(self.attempts),
-                            "since_global": set(self.since_global),
+                            "since_global": set(self.since_global), "full_at": self.full_at,
                             "stalled_at": self.stalled_at, "undecided": dict(self.undecided),
                             "dropped_starts": set(self.dropped_starts), "start_key": self.start_key,
                             "init_min_inliers": self.init_config.init_min_inliers})
@@ -232,7 +233,7 @@ class IncrementalMapper:
         self.tried_init, self.reasons = s["tried_init"], s["reasons"]
         self.last_global, self.attempts, self.stalled_at = s["last_global"], s["attempts"], s["stalled_at"]
         self.undecided = s["undecided"]
-        self.since_global = s.get("since_global", set())
+        self.since_global, self.full_at = s.get("since_global", set()), s.get("full_at", 0)
         self.dropped_starts, self.start_key = s.get("dropped_starts", set()), s.get("start_key")
         self.init_config = replace(self.config, init_min_inliers=s.get("init_min_inliers",
                                                                         self.config.init_min_inliers))
@@ -322,7 +323,7 @@ class IncrementalMapper:
                          self.names[init.image1], self.names[init.image2], points, least)
                 continue
             self.current, self.last_global, self.attempts, self.start_key = m, 2, {}, key
-            self.since_global = set()
+            self.since_global, self.full_at = set(), 0
             self.stalled_at = -1
             self._save()
             return True
@@ -578,6 +579,8 @@ class IncrementalMapper:
             if changed < min_change * max(int(alive_before.sum()), 1):
                 break
         self.since_global = set()
+        if images is None:
+            self.full_at = int(m.registered.sum())
         hand_back_freed_memory()
 
     def _growth_images(self, m: Reconstruction) -> np.ndarray | None:
@@ -586,9 +589,12 @@ class IncrementalMapper:
         latest registered when there are none, or too many) and the registered images sharing the most points
         with them. The others are held, so the BA, its retriangulation and its filters cost in proportion to the
         subset (intrinsics too are held: `bundle_adjust` refines a camera only when all its images move), and
-        the model's end still refines every image (`_finish_model`)."""
+        the model's end still refines every image (`_finish_model`). Each time the model has doubled since its last
+        BA of every image, the BA moves every image again (intrinsics included): on a 120-view wall bounded to 40
+        images, holding them from 40 views on cost 0.017 in AUC@5; the doublings keep the total cost linear."""
         cap = self.config.growth_ba_max_images
-        if cap <= 0 or int(m.registered.sum()) <= cap:
+        n = int(m.registered.sum())
+        if cap <= 0 or n <= cap or n >= 2 * self.full_at:
             return None
         recent = [i for i in m.registration_order if i in self.since_global] or m.registration_order
         chosen = np.array(recent[-cap:], np.int64)

@@ -885,9 +885,10 @@ def test_a_long_run_resumes_after_ctrl_c_from_its_last_snapshot(wall, tmp_path, 
 @pytest.mark.slow
 def test_global_bundle_adjustments_during_growth_optimise_a_bounded_subset(monkeypatch):
     """Past growth_ba_max_images (8 here) a global BA during growth moves at most 8 images: those registered
-    since the last one and the images sharing the most points with them, the rest held; the model's final BA
-    still moves every image, and the 24-view wall keeps the accuracy of BAs of every image (its trusted camera
-    held: the focal is what a wall barely observes, and a bounded BA holds it)."""
+    since the last one and the images sharing the most points with them, the rest held, but every image once
+    the model has doubled since its last BA of every image; the model's final BA still moves every image, and
+    the 24-view wall keeps the accuracy of BAs of every image (its trusted camera held: the focal is what a wall
+    barely observes, and a bounded BA holds it)."""
     corr, gt = corridor_views(24)
     calls = []
     original = incremental._bundle_adjust
@@ -902,11 +903,12 @@ def test_global_bundle_adjustments_during_growth_optimise_a_bounded_subset(monke
     summary = accuracy_summary(estimated_poses(result), gt)
     assert summary["registered"] == 24 and summary["components"] == 1
     assert summary["auc@5"] >= 0.98 and summary["auc@1"] >= 0.93  # 0.988 and 0.941 with BAs of every image
-    bounded = [(n, images, recent) for n, images, recent in calls if n > 8 and len(images) > 6]
+    growth = [(n, images, recent) for n, images, recent in calls if 8 < n < 24 and len(images) > 6]
+    bounded = [(n, images, recent) for n, images, recent in growth if len(images) == 8]
     assert len(bounded) >= 3  # growth ratios 1.1 between 9 and 24 images
-    for n, images, recent in bounded[:-1]:
-        if n < 24:
-            assert len(images) == 8 and recent <= set(images)
+    assert all(recent <= set(images) for _, images, recent in bounded)
+    full = [n for n, images, _ in growth if len(images) == n]
+    assert full and all(len(images) in (8, n) for n, images, _ in growth)  # every image again once it doubled
     assert calls[-1][1] == list(range(24))  # the final BA: every image
     held = [n - len(images) for n, images, _ in bounded if len(images) == 8]
     assert max(held) >= 12  # the held images grow with the model, the optimised ones do not
