@@ -1,4 +1,5 @@
-"""The features and matching stages on a Dask distributed cluster (`--cluster`), beside the local process pool.
+"""Features, matching and the parts of a partitioned mapping on a Dask distributed cluster (`--cluster`), beside
+the local process pool.
 
 `open_cluster("local:N")` starts a `distributed.LocalCluster` of N worker processes (one thread each) whose
 scheduler and workers listen on 127.0.0.1 only; `open_cluster("tcp://host:8786")` (or `tls://`) connects to a
@@ -7,8 +8,8 @@ running scheduler (`dask scheduler`, `dask worker`, dask-jobqueue). A scheduler 
 the user trusts; anyone who reaches an unauthenticated scheduler can run code on its workers.
 
 `Cluster.map` keeps `WorkerPool.map`'s contract (results in the items' order, `died(item, why)` for an item Dask
-gave up on), so the features stage uses either; `Cluster.unordered` yields results as they complete (the
-matching stage's batches of pairs). Dask runs again the tasks of a worker that dies (up to
+gave up on), so the features stage and the partitioned mapping use either; `Cluster.unordered` yields results as
+they complete (the matching stage's batches of pairs). Dask runs again the tasks of a worker that dies (up to
 `distributed.scheduler.allowed-failures` times); the client writes each result once. Data submitted with
 `Cluster.keep` lives in the task graph, so a worker that dies holding it costs a recomputation, not the run.
 """
