@@ -1,4 +1,4 @@
-"""Map an existing workspace database (ours, or one COLMAP made) with the incremental SfM engine.
+"""Map an existing workspace database (ours, or one COLMAP made) with mvrecon's mapper: incremental, global or in parts.
 
 Reads WORKSPACE/database.db (keypoints and verified two-view geometries) and writes WORKSPACE/sparse/0..k/,
 WORKSPACE/points.ply and WORKSPACE/report.json. This is how mapper differences are separated from front-end
