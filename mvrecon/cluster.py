@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from .errors import InputError
+from .startup import keep_freed_memory
 
 if TYPE_CHECKING:
     import distributed
@@ -143,6 +144,24 @@ def load_security(path: Path | str) -> "Security":
     return Security(require_encryption=True, **kwargs)
 
 
+_worker_prepared = False  # in a worker process: whether `_on_prepared_worker` has prepared it
+
+
+def _on_prepared_worker(func: Callable, *args):
+    """`func(*args)` in a worker process prepared, once, as the process pool prepares its workers
+    (executor.py): OpenCV on one thread, a worker thread per core being the parallelism, and the memory it frees
+    kept for the next task (startup.keep_freed_memory), where Dask's workers would give the heap back from 64 KB
+    (MALLOC_TRIM_THRESHOLD_) and SIFT's buffers would be mapped afresh for every image."""
+    global _worker_prepared
+    if not _worker_prepared:
+        import cv2  # noqa: PLC0415 - in the worker, where the tasks need it anyway
+
+        cv2.setNumThreads(1)
+        keep_freed_memory(one_arena=True)
+        _worker_prepared = True
+    return func(*args)
+
+
 class Cluster:
     """A connected Dask cluster: its client, and the LocalCluster started for it (`local:N`), closed with it.
 
@@ -187,7 +206,7 @@ class Cluster:
         need it) until `release`. Submitted as a task, not scattered: a worker that dies holding it costs its
         recomputation from the task, where scattered data would be lost with the tasks that need it."""
         self._count_sent(args)
-        return self._call(lambda: self.client.submit(func, *args, key=key, pure=False))
+        return self._call(lambda: self.client.submit(_on_prepared_worker, func, *args, key=key, pure=False))
 
     def release(self, futures: Iterable) -> None:
         """Let the cluster forget the data of `futures` (from `keep`)."""
@@ -210,7 +229,8 @@ class Cluster:
             if item is _END:
                 return False
             self._count_sent(item)
-            in_flight.append((item, self._call(lambda: self.client.submit(func, item, pure=False))))
+            future = self._call(lambda: self.client.submit(_on_prepared_worker, func, item, pure=False))
+            in_flight.append((item, future))
             return True
 
         try:
@@ -248,7 +268,7 @@ class Cluster:
             if item is _END:
                 return False
             self._count_sent(item)
-            future = self._call(lambda: self.client.submit(func, item, pure=False))
+            future = self._call(lambda: self.client.submit(_on_prepared_worker, func, item, pure=False))
             item_of[future.key] = item
             done.add(future)
             return True
