@@ -192,7 +192,7 @@ class DenseScore:
         return out
 
 
-def score_cloud(points: np.ndarray, truth: DenseTruth, tolerances=TOLERANCES) -> DenseScore:
+def score_cloud(points: np.ndarray, truth: DenseTruth, tolerances: tuple[float, ...] = TOLERANCES) -> DenseScore:
     """Accuracy, completeness and F of `points` (N,3, already in the truth's frame) at each tolerance of the
     extent: accuracy against every truth sample, completeness of the samples two or more views see."""
     points = np.asarray(points, float).reshape(-1, 3)
