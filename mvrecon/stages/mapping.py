@@ -2,8 +2,9 @@
 
 `map_workspace(config, workspace)` runs the incremental mapper (sfm/incremental.py), or the global one
 (sfm/global_mapper.py) with `mapper = "global"`, through `_run_mapper`; with `partition_size` P and more than P
-images, either maps overlapping parts of the view graph and merges them (stages/partitioned.py). With `resume`,
-incremental mapping continues from the workspace's snapshot, partitioned mapping from its finished parts.
+images, it maps overlapping parts of the view graph with either mapper and merges them (stages/partitioned.py).
+With `resume`, incremental mapping continues from the workspace's snapshot, partitioned mapping from its finished
+parts.
 """
 
 import logging
