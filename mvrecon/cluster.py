@@ -228,9 +228,7 @@ class Cluster:
             item = next(items, _END)
             if item is _END:
                 return False
-            self._count_sent(item)
-            future = self._call(lambda: self.client.submit(_on_prepared_worker, func, item, pure=False))
-            in_flight.append((item, future))
+            in_flight.append((item, self._submit(func, item)))
             return True
 
         try:
@@ -267,8 +265,7 @@ class Cluster:
             item = next(items, _END)
             if item is _END:
                 return False
-            self._count_sent(item)
-            future = self._call(lambda: self.client.submit(_on_prepared_worker, func, item, pure=False))
+            future = self._submit(func, item)
             item_of[future.key] = item
             done.add(future)
             return True
@@ -290,6 +287,11 @@ class Cluster:
         finally:
             for future in list(done.futures):
                 future.cancel()
+
+    def _submit(self, func: Callable, item) -> "distributed.Future":
+        """`func(item)` as a task on a prepared worker (`_on_prepared_worker`), its bytes counted as sent."""
+        self._count_sent(item)
+        return self._call(lambda: self.client.submit(_on_prepared_worker, func, item, pure=False))
 
     def _result(self, future):
         result = self._call(future.result)
