@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry.rotation import angle_axis_to_rotmat
 from ..geometry.sim3 import Sim3, ransac_umeyama
 from ..io.gps import enu_to_ecef, from_enu, to_enu
 from ..io.pose_priors import CARTESIAN, WGS84
@@ -72,12 +73,21 @@ class CenterPriors:
         return js, self.positions[ks], self.sigmas[ks]
 
 
+def _spread(positions: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
+    """The positions' RMS extent along their principal directions, largest first, in units of their median
+    horizontal sigma."""
+    s = np.linalg.svd(positions - positions.mean(axis=0), compute_uv=False) / np.sqrt(len(positions))
+    return s / float(np.median(sigmas[:, :2]))
+
+
+def _inlier_threshold(sigmas: np.ndarray) -> float:
+    """The distance within which a camera agrees with its prior: INLIER_SIGMAS of its sigmas' norm (median)."""
+    return INLIER_SIGMAS * float(np.median(np.linalg.norm(sigmas, axis=1)))
+
+
 def spread_enough(positions: np.ndarray, sigmas: np.ndarray) -> bool:
     """Whether positions span two directions well beyond their noise (see MIN_SPREAD_SIGMAS)."""
-    if len(positions) < 3:
-        return False
-    s = np.linalg.svd(positions - positions.mean(axis=0), compute_uv=False) / np.sqrt(len(positions))
-    return bool(s[1] >= MIN_SPREAD_SIGMAS * float(np.median(sigmas[:, :2])))
+    return len(positions) >= 3 and bool(_spread(positions, sigmas)[1] >= MIN_SPREAD_SIGMAS)
 
 
 def align_centres(centres: np.ndarray, positions: np.ndarray, sigmas: np.ndarray,
@@ -87,7 +97,7 @@ def align_centres(centres: np.ndarray, positions: np.ndarray, sigmas: np.ndarray
     directions (`spread_enough`)."""
     if not spread_enough(positions, sigmas):
         return None
-    threshold = INLIER_SIGMAS * float(np.median(np.linalg.norm(sigmas, axis=1)))
+    threshold = _inlier_threshold(sigmas)
     try:
         return ransac_umeyama(centres, positions, threshold=threshold, seed=seed)
     except (ValueError, np.linalg.LinAlgError):
@@ -105,15 +115,17 @@ def upright_alignment(centres: np.ndarray, ups: np.ndarray, positions: np.ndarra
     if np.linalg.norm(up) < 0.7 or len(positions) < 3:
         return None
     up /= np.linalg.norm(up)
-    spread = np.linalg.svd(positions - positions.mean(axis=0), compute_uv=False)[0] / np.sqrt(len(positions))
-    if spread < MIN_SPREAD_SIGMAS * float(np.median(sigmas[:, :2])):
+    if _spread(positions, sigmas)[0] < MIN_SPREAD_SIGMAS:
         return None
     axis = np.cross(up, [0.0, 0.0, 1.0])
     angle = np.arctan2(np.linalg.norm(axis), up[2])
-    level = _rotation(axis, angle)  # the model's up onto +z
+    if np.linalg.norm(axis) < 1e-12:  # up already along +z, or along -z: a half turn about x
+        level = np.eye(3) if angle < np.pi / 2 else np.diag([1.0, -1.0, -1.0])
+    else:  # the model's up onto +z
+        level = angle_axis_to_rotmat(axis / np.linalg.norm(axis) * angle)
     c = centres @ level.T
     zm, zp = c[:, 0] + 1j * c[:, 1], positions[:, 0] + 1j * positions[:, 1]
-    threshold = INLIER_SIGMAS * float(np.median(np.linalg.norm(sigmas, axis=1)))
+    threshold = _inlier_threshold(sigmas)
     rng = np.random.default_rng(seed)
 
     def fit(mask):
@@ -141,15 +153,6 @@ def upright_alignment(centres: np.ndarray, ups: np.ndarray, positions: np.ndarra
     T = fit(best)
     inliers = np.linalg.norm(T.apply(centres) - positions, axis=1) < threshold
     return (fit(inliers), inliers) if inliers.sum() >= 3 else (T, best)
-
-
-def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
-    n = np.linalg.norm(axis)
-    if n < 1e-12:
-        return np.eye(3) if angle < np.pi / 2 else np.diag([1.0, -1.0, -1.0])
-    k = axis / n
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
 
 
 def fit_similarity(model: Reconstruction, priors: CenterPriors, seed: int = 0) -> tuple[Sim3, np.ndarray] | None:
