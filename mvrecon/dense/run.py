@@ -16,7 +16,7 @@ import logging
 import multiprocessing
 import signal
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -186,8 +186,7 @@ def run_dense(model_dir: Path | str, image_dir: Path | str, out_dir: Path | str,
     settings. InputError (naming the path) for a folder without a model or images."""
     t_start = time.perf_counter()
     model_dir, image_dir, dense_dir = Path(model_dir), Path(image_dir), Path(out_dir)
-    settings = settings or DenseSettings()
-    settings.views = views
+    settings = replace(settings or DenseSettings(), views=views)  # the caller's settings left as they were
     load_reconstruction(model_dir)  # an InputError naming the folder when it holds no readable model
     dense_dir.mkdir(parents=True, exist_ok=True)
     record = Record(dense_dir, "dense.json")
