@@ -1,23 +1,34 @@
 """Benchmark GTSAM bundle adjustment: gtsam.SfmLevenbergMarquardtOptimizer (Schur) against plain LM.
 
-Two measurements on a workspace database (or a pycolmap synthetic scene when none is given):
+Two measurements on a workspace database (or a pycolmap synthetic scene when none is given), or a third on a
+finished run (--final):
 1. the whole incremental mapper with each optimizer: total BA time, number of BA calls, mapping time,
 registered
    images, points and mean reprojection error;
 2. one global BA of the finished model after perturbing poses (0.5 deg, 1% of the scene) and points: time,
    iterations, initial and final cost.
 
+3. with --final RUN: the final BA of the run's model (every image and point, intrinsics refined; read from
+   RUN/snapshots/mapper.pkl and RUN/database.db) under each linear solver, each in a process of its own: wall
+   time, LM iterations, cost, and the process's peak memory above what it held before the BA.
+
 Usage:
   python tools/bench_ba.py --database out/database.db
   python tools/bench_ba.py --synthetic 20
+  python tools/bench_ba.py --final out/run
 """
 
 import argparse
+import json
+import os
+import pickle
+import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+import gtsam
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -25,6 +36,8 @@ sys.path.insert(0, str(ROOT))
 
 from mvrecon import database  # noqa: E402
 from mvrecon.geometry.rotation import angle_axis_to_rotmat  # noqa: E402
+from mvrecon.memory import main_peak_mb, rss_mb  # noqa: E402
+from mvrecon.sfm import bundle  # noqa: E402
 from mvrecon.sfm.bundle import bundle_adjust  # noqa: E402
 from mvrecon.sfm.config import MapperConfig  # noqa: E402
 from mvrecon.sfm.incremental import IncrementalMapper  # noqa: E402
@@ -55,13 +68,83 @@ def perturbed(model: Reconstruction, mapper: IncrementalMapper, seed: int = 0) -
     return m
 
 
+# the final BA's linear solvers: today's (LM, sequential Cholesky, points first), GTSAM's multifrontal one with
+# the same ordering, GTSAM's Sfm optimizer (Schur), and conjugate gradients with a block-Jacobi preconditioner
+SOLVERS = ("sequential", "multifrontal", "sfm", "pcg")
+
+
+def _lm_with(solver: str):
+    """bundle._optimize running LM with `solver`'s linear solver (the same Ceres-style settings)."""
+    def optimize(gtsam_, graph, values, kind, iterations, relative_tolerance, ordering, initial_lambda):
+        params = gtsam.LevenbergMarquardtParams.CeresDefaults()
+        if solver == "multifrontal":
+            params.setLinearSolverType("MULTIFRONTAL_CHOLESKY")
+            params.setOrdering(ordering)
+        else:
+            pcg = gtsam.PCGSolverParameters()
+            pcg.preconditioner = gtsam.BlockJacobiPreconditionerParameters()
+            params.setLinearSolverType("Iterative")
+            params.setIterativeParams(pcg)
+        params.setMaxIterations(iterations)
+        params.setRelativeErrorTol(relative_tolerance)
+        params.setlambdaInitial(initial_lambda)
+        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        initial = opt.error()
+        result = opt.optimize()
+        return result, int(opt.iterations()), initial, opt.error()
+    return optimize
+
+
+def final_ba(run: Path, solver: str) -> dict:
+    """The final BA of `run`'s first model under `solver`, in this process: its figures."""
+    corr = database.read_correspondences(run / "database.db")
+    mapper = IncrementalMapper(corr, MapperConfig())
+    with open(run / "snapshots" / "mapper.pkl", "rb") as f:
+        state = pickle.load(f)["state"]
+    m = Reconstruction.from_state((state["finished"] or [state["current"]])[0], mapper.keypoints)
+    if solver in ("multifrontal", "pcg"):
+        bundle._optimize = _lm_with(solver)
+    before = rss_mb([os.getpid()])
+    out = bundle_adjust(m, m.registered_images(), MapperConfig(optimizer="sfm" if solver == "sfm" else "lm"),
+                        point_ids=m.alive_points(), refine_intrinsics=True)
+    return {"solver": solver, "seconds": out.seconds, "iterations": out.iterations, "final_cost": out.final_error,
+            "peak_above_mb": main_peak_mb() - before, "observations": out.num_observations,
+            "images": int(m.registered.sum()), "points": len(m.alive_points()),
+            "reprojection_px": m.stats()["mean_reprojection_error_px"]}
+
+
+def compare_final_ba(run: Path) -> int:
+    """Each solver's final BA of `run`, each in a fresh process so that its peak memory is its own."""
+    print(f"{'solver':13s} {'seconds':>8s} {'iterations':>11s} {'final cost':>11s} {'reproj px':>10s} "
+          f"{'peak MB above':>14s}")
+    for solver in SOLVERS:
+        done = subprocess.run([sys.executable, __file__, "--final", str(run), "--solver", solver],
+                              capture_output=True, text=True)
+        if done.returncode:
+            print(f"{solver:13s} failed: {(done.stderr.strip().splitlines() or ['?'])[-1]}")
+            continue
+        r = json.loads(done.stdout.strip().splitlines()[-1])
+        print(f"{solver:13s} {r['seconds']:8.2f} {r['iterations']:11d} {r['final_cost']:11.1f} "
+              f"{r['reprojection_px']:10.4f} {r['peak_above_mb']:14.0f}")
+    print(f"({r['images']} images, {r['points']} points, {r['observations']} observations)")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--database", default=None,
                     help="a COLMAP database.db with verified matches, e.g. a run's (default: a synthetic "
                          "scene)")
     ap.add_argument("--synthetic", type=int, default=15, help="images of the synthetic scene (no --database)")
+    ap.add_argument("--final", type=Path, default=None,
+                    help="a finished run's folder: its final BA under each linear solver (see above)")
+    ap.add_argument("--solver", choices=SOLVERS, default=None, help=argparse.SUPPRESS)  # one, in this process
     args = ap.parse_args(argv)
+    if args.final and args.solver:
+        print(json.dumps(final_ba(args.final, args.solver)))
+        return 0
+    if args.final:
+        return compare_final_ba(args.final)
     db = Path(args.database) if args.database else Path(tempfile.mkdtemp()) / "database.db"
     if not args.database:
         synthetic_database(db, args.synthetic)
