@@ -83,7 +83,7 @@ def _lm_with(solver: str):
         else:
             pcg = gtsam.PCGSolverParameters()
             pcg.preconditioner = gtsam.BlockJacobiPreconditionerParameters()
-            params.setLinearSolverType("Iterative")
+            params.setLinearSolverType("ITERATIVE")
             params.setIterativeParams(pcg)
         params.setMaxIterations(iterations)
         params.setRelativeErrorTol(relative_tolerance)
