@@ -333,7 +333,8 @@ COLMAP (pycolmap) on the same rendered scenes.
   `growth_ba_max_images` in the `[mapper]` table of `--config` sets the number (0: every image). The model's
   last refinement moves every image and point, and holds the run's peak memory: GTSAM's solver keeps, per 3D
   point, a dense block over the cameras that see it, so that memory grows with points x views per point squared
-  (a 150-view orbit, 29,000 points seen 10 times on average: 0.8 GB).
+  (a 150-view orbit, 29,000 points seen 10 times on average: 0.8 GB). GTSAM's other linear solvers hold more
+  or stop at a higher cost (`tools/bench_ba.py --final RUN`, docs/benchmarks.md).
 """
 
 HOW = """
