@@ -197,3 +197,22 @@ def test_gcp_points_seen_in_images_align_the_model(aerial_survey_half, exif_run,
         err = capsys.readouterr().err
         assert "bad.txt" in err and named in err and len(err.strip().splitlines()) == 1
 
+
+def test_global_mapper_holds_the_centres_to_their_priors(aerial_survey_half, exif_run, tmp_path, caplog):
+    """--mapper global on the same database with its GPS priors: the model is moved into the priors' frame before
+    its final bundle adjustment (which then holds each centre to its prior) and comes out in ENU as close to
+    the truth as these 24 fixes allow, with its shape intact."""
+    gps = json.loads((aerial_survey_half / "gt" / "gps.json").read_text())
+    ws = tmp_path / "global"
+    shutil.copytree(exif_run, ws)
+    caplog.set_level("INFO", logger="mvrecon.sfm")
+    assert main(["-q", "map", "-o", str(ws), "--mapper", "global", "--overwrite"]) == 0
+    assert any("model georeferenced at 24 registered images" in r.getMessage() for r in caplog.records)
+    report, names, est, true, noisy = _positions(ws, gps)
+    assert len(names) == 24 and report["georef"]["frame"] == "enu" and report["georef"]["models"][0]["flagged"] == []
+    best = umeyama(true, noisy)
+    assert _rms(est - true) < _rms(best.apply(true) - true) + 0.5
+    assert _rms(est - true) < 0.8 * _rms(noisy - true)
+    assert _rms(umeyama(est, true).apply(est) - true) < 0.1
+    gt = load_ground_truth(aerial_survey_half / "gt" / "sparse")
+    assert accuracy_summary([poses(r) for r in sparse_models(ws / "sparse")], gt)["auc@5"] > 0.95
