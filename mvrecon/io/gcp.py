@@ -69,7 +69,8 @@ def _frame(path: Path, line: str) -> tuple[str, np.ndarray | None]:
             raise InputError(f"{path}: first line 'ENU' needs the origin as LAT LON ALT (degrees, metres)")
         return "enu", origin
     raise InputError(f"{path}: first line {line!r} is not a frame mvrecon reads: WGS84 (EPSG:4326), ECEF "
-                     "(EPSG:4978), 'ENU LAT LON ALT' or LOCAL (projected systems such as UTM are not supported)")
+                     "(EPSG:4978), 'ENU LAT LON ALT' or LOCAL (projected systems such as UTM are not supported); a CSV "
+                     "of camera positions starts with a name,... header")
 
 
 def read_gcp_list(path: Path | str, names: list[str] | None = None) -> dict[str, ControlPoint]:
