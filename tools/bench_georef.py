@@ -7,9 +7,12 @@ report.json with a `georef` entry) is scored by its cameras' distance from the t
 after a similarity to the truth, and AUC@5 of its poses.
 
   python tools/bench_georef.py SCENE --sigma 2.5 2.5 5 [--trials 2000] [--run WS] [--fixes PRIORS.csv]
+  python tools/bench_georef.py SCENE --drift WS [WS ...]
 
-SCENE holds gt/gps.json and gt/sparse (`mvrecon scene make`). --fixes: the priors the run was given, to report
-the similarity of the true centres onto exactly those fixes (this draw's bound).
+SCENE holds gt/sparse and, for the bound and the score, gt/gps.json (`mvrecon scene make`). --fixes: the priors
+the run was given, to report the similarity of the true centres onto exactly those fixes (this draw's bound).
+--drift: a loop's drift (street_long, whose last frame is back at its first): each run's model aligned to the
+truth on its first 10 frames, the distance of its last frame from the truth, in metres and in % of the path.
 """
 
 import argparse
@@ -22,6 +25,7 @@ from mvrecon.eval.ground_truth import load_ground_truth
 from mvrecon.eval.metrics import accuracy_summary
 from mvrecon.eval.models import poses, sparse_models
 from mvrecon.geometry.sim3 import umeyama
+from mvrecon.io.colmap_model import load_reconstruction
 from mvrecon.io.gps import to_enu
 from mvrecon.io.pose_priors import read_priors_csv
 
@@ -66,6 +70,23 @@ def score(run: Path, scene: Path, gps: dict) -> dict:
             "flagged": [f for m in report["georef"]["models"] for f in m.get("flagged", [])]}
 
 
+def loop_drift(run: Path, scene: Path, first: int = 10) -> dict:
+    """The drift at the loop's end of a run's largest model (see the module docstring)."""
+    gt = load_reconstruction(scene / "gt" / "sparse")
+    truth = {im.name: np.asarray(im.projection_center()) for im in gt.images.values()}
+    rec = sparse_models(run / "sparse")[0]
+    est = {im.name: np.asarray(im.projection_center()) for im in rec.images.values() if im.has_pose}
+    names = sorted(est)
+    e, t = np.array([est[n] for n in names]), np.array([truth[n] for n in names])
+    path = float(np.sum(np.linalg.norm(np.diff(np.array([truth[n] for n in sorted(truth)]), axis=0), axis=1)))
+    end = float(np.linalg.norm(umeyama(e[:first], t[:first]).apply(e[-1:])[0] - t[-1]))
+    acc = accuracy_summary([poses(r) for r in sparse_models(run / "sparse")],
+                           load_ground_truth(scene / "gt" / "sparse"))
+    return {"run": str(run), "registered": len(names), "last": names[-1], "path_m": round(path, 2),
+            "loop_drift_m": round(end, 4), "loop_drift_pct": round(100.0 * end / path, 4),
+            "shape_rms_m": round(rms(umeyama(e, t).apply(e) - t), 4), "auc@5": round(float(acc["auc@5"]), 4)}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scene", type=Path)
@@ -74,7 +95,12 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--run", type=Path, default=None, help="a workspace to score")
     ap.add_argument("--fixes", type=Path, default=None, help="the pose-prior CSV the run was given")
+    ap.add_argument("--drift", type=Path, nargs="+", default=None, metavar="WS", help="runs to measure loop drift")
     args = ap.parse_args()
+    if args.drift:
+        for run in args.drift:
+            print(json.dumps(loop_drift(run, args.scene)))
+        return
     gps = json.loads((args.scene / "gt" / "gps.json").read_text())
     names = sorted(gps["images"])
     true = np.array([gps["images"][n]["true_enu"] for n in names])
