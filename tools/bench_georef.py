@@ -12,7 +12,8 @@ after a similarity to the truth, and AUC@5 of its poses.
 SCENE holds gt/sparse and, for the bound and the score, gt/gps.json (`mvrecon scene make`). --fixes: the priors
 the run was given, to report the similarity of the true centres onto exactly those fixes (this draw's bound).
 --drift: a loop's drift (street_long, whose last frame is back at its first): each run's model aligned to the
-truth on its first 10 frames, the distance of its last frame from the truth, in metres and in % of the path.
+truth on its first 10 frames, the distance of its last frame from the truth, in metres and in % of the path, and
+the largest distance of any frame (where the loop is farthest from its start).
 """
 
 import argparse
@@ -79,11 +80,13 @@ def loop_drift(run: Path, scene: Path, first: int = 10) -> dict:
     names = sorted(est)
     e, t = np.array([est[n] for n in names]), np.array([truth[n] for n in names])
     path = float(np.sum(np.linalg.norm(np.diff(np.array([truth[n] for n in sorted(truth)]), axis=0), axis=1)))
-    end = float(np.linalg.norm(umeyama(e[:first], t[:first]).apply(e[-1:])[0] - t[-1]))
+    err = np.linalg.norm(umeyama(e[:first], t[:first]).apply(e) - t, axis=1)
+    end = float(err[-1])
     acc = accuracy_summary([poses(r) for r in sparse_models(run / "sparse")],
                            load_ground_truth(scene / "gt" / "sparse"))
     return {"run": str(run), "registered": len(names), "last": names[-1], "path_m": round(path, 2),
             "loop_drift_m": round(end, 4), "loop_drift_pct": round(100.0 * end / path, 4),
+            "max_drift_m": round(float(err.max()), 4), "max_drift_at": names[int(np.argmax(err))],
             "shape_rms_m": round(rms(umeyama(e, t).apply(e) - t), 4), "auc@5": round(float(acc["auc@5"]), 4)}
 
 
