@@ -5,7 +5,8 @@ The priors (database pose priors, WGS84 or local CARTESIAN) become east/north/up
 frame by a robust similarity (`georeference`), after which its bundle adjustments hold each camera centre to its
 prior through a Cauchy loss (bundle.py): a fix tens of metres off pulls with a force that fades with its distance
 instead of bending the model. `prior_residuals` tells each image's distance from its prior, in metres and in
-sigmas, so that a wrong fix is named in the report.
+sigmas, so that a wrong fix is named in the report. `triangulate_observed` places ground control markers seen in
+the images in a finished model (commands/georef.py).
 """
 
 import logging
