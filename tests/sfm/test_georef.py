@@ -1,5 +1,6 @@
 """Georeferenced models: a drone survey with GPS EXIF comes out in east/north/up metres within what its GPS noise
-allows, a wrong fix is flagged and does not bend the model, ECEF output, and no priors leave no georef."""
+allows (also from the global mapper), a wrong fix is flagged and does not bend the model, ECEF output, no priors
+leave no georef, and `mvrecon georef` aligns a model to control cameras or to control points seen in images."""
 
 import json
 import shutil
@@ -17,7 +18,7 @@ from mvrecon.geometry.sim3 import umeyama
 from mvrecon.io.gps import enu_to_ecef, from_ecef, from_enu, to_enu
 from mvrecon.sfm import global_mapper
 
-pytestmark = pytest.mark.slow  # three 24-view reconstructions at 320x240
+pytestmark = pytest.mark.slow  # four 24-view reconstructions at 320x240
 
 
 def _positions(out, gps):
