@@ -5,7 +5,8 @@ The priors (database pose priors, WGS84 or local CARTESIAN) become east/north/up
 frame by a robust similarity (`georeference`), after which its bundle adjustments hold each camera centre to its
 prior through a Cauchy loss (bundle.py): a fix tens of metres off pulls with a force that fades with its distance
 instead of bending the model. `prior_residuals` tells each image's distance from its prior, in metres and in
-sigmas, so that a wrong fix is named in the report.
+sigmas, so that a wrong fix is named in the report. `triangulate_observed` places ground control markers seen in
+the images in a finished model (commands/georef.py).
 """
 
 import logging
@@ -13,8 +14,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry.camera import pixels_to_normalized, project
 from ..geometry.rotation import angle_axis_to_rotmat
 from ..geometry.sim3 import Sim3, ransac_umeyama
+from ..geometry.triangulation import refine_points, triangulate_dlt
 from ..io.gps import enu_to_ecef, from_enu, to_enu
 from ..io.pose_priors import CARTESIAN, WGS84
 from .model import Reconstruction
@@ -159,6 +162,30 @@ def fit_similarity(model: Reconstruction, priors: CenterPriors, seed: int = 0) -
     """`align_centres` of the model's registered images with a prior."""
     js, pos, sig = priors.in_model(model)
     return align_centres(model.centers()[js], pos, sig, seed)
+
+
+def triangulate_observed(views: list[list[tuple[np.ndarray, np.ndarray, str, np.ndarray, np.ndarray]]]
+                         ) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Points seen in images (ground control markers), each from its views (R, t cam_from_world, camera model,
+    its parameters, the pixel): the multi-view DLT refined on the reprojection error (geometry.triangulation),
+    as the mapper triangulates. Returns the points (n, 3; NaN where the rays meet behind a camera or not at all)
+    and each point's reprojection error per view, in pixels."""
+    k = max(len(v) for v in views)
+    R, t = np.tile(np.eye(3), (len(views), k, 1, 1)), np.zeros((len(views), k, 3))
+    x, mask = np.zeros((len(views), k, 2)), np.zeros((len(views), k), bool)
+    for i, obs in enumerate(views):
+        for j, (Rj, tj, model, params, uv) in enumerate(obs):
+            R[i, j], t[i, j], mask[i, j] = Rj, tj, True
+            x[i, j] = pixels_to_normalized(model, params, np.asarray(uv, float)[None])[0]
+    X = refine_points(triangulate_dlt(R, t, x, mask), R, t, x, mask)
+    errors = []
+    for i, obs in enumerate(views):
+        cam = np.einsum("kij,j->ki", R[i, :len(obs)], X[i]) + t[i, :len(obs)]
+        if not (np.isfinite(X[i]).all() and (cam[:, 2] > 0).all()):
+            X[i] = np.nan
+        errors.append(np.array([np.linalg.norm(project(m, p, c[None])[0] - np.asarray(uv, float))
+                                for c, (_, _, m, p, uv) in zip(cam, obs)]))
+    return X, errors
 
 
 def transform_model(model: Reconstruction, T: Sim3) -> None:

@@ -41,6 +41,7 @@ from . import filtering
 from .ba_points import select_points
 from .bundle import bundle_adjust
 from .config import MapperConfig
+from .georef import CenterPriors, georeference
 from .global_positioning import global_positions, outlier_cameras
 from .incremental import MappingResult
 from .model import Reconstruction, image_status, images_and_cameras
@@ -73,6 +74,7 @@ class GlobalMapper:
         self.pairs = oriented_pairs(self.image_ids, corr.pairs)
         self.tracks = build_tracks(self.image_ids, [len(k) for k in self.keypoints], corr.pairs)
         self.reasons: dict[int, str] = {}
+        self.priors = CenterPriors.of(corr.priors)  # camera position priors (georef.py), None without
         self.ba_calls, self.ba_seconds = 0, 0.0
         self.seconds: dict[str, float] = {}
 
@@ -260,6 +262,8 @@ class GlobalMapper:
                 self._bundle(m, intrinsics=True, subset=True)
                 self._filter(m, cfg)
         retriangulate(m, self.tracks, cfg, cfg.seed)
+        m.priors = self.priors  # the final BA holds the centres to their position priors, as the incremental
+        georeference(m, cfg.seed)  # mapper's do once in the priors' frame (georef.py; no-op without priors)
         self._bundle(m, intrinsics=True)
         self._filter(m, cfg)
 

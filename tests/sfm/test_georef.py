@@ -1,10 +1,12 @@
 """Georeferenced models: a drone survey with GPS EXIF comes out in east/north/up metres within what its GPS noise
-allows, a wrong fix is flagged and does not bend the model, ECEF output, and no priors leave no georef."""
+allows (also from the global mapper), a wrong fix is flagged and does not bend the model, ECEF output, no priors
+leave no georef, and `mvrecon georef` aligns a model to control cameras or to control points seen in images."""
 
 import json
 import shutil
 
 import numpy as np
+import pycolmap
 import pytest
 
 from mvrecon import database as dbmod
@@ -13,9 +15,10 @@ from mvrecon.eval.ground_truth import load_ground_truth
 from mvrecon.eval.metrics import accuracy_summary
 from mvrecon.eval.models import poses, sparse_models
 from mvrecon.geometry.sim3 import umeyama
-from mvrecon.io.gps import enu_to_ecef, from_ecef, to_enu
+from mvrecon.io.gps import enu_to_ecef, from_ecef, from_enu, to_enu
+from mvrecon.sfm import global_mapper
 
-pytestmark = pytest.mark.slow  # three 24-view reconstructions at 320x240
+pytestmark = pytest.mark.slow  # four 24-view reconstructions at 320x240
 
 
 def _positions(out, gps):
@@ -141,3 +144,84 @@ def test_gcp_georef_fits_control_cameras_and_refuses_unknown_names(aerial_survey
     assert main(["-q", "georef", str(run), "--gcp", str(tmp_path / "bad.csv")]) == 2
     err = capsys.readouterr().err
     assert "bad.csv" in err and "ghost.jpg" in err and len(err.strip().splitlines()) == 1
+
+
+def _gcp_list(scene, origin, count=6, off=None):
+    """OpenDroneMap gcp_list lines of `count` truth points spread over the scene (farthest apart), each seen in
+    the images of its truth track at its pixels through the truth cameras; the point named `off` surveyed 3 m
+    east of where it is."""
+    gt = pycolmap.Reconstruction(str(scene / "gt" / "sparse"))
+    pts = [p for p in gt.points3D.values() if p.track.length() >= 4]
+    xyz = np.array([p.xyz for p in pts])
+    chosen = [int(np.argmin(xyz[:, 0] + xyz[:, 1]))]
+    while len(chosen) < count:
+        chosen.append(int(np.argmax(np.min(np.linalg.norm(xyz[:, None, :2] - xyz[chosen][None, :, :2], axis=2),
+                                           axis=1))))
+    lines, truth = ["WGS84"], {}
+    for k, c in enumerate(chosen):
+        p, name = pts[c], f"gcp{k}"
+        truth[name] = p.xyz
+        lat, lon, alt = from_enu((p.xyz + (np.array([3.0, 0, 0]) if name == off else 0.0))[None], origin)[0]
+        for el in p.track.elements:
+            im = gt.images[el.image_id]
+            uv = gt.cameras[im.camera_id].img_from_cam((im.cam_from_world() * p.xyz)[None])[0] - 0.5
+            lines.append(f"{lon:.10f} {lat:.10f} {alt:.4f} {uv[0]:.3f} {uv[1]:.3f} {im.name} {name}")
+    return lines, truth
+
+
+def test_gcp_points_seen_in_images_align_the_model(aerial_survey_half, exif_run, tmp_path, capsys):
+    """`mvrecon georef` with an OpenDroneMap gcp_list of 6 markers (pixels from the truth cameras): each marker
+    triangulated in the model within a pixel, residuals of centimetres, every camera then within 0.1 m of the
+    truth; a marker surveyed 3 m off is left out and named; a marker in one image only, or an image the model
+    does not have, is refused in one line naming it."""
+    gps = json.loads((aerial_survey_half / "gt" / "gps.json").read_text())
+    origin = np.array(gps["origin"])
+    run = tmp_path / "run"
+    shutil.copytree(exif_run, run)
+    lines, truth = _gcp_list(aerial_survey_half, origin, off="gcp3")
+    (tmp_path / "gcp_list.txt").write_text("\n".join(lines) + "\n")
+    assert main(["-q", "georef", str(run), "--gcp", str(tmp_path / "gcp_list.txt")]) == 0
+    record = json.loads((run / "georef.json").read_text())["gcp"]
+    assert record["kind"] == "points" and record["outliers"] == ["gcp3"]
+    assert np.linalg.norm(record["residuals_m"]["gcp3"]) > 2.5  # its residual reports the 3 m survey error
+    assert record["rms_m"] < 0.05 and max(record["reprojection_px"].values()) < 1.0
+    assert all(record["views"][n] >= 4 for n in truth)
+    origin = np.array(json.loads((run / "georef.json").read_text())["origin"])
+    rec = sparse_models(run / "sparse")[0]
+    for im in rec.images.values():
+        true_enu = to_enu(np.array([gps["images"][im.name]["true_lla"]]), origin)[0]
+        assert np.linalg.norm(im.projection_center() - true_enu) < 0.1
+    one = [ln for ln in lines if not ln.endswith(" gcp1")] + [next(ln for ln in lines if ln.endswith(" gcp1"))]
+    for bad, named in ((one, "gcp1"), (lines + [lines[1].replace(lines[1].split()[5], "ghost.jpg")], "ghost.jpg")):
+        (tmp_path / "bad.txt").write_text("\n".join(bad) + "\n")
+        capsys.readouterr()
+        assert main(["-q", "georef", str(run), "--gcp", str(tmp_path / "bad.txt")]) == 2
+        err = capsys.readouterr().err
+        assert "bad.txt" in err and named in err and len(err.strip().splitlines()) == 1
+
+
+def test_global_mapper_holds_the_centres_to_their_priors(aerial_survey_half, exif_run, tmp_path, monkeypatch):
+    """--mapper global on the same database with its GPS priors: the model is moved into the priors' frame before
+    its final bundle adjustment (which then holds each centre to its prior) and comes out in ENU as close to
+    the truth as these 24 fixes allow, with its shape intact."""
+    gps = json.loads((aerial_survey_half / "gt" / "gps.json").read_text())
+    ws = tmp_path / "global"
+    shutil.copytree(exif_run, ws)
+    held = []  # per bundle adjustment: whether its model holds its centres to their priors (bundle.py)
+
+    def bundle_adjust(model, *args, **kwargs):
+        held.append(bool(model.georeferenced and model.priors is not None))
+        return ba(model, *args, **kwargs)
+
+    ba = global_mapper.bundle_adjust
+    monkeypatch.setattr(global_mapper, "bundle_adjust", bundle_adjust)
+    assert main(["-q", "map", "-o", str(ws), "--mapper", "global", "--overwrite"]) == 0
+    assert held[-1] and not held[0]  # the final BA, not those of the global positions' first rounds
+    report, names, est, true, noisy = _positions(ws, gps)
+    assert len(names) == 24 and report["georef"]["frame"] == "enu" and report["georef"]["models"][0]["flagged"] == []
+    best = umeyama(true, noisy)
+    assert _rms(est - true) < _rms(best.apply(true) - true) + 0.5
+    assert _rms(est - true) < 0.8 * _rms(noisy - true)
+    assert _rms(umeyama(est, true).apply(est) - true) < 0.1
+    gt = load_ground_truth(aerial_survey_half / "gt" / "sparse")
+    assert accuracy_summary([poses(r) for r in sparse_models(ws / "sparse")], gt)["auc@5"] > 0.95
