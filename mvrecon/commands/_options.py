@@ -96,9 +96,6 @@ def add_feature_options(parser: argparse.ArgumentParser) -> None:
                    help="no orientation (cameras that never roll)")
     g.add_argument("--no-root-sift", dest="root_sift", action="store_false", default=None,
                    help="plain L2-normalised SIFT instead of RootSIFT")
-    g.add_argument("--dsp", dest="domain_size_pooling", action="store_true", default=None,
-                   help="DSP-SIFT: descriptors pooled over 10 window sizes (COLMAP's domain_size_pooling; "
-                        "10-15x the extraction time)")
     g.add_argument("--masks", default=None, metavar="DIR",
                    help="no features where a mask is black, in COLMAP's layout: the mask of IMAGES/sub/a.jpg is "
                         "DIR/sub/a.jpg.png, in the image's stored frame or upright (people, sky, a lens hood)")
@@ -119,9 +116,6 @@ def add_matching_options(parser: argparse.ArgumentParser) -> None:
                    help="RANSAC inlier threshold in pixels (default 4)")
     g.add_argument("--min-inliers", type=int, default=None,
                    help="inliers for a pair to count as verified (default 15)")
-    g.add_argument("--guided-matching", dest="guided", action="store_true", default=None,
-                   help="match each verified pair again among the keypoints its geometry admits (COLMAP's "
-                        "guided_matching; a second descriptor product per verified pair)")
 
 
 def add_workspace(parser: argparse.ArgumentParser, help: str, dest: str = "workspace") -> None:
@@ -191,18 +185,15 @@ _FLAG_FIELDS = {  # argparse dest -> (config section, field)
     "peak_threshold": ("sift", "peak_threshold"),
     "upright": ("sift", "upright"),
     "root_sift": ("sift", "root_sift"),
-    "domain_size_pooling": ("sift", "domain_size_pooling"),
     "pairs": (None, "pairs"),
     "ratio": ("matcher", "max_ratio"),
-    "guided": ("matcher", "guided"),
     "max_error": ("verify", "max_error"),
     "min_inliers": ("verify", "min_num_inliers"),
     "masks": (None, "masks"),
     "pose_priors": (None, "pose_priors"),
     "workers": (None, "workers"),
 }
-_FLAG_NAMES = {"root_sift": "--no-root-sift", "domain_size_pooling": "--dsp",
-               "guided": "--guided-matching"}  # argparse dest -> flag, where not "--" + dest with dashes
+_FLAG_NAMES = {"root_sift": "--no-root-sift"}  # argparse dest -> flag, where not "--" + dest with dashes
 
 
 def flag_name(dest: str) -> str:

@@ -41,13 +41,6 @@ class SiftConfig:
     # correction but finds other features: worse on imc_reichstag (AUC@5 0.54-0.62 over 4 seeds) and
     # wide_orbit, so it is off (docs/frontend.md)
     precise_upscale: bool = False
-    # DSP-SIFT (COLMAP's domain_size_pooling): each descriptor is the mean of those taken with dsp_num_scales
-    # windows from dsp_min_scale to dsp_max_scale times the keypoint's own, on the keypoint's own blurred
-    # level. Off: it costs 10-15x the extraction time at 10 scales (docs/frontend.md, "DSP-SIFT")
-    domain_size_pooling: bool = False
-    dsp_min_scale: float = bounded(1.0 / 6.0, 0.0, low_open=True)
-    dsp_max_scale: float = bounded(3.0, 0.0, low_open=True)
-    dsp_num_scales: int = bounded(10, 1)
 
 
 def extract_sift(image: np.ndarray, config: SiftConfig = SiftConfig(), reduced: int = 1
@@ -88,8 +81,6 @@ def extract_sift(image: np.ndarray, config: SiftConfig = SiftConfig(), reduced: 
             kps, desc = [kps[i] for i in keep], desc[keep]
     if not kps or desc is None:
         return np.zeros((0, 4), np.float32), np.zeros((0, 128), np.uint8)
-    if config.domain_size_pooling:
-        desc = _pooled_descriptors(sift, gray, kps, config)
     keypoints = np.array([(k.pt[0], k.pt[1], k.size, k.angle) for k in kps], dtype=np.float64)
     # OpenCV pixel centre (0,0) -> COLMAP (0.5,0.5), less the 0.25 px shift of OpenCV's upsampling; full size
     shift = 0.5 if config.precise_upscale else 0.25
@@ -131,20 +122,6 @@ def _capped(kps, config: SiftConfig) -> np.ndarray:
     level = (((octave & 255) ^ 128) - 128) * config.num_octave_layers + ((octave >> 8) & 255)
     order = np.lexsort((-np.array([k.response for k in kps]), -level))
     return np.sort(order[:config.max_num_features])
-
-
-def _pooled_descriptors(sift, gray: np.ndarray, kps, config: SiftConfig) -> np.ndarray:
-    """(N,128) float descriptors of `kps`, each the mean of the descriptors whose windows are dsp_num_scales
-    multiples of the keypoint's size, evenly spaced from dsp_min_scale to dsp_max_scale (COLMAP's
-    domain_size_pooling and spacing). Each keeps the keypoint's octave and level, so that every window samples
-    the same blurred image; one `compute` call builds the pyramid once."""
-    import cv2  # noqa: PLC0415 - loaded after the feature workers fork (executor._get_context)
-
-    scales = np.linspace(config.dsp_min_scale, config.dsp_max_scale, config.dsp_num_scales)
-    scaled = [cv2.KeyPoint(k.pt[0], k.pt[1], k.size * s, k.angle, k.response, k.octave, k.class_id)
-              for k in kps for s in scales]
-    _, desc = sift.compute(gray, scaled)
-    return np.asarray(desc, dtype=np.float32).reshape(len(kps), len(scales), -1).mean(axis=1)
 
 
 def descriptors_to_uint8(desc: np.ndarray, root: bool) -> np.ndarray:

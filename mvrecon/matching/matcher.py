@@ -16,7 +16,6 @@ chosen ones are then computed exactly. On opensfm_lund's first 45 pairs 98.6% of
 float32 product of unit descriptors (8,766 against 8,769). Float descriptors keep the float32 product.
 """
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,9 +29,6 @@ class MatcherConfig:
     max_ratio: float = bounded(0.8, 0.0, 1.0, low_open=True)  # Lowe's ratio test on descriptor angles
     max_distance: float = bounded(0.7, 0.0, low_open=True)  # radians between unit descriptors, COLMAP's default
     cross_check: bool = True  # keep i<->j only if each is the other's nearest neighbour
-    # after verification, match each verified pair again among the keypoints its geometry admits
-    # (matching/guided.py, COLMAP's guided_matching)
-    guided: bool = False
 
 
 @dataclass(frozen=True)
@@ -104,12 +100,8 @@ def _as_float(p: Prepared) -> Prepared:
 
 
 def match_descriptors(desc1: np.ndarray | Prepared, desc2: np.ndarray | Prepared,
-                      config: MatcherConfig = MatcherConfig(),
-                      admissible: Callable[[int, int], np.ndarray] | None = None) -> np.ndarray:
-    """(N,2) int64 index pairs of mutual nearest neighbours that pass the ratio and distance tests.
-    `admissible(start, stop)`, if given, is a (stop - start, len(desc2)) bool mask of the candidates rows
-    start..stop may take: the neighbours, the second best of the ratio test and the mutual check are then
-    chosen among those only (guided matching)."""
+                      config: MatcherConfig = MatcherConfig()) -> np.ndarray:
+    """(N,2) int64 index pairs of mutual nearest neighbours that pass the ratio and distance tests."""
     a, b = prepare_descriptors(desc1), prepare_descriptors(desc2)
     n1, n2 = len(a), len(b)
     if n1 == 0 or n2 == 0:
@@ -125,8 +117,6 @@ def match_descriptors(desc1: np.ndarray | Prepared, desc2: np.ndarray | Prepared
     for start in range(0, n1, block):
         stop = min(n1, start + block)
         S = product(a.rows[start:stop], b.cols)
-        if admissible is not None:
-            S[~admissible(start, stop)] = floor
         rows = np.arange(stop - start)
         j = S.argmax(axis=1)
         best_j[start:stop] = j

@@ -12,7 +12,7 @@ import uuid
 from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +22,6 @@ from ..cluster import Cluster
 from ..config import to_dict
 from ..executor import blas_threads
 from ..io.gps import read_gps
-from ..matching.guided import guided_inliers
 from ..matching.matcher import match_descriptors, prepare_descriptors
 from ..matching.overlay import drop_static, fixed_keypoints
 from ..matching.pairs import PairPlan, check_spec, plan_pairs
@@ -75,13 +74,7 @@ def _match_one(task):
     (kp1, d1, cam1, fixed1), (kp2, d2, cam2, fixed2), config = task
     putative = match_descriptors(d1, d2, config.matcher)
     matches = drop_static(putative, kp1, kp2, fixed1, fixed2)
-    verified = verify_pair(kp1, kp2, matches, cam1, cam2, config.verify)
-    if config.matcher.guided and len(verified.inliers):
-        guided = drop_static(guided_inliers(kp1, d1, kp2, d2, verified, config.verify.max_error, config.matcher),
-                             kp1, kp2, fixed1, fixed2)
-        if len(guided) >= config.verify.min_num_inliers:
-            verified = replace(verified, inliers=guided)
-    return matches, verified, len(putative) - len(matches)
+    return matches, verify_pair(kp1, kp2, matches, cam1, cam2, config.verify), len(putative) - len(matches)
 
 
 def _image_features(keypoints: np.ndarray, descriptors: np.ndarray, camera, fixed: np.ndarray) -> tuple:
