@@ -8,6 +8,9 @@ keeps its best plane, refined between planes by a parabola through the costs of 
 The per-pixel arithmetic runs in numba kernels fused over the whole image: one pass per (plane, source) for the
 NCC, one per plane for the best-k aggregation and the running minimum, so no cost volume is held in memory (a
 1-Mpx view at 200 planes would need 0.8 GB).
+
+`pyramid_depth` sweeps at a coarse size only, then refines each pixel's plane, slant included, at each finer
+level up to full size (`patchmatch`).
 """
 
 import math
