@@ -73,22 +73,27 @@ def _plane_cost(ref, srcs, sizes, A, b, x, y, q, gx, gy, radius, step, mr, vr, n
     rows, cols = ref.shape
     for s in range(srcs.shape[0]):
         width, height = sizes[s, 0], sizes[s, 1]
+        # the source pixel of window sample (dx, dy): (A @ (x + dx, y + dy, 1) + b * q') / its third row,
+        # q' = q + gx dx + gy dy: the centre's value plus a step per dx and per dy
+        hx = A[s, 0, 0] * x + A[s, 0, 1] * y + A[s, 0, 2] + b[s, 0] * q
+        hy = A[s, 1, 0] * x + A[s, 1, 1] * y + A[s, 1, 2] + b[s, 1] * q
+        hw = A[s, 2, 0] * x + A[s, 2, 1] * y + A[s, 2, 2] + b[s, 2] * q
+        ux, uy = A[s, 0, 0] + b[s, 0] * gx, A[s, 0, 1] + b[s, 0] * gy
+        vx, vy = A[s, 1, 0] + b[s, 1] * gx, A[s, 1, 1] + b[s, 1] * gy
+        wx, wy = A[s, 2, 0] + b[s, 2] * gx, A[s, 2, 1] + b[s, 2] * gy
         ss = 0.0
         sss = 0.0
         srs = 0.0
         ok = True
         for dy in range(-radius, radius + 1, step):
             yy = min(max(y + dy, 0), rows - 1)
-            py = y + dy
             for dx in range(-radius, radius + 1, step):
-                px = x + dx
-                qq = q + gx * dx + gy * dy
-                pw = A[s, 2, 0] * px + A[s, 2, 1] * py + A[s, 2, 2] + b[s, 2] * qq
-                if qq <= 0 or pw <= 0:
+                pw = hw + wx * dx + wy * dy
+                if pw <= 0 or q + gx * dx + gy * dy <= 0:
                     ok = False
                     break
-                u = (A[s, 0, 0] * px + A[s, 0, 1] * py + A[s, 0, 2] + b[s, 0] * qq) / pw
-                v = (A[s, 1, 0] * px + A[s, 1, 1] * py + A[s, 1, 2] + b[s, 1] * qq) / pw
+                u = (hx + ux * dx + uy * dy) / pw
+                v = (hy + vx * dx + vy * dy) / pw
                 if u < 0 or v < 0 or u >= width - 1 or v >= height - 1:
                     ok = False
                     break
@@ -98,7 +103,7 @@ def _plane_cost(ref, srcs, sizes, A, b, x, y, q, gx, gy, radius, step, mr, vr, n
                 fv = v - v0
                 sv = ((1 - fu) * (1 - fv) * srcs[s, v0, u0] + fu * (1 - fv) * srcs[s, v0, u0 + 1]
                       + (1 - fu) * fv * srcs[s, v0 + 1, u0] + fu * fv * srcs[s, v0 + 1, u0 + 1])
-                rv = ref[yy, min(max(px, 0), cols - 1)]
+                rv = ref[yy, min(max(x + dx, 0), cols - 1)]
                 ss += sv
                 sss += sv * sv
                 srs += rv * sv
