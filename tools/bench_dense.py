@@ -59,6 +59,7 @@ from mvrecon.interrupts import import_open3d  # noqa: E402
 from mvrecon.io.colmap_array import read_colmap_array  # noqa: E402
 from mvrecon.io.images import read_image  # noqa: E402
 from mvrecon.io.ply import read_ply_points  # noqa: E402
+from mvrecon.io.record import Record  # noqa: E402
 from mvrecon.scenes import make_scene  # noqa: E402
 
 SCENES = ("object_orbit_small", "object_orbit", "room")
@@ -109,8 +110,21 @@ def reconstruct(images: Path, out: Path, camera_model: str, code: Path, timeout:
     return run
 
 
+def stage_cpu(dense_dir: Path) -> dict:
+    """CPU seconds of the depth and consistency maps (summed over the views, as recorded by their workers), and
+    wall and CPU seconds of fusion and of the mesh, from the dense workspace's record."""
+    record = Record(dense_dir, "dense.json")
+    depth = sum(record.report(n).get("cpu_seconds", 0.0) for n in record.names()
+                if n.startswith(("photometric/", "geometric/")))
+    fused = record.report("fused") or {}
+    return {"depth_cpu_s": depth, **{k: fused.get(k, float("nan")) for k in
+                                      ("fuse_seconds", "fuse_cpu_seconds", "mesh_seconds", "mesh_cpu_seconds")}}
+
+
 def timing(row: dict, dense_dir: Path, record: dict) -> None:
     views, mpx = depth_pixels(dense_dir)
+    row.update(stage_cpu(dense_dir))
+    row["depth_cpu_s_per_mpx"] = row["depth_cpu_s"] / max(mpx, 1e-9)
     row.update({"depth_maps": views, "mpx_per_view": mpx / max(views, 1), "dense_wall_s": record["wall_s"],
                 "s_per_view": record["wall_s"] / max(views, 1),
                 "s_per_mpx": record["wall_s"] / max(mpx, 1e-9),
@@ -284,7 +298,8 @@ def verdict(row: dict) -> str:
 
 def scene_table(rows: list[dict]) -> str:
     head = ("| scene | views | Mpx/view | depth within 1% | acc/comp/F @0.2% | acc/comp/F @0.5% "
-            "| acc/comp/F @1% | fused points | dense s | s/view | s/Mpx | CPU s/Mpx | peak MB | targets |")
+            "| acc/comp/F @1% | fused points | dense s | s/view | s/Mpx | CPU s/Mpx | depth CPU s/Mpx "
+            "| fuse s (CPU) | mesh s (CPU) | peak MB | targets |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in rows:
         if r.get("error"):
@@ -298,7 +313,8 @@ def scene_table(rows: list[dict]) -> str:
                      f"| {r['depth_within_1pct']:.3f} | {trio('0.2')} | {trio('0.5')} | {trio('1')} "
                      f"| {r['points']} | {r['dense_wall_s']:.0f} "
                      f"| {r['s_per_view']:.1f} | {r['s_per_mpx']:.1f} | {r['cpu_s_per_mpx']:.1f} "
-                     f"| {r['peak_mb']:.0f} | {verdict(r)} |")
+                     f"| {r['depth_cpu_s_per_mpx']:.1f} | {r['fuse_seconds']:.0f} ({r['fuse_cpu_seconds']:.0f}) "
+                     f"| {r['mesh_seconds']:.0f} ({r['mesh_cpu_seconds']:.0f}) | {r['peak_mb']:.0f} | {verdict(r)} |")
     return "\n".join(lines)
 
 

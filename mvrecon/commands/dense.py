@@ -3,7 +3,7 @@
 Reads OUT/sparse/0 (or --model) of a `mvrecon reconstruct` run and the images it was made from, and writes
 COLMAP's dense workspace into OUT/dense (or -o): images/ and sparse/ undistorted to PINHOLE,
 stereo/depth_maps/ and stereo/normal_maps/ (NAME.photometric.bin, NAME.geometric.bin, COLMAP's format, which
-`colmap stereo_fusion` reads), previews/NAME.depth.png, fused.ply (points, colours, normals) and mesh.ply
+`colmap stereo_fusion` reads), previews/NAME.depth.png and .pfm, fused.ply (points, colours, normals) and mesh.ply
 (Poisson). A rerun continues where an interrupted one stopped; a view without a depth map is named with the
 reason.
 

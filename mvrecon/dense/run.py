@@ -28,6 +28,7 @@ from ..io.colmap_array import read_colmap_array, write_colmap_array
 from ..io.colmap_model import load_reconstruction
 from ..io.files import replace_whole
 from ..io.images import write_image
+from ..io.pfm import write_pfm
 from ..io.ply import write_ply
 from ..io.record import Record, code_digest, digest
 from ..progress import progress
@@ -148,12 +149,14 @@ def _write_maps(dense_dir: Path, view: View, depth: np.ndarray, kind: str) -> No
         write_colmap_array(path, array)
 
 
-def preview_path(dense_dir: Path, name: str) -> Path:
-    return dense_dir / "previews" / f"{name}.depth.png"
+def preview_path(dense_dir: Path, name: str, suffix: str = ".png") -> Path:
+    return dense_dir / "previews" / f"{name}.depth{suffix}"
 
 
 def _write_preview(dense_dir: Path, name: str, depth: np.ndarray) -> None:
-    """A colour picture of the depth map (near warm, far cool, black without depth)."""
+    """A colour picture of the depth map (near warm, far cool, black without depth), and beside it the depth
+    values as a PFM float map (Middlebury's format: `inf` without depth) for tools that read PFM, not COLMAP's
+    arrays."""
     known = depth > 0
     inverse = np.zeros_like(depth)
     if known.any():
@@ -165,6 +168,7 @@ def _write_preview(dense_dir: Path, name: str, depth: np.ndarray) -> None:
     path = preview_path(dense_dir, name)
     path.parent.mkdir(parents=True, exist_ok=True)
     replace_whole(path, lambda tmp: write_image(tmp, picture))
+    replace_whole(preview_path(dense_dir, name, ".pfm"), lambda tmp: write_pfm(tmp, np.where(known, depth, np.inf)))
 
 
 def _model_key(model_dir: Path, image_dir: Path, max_image_size: int) -> str:
@@ -179,7 +183,7 @@ def run_dense(model_dir: Path | str, image_dir: Path | str, out_dir: Path | str,
     """Dense reconstruction of the sparse model in `model_dir` (any COLMAP model; its images in `image_dir`)
     into `out_dir`, COLMAP's dense workspace: images/ and sparse/ undistorted to PINHOLE with the long side at
     most `max_image_size` (-1: full size), stereo/depth_maps/ and stereo/normal_maps/ (`NAME.photometric.bin`,
-    `NAME.geometric.bin`, COLMAP's array format), previews/NAME.depth.png, fused.ply (points, colours,
+    `NAME.geometric.bin`, COLMAP's array format), previews/NAME.depth.png and .pfm, fused.ply (points, colours,
     normals, in the model's frame) and mesh.ply. Each view takes up to `views` source views. `workers`
     processes (default: all cores) make the depth maps. `database`: the database the model was mapped from
     (it tells the frame of EXIF-rotated images). A rerun reuses what was finished with the same inputs and
@@ -293,6 +297,8 @@ def dense_from_run(run_dir: Path | str, out_dir: Path | str | None = None, *, mo
 
 
 def _fuse_and_mesh(dense_dir: Path, views: list[View], selections, settings: DenseSettings, mesh: bool) -> dict:
+    """Write fused.ply and mesh.ply; the report: points, mesh size, wall and CPU seconds of each."""
+    t0, c0 = time.perf_counter(), time.process_time()
     depth_views = []
     for view in views:
         bgr = cv2.imdecode(np.fromfile(dense_dir / "images" / view.name, np.uint8), cv2.IMREAD_COLOR)
@@ -302,7 +308,9 @@ def _fuse_and_mesh(dense_dir: Path, views: list[View], selections, settings: Den
     xyz, rgb, normals = fuse(depth_views, rel_tolerance=settings.rel_tolerance,
                              max_reprojection=settings.max_reprojection)
     replace_whole(dense_dir / "fused.ply", lambda tmp: write_ply(tmp, xyz, rgb, normals))
-    report = {"points": len(xyz)}
+    report = {"points": len(xyz), "fuse_seconds": time.perf_counter() - t0,
+              "fuse_cpu_seconds": time.process_time() - c0}
+    t0, c0 = time.perf_counter(), time.process_time()
     if mesh and len(xyz) >= 100:
         vertices, triangles = [], []
 
@@ -312,7 +320,8 @@ def _fuse_and_mesh(dense_dir: Path, views: list[View], selections, settings: Den
             triangles.append(t)
 
         replace_whole(dense_dir / "mesh.ply", write_mesh)
-        report.update(vertices=vertices[0], triangles=triangles[0])
+        report.update(vertices=vertices[0], triangles=triangles[0], mesh_seconds=time.perf_counter() - t0,
+                      mesh_cpu_seconds=time.process_time() - c0)
     elif mesh:
         log.warning("%s: %d fused points, too few for a mesh", dense_dir, len(xyz))
     return report

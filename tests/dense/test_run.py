@@ -60,6 +60,13 @@ def test_dense_on_a_plane(tmp_path):
     assert depth.shape == (240, 320)
     err = np.abs(depth[depth > 0] - DEPTH) / DEPTH
     assert (depth > 0).mean() > 0.8 and (err <= 0.005).mean() > 0.95
+    # the PFM preview beside the PNG: Middlebury's layout, little-endian float32 rows bottom first, inf = none
+    raw = (out / "previews" / "0.png.depth.pfm").read_bytes()
+    header = b"Pf\n320 240\n-1\n"
+    assert raw[: len(header)] == header and len(raw) == len(header) + 320 * 240 * 4
+    values = np.frombuffer(raw[len(header):], "<f4").reshape(240, 320)[::-1]
+    assert np.array_equal(values, np.where(depth > 0, depth, np.inf))
+    assert (out / "previews" / "0.png.depth.png").is_file()
     normals = read_colmap_array(out / "stereo" / "normal_maps" / "0.png.geometric.bin")
     assert np.median(normals[depth > 0][:, 2]) < -0.99  # facing the camera
     points, colors = read_ply_points(out / "fused.ply")
