@@ -14,6 +14,7 @@ they complete (the matching stage's batches of pairs). Dask runs again the tasks
 `Cluster.keep` lives in the task graph, so a worker that dies holding it costs a recomputation, not the run.
 """
 
+import contextlib
 import ipaddress
 import logging
 import os
@@ -42,6 +43,17 @@ INSECURE = "none"  # --cluster-security value: an unauthenticated cluster on a t
 # Security() keyword -> the keys a security file may use for it (TOML or YAML; dashes or underscores)
 _SECURITY_KEYS = {"tls_ca_file": ("ca-file", "tls-ca-file"), "tls_client_cert": ("cert", "tls-client-cert"),
                   "tls_client_key": ("key", "tls-client-key")}
+# Dask's settings for a `local:N` cluster: the periodic work of its scheduler, nannies and workers made rare.
+# With Dask's defaults an idle LocalCluster of 2 workers used 0.16 of a core (the client's process 0.06: the
+# event loops' health ticks every 20 ms and the nannies' memory checks every 100 ms; each worker 0.05, a third of
+# it the statistical profiler sampling every 10 ms); with these 0.02. On a 2-core machine that is CPU the
+# workers' SIFT and RANSAC need, and on a loaded machine it is paid for every second the run lasts.
+QUIET_LOCAL_CLUSTER = {
+    "distributed.worker.profile.enabled": False,  # the dashboard's profile, which a local:N run has no use for
+    "distributed.admin.tick.interval": "1s",  # the check that an event loop is not blocked (a warning only)
+    "distributed.admin.system-monitor.interval": "5s",  # the dashboard's CPU and network figures
+    "distributed.worker.memory.monitor-interval": "500ms",  # the memory limits checked twice a second
+}
 
 
 class ClusterLost(InputError):
@@ -334,7 +346,8 @@ def open_cluster(spec: ClusterSpec, *, connect_timeout: float = 30.0) -> Iterato
     """The cluster of `spec`, connected for the block: a LocalCluster of N single-threaded worker processes on
     127.0.0.1 (no dashboard) for `local:N`, closed at the block's end; else a client of the scheduler at
     `spec.address` (InputError when it cannot be reached within `connect_timeout` seconds)."""
-    import distributed  # noqa: PLC0415 - heavy (~2 s), and only for --cluster
+    import dask  # noqa: PLC0415 - heavy (~2 s), and only for --cluster
+    import distributed  # noqa: PLC0415
 
     if not log.isEnabledFor(logging.DEBUG):  # Dask's news of workers coming and going, unless -v -v
         logging.getLogger("distributed").setLevel(logging.WARNING)
@@ -347,24 +360,27 @@ def open_cluster(spec: ClusterSpec, *, connect_timeout: float = 30.0) -> Iterato
         security = load_security(spec.security)
     local = None
     n = spec.local_workers
-    try:
-        if n is not None:
-            local = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                             dashboard_address=None, silence_logs=logging.WARNING)
-            client = distributed.Client(local)
-        else:
-            client = distributed.Client(spec.address, security=security, timeout=connect_timeout)
-    except (OSError, TimeoutError) as exc:
-        if local is not None:
-            local.close()
-        raise InputError(f"--cluster {spec.address}: cannot reach the scheduler ({exc})") from None
-    try:
-        cluster = Cluster(client, spec, local)
-        log.info("cluster %s: %d worker threads, connected in %.1f s", spec.address, cluster.workers,
-                 time.perf_counter() - start)
-        yield cluster
-    finally:
-        client.close()
-        if local is not None:  # its workers have nothing left to save: a slow one is ended without a warning
-            logging.getLogger("distributed.nanny").setLevel(logging.ERROR)
-            local.close()
+    # set for the block: a worker the nanny starts again after a death takes the settings the nanny was given
+    with dask.config.set(QUIET_LOCAL_CLUSTER) if n is not None else contextlib.nullcontext():
+        try:
+            if n is not None:
+                local = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                                 host="127.0.0.1", dashboard_address=None,
+                                                 silence_logs=logging.WARNING)
+                client = distributed.Client(local)
+            else:
+                client = distributed.Client(spec.address, security=security, timeout=connect_timeout)
+        except (OSError, TimeoutError) as exc:
+            if local is not None:
+                local.close()
+            raise InputError(f"--cluster {spec.address}: cannot reach the scheduler ({exc})") from None
+        try:
+            cluster = Cluster(client, spec, local)
+            log.info("cluster %s: %d worker threads, connected in %.1f s", spec.address, cluster.workers,
+                     time.perf_counter() - start)
+            yield cluster
+        finally:
+            client.close()
+            if local is not None:  # its workers have nothing left to save: a slow one is ended without a warning
+                logging.getLogger("distributed.nanny").setLevel(logging.ERROR)
+                local.close()
