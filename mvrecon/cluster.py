@@ -21,6 +21,7 @@ import os
 import re
 import socket
 import time
+import uuid
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
@@ -301,9 +302,11 @@ class Cluster:
                 future.cancel()
 
     def _submit(self, func: Callable, item) -> "distributed.Future":
-        """`func(item)` as a task on a prepared worker (`_on_prepared_worker`), its bytes counted as sent."""
+        """`func(item)` as a task on a prepared worker (`_on_prepared_worker`), its bytes counted as sent; its key
+        names `func`, as Dask's own keys do (the task stream, the benchmark's stages)."""
         self._count_sent(item)
-        return self._call(lambda: self.client.submit(_on_prepared_worker, func, item, pure=False))
+        return self._call(lambda: self.client.submit(_on_prepared_worker, func, item, pure=False,
+                                                     key=f"{func.__name__}-{uuid.uuid4().hex}"))
 
     def _result(self, future):
         result = self._call(future.result)

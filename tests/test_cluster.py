@@ -11,7 +11,7 @@ import time
 import dask
 import pycolmap
 import pytest
-from distributed import LocalCluster
+from distributed import LocalCluster, get_task_stream
 
 from mvrecon.cli import main
 from mvrecon.cluster import (
@@ -235,3 +235,10 @@ def test_a_local_cluster_runs_its_workers_with_little_periodic_work(cluster):
                 time.sleep(0.2)
             assert list(one.client.run(settings).values()) == [QUIET_LOCAL_CLUSTER]
         assert dask.config.get("distributed.admin.tick.interval") == "7ms"
+
+
+def test_a_task_is_named_by_its_function(cluster):
+    """The task stream (and the dashboard) tell the stages' tasks apart by their keys' function names."""
+    with get_task_stream(cluster.client) as stream:
+        assert list(cluster.map(abs, [-1, 2, -3])) == [1, 2, 3]
+    assert sorted(str(record["key"]).rsplit("-", 1)[0] for record in stream.data) == ["abs"] * 3
