@@ -14,12 +14,15 @@ they complete (the matching stage's batches of pairs). Dask runs again the tasks
 `Cluster.keep` lives in the task graph, so a worker that dies holding it costs a recomputation, not the run.
 """
 
+import contextlib
 import ipaddress
+import itertools
 import logging
 import os
 import re
 import socket
 import time
+import uuid
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
@@ -42,6 +45,17 @@ INSECURE = "none"  # --cluster-security value: an unauthenticated cluster on a t
 # Security() keyword -> the keys a security file may use for it (TOML or YAML; dashes or underscores)
 _SECURITY_KEYS = {"tls_ca_file": ("ca-file", "tls-ca-file"), "tls_client_cert": ("cert", "tls-client-cert"),
                   "tls_client_key": ("key", "tls-client-key")}
+# Dask's settings for a `local:N` cluster: the periodic work of its scheduler, nannies and workers made rare.
+# With Dask's defaults an idle LocalCluster of 2 workers used 0.16 of a core (the client's process 0.06: the
+# event loops' health ticks every 20 ms and the nannies' memory checks every 100 ms; each worker 0.05, a third of
+# it the statistical profiler sampling every 10 ms); with these 0.02. On a 2-core machine that is CPU the
+# workers' SIFT and RANSAC need, and on a loaded machine it is paid for every second the run lasts.
+QUIET_LOCAL_CLUSTER = {
+    "distributed.worker.profile.enabled": False,  # the dashboard's profile, which a local:N run has no use for
+    "distributed.admin.tick.interval": "1s",  # the check that an event loop is not blocked (a warning only)
+    "distributed.admin.system-monitor.interval": "5s",  # the dashboard's CPU and network figures
+    "distributed.worker.memory.monitor-interval": "500ms",  # the memory limits checked twice a second
+}
 
 
 class ClusterLost(InputError):
@@ -216,88 +230,110 @@ class Cluster:
     def map(self, func: Callable, items: Iterable, *, name: Callable | None = None, cost: Callable | None = None,
             died: Callable | None = None, window: int | None = None) -> Iterator:
         """`func(item)` for every item, in the items' order, as `WorkerPool.map` (`cost` is left to Dask's own
-        memory management); at most `window` items in flight (default: two per worker thread, and two)."""
+        memory management); at most `window` items in flight (default: `_window`), handed out and fetched a few
+        at a time (`_submit`, `_results`)."""
         del cost
-        from distributed import KilledWorker  # noqa: PLC0415
+        from distributed import KilledWorker, wait  # noqa: PLC0415
 
         items = iter(items)
-        window = window or 2 * self.workers + 2
-        in_flight = deque()
+        window = window or self._window()
+        chunk = self._chunk(window)
+        in_flight = deque()  # (item, future), in the items' order
 
-        def submit() -> bool:
-            item = next(items, _END)
-            if item is _END:
-                return False
-            in_flight.append((item, self._submit(func, item)))
-            return True
+        def died_result(item, exc):
+            why = f"Dask gave it up after workers died running it ({exc})"
+            if died is None:
+                raise exc
+            log.warning("%s: %s", name(item) if name else "an item", why)
+            return died(item, why)
 
         try:
-            while len(in_flight) < window and submit():
-                pass
+            in_flight.extend(self._submit(func, items, window))
             while in_flight:
-                item, future = in_flight.popleft()
-                try:
-                    result = self._result(future)
-                except KilledWorker as exc:
-                    why = f"Dask gave it up after workers died running it ({exc})"
-                    if died is None:
-                        raise
-                    log.warning("%s: %s", name(item) if name else "an item", why)
-                    result = died(item, why)
-                submit()
-                yield result
+                self._call(lambda: wait([in_flight[0][1]]))
+                ready = [in_flight.popleft()]
+                while in_flight and in_flight[0][1].done():
+                    ready.append(in_flight.popleft())
+                for (item, _), result in zip(ready, self._results([f for _, f in ready], KilledWorker)):
+                    yield died_result(item, result) if isinstance(result, KilledWorker) else result
+                if window - len(in_flight) >= chunk:
+                    in_flight.extend(self._submit(func, items, window - len(in_flight)))
         finally:
             for _, future in in_flight:
                 future.cancel()
 
     def unordered(self, func: Callable, items: Iterable, *, window: int | None = None) -> Iterator[tuple]:
-        """(item, `func(item)`) for every item, as they complete; at most `window` items in flight (default: two
-        per worker thread, and two). An exception `func` raised is raised here; a task Dask gave up on after
-        its workers died (`distributed.scheduler.allowed-failures`) raises ClusterLost."""
-        from distributed import KilledWorker, as_completed  # noqa: PLC0415
+        """(item, `func(item)`) for every item, as they complete; at most `window` items in flight (default:
+        `_window`), handed out and fetched a few at a time. An exception `func` raised is raised here; a task Dask
+        gave up on after its workers died (`distributed.scheduler.allowed-failures`) raises ClusterLost."""
+        from distributed import KilledWorker, wait  # noqa: PLC0415
 
         items = iter(items)
-        window = window or 2 * self.workers + 2
-        item_of = {}
-        done = as_completed()
-
-        def submit() -> bool:
-            item = next(items, _END)
-            if item is _END:
-                return False
-            future = self._submit(func, item)
-            item_of[future.key] = item
-            done.add(future)
-            return True
+        window = window or self._window()
+        chunk = self._chunk(window)
+        in_flight = {}  # future -> item
 
         try:
-            while len(item_of) < window and submit():
-                pass
-            while item_of:
-                future = self._call(lambda: next(done))
-                item = item_of.pop(future.key)
-                try:
-                    result = self._result(future)
-                except KilledWorker as exc:
-                    raise ClusterLost(f"--cluster {self.spec.address}: Dask gave a task up after the workers "
-                                      f"running it died ({_one_line(exc)}); the work written so far is kept: "
-                                      "rerun the same command to continue") from None
-                submit()
-                yield item, result
+            in_flight.update((f, item) for item, f in self._submit(func, items, window))
+            while in_flight:
+                done = self._call(lambda: wait(list(in_flight), return_when="FIRST_COMPLETED")).done
+                ready = [f for f in in_flight if f in done]  # in the order handed out
+                for future, result in zip(ready, self._results(ready, KilledWorker)):
+                    item = in_flight.pop(future)
+                    if isinstance(result, KilledWorker):
+                        raise ClusterLost(f"--cluster {self.spec.address}: Dask gave a task up after the workers "
+                                          f"running it died ({_one_line(result)}); the work written so far is "
+                                          "kept: rerun the same command to continue") from None
+                    yield item, result
+                if window - len(in_flight) >= chunk:
+                    in_flight.update((f, item) for item, f in self._submit(func, items, window - len(in_flight)))
         finally:
-            for future in list(done.futures):
+            for future in in_flight:
                 future.cancel()
 
-    def _submit(self, func: Callable, item) -> "distributed.Future":
-        """`func(item)` as a task on a prepared worker (`_on_prepared_worker`), its bytes counted as sent."""
-        self._count_sent(item)
-        return self._call(lambda: self.client.submit(_on_prepared_worker, func, item, pure=False))
+    def _window(self) -> int:
+        """Tasks in flight by default: four per worker thread, and two, so that a worker has its next tasks
+        while the client takes the results of the last ones."""
+        return 4 * self.workers + 2
 
-    def _result(self, future):
-        result = self._call(future.result)
-        self._count_received(result)
-        self.tasks += 1
-        return result
+    def _chunk(self, window: int) -> int:
+        """Tasks handed out in one go: half the window (at least a task per worker thread)."""
+        return min(window, max(self.workers, window // 2))
+
+    def _submit(self, func: Callable, items: Iterator, count: int) -> list[tuple]:
+        """[(item, future)] of `func(item)` for the next `count` items, handed to the scheduler in one message,
+        each a task on a prepared worker (`_on_prepared_worker`) whose key names `func`, as Dask's own keys do (the
+        task stream, the benchmark's stages); their bytes counted as sent. A message per task cost the client
+        (and a LocalCluster's scheduler, in the same process) about twice the CPU per task."""
+        batch = list(itertools.islice(items, count))
+        if not batch:
+            return []
+        self._count_sent(batch)
+        keys = [f"{func.__name__}-{uuid.uuid4().hex}" for _ in batch]
+        futures = self._call(lambda: self.client.map(_on_prepared_worker, [func] * len(batch), batch, key=keys,
+                                                     pure=False))
+        return list(zip(batch, futures))
+
+    def _results(self, futures: list, killed: type) -> list:
+        """The results of finished `futures`, fetched in one go; when that fails, one by one, so that each
+        future's own error is raised, and a task Dask gave up on (`killed`, KilledWorker) is returned as its
+        exception."""
+        try:
+            results = self._call(lambda: self.client.gather(futures))
+        except ClusterLost:
+            raise
+        except Exception:  # noqa: BLE001 - one of them failed: each is asked on its own below
+            results = []
+            for future in futures:
+                try:
+                    results.append(self._call(future.result))
+                except killed as exc:
+                    results.append(exc)
+        for result in results:
+            if not isinstance(result, killed):
+                self._count_received(result)
+        self.tasks += len(results)
+        return results
 
     def _count_sent(self, obj) -> None:
         from dask.sizeof import sizeof  # noqa: PLC0415
@@ -334,7 +370,8 @@ def open_cluster(spec: ClusterSpec, *, connect_timeout: float = 30.0) -> Iterato
     """The cluster of `spec`, connected for the block: a LocalCluster of N single-threaded worker processes on
     127.0.0.1 (no dashboard) for `local:N`, closed at the block's end; else a client of the scheduler at
     `spec.address` (InputError when it cannot be reached within `connect_timeout` seconds)."""
-    import distributed  # noqa: PLC0415 - heavy (~2 s), and only for --cluster
+    import dask  # noqa: PLC0415 - heavy (~2 s), and only for --cluster
+    import distributed  # noqa: PLC0415
 
     if not log.isEnabledFor(logging.DEBUG):  # Dask's news of workers coming and going, unless -v -v
         logging.getLogger("distributed").setLevel(logging.WARNING)
@@ -347,24 +384,27 @@ def open_cluster(spec: ClusterSpec, *, connect_timeout: float = 30.0) -> Iterato
         security = load_security(spec.security)
     local = None
     n = spec.local_workers
-    try:
-        if n is not None:
-            local = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                             dashboard_address=None, silence_logs=logging.WARNING)
-            client = distributed.Client(local)
-        else:
-            client = distributed.Client(spec.address, security=security, timeout=connect_timeout)
-    except (OSError, TimeoutError) as exc:
-        if local is not None:
-            local.close()
-        raise InputError(f"--cluster {spec.address}: cannot reach the scheduler ({exc})") from None
-    try:
-        cluster = Cluster(client, spec, local)
-        log.info("cluster %s: %d worker threads, connected in %.1f s", spec.address, cluster.workers,
-                 time.perf_counter() - start)
-        yield cluster
-    finally:
-        client.close()
-        if local is not None:  # its workers have nothing left to save: a slow one is ended without a warning
-            logging.getLogger("distributed.nanny").setLevel(logging.ERROR)
-            local.close()
+    # set for the block: a worker the nanny starts again after a death takes the settings the nanny was given
+    with dask.config.set(QUIET_LOCAL_CLUSTER) if n is not None else contextlib.nullcontext():
+        try:
+            if n is not None:
+                local = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                                 host="127.0.0.1", dashboard_address=None,
+                                                 silence_logs=logging.WARNING)
+                client = distributed.Client(local)
+            else:
+                client = distributed.Client(spec.address, security=security, timeout=connect_timeout)
+        except (OSError, TimeoutError) as exc:
+            if local is not None:
+                local.close()
+            raise InputError(f"--cluster {spec.address}: cannot reach the scheduler ({exc})") from None
+        try:
+            cluster = Cluster(client, spec, local)
+            log.info("cluster %s: %d worker threads, connected in %.1f s", spec.address, cluster.workers,
+                     time.perf_counter() - start)
+            yield cluster
+        finally:
+            client.close()
+            if local is not None:  # its workers have nothing left to save: a slow one is ended without a warning
+                logging.getLogger("distributed.nanny").setLevel(logging.ERROR)
+                local.close()

@@ -6,13 +6,23 @@ import os
 import shutil
 import signal
 import sqlite3
+import time
 
+import dask
 import pycolmap
 import pytest
-from distributed import LocalCluster
+from distributed import LocalCluster, get_task_stream
 
 from mvrecon.cli import main
-from mvrecon.cluster import Cluster, ClusterLost, ClusterSpec, load_security, open_cluster, parse_cluster
+from mvrecon.cluster import (
+    QUIET_LOCAL_CLUSTER,
+    Cluster,
+    ClusterLost,
+    ClusterSpec,
+    load_security,
+    open_cluster,
+    parse_cluster,
+)
 from mvrecon.errors import InputError
 from mvrecon.geometry.rotation import rotation_error_deg
 from mvrecon.pipeline import ReconstructConfig, reconstruct
@@ -205,3 +215,30 @@ def test_the_parts_of_a_partitioned_mapping_run_on_the_cluster_as_on_the_pool(cl
     assert cluster.sent_bytes > sent  # the parts went to the cluster's workers
     assert sum(s["status"] == "registered" for s in on_cluster.status.values()) == 24
     assert_same_model(pool_ws / "sparse" / "0", cluster_ws / "sparse" / "0")
+
+
+def test_a_local_cluster_runs_its_workers_with_little_periodic_work(cluster):
+    """local:N's workers run with QUIET_LOCAL_CLUSTER (no profiler, rare health ticks and memory checks), also a
+    worker its nanny starts again after a death; the caller's Dask settings are as they were once the cluster is
+    closed."""
+    def settings(**_):
+        return {key: dask.config.get(key) for key in QUIET_LOCAL_CLUSTER}
+
+    assert list(cluster.client.run(settings).values()) == [QUIET_LOCAL_CLUSTER] * 2
+    with dask.config.set({"distributed.admin.tick.interval": "7ms"}):  # the caller's own setting
+        with open_cluster(ClusterSpec("local:1")) as one:
+            [pid] = one.worker_pids().values()
+            os.kill(pid, signal.SIGKILL)
+            deadline = time.monotonic() + 60
+            while pid in (pids := one.client.run(os.getpid, on_error="ignore").values()) or not pids:
+                assert time.monotonic() < deadline, "the nanny did not start its worker again"
+                time.sleep(0.2)
+            assert list(one.client.run(settings).values()) == [QUIET_LOCAL_CLUSTER]
+        assert dask.config.get("distributed.admin.tick.interval") == "7ms"
+
+
+def test_a_task_is_named_by_its_function(cluster):
+    """The task stream (and the dashboard) tell the stages' tasks apart by their keys' function names."""
+    with get_task_stream(cluster.client) as stream:
+        assert list(cluster.map(abs, [-1, 2, -3])) == [1, 2, 3]
+    assert sorted(str(record["key"]).rsplit("-", 1)[0] for record in stream.data) == ["abs"] * 3

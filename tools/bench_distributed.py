@@ -8,7 +8,8 @@
 `mvrecon reconstruct` runs them (one process; with a cluster, one cluster for both, its start counted in the
 features stage), without the mapping, which is the same in both: a subprocess timed whole, once with the local
 process pool and once on `--cluster` (default local:2), alternated --repeats times; the medians per stage and
-their ratio (target: local:2 within 1.2x of the pool on a 2-core machine).
+their ratio (target: local:2 within 1.2x of the pool on a 2-core machine); and the CPU seconds per stage of the
+process and its workers, which on a machine shared with other jobs is what the wall time follows.
 (2) Cost model: in the last cluster run, under `distributed.get_task_stream`: per stage the tasks, the worker
 compute per task, the bytes the client sent and received (`Cluster.sent_bytes`, dask's sizeof), the bytes the
 workers sent one another, the images the workers read from the shared folder, and the client's (and, on a
@@ -43,6 +44,7 @@ sys.path.insert(0, str(ROOT))
 from distributed import get_task_stream  # noqa: E402
 
 from mvrecon.cluster import ClusterSpec, open_cluster  # noqa: E402
+from mvrecon.executor import cpu_seconds as pool_cpu_seconds  # noqa: E402
 from mvrecon.stages.common import FrontendConfig  # noqa: E402
 from mvrecon.stages.features import extract_features  # noqa: E402
 from mvrecon.stages.matching import match  # noqa: E402
@@ -82,8 +84,8 @@ def front_end_times(images: Path, ws: Path, address: str | None) -> dict:
 def run_front_end(images: Path, ws: Path, address: str | None) -> None:
     """The subprocess of `front_end_times`: prints {"features": s, "matching": s} as its last line, and with a
     cluster its start (s), its worker threads and per stage the costs of `stage_costs`."""
-    config, out = FrontendConfig(), {}
-    start = time.perf_counter()
+    config, out = FrontendConfig(), {"cpu": {}}
+    start, cpu = time.perf_counter(), all_cpu_seconds(None)
     ws = Workspace(ws).create()
     with ws.lock(), open_cluster(ClusterSpec(address)) if address else contextlib.nullcontext() as cluster:
         if cluster is not None:
@@ -95,8 +97,18 @@ def run_front_end(images: Path, ws: Path, address: str | None) -> None:
                 else:
                     match(config, ws, cluster=cluster)
             out[stage] = time.perf_counter() - start
-            start = time.perf_counter()
+            out["cpu"][stage] = all_cpu_seconds(cluster) - cpu
+            start, cpu = time.perf_counter(), all_cpu_seconds(cluster)
     print(json.dumps(out))
+
+
+def all_cpu_seconds(cluster) -> float:
+    """CPU seconds so far of this process and of the workers: the process pool's (executor.cpu_seconds), or the
+    cluster's worker processes (on a LocalCluster the scheduler and nannies run in this process). On a shared
+    machine each process gets its share of the cores, so the stages' CPU is what their wall time follows."""
+    if cluster is None:
+        return pool_cpu_seconds()
+    return cpu_seconds() + sum(cluster.client.run(cpu_seconds).values())
 
 
 def overhead(images: Path, work: Path, address: str, repeats: int) -> dict:
@@ -177,6 +189,14 @@ def report(images: Path, runs: dict, model: dict, started: float, workers: int, 
     for stage in ("features", "matching", "total"):  # total: the whole process, Python's start-up included
         pool = statistics.median(r[stage] for r in runs["pool"][:args.repeats])
         clus = statistics.median(r[stage] for r in runs["cluster"][:args.repeats])
+        lines.append(f"| {stage} | {pool:.1f} | {clus:.1f} | {clus / pool:.2f} |")
+    lines.append("\nCPU seconds of the stage (this process and its workers; a LocalCluster's scheduler and nannies run "
+                 "in this process):\n")
+    lines.append("| stage | local pool (CPU s) | cluster (CPU s) | cluster / pool |")
+    lines.append("|---|---|---|---|")
+    for stage in ("features", "matching"):
+        pool = statistics.median(r["cpu"][stage] for r in runs["pool"][:args.repeats])
+        clus = statistics.median(r["cpu"][stage] for r in runs["cluster"][:args.repeats])
         lines.append(f"| {stage} | {pool:.1f} | {clus:.1f} | {clus / pool:.2f} |")
     total_ratio = statistics.median(r["total"] for r in runs["cluster"][:args.repeats]) / \
         statistics.median(r["total"] for r in runs["pool"][:args.repeats])
