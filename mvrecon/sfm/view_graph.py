@@ -2,11 +2,13 @@
 
 `calibrate_focals` first sets each guessed focal length (not trusted, 1.2 * max(w, h)) from the pairs'
 fundamental matrices, as GLOMAP calibrates its view graph: an essential matrix E = K2^T F K1 has two equal
-singular values, so the focal that makes (s1 - s2) / (s1 + s2) smallest over all the camera's pairs is the one
-the pairs support (one scale per camera, searched over 0.25-3x the guess, cameras in turn; herzjesu: 2776 px
-for the true 2760, from 3686). Where the cost has no clear minimum inside that range (under half the cost at
-both ends) the guess stays: when the optical axes meet (an orbit around an object) the pairs do not observe the
-focal, and the smallest focal tried wins (object_orbit_small: 384 px for the true 560); the global mapper then
+singular values, so the focal that makes (s1 - s2) / (s1 + s2) smallest over the camera's pairs (the
+`_CALIBRATION_PAIRS` with the most matches: the estimate needs no more, and its cost then does not grow with the
+set) is the one the pairs support (one scale per camera, searched over 0.25-3x the guess, cameras in turn;
+herzjesu: 2776 px for the true 2760, from 3686). Where the cost has no clear minimum inside that range (under
+half the cost at both ends) the guess stays: when the optical axes meet (an orbit around an object) the pairs do
+not observe the focal, and the smallest focal tried wins (object_orbit_small: 384 px for the true 560); the
+global mapper then
 finds it with coarse models (global_mapper.py). Then
 `relative_poses` estimates each pair's relative pose from its matches in normalised coordinates (five-point
 RANSAC), with the median triangulation angle of its inliers; a pair that a homography of a rotation explains
