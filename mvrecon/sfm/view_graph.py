@@ -8,11 +8,10 @@ set) is the one the pairs support (one scale per camera, searched over 0.25-3x t
 herzjesu: 2776 px for the true 2760, from 3686). Where the cost has no clear minimum inside that range (under
 half the cost at both ends) the guess stays: when the optical axes meet (an orbit around an object) the pairs do
 not observe the focal, and the smallest focal tried wins (object_orbit_small: 384 px for the true 560); the
-global mapper then
-finds it with coarse models (global_mapper.py). Then
-`relative_poses` estimates each pair's relative pose from its matches in normalised coordinates (five-point
-RANSAC), with the median triangulation angle of its inliers; a pair that a homography of a rotation explains
-as well (a camera turning in place) gives that rotation and no translation direction.
+global mapper then finds it with coarse models (global_mapper.py). Then `relative_poses` estimates each pair's
+relative pose from its matches in normalised coordinates (five-point RANSAC), with the median triangulation
+angle of its inliers; a pair that a homography of a rotation explains as well (a camera turning in place) gives
+that rotation and no translation direction.
 """
 
 from collections.abc import Iterable
