@@ -50,12 +50,13 @@ from .rotation_averaging import average_rotations
 from .tracks import build_tracks
 from .translation_averaging import average_translations
 from .triangulate import refine_existing_points, retriangulate, triangulate_tracks
-from .view_graph import COARSE_SAMPLE, SAMPLE, calibrate_focals, oriented_pairs, relative_poses
+from .view_graph import COARSE_SAMPLE, calibrate_focals, dense_subset, oriented_pairs, relative_poses
 
 log = logging.getLogger("mvrecon.sfm")
 _GATES_PX = (16.0, 8.0)  # reprojection gates of the first rounds, before the config's own (4 px)
 _COARSE_ITERATIONS = 15  # LM iterations of a coarse model's BA
 _CALIBRATION_PASSES = 3  # coarse models that refine a guessed focal (`_calibrate_by_bundle`)
+_CALIBRATION_IMAGES = 60  # images of the coarse models (`_calibration_pairs`)
 _MAX_ROTATION_ERROR_DEG = 5.0  # GLOMAP's threshold on a pair's rotation residual
 _MIN_VIEWS = 3  # images of a consistent view graph the mapper makes a model of
 _MAX_DIRECTION_ERROR_DEG = 10.0  # a translation direction this far off the solved baseline is dropped
@@ -92,23 +93,25 @@ class GlobalMapper:
         for c, (guess, focal) in found.items():
             log.info("camera %d: focal %.1f px from the view graph (guessed %.1f)", c, focal, guess)
         # a focal the view graph could not calibrate is found by coarse models first, from rougher relative poses
-        guessed = any(not cam.prior_trusted and c not in found for c, cam in scratch.cameras.items())
-        graph = relative_poses(scratch, self.pairs, self.config, COARSE_SAMPLE if guessed else SAMPLE)
-        start = self._clock("view_graph", start)
-        for k in range(_CALIBRATION_PASSES if guessed and graph.edges else 0):
-            calibrated = self._calibrate_by_bundle(scratch.cameras, graph)
-            for c, params in calibrated.items():
-                log.info("camera %d: focal %.1f px from a coarse global model (was %.1f)", c, params[0],
-                         scratch.cameras[c].params[0])
-                scratch.cameras[c].params = params
-            if not calibrated:
-                break
-            if k + 1 < _CALIBRATION_PASSES:
-                graph = relative_poses(scratch, self.pairs, self.config, COARSE_SAMPLE)
-            start = self._clock("calibration", start)
-        if guessed:
-            graph = relative_poses(scratch, self.pairs, self.config)
+        # of the pairs of a bounded, well-connected set of images (`_calibration_pairs`)
+        uncalibrated = [c for c, cam in scratch.cameras.items() if not cam.prior_trusted and c not in found]
+        if uncalibrated:
+            sample = self._calibration_pairs(uncalibrated)
+            graph = relative_poses(scratch, sample, self.config, COARSE_SAMPLE)
             start = self._clock("view_graph", start)
+            for k in range(_CALIBRATION_PASSES if graph.edges else 0):
+                calibrated = self._calibrate_by_bundle(scratch.cameras, graph)
+                for c, params in calibrated.items():
+                    log.info("camera %d: focal %.1f px from a coarse global model (was %.1f)", c, params[0],
+                             scratch.cameras[c].params[0])
+                    scratch.cameras[c].params = params
+                if not calibrated:
+                    break
+                if k + 1 < _CALIBRATION_PASSES:
+                    graph = relative_poses(scratch, sample, self.config, COARSE_SAMPLE)
+                start = self._clock("calibration", start)
+        graph = relative_poses(scratch, self.pairs, self.config)
+        start = self._clock("view_graph", start)
         for (a, b), why in graph.rejected.items():
             for i in (a, b):
                 self.reasons.setdefault(i, f"its pairs gave no relative pose: the pair with "
@@ -145,6 +148,22 @@ class GlobalMapper:
 
     def _new_model(self, cameras) -> Reconstruction:
         return Reconstruction(self.image_ids, self.names, self.camera_of, cameras, self.keypoints, len(self.tracks))
+
+    def _calibration_pairs(self, cameras: list[int]) -> dict:
+        """The pairs among a bounded set of images (view_graph.dense_subset, `_CALIBRATION_IMAGES` around the
+        best-connected image, and as many around one of each camera in `cameras` it holds too few images of)
+        that the coarse models calibrating those cameras' focals are built from."""
+        n = len(self.image_ids)
+        inside = dense_subset(self.pairs, n, _CALIBRATION_IMAGES)
+        degree = np.zeros(n)
+        for (a, b), matches in self.pairs.items():
+            degree[[a, b]] += len(matches)
+        for c in cameras:
+            mine = np.flatnonzero(self.camera_of == c)
+            if len(mine) >= self.config.focal_min_images and \
+                    np.count_nonzero(inside[mine]) < min(len(mine), _CALIBRATION_IMAGES // 2):
+                inside |= dense_subset(self.pairs, n, _CALIBRATION_IMAGES, [int(mine[np.argmax(degree[mine])])])
+        return {k: v for k, v in self.pairs.items() if inside[k[0]] and inside[k[1]]}
 
     def _calibrate_by_bundle(self, cameras, graph) -> dict:
         """Camera id -> parameters with the focal refined by a coarse global model (one round of triangulation

@@ -2,15 +2,16 @@
 
 `calibrate_focals` first sets each guessed focal length (not trusted, 1.2 * max(w, h)) from the pairs'
 fundamental matrices, as GLOMAP calibrates its view graph: an essential matrix E = K2^T F K1 has two equal
-singular values, so the focal that makes (s1 - s2) / (s1 + s2) smallest over all the camera's pairs is the one
-the pairs support (one scale per camera, searched over 0.25-3x the guess, cameras in turn; herzjesu: 2776 px
-for the true 2760, from 3686). Where the cost has no clear minimum inside that range (under half the cost at
-both ends) the guess stays: when the optical axes meet (an orbit around an object) the pairs do not observe the
-focal, and the smallest focal tried wins (object_orbit_small: 384 px for the true 560); the global mapper then
-finds it with coarse models (global_mapper.py). Then
-`relative_poses` estimates each pair's relative pose from its matches in normalised coordinates (five-point
-RANSAC), with the median triangulation angle of its inliers; a pair that a homography of a rotation explains
-as well (a camera turning in place) gives that rotation and no translation direction.
+singular values, so the focal that makes (s1 - s2) / (s1 + s2) smallest over the camera's pairs (the
+`_CALIBRATION_PAIRS` with the most matches: the estimate needs no more, and its cost then does not grow with the
+set) is the one the pairs support (one scale per camera, searched over 0.25-3x the guess, cameras in turn;
+herzjesu: 2776 px for the true 2760, from 3686). Where the cost has no clear minimum inside that range (under
+half the cost at both ends) the guess stays: when the optical axes meet (an orbit around an object) the pairs do
+not observe the focal, and the smallest focal tried wins (object_orbit_small: 384 px for the true 560); the
+global mapper then finds it with coarse models (global_mapper.py). Then `relative_poses` estimates each pair's
+relative pose from its matches in normalised coordinates (five-point RANSAC), with the median triangulation
+angle of its inliers; a pair that a homography of a rotation explains as well (a camera turning in place) gives
+that rotation and no translation direction.
 """
 
 from collections.abc import Iterable
@@ -34,6 +35,7 @@ _EDGE = 6  # a minimum this close to either end of the range is no estimate
 _SHARPNESS = 0.5  # the minimum's cost must be under this share of the cost at both ends of the range
 _CALIBRATION_SWEEPS = 3
 _MIN_RELATIVE_INLIERS = 15  # a pair's matches fitting its relative pose (COLMAP's min_num_inliers)
+_CALIBRATION_PAIRS = 300  # a camera's pairs (those with the most matches) its focal is calibrated from
 
 
 @dataclass
@@ -91,10 +93,13 @@ def calibrate_focals(model: Reconstruction, pairs: dict, seed: int = 0) -> dict:
     guessed = {c for c, cam in model.cameras.items() if not cam.prior_trusted}
     if not guessed:
         return {}
-    Fs = []
-    for (a, b), matches in pairs.items():
+    Fs, used = [], dict.fromkeys(guessed, 0)
+    for (a, b), matches in sorted(pairs.items(), key=lambda kv: -len(kv[1])):
         ca, cb = int(model.camera_of[a]), int(model.camera_of[b])
-        if (ca in guessed or cb in guessed) and len(matches) >= 4 * _MIN_RELATIVE_INLIERS:
+        mine = [c for c in (ca, cb) if c in guessed and used[c] < _CALIBRATION_PAIRS]
+        if mine and len(matches) >= 4 * _MIN_RELATIVE_INLIERS:
+            for c in set(mine):
+                used[c] += 1
             F = _fundamental(model, a, b, _sample(matches, seed))
             if F is not None:
                 Fs.append((ca, cb, F / np.linalg.norm(F)))
@@ -126,6 +131,34 @@ def calibrate_focals(model: Reconstruction, pairs: dict, seed: int = 0) -> dict:
         if not moved:
             break
     return changed
+
+
+def dense_subset(pairs: dict, n: int, size: int, seeds: Iterable[int] = ()) -> np.ndarray:
+    """(n,) mask of a well-connected set of about `size` images per seed: from the image with the most verified
+    matches (or each of `seeds`), the image outside with the most matches into the set is added, in turn. The
+    coarse models that calibrate a guessed focal are built on it, so that their cost does not grow with the
+    images (a 300-image survey calibrates from 60 of them, as well as a 60-image set from all)."""
+    neighbours = [[] for _ in range(n)]
+    total = np.zeros(n)
+    for (a, b), matches in pairs.items():
+        neighbours[a].append((b, len(matches)))
+        neighbours[b].append((a, len(matches)))
+        total[a] += len(matches)
+        total[b] += len(matches)
+    inside = np.zeros(n, bool)
+    for seed in list(seeds) or [int(np.argmax(total))]:
+        score = np.full(n, -1.0)
+        score[seed] = 0.0
+        for _ in range(size):
+            score[inside] = -1.0
+            best = int(np.argmax(score))
+            if score[best] < 0:
+                break
+            inside[best] = True
+            for other, count in neighbours[best]:
+                if not inside[other]:
+                    score[other] = max(score[other], 0.0) + count
+    return inside
 
 
 def relative_poses(model: Reconstruction, pairs: dict, config: MapperConfig, sample: int = SAMPLE) -> ViewGraph:

@@ -12,6 +12,7 @@ from mvrecon.cli import main
 from mvrecon.eval.metrics import accuracy_summary
 from mvrecon.eval.models import poses as poses_of
 from mvrecon.eval.models import sparse_models
+from mvrecon.sfm import global_mapper
 from mvrecon.sfm.config import MapperConfig
 from mvrecon.sfm.global_mapper import GlobalMapper, map_correspondences_globally
 from mvrecon.sfm.model import Reconstruction
@@ -37,6 +38,18 @@ def test_synthetic_scene_is_mapped_accurately(scene):
     assert abs(result.models[0].cameras[1].params[0] - 600.0) < 3.0
     assert result.models[0].stats()["mean_reprojection_error_px"] < 1.0
     assert result.stats["ba_calls"] >= 4 and result.stats["view_graph_edges"] == 28
+
+
+def test_a_guessed_focal_is_calibrated_from_a_bounded_set_of_images(scene, monkeypatch):
+    """The coarse models that calibrate a guessed focal see the pairs among `_CALIBRATION_IMAGES` images, all of
+    those pairs, whatever the number of images."""
+    _, corr, _ = scene
+    monkeypatch.setattr(global_mapper, "_CALIBRATION_IMAGES", 5)
+    mapper = GlobalMapper(corr, GLOBAL)
+    sample = mapper._calibration_pairs([1])
+    images = np.unique(np.array(list(sample)))
+    assert len(images) == 5 and len(sample) == 10  # the synthetic scene's pairs are exhaustive
+    assert set(sample) == {k for k in mapper.pairs if k[0] in images and k[1] in images}
 
 
 def test_a_split_view_graph_gives_two_models(tmp_path):

@@ -67,3 +67,18 @@ def test_a_flipped_camera_is_found_by_its_rays(tmp_path, turn_deg):
     assert list(out) == [5] and out[5].startswith("its global pose was an outlier: its rays miss")
     good = np.arange(len(R)) != 5
     assert similarity_error(result.centers[good], C[good]) < 0.02
+
+
+def test_a_survey_of_150_cameras_is_placed_from_neighbours_alone():
+    """A 10 x 15 grid of cameras over the ground, each point seen by the cameras within 1.6 spacings: the reduced
+    camera system is sparse (a camera shares points with its neighbours only), and the centres come out exact."""
+    rng = np.random.default_rng(3)
+    rows, cols, m = 10, 15, 3000
+    n = rows * cols
+    C = np.c_[np.repeat(np.arange(rows), cols), np.tile(np.arange(cols), rows), np.full(n, 5.0)].astype(float)
+    X = np.c_[rng.uniform(0, rows - 1, m), rng.uniform(0, cols - 1, m), rng.uniform(-1, 1, m)]
+    views = [np.flatnonzero(d < 1.6) for d in np.linalg.norm(X[:, None, :2] - C[None, :, :2], axis=2)]
+    cam = np.concatenate(views)
+    point = np.repeat(np.arange(m), [len(v) for v in views])
+    found, _ = solve_positions(cam, point, rays(C, X, cam, point), n, m)
+    assert similarity_error(found, C) < 1e-6

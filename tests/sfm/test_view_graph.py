@@ -5,7 +5,7 @@ from scipy.spatial.transform import Rotation
 
 from mvrecon.sfm.config import MapperConfig
 from mvrecon.sfm.global_mapper import GlobalMapper
-from mvrecon.sfm.view_graph import refine_relative_pose, relative_poses
+from mvrecon.sfm.view_graph import dense_subset, refine_relative_pose, relative_poses
 from tests.sfm.test_global_mapper import rotating_views
 
 
@@ -42,3 +42,18 @@ def test_a_camera_turning_in_place_gives_rotations_without_directions():
         truth = np.array([[np.cos(yaw), 0, -np.sin(yaw)], [0, 1, 0], [np.sin(yaw), 0, np.cos(yaw)]])
         assert edge.angle_deg == 0.0 and not edge.t.any()
         assert angle_deg(edge.R @ truth.T) < 0.1
+
+
+def test_the_calibration_subset_is_bounded_and_well_connected():
+    """A 300-image sequence, each image paired with its 5 successors (matches falling with distance) and one
+    busy stretch: the subset holds `size` consecutive images around the busiest, with every pair among them, and
+    a seed grows a second set of its own."""
+    pairs = {(i, j): np.zeros((100 * (6 - (j - i)) + (400 if 140 <= i < 160 else 0), 2), int)
+             for i in range(300) for j in range(i + 1, min(300, i + 6))}
+    inside = dense_subset(pairs, 300, 30)
+    assert inside.sum() == 30
+    members = np.flatnonzero(inside)
+    assert np.ptp(members) == 29 and members[0] <= 140 and members[-1] >= 159  # one stretch, over the busy one
+    seeded = dense_subset(pairs, 300, 30, [10])
+    assert seeded.sum() == 30 and seeded[10] and np.ptp(np.flatnonzero(seeded)) == 29
+    assert dense_subset(pairs, 300, 400).sum() == 300  # no more than there are
