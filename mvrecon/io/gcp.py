@@ -23,7 +23,7 @@ import numpy as np
 
 from ..errors import InputError
 from .gps import from_ecef, from_enu, implausible_position
-from .pose_priors import CARTESIAN, WGS84, PosePrior, covariance
+from .pose_priors import CARTESIAN, WGS84, PosePrior, covariance, enu_origin
 
 GCP_SIGMA_H, GCP_SIGMA_V = 0.05, 0.1  # metres: a GNSS survey of a marker (RTK: centimetres; 5 cm horizontal)
 PIXEL_CENTRE = 0.5  # added to the file's pixels: mvrecon's keypoints put the top-left pixel's centre at 0.5
@@ -61,13 +61,7 @@ def _frame(path: Path, line: str) -> tuple[str, np.ndarray | None]:
     if head == "LOCAL" and len(words) == 1:
         return "local", None
     if head == "ENU":
-        try:
-            origin = np.array([float(w) for w in words[1:]], float)
-        except ValueError:
-            origin = np.zeros(0)
-        if origin.shape != (3,) or implausible_position(*origin):
-            raise InputError(f"{path}: first line 'ENU' needs the origin as LAT LON ALT (degrees, metres)")
-        return "enu", origin
+        return "enu", enu_origin(path, words[1:], "first line 'ENU'")
     raise InputError(f"{path}: first line {line!r} is not a frame mvrecon reads: WGS84 (EPSG:4326), ECEF "
                      "(EPSG:4978), 'ENU LAT LON ALT' or LOCAL (projected systems such as UTM are not supported); a CSV "
                      "of camera positions starts with a name,... header")

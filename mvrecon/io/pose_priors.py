@@ -75,6 +75,18 @@ def exif_priors(folder: Path | str, names: list[str]) -> dict[str, PosePrior]:
     return out
 
 
+def enu_origin(path: Path, words: list[str], what: str) -> np.ndarray:
+    """The ENU origin (lat, lon, alt) given as three words after `what` in a file's frame statement; InputError
+    naming the file when they are not three numbers or not a place on the earth."""
+    try:
+        origin = np.array([float(w) for w in words], float)
+    except ValueError:
+        origin = np.zeros(0)
+    if origin.shape != (3,) or implausible_position(*origin):
+        raise InputError(f"{path}: {what} needs the origin as LAT LON ALT (degrees, metres)")
+    return origin
+
+
 def _frame(path: Path, first_comment: str | None) -> tuple[str, np.ndarray | None]:
     """('wgs84' | 'enu' | 'ecef' | 'local', the ENU origin or None) named by a `# frame: ...` comment."""
     if first_comment is None or not first_comment.lower().startswith("frame:"):
@@ -82,13 +94,7 @@ def _frame(path: Path, first_comment: str | None) -> tuple[str, np.ndarray | Non
     words = first_comment.split(":", 1)[1].split()
     kind = words[0].lower() if words else ""
     if kind == "enu":
-        try:
-            origin = np.array([float(w) for w in words[1:]], float)
-        except ValueError:
-            origin = np.zeros(0)
-        if origin.shape != (3,) or implausible_position(*origin):
-            raise InputError(f"{path}: '# frame: enu' needs the origin as LAT LON ALT (degrees, metres)")
-        return "enu", origin
+        return "enu", enu_origin(path, words[1:], "'# frame: enu'")
     if kind in ("ecef", "local", "wgs84") and len(words) == 1:
         return kind, None
     raise InputError(f"{path}: unknown frame {first_comment!r}; use '# frame: enu LAT LON ALT', 'ecef' or 'local'")
