@@ -22,8 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .gps import from_ecef, from_enu, implausible_position
-from .pose_priors import CARTESIAN, WGS84, PosePrior, covariance, enu_origin
+from .pose_priors import WGS84, PosePrior, covariance, enu_origin, prior_position
 
 GCP_SIGMA_H, GCP_SIGMA_V = 0.05, 0.1  # metres: a GNSS survey of a marker (RTK: centimetres; 5 cm horizontal)
 PIXEL_CENTRE = 0.5  # added to the file's pixels: mvrecon's keypoints put the top-left pixel's centre at 0.5
@@ -93,19 +92,9 @@ def read_gcp_list(path: Path | str, names: list[str] | None = None) -> dict[str,
             raise InputError(f"{path}: line {k}: coordinates and pixels must be finite")
         image = words[5]
         label = words[6] if len(words) > 6 else " ".join(words[:3])
-        system, position = WGS84, None
-        if frame == "wgs84":
-            position = np.array([geo[1], geo[0], geo[2]])
-        elif frame == "ecef":
-            position = from_ecef(geo[None])[0]
-        elif frame == "enu":
-            position = from_enu(geo[None], origin)[0]
-        else:
-            system, position = CARTESIAN, geo
-        if system == WGS84:
-            why = implausible_position(*position)
-            if why is not None:
-                raise InputError(f"{path}: line {k} ({label}): impossible position: {why}")
+        # OpenDroneMap's order is longitude, latitude
+        position, system = prior_position(frame, geo[[1, 0, 2]] if frame == "wgs84" else geo, origin,
+                                          f"{path}: line {k} ({label})")
         point = points.get(label)
         if point is None:
             point = points[label] = ControlPoint(label, PosePrior(position=position, coordinate_system=system,

@@ -75,6 +75,22 @@ def exif_priors(folder: Path | str, names: list[str]) -> dict[str, PosePrior]:
     return out
 
 
+def prior_position(frame: str, xyz: np.ndarray, origin: np.ndarray | None, where: str) -> tuple[np.ndarray, str]:
+    """(position, coordinate system) of a prior given in `frame`: 'wgs84' (lat, lon, alt), 'enu' (metres east,
+    north, up of `origin`) and 'ecef' become WGS84 latitude, longitude and altitude; any other frame is CARTESIAN
+    metres as given. A WGS84 position off the earth raises InputError `where: impossible position: why`."""
+    if frame == "enu":
+        xyz = from_enu(np.asarray(xyz, float)[None], origin)[0]
+    elif frame == "ecef":
+        xyz = from_ecef(np.asarray(xyz, float)[None])[0]
+    elif frame != "wgs84":
+        return np.asarray(xyz, float), CARTESIAN
+    why = implausible_position(*xyz)
+    if why is not None:
+        raise InputError(f"{where}: impossible position: {why}")
+    return np.asarray(xyz, float), WGS84
+
+
 def enu_origin(path: Path, words: list[str], what: str) -> np.ndarray:
     """The ENU origin (lat, lon, alt) given as three words after `what` in a file's frame statement; InputError
     naming the file when they are not three numbers or not a place on the earth."""
@@ -141,19 +157,8 @@ def read_priors_csv(path: Path | str, names: list[str] | None = None) -> dict[st
             raise InputError(f"{path}: data row {k - 1} ({name}): positions must be finite, sigmas positive")
         if name in out:
             raise InputError(f"{path}: {name} is listed twice")
-        system = WGS84
-        if geo:
-            lla = pos
-        elif frame == "enu":
-            lla = from_enu(pos[None], origin)[0]
-        elif frame == "ecef":
-            lla = from_ecef(pos[None])[0]
-        else:
-            lla, system = pos, CARTESIAN
-        if system == WGS84:
-            why = implausible_position(*lla)
-            if why is not None:
-                raise InputError(f"{path}: data row {k - 1} ({name}): impossible position: {why}")
+        lla, system = prior_position("wgs84" if geo else ("local" if frame == "wgs84" else frame), pos, origin,
+                                     f"{path}: data row {k - 1} ({name})")
         out[name] = PosePrior(position=np.asarray(lla, float), covariance=covariance(sigma_h, sigma_v),
                               coordinate_system=system)
     if not out:
