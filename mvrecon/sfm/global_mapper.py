@@ -50,7 +50,7 @@ from .rotation_averaging import average_rotations
 from .tracks import build_tracks
 from .translation_averaging import average_translations
 from .triangulate import refine_existing_points, retriangulate, triangulate_tracks
-from .view_graph import COARSE_SAMPLE, calibrate_focals, dense_subset, oriented_pairs, relative_poses
+from .view_graph import COARSE_SAMPLE, calibrate_focals, dense_subset, matches_per_image, oriented_pairs, relative_poses
 
 log = logging.getLogger("mvrecon.sfm")
 _GATES_PX = (16.0, 8.0)  # reprojection gates of the first rounds, before the config's own (4 px)
@@ -155,9 +155,7 @@ class GlobalMapper:
         that the coarse models calibrating those cameras' focals are built from."""
         n = len(self.image_ids)
         inside = dense_subset(self.pairs, n, _CALIBRATION_IMAGES)
-        degree = np.zeros(n)
-        for (a, b), matches in self.pairs.items():
-            degree[[a, b]] += len(matches)
+        degree = matches_per_image(self.pairs, n)
         for c in cameras:
             mine = np.flatnonzero(self.camera_of == c)
             if len(mine) >= self.config.focal_min_images and \

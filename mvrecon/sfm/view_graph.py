@@ -133,18 +133,25 @@ def calibrate_focals(model: Reconstruction, pairs: dict, seed: int = 0) -> dict:
     return changed
 
 
+def matches_per_image(pairs: dict, n: int) -> np.ndarray:
+    """(n,) verified matches of each image over all its pairs."""
+    total = np.zeros(n)
+    for (a, b), matches in pairs.items():
+        total[a] += len(matches)
+        total[b] += len(matches)
+    return total
+
+
 def dense_subset(pairs: dict, n: int, size: int, seeds: Iterable[int] = ()) -> np.ndarray:
     """(n,) mask of a well-connected set of about `size` images per seed: from the image with the most verified
     matches (or each of `seeds`), the image outside with the most matches into the set is added, in turn. The
     coarse models that calibrate a guessed focal are built on it, so that their cost does not grow with the
     images (a 300-image survey calibrates from 60 of them, as well as a 60-image set from all)."""
     neighbours = [[] for _ in range(n)]
-    total = np.zeros(n)
     for (a, b), matches in pairs.items():
         neighbours[a].append((b, len(matches)))
         neighbours[b].append((a, len(matches)))
-        total[a] += len(matches)
-        total[b] += len(matches)
+    total = matches_per_image(pairs, n)
     inside = np.zeros(n, bool)
     for seed in list(seeds) or [int(np.argmax(total))]:
         score = np.full(n, -1.0)
