@@ -51,9 +51,15 @@ def bound(true: np.ndarray, sigma: np.ndarray, trials: int, seed: int) -> dict:
             for k, v in out.items()}
 
 
-def score(run: Path, scene: Path, gps: dict) -> dict:
+def score(run: Path, scene: Path, gps: dict, control: bool = False) -> dict:
+    """A run's cameras against the truth: as mapped with its priors (report.json), or as `mvrecon georef --gcp`
+    aligned them to ground control (georef.json) when `control`."""
     report = json.loads((run / "report.json").read_text())
-    cams = report["georef"]["images"]
+    if control:
+        geo = json.loads((run / "georef.json").read_text())["cameras"]
+        cams = {n: dict(zip(("lat", "lon", "alt"), v)) for n, v in geo.items()}
+    else:
+        cams = report["georef"]["images"]
     names = sorted(n for n in cams if "lat" in cams[n])
     est = to_enu(np.array([[cams[n]["lat"], cams[n]["lon"], cams[n]["alt"]] for n in names]),
                  np.array(gps["origin"]))
@@ -68,7 +74,7 @@ def score(run: Path, scene: Path, gps: dict) -> dict:
             "mean_offset_m": [round(float(v), 4) for v in d.mean(axis=0)],
             "scale_error_pct": round(100.0 * (1.0 / shape.scale - 1.0), 4),
             "shape_rms_m": round(rms(shape.apply(est) - true), 4),
-            "flagged": [f for m in report["georef"]["models"] for f in m.get("flagged", [])]}
+            "flagged": [f for m in report.get("georef", {}).get("models", []) for f in m.get("flagged", [])]}
 
 
 def loop_drift(run: Path, scene: Path, first: int = 10) -> dict:
@@ -97,6 +103,8 @@ def main() -> None:
     ap.add_argument("--trials", type=int, default=2000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--run", type=Path, default=None, help="a workspace to score")
+    ap.add_argument("--control", action="store_true",
+                    help="score the run's cameras as `mvrecon georef --gcp` aligned them (RUN/georef.json)")
     ap.add_argument("--fixes", type=Path, default=None, help="the pose-prior CSV the run was given")
     ap.add_argument("--drift", type=Path, nargs="+", default=None, metavar="WS", help="runs to measure loop drift")
     args = ap.parse_args()
@@ -115,7 +123,7 @@ def main() -> None:
         d = umeyama(true, fixes).apply(true) - true
         result["this_draw"] = {"rms_m": round(rms(d), 4), "fixes_rms_m": round(rms(fixes - true), 4)}
     if args.run is not None:
-        result["run"] = score(args.run, args.scene, gps)
+        result["run"] = score(args.run, args.scene, gps, args.control)
     print(json.dumps(result, indent=1))
 
 
