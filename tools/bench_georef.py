@@ -4,9 +4,11 @@ The bound: a model of perfect shape (the true camera centres) fitted by a simila
 (true centres plus Gaussian noise of sigma east, north, up), repeated over many draws: the RMS distance of the
 fitted centres from the truth is what any mapper can reach from such fixes alone. A run (`--run WORKSPACE`,
 report.json with a `georef` entry) is scored by its cameras' distance from the truth, its scale error, its shape
-after a similarity to the truth, and AUC@5 of its poses.
+after a similarity to the truth, and AUC@5 of its poses; with `--control`, the cameras as `mvrecon georef --gcp`
+aligned them to ground control (georef.json).
 
   python tools/bench_georef.py SCENE --sigma 2.5 2.5 5 [--trials 2000] [--run WS] [--fixes PRIORS.csv]
+  python tools/bench_georef.py SCENE --run WS --control
   python tools/bench_georef.py SCENE --drift WS [WS ...]
 
 SCENE holds gt/sparse and, for the bound and the score, gt/gps.json (`mvrecon scene make`). --fixes: the priors
