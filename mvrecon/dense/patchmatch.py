@@ -167,12 +167,13 @@ def _plane_costs(ref, srcs, sizes, A, b, q, gx, gy, radius, step, best_k, min_va
 
 @njit(cache=True, nogil=True)
 def _propagation_pass(ref, srcs, sizes, A, b, q, gx, gy, cost, dq, tilt, radius, step, best_k, min_var, reverse,
-                      seed):  # pragma: no cover - compiled
+                      seed, settled):  # pragma: no cover - compiled
     """One PatchMatch pass over the image, in raster order (`reverse`: from the last pixel back), updating
     (q, gx, gy, cost) in place: each textured pixel tries the planes of its left and upper neighbours (right
     and lower when reversed; already updated in this pass, so a good plane spreads across a surface), its own
     plane with the depth moved by up to `dq`, and with the slant moved by up to `tilt` (gradient change per
-    pixel relative to q: tilt = 1/f is a turn of about 45 degrees), keeping the lowest cost."""
+    pixel relative to q: tilt = 1/f is a turn of about 45 degrees), keeping the lowest cost. A pixel whose
+    cost is below `settled` skips the random changes."""
     rows, cols = ref.shape
     np.random.seed(seed)
     costs = np.empty(srcs.shape[0], np.float32)
@@ -198,6 +199,8 @@ def _propagation_pass(ref, srcs, sizes, A, b, q, gx, gy, cost, dq, tilt, radius,
                 cq = q[ny, nx] + cgx * (x - nx) + cgy * (y - ny)
                 if cgx == gx[y, x] and cgy == gy[y, x] and abs(cq - q[y, x]) <= SAME * q[y, x]:
                     continue  # the pixel's own plane (copied here, or upsampled from one coarse pixel): no change
+            elif cost[y, x] < settled:  # a good match already: random changes rarely improve it
+                break
             elif j == 2:  # the depth moved
                 cq = q[y, x] + dq * (2.0 * np.random.random() - 1.0)
                 cgx = gx[y, x]
