@@ -104,6 +104,35 @@ def geometric_filter(ref: DepthView, sources: list[DepthView], *, rel_tolerance:
     return out
 
 
+NONE = np.zeros((0, 0, 3), np.float32)  # a view without colours or normals
+
+
+@njit(cache=True, nogil=True)
+def _add_source(ok, sy, sx, used, depth, K, R, t, colors, normals, total, count, rgb,
+                normal):  # pragma: no cover - compiled
+    """Add to the reference points' sums (total, count, rgb, normal) the source pixels (sy, sx) that matched
+    them (ok) and no point had used before: their world points, colours and world-frame normals (`colors`,
+    `normals` empty when the view has none); those pixels are then used (ok is updated)."""
+    for i in range(ok.shape[0]):  # used before this source: not again
+        if ok[i] and used[sy[i], sx[i]]:
+            ok[i] = False
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    for i in range(ok.shape[0]):
+        if not ok[i]:
+            continue
+        v, u = sy[i], sx[i]
+        used[v, u] = True
+        d = np.float64(depth[v, u])
+        c0, c1, c2 = (u - cx) / fx * d - t[0], (v - cy) / fy * d - t[1], d - t[2]
+        for k in range(3):  # world = R^T (camera - t)
+            total[i, k] += R[0, k] * c0 + R[1, k] * c1 + R[2, k] * c2
+            if colors.shape[0]:
+                rgb[i, k] += colors[v, u, k]
+            if normals.shape[0]:
+                normal[i, k] += R[0, k] * normals[v, u, 0] + R[1, k] * normals[v, u, 1] + R[2, k] * normals[v, u, 2]
+        count[i] += 1
+
+
 def fuse(views: list[DepthView], *, rel_tolerance: float = 0.01,
          max_reprojection: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(points (N, 3), colours (N, 3) uint8, unit normals (N, 3)) in the world frame from the views' geometric
@@ -127,14 +156,9 @@ def fuse(views: list[DepthView], *, rel_tolerance: float = 0.01,
                 continue
             src = views[j]
             ok, sy, sx = _matches(ref.view, ys, xs, z_ref, src.view, src.depth, rel_tolerance, max_reprojection)
-            ok &= ~used[j][sy, sx]
-            used[j][sy[ok], sx[ok]] = True
-            total[ok] += back_project(src.view, src.depth, sy[ok], sx[ok])
-            count[ok] += 1
-            if src.colors is not None:
-                rgb[ok] += src.colors[sy[ok], sx[ok]]
-            if src.normals is not None:
-                normal[ok] += src.normals[sy[ok], sx[ok]] @ src.view.R
+            _add_source(ok, sy, sx, used[j], src.depth, src.view.K, src.view.R, src.view.t,
+                        NONE if src.colors is None else src.colors, NONE if src.normals is None else src.normals,
+                        total, count, rgb, normal)
         all_xyz.append(total / count[:, None])
         all_rgb.append(rgb / count[:, None])
         norm = np.linalg.norm(normal, axis=1, keepdims=True)
