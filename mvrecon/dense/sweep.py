@@ -139,12 +139,17 @@ def plane_normals(q: np.ndarray, gx: np.ndarray, gy: np.ndarray, K: np.ndarray) 
     The plane is what the window matched, so the normal is as sharp at a depth edge as inside a surface, where
     a finite difference of the depth map mixes the two sides."""
     rows, cols = q.shape
-    y, x = np.mgrid[0:rows, 0:cols].astype(np.float64)
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    n = -np.stack([fx * gx, fy * gy, cx * gx + cy * gy + (q - gx * x - gy * y)], axis=2)
+    fx, fy, cx, cy = (np.float32(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+    x = cx - np.arange(cols, dtype=np.float32)
+    y = cy - np.arange(rows, dtype=np.float32)
+    n = np.empty((rows, cols, 3), np.float32)
+    n[..., 0] = -fx * gx
+    n[..., 1] = -fy * gy
+    n[..., 2] = -(q + gx * x[None, :] + gy * y[:, None])
     norm = np.linalg.norm(n, axis=2, keepdims=True)
-    n = np.where((q > 0)[..., None] & (norm > 0), n / np.maximum(norm, 1e-300), 0.0)
-    return n.astype(np.float32)
+    n /= np.where(norm > 0, norm, 1)
+    n[~((q > 0) & (norm[..., 0] > 0))] = 0
+    return n
 
 
 def scaled(image: np.ndarray, K: np.ndarray, factor: float) -> tuple[np.ndarray, np.ndarray]:
