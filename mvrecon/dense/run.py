@@ -204,7 +204,8 @@ def run_dense(model_dir: Path | str, image_dir: Path | str, out_dir: Path | str,
     all_views = read_views(dense_dir / "sparse")
     selections = select_sources(all_views, settings.views)
     summary = DenseSummary(dense_dir)
-    code = code_digest("mvrecon.dense.sweep", "mvrecon.dense.select", "mvrecon.dense.run")
+    code = code_digest("mvrecon.dense.sweep", "mvrecon.dense.patchmatch", "mvrecon.dense.select", "mvrecon.dense.run",
+                       "mvrecon.dense.fuse")
     workers = default_workers() if workers is None else workers
 
     # photometric depth maps
