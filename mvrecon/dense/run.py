@@ -36,7 +36,7 @@ from ..workspace import Workspace
 from .fuse import DepthView, fuse, geometric_filter
 from .mesh import poisson_mesh
 from .select import select_sources
-from .sweep import normals_from_depth, pyramid_depth, warm_up
+from .sweep import pyramid_depth, warm_up
 from .views import View, read_views, undistort_into
 
 log = logging.getLogger(__name__)
@@ -118,11 +118,11 @@ def _photometric_job(job) -> dict:
     t0 = time.perf_counter()
     cost_sources = sources[:COST_SOURCES]
     c0 = time.process_time()
-    depth, _ = pyramid_depth(_grey(dense_dir, ref.name), [_grey(dense_dir, s.name) for s in cost_sources], ref.K,
-                             [s.K for s in cost_sources], [_relative(ref, s) for s in cost_sources], depth_range,
-                             coarse_size=settings.coarse_size, window=settings.window, best_k=BEST_K,
-                             max_cost=settings.max_cost)
-    _write_maps(dense_dir, ref, depth, "photometric")
+    depth, _, normals = pyramid_depth(_grey(dense_dir, ref.name), [_grey(dense_dir, s.name) for s in cost_sources],
+                                      ref.K, [s.K for s in cost_sources], [_relative(ref, s) for s in cost_sources],
+                                      depth_range, coarse_size=settings.coarse_size, window=settings.window,
+                                      best_k=BEST_K, max_cost=settings.max_cost)
+    _write_maps(dense_dir, ref, depth, normals, "photometric")
     return {"valid": float(np.mean(depth > 0)), "seconds": time.perf_counter() - t0,
             "cpu_seconds": time.process_time() - c0}
 
@@ -136,15 +136,16 @@ def _geometric_job(job) -> dict:
     src_views = [DepthView(s, read_colmap_array(depth_path(dense_dir, s.name, "photometric"))) for s in sources]
     depth = geometric_filter(ref_view, src_views, rel_tolerance=settings.rel_tolerance,
                              max_reprojection=settings.max_reprojection, min_consistent=settings.min_consistent)
-    _write_maps(dense_dir, ref, depth, "geometric")
+    normals = read_colmap_array(normal_path(dense_dir, ref.name, "photometric"))
+    _write_maps(dense_dir, ref, depth, np.where((depth > 0)[..., None], normals, 0.0), "geometric")
     _write_preview(dense_dir, ref.name, depth)
     return {"kept": float(np.mean(depth > 0)), "seconds": time.perf_counter() - t0,
             "cpu_seconds": time.process_time() - c0}
 
 
-def _write_maps(dense_dir: Path, view: View, depth: np.ndarray, kind: str) -> None:
+def _write_maps(dense_dir: Path, view: View, depth: np.ndarray, normals: np.ndarray, kind: str) -> None:
     for path, array in ((depth_path(dense_dir, view.name, kind), depth),
-                        (normal_path(dense_dir, view.name, kind), normals_from_depth(depth, view.K))):
+                        (normal_path(dense_dir, view.name, kind), normals)):
         path.parent.mkdir(parents=True, exist_ok=True)
         write_colmap_array(path, array)
 
@@ -203,7 +204,8 @@ def run_dense(model_dir: Path | str, image_dir: Path | str, out_dir: Path | str,
     all_views = read_views(dense_dir / "sparse")
     selections = select_sources(all_views, settings.views)
     summary = DenseSummary(dense_dir)
-    code = code_digest("mvrecon.dense.sweep", "mvrecon.dense.select", "mvrecon.dense.run")
+    code = code_digest("mvrecon.dense.sweep", "mvrecon.dense.patchmatch", "mvrecon.dense.select", "mvrecon.dense.run",
+                       "mvrecon.dense.fuse")
     workers = default_workers() if workers is None else workers
 
     # photometric depth maps
@@ -214,7 +216,7 @@ def run_dense(model_dir: Path | str, image_dir: Path | str, out_dir: Path | str,
             continue
         sources = [all_views[i] for i in sel.sources]
         keys[view.name] = digest(model_key, code, view.name, sel.sources, sel.depth_range, vars(settings))
-        files = [depth_path(dense_dir, view.name, "photometric").relative_to(dense_dir)]
+        files = [path(dense_dir, view.name, "photometric").relative_to(dense_dir) for path in (depth_path, normal_path)]
         if record.get(f"photometric/{view.name}", keys[view.name], files) is None:
             record.drop(f"photometric/{view.name}")
             jobs[view.name] = (dense_dir, view, sources, sel.depth_range, settings)

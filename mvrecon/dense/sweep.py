@@ -132,29 +132,24 @@ def sweep_depth(ref: np.ndarray, sources: list[np.ndarray], K_ref: np.ndarray, K
     return depth, best
 
 
-def normals_from_depth(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Unit normals (H, W, 3) in the camera frame, facing the camera, from the depth map's neighbouring points
-    (central differences); zero where a neighbour has no depth."""
-    rows, cols = depth.shape
-    y, x = np.mgrid[0:rows, 0:cols].astype(np.float32)
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    pts = np.stack([(x - cx) / fx * depth, (y - cy) / fy * depth, depth], axis=2)
-    dx = np.zeros_like(pts)
-    dy = np.zeros_like(pts)
-    dx[:, 1:-1] = pts[:, 2:] - pts[:, :-2]
-    dy[1:-1] = pts[2:] - pts[:-2]
-    n = np.cross(dx, dy)
-    known = depth > 0
-    ok = known.copy()
-    ok[:, 1:-1] &= known[:, 2:] & known[:, :-2]
-    ok[1:-1] &= known[2:] & known[:-2]
-    ok[[0, -1], :] = False
-    ok[:, [0, -1]] = False
+def plane_normals(q: np.ndarray, gx: np.ndarray, gy: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Unit normals (H, W, 3) in the camera frame, facing the camera, of each pixel's plane (`patchmatch`): its
+    inverse depth at pixel (x', y') is a . (x', y', 1), a = (gx, gy, q - gx x - gy y); the plane's points X
+    (pixel K X / z) satisfy (K^T a) . X = 1, so -K^T a is its normal towards the camera. Zero where q = 0.
+    The plane is what the window matched, so the normal is as sharp at a depth edge as inside a surface, where
+    a finite difference of the depth map mixes the two sides."""
+    rows, cols = q.shape
+    fx, fy, cx, cy = (np.float32(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+    x = cx - np.arange(cols, dtype=np.float32)
+    y = cy - np.arange(rows, dtype=np.float32)
+    n = np.empty((rows, cols, 3), np.float32)
+    n[..., 0] = -fx * gx
+    n[..., 1] = -fy * gy
+    n[..., 2] = -(q + gx * x[None, :] + gy * y[:, None])
     norm = np.linalg.norm(n, axis=2, keepdims=True)
-    n = np.where(ok[..., None] & (norm > 0), n / np.maximum(norm, 1e-12), 0.0)
-    facing = np.sum(n * pts, axis=2) > 0  # a normal points back at the camera: n . X < 0
-    n[facing] *= -1
-    return n.astype(np.float32)
+    n /= np.where(norm > 0, norm, 1)
+    n[~((q > 0) & (norm[..., 0] > 0))] = 0
+    return n
 
 
 def scaled(image: np.ndarray, K: np.ndarray, factor: float) -> tuple[np.ndarray, np.ndarray]:
@@ -177,9 +172,10 @@ def pyramid_depth(ref: np.ndarray, sources: list[np.ndarray], K_ref: np.ndarray,
                   relative: list[tuple[np.ndarray, np.ndarray]], depth_range: tuple[float, float], *,
                   coarse_size: int = 400, pixels_per_plane: float = 2.0, max_planes: int = 192,
                   window: int = 7, best_k: int = 2, max_cost: float = 0.5, min_std: float = 0.004,
-                  radius: int = 4, step: int = 2, passes: int = 2,
-                  final_passes: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """(depth, cost) as `sweep_depth`, coarse to fine with slanted planes: the fronto-parallel sweep on the
+                  radius: int = 4, step: int = 2, passes: int = 2, final_passes: int = 1,
+                  settled: float = 0.2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(depth, cost, normals) as `sweep_depth`, with each pixel's unit normal (`plane_normals`, camera frame;
+    zero without depth), coarse to fine with slanted planes: the fronto-parallel sweep on the
     images scaled so the long side is about `coarse_size` (planes `pixels_per_plane` apart in the widest
     source's disparity there); then at that level and at each doubling of the resolution up to full size, each
     pixel's plane (inverse depth and its gradient, `patchmatch`) upsampled and PatchMatch passes (`passes`,
@@ -188,7 +184,9 @@ def pyramid_depth(ref: np.ndarray, sources: list[np.ndarray], K_ref: np.ndarray,
     pixels). Far fewer evaluations than a full-resolution sweep, and slanted surfaces (floors, walls at a
     grazing angle) within the tolerance a fronto-parallel window misses: on object_orbit_small the share of
     pixels within 0.5% of the true depth goes from 0.47 to 0.88; a second pass at full size, or planes one
-    pixel apart, add under 0.005 to that for a quarter more time."""
+    pixel apart, add under 0.005 to that for a quarter more time. At full size a pixel whose plane already
+    costs under `settled` (1 - NCC) only tries its neighbours' planes, not random changes of its own: those
+    find little there and cost a fifth of the time."""
     rows, cols = ref.shape
     levels = 0
     while max(rows, cols) / 2 ** (levels + 1) >= coarse_size * 0.75:
@@ -219,10 +217,10 @@ def pyramid_depth(ref: np.ndarray, sources: list[np.ndarray], K_ref: np.ndarray,
         _plane_costs(lref, stack, sizes, A, b, q, gx, gy, radius, step, best_k, min_var, cost)
         for p in range(passes if level else final_passes):
             _propagation_pass(lref, stack, sizes, A, b, q, gx, gy, cost, dq * 0.5**p, 0.5**p / lK[0, 0], radius,
-                              step, best_k, min_var, p % 2 == 1, 1000 * level + p)
+                              step, best_k, min_var, p % 2 == 1, 1000 * level + p, settled if level == 0 else -1.0)
+    q[~(cost <= max_cost)] = 0.0
     depth = np.where(q > 0, 1.0 / np.maximum(q, 1e-12), 0.0).astype(np.float32)
-    depth[~(cost <= max_cost)] = 0.0
-    return depth, cost
+    return depth, cost, plane_normals(q, gx, gy, K_ref)
 
 
 def _upsample_planes(q: np.ndarray, gx: np.ndarray, gy: np.ndarray,
