@@ -8,10 +8,11 @@ running scheduler (`dask scheduler`, `dask worker`, dask-jobqueue). A scheduler 
 the user trusts; anyone who reaches an unauthenticated scheduler can run code on its workers.
 
 `Cluster.map` keeps `WorkerPool.map`'s contract (results in the items' order, `died(item, why)` for an item Dask
-gave up on), so the features stage and the partitioned mapping use either; `Cluster.unordered` yields results as
-they complete (the matching stage's batches of pairs). Dask runs again the tasks of a worker that dies (up to
-`distributed.scheduler.allowed-failures` times); the client writes each result once. Data submitted with
-`Cluster.keep` lives in the task graph, so a worker that dies holding it costs a recomputation, not the run.
+gave up on; `per_task` items a task), so the features stage and the partitioned mapping use either;
+`Cluster.unordered` yields results as they complete (the matching stage's batches of pairs). Dask runs again the
+tasks of a worker that dies (up to `distributed.scheduler.allowed-failures` times); the client writes each result
+once. Data submitted with `Cluster.keep` lives in the task graph, so a worker that dies holding it costs a
+recomputation, not the run.
 """
 
 import contextlib
