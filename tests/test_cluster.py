@@ -27,6 +27,7 @@ from mvrecon.errors import InputError
 from mvrecon.geometry.rotation import rotation_error_deg
 from mvrecon.pipeline import ReconstructConfig, reconstruct
 from mvrecon.sfm.config import MapperConfig
+from mvrecon.stages import features
 from mvrecon.stages.common import FrontendConfig
 from mvrecon.stages.features import extract_features
 from mvrecon.stages.mapping import map_workspace
@@ -118,7 +119,10 @@ def test_a_worker_killed_during_matching_loses_no_pair(object_orbit_small, local
 
 def test_workers_that_do_not_see_the_folder_get_the_images(object_orbit_small, local_run, cluster, tmp_path,
                                                            monkeypatch):
+    """The client sends the images' bytes, here in tasks of 3 images (a larger set's batches): the database is the
+    local pool's, row for row."""
     monkeypatch.setattr(Cluster, "workers_see", lambda self, folder: False)
+    monkeypatch.setattr(features, "images_per_task", lambda count, workers: 3)
     sent = cluster.sent_bytes
     extract_features(FrontendConfig(), object_orbit_small / "images", tmp_path / "ws", cluster=cluster)
     image_bytes = sum(p.stat().st_size for p in (object_orbit_small / "images").iterdir())
@@ -241,4 +245,7 @@ def test_a_task_is_named_by_its_function(cluster):
     """The task stream (and the dashboard) tell the stages' tasks apart by their keys' function names."""
     with get_task_stream(cluster.client) as stream:
         assert list(cluster.map(abs, [-1, 2, -3])) == [1, 2, 3]
+    assert sorted(str(record["key"]).rsplit("-", 1)[0] for record in stream.data) == ["abs"] * 3
+    with get_task_stream(cluster.client) as stream:  # several items a task: still in order, one task per batch
+        assert list(cluster.map(abs, range(-3, 4), per_task=3)) == [3, 2, 1, 0, 1, 2, 3]
     assert sorted(str(record["key"]).rsplit("-", 1)[0] for record in stream.data) == ["abs"] * 3

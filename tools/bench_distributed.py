@@ -36,6 +36,7 @@ import statistics
 import subprocess
 import sys
 import time
+from multiprocessing import forkserver
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -44,6 +45,7 @@ sys.path.insert(0, str(ROOT))
 from distributed import get_task_stream  # noqa: E402
 
 from mvrecon.cluster import ClusterSpec, open_cluster  # noqa: E402
+from mvrecon.executor import _process_cpu_seconds as process_cpu_seconds  # noqa: E402
 from mvrecon.executor import cpu_seconds as pool_cpu_seconds  # noqa: E402
 from mvrecon.stages.common import FrontendConfig  # noqa: E402
 from mvrecon.stages.features import extract_features  # noqa: E402
@@ -108,7 +110,14 @@ def all_cpu_seconds(cluster) -> float:
     machine each process gets its share of the cores, so the stages' CPU is what their wall time follows."""
     if cluster is None:
         return pool_cpu_seconds()
-    return cpu_seconds() + sum(cluster.client.run(cpu_seconds).values())
+    return cpu_seconds() + sum(cluster.client.run(cpu_seconds).values()) + forkserver_cpu_seconds()
+
+
+def forkserver_cpu_seconds() -> float:
+    """CPU seconds of the forkserver the workers of a `local:N` cluster are forked from (it imports Dask once for
+    them; it is not this process's child that RUSAGE_CHILDREN would count), 0 without one."""
+    pid = getattr(forkserver._forkserver, "_forkserver_pid", None)
+    return process_cpu_seconds(pid) if pid else 0.0
 
 
 def overhead(images: Path, work: Path, address: str, repeats: int) -> dict:

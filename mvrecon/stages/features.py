@@ -134,12 +134,20 @@ def _hand_out(pool: WorkerPool | Cluster, jobs: list[tuple], folder: Path | None
         return job[1], f"{job[0]}: the worker extracting it died twice: {why}"
 
     if isinstance(pool, Cluster):
+        per_task = images_per_task(len(jobs), pool.workers)
         if folder is not None and not pool.workers_see(folder):
             log.info("%s: not seen by every worker of the cluster; the images are sent to them", folder)
             return pool.map(_extract_sent, _with_bytes(jobs), name=lambda sent: str(sent[0][0]),
-                            died=lambda sent, why: died(sent[0], why))
-        return pool.map(_extract_job, jobs, name=lambda job: str(job[0]), died=died)
+                            died=lambda sent, why: died(sent[0], why), per_task=per_task)
+        return pool.map(_extract_job, jobs, name=lambda job: str(job[0]), died=died, per_task=per_task)
     return pool.map(_extract_job, jobs, name=lambda job: str(job[0]), cost=_extraction_memory_mb, died=died)
+
+
+def images_per_task(count: int, workers: int) -> int:
+    """Images in one task of a cluster for `count` images on `workers` worker threads: up to 4, so that what a
+    task costs the client and the scheduler whatever it holds is paid once for several images, but at least 8
+    tasks per worker thread, so that the workers' last tasks end close together."""
+    return max(1, min(4, count // (8 * max(1, workers))))
 
 
 def _extraction_memory_mb(job) -> float:
