@@ -67,8 +67,9 @@ POSITIONS = "tracks"
 
 
 class GlobalMapper:
-    def __init__(self, corr: Correspondences, config: MapperConfig = MapperConfig()):
+    def __init__(self, corr: Correspondences, config: MapperConfig = MapperConfig(), workers: int = 1):
         self.config = config
+        self.workers = workers  # processes of the view graph's relative poses (view_graph.relative_poses)
         self.image_ids, self.names, self.camera_of, self.cameras = images_and_cameras(corr)
         ids = self.image_ids.tolist()
         self.keypoints = [np.asarray(corr.keypoints.get(i, np.zeros((0, 2))), float) for i in ids]
@@ -97,7 +98,7 @@ class GlobalMapper:
         uncalibrated = [c for c, cam in scratch.cameras.items() if not cam.prior_trusted and c not in found]
         if uncalibrated:
             sample = self._calibration_pairs(uncalibrated)
-            graph = relative_poses(scratch, sample, self.config, COARSE_SAMPLE)
+            graph = relative_poses(scratch, sample, self.config, COARSE_SAMPLE, self.workers)
             start = self._clock("view_graph", start)
             for k in range(_CALIBRATION_PASSES if graph.edges else 0):
                 calibrated = self._calibrate_by_bundle(scratch.cameras, graph)
@@ -108,9 +109,9 @@ class GlobalMapper:
                 if not calibrated:
                     break
                 if k + 1 < _CALIBRATION_PASSES:
-                    graph = relative_poses(scratch, sample, self.config, COARSE_SAMPLE)
+                    graph = relative_poses(scratch, sample, self.config, COARSE_SAMPLE, self.workers)
                 start = self._clock("calibration", start)
-        graph = relative_poses(scratch, self.pairs, self.config)
+        graph = relative_poses(scratch, self.pairs, self.config, workers=self.workers)
         start = self._clock("view_graph", start)
         for (a, b), why in graph.rejected.items():
             for i in (a, b):
@@ -378,6 +379,9 @@ class GlobalMapper:
         return image_status(self.names, self.keypoints, self.pairs, models,
                             lambda i: self.reasons.get(i, "not part of any model's consistent view graph"))
 
-def map_correspondences_globally(corr: Correspondences, config: MapperConfig = MapperConfig()) -> MappingResult:
-    """Run the global mapper on a database's correspondences (see `database.read_correspondences`)."""
-    return GlobalMapper(corr, config).run()
+def map_correspondences_globally(corr: Correspondences, config: MapperConfig = MapperConfig(),
+                                 workers: int = 1) -> MappingResult:
+    """Run the global mapper on a database's correspondences (see `database.read_correspondences`), the view
+    graph's relative poses in `workers` processes (a script that asks for more than one needs the
+    `if __name__ == "__main__":` guard that Python's process start methods require)."""
+    return GlobalMapper(corr, config, workers).run()
