@@ -24,6 +24,7 @@ from scipy.optimize import least_squares
 
 from ..database import PairGeometry
 from ..executor import WorkerPool
+from ..geometry.rotation import angle_axis_to_rotmat
 from ..geometry.triangulation import triangulation_angle_deg, two_view_midpoints
 from ..geometry.two_view import homography_translation, relative_pose
 from .config import MapperConfig
@@ -37,7 +38,6 @@ _SHARPNESS = 0.5  # the minimum's cost must be under this share of the cost at b
 _CALIBRATION_SWEEPS = 3
 _MIN_RELATIVE_INLIERS = 15  # a pair's matches fitting its relative pose (COLMAP's min_num_inliers)
 _PARALLEL_PAIRS = 200  # pairs from which `relative_poses` hands them to worker processes
-_DIFF_STEP = np.finfo(float).eps ** 0.5  # forward difference's relative step (scipy's)
 _CALIBRATION_PAIRS = 300  # a camera's pairs (those with the most matches) its focal is calibrated from
 
 
@@ -230,47 +230,26 @@ def refine_relative_pose(R: np.ndarray, t: np.ndarray, x1: np.ndarray, x2: np.nd
                          iterations: int = 10) -> tuple[np.ndarray, np.ndarray]:
     """(R, t) refined by Levenberg-Marquardt on the Sampson distances of the inlier matches (normalised
     coordinates): the five-point RANSAC's pose comes from a minimal sample, and with a narrow field of view it
-    can be degrees off (templeSparseRing, 24 deg across: pairs of 150-200 matches 10 deg off in rotation).
-    The Jacobian is a forward difference of all five parameters in one batched evaluation (scipy's own
-    difference, one call per parameter, was 2/3 of a 300-image survey's view graph)."""
+    can be degrees off (templeSparseRing, 24 deg across: pairs of 150-200 matches 10 deg off in rotation)."""
     if len(x1) < 6:
         return R, t
     h1, h2 = np.c_[x1, np.ones(len(x1))], np.c_[x2, np.ones(len(x2))]
     basis = np.linalg.svd(t.reshape(1, 3))[2][1:]  # two directions orthogonal to t
 
-    def poses(P):
-        """(m,3,3) rotations and (m,3) unit translations of the parameter rows P (m,5)."""
-        theta = np.linalg.norm(P[:, :3], axis=1)
-        k = P[:, :3] / np.maximum(theta, 1e-300)[:, None]
-        K = np.zeros((len(P), 3, 3))
-        K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
-        K -= K.transpose(0, 2, 1)
-        turn = np.eye(3) + np.sin(theta)[:, None, None] * K + (1 - np.cos(theta))[:, None, None] * (K @ K)
-        tp = t + P[:, 3:] @ basis
-        return turn @ R, tp / np.linalg.norm(tp, axis=1, keepdims=True)
+    def pose(p):
+        Rp = angle_axis_to_rotmat(p[:3]) @ R
+        tp = t + basis.T @ p[3:]
+        return Rp, tp / np.linalg.norm(tp)
 
-    def sampson(P):
-        """(m, matches) Sampson distances at the parameter rows P (m,5)."""
-        Rp, tp = poses(P)
-        tx = np.zeros((len(P), 3, 3))
-        tx[:, 0, 1], tx[:, 0, 2], tx[:, 1, 2] = -tp[:, 2], tp[:, 1], -tp[:, 0]
-        E = (tx - tx.transpose(0, 2, 1)) @ Rp
-        Ex1, Etx2 = E @ h1.T, E.transpose(0, 2, 1) @ h2.T  # (m,3,matches)
-        num = (Ex1 * h2.T).sum(axis=1)
+    def sampson(p):
+        Rp, tp = pose(p)
+        E = np.array([[0, -tp[2], tp[1]], [tp[2], 0, -tp[0]], [-tp[1], tp[0], 0]]) @ Rp
+        Ex1, Etx2 = h1 @ E.T, h2 @ E
+        num = np.einsum("ni,ni->n", h2, Ex1)
         return num / np.sqrt(Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2 + 1e-300)
 
-    def jacobian(p):
-        step = _DIFF_STEP * np.where(p >= 0, 1.0, -1.0) * np.maximum(1.0, np.abs(p))
-        step = (p + step) - p  # the step the floating point sum makes
-        r = sampson(np.vstack([p, p + np.diag(step)]))
-        return ((r[1:] - r[0]) / step[:, None]).T
-
-    fit = least_squares(lambda p: sampson(p[None])[0], np.zeros(5), jac=jacobian, method="lm",
-                        max_nfev=iterations * 6)
-    if fit.cost > 0.5 * float(np.sum(sampson(np.zeros((1, 5))) ** 2)):
-        return R, t
-    Rp, tp = poses(fit.x[None])
-    return Rp[0], tp[0]
+    fit = least_squares(sampson, np.zeros(5), method="lm", max_nfev=iterations * 6)
+    return pose(fit.x) if fit.cost <= 0.5 * float(np.sum(sampson(np.zeros(5)) ** 2)) else (R, t)
 
 
 def _rotation_fit(x1, x2, threshold: float):
