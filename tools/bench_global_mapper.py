@@ -10,7 +10,8 @@ settings), the catalog scenes' ground truth in WORK/scenes/<set>/gt/sparse, the 
 ../shared/data/<set>. Per set and engine it prints the images registered (in all models, and in the largest),
 the relative-pose AUC@1 and AUC@5 against the ground truth (eval.metrics: a pair with an unregistered image or
 split across models counts 180 deg) and the mapping wall time: mvrecon's mappers called in this process on the
-database's correspondences (reading the database not counted; mvrecon-global-pairs is the global mapper with
+database's correspondences (the global one's view graph in one process per core; reading the database not
+counted; mvrecon-global-pairs is the global mapper with
 the final model's centres from translation averaging of the pairs' directions instead of global positioning
 from the tracks), pycolmap's `global_mapping` and
 `incremental_mapping` on a copy of the database (seed 0). Wall and CPU time (all the process's threads) of
@@ -30,6 +31,7 @@ sys.path.insert(0, str(ROOT))
 from mvrecon import database  # noqa: E402  (mvrecon before pycolmap: see the README)
 from mvrecon.eval.ground_truth import find_ground_truth, load_ground_truth_for  # noqa: E402
 from mvrecon.eval.metrics import accuracy_summary  # noqa: E402
+from mvrecon.executor import cpu_seconds, default_workers  # noqa: E402
 from mvrecon.sfm import global_mapper  # noqa: E402
 from mvrecon.sfm.config import MapperConfig  # noqa: E402
 from mvrecon.sfm.global_mapper import map_correspondences_globally  # noqa: E402
@@ -50,13 +52,13 @@ def ground_truth(work: Path, name: str):
 
 def run_mvrecon(db: Path, engine: str) -> tuple[list[dict], float, float]:
     corr = database.read_correspondences(db)
-    start, cpu = time.perf_counter(), time.process_time()
+    start, cpu = time.perf_counter(), cpu_seconds()
     if engine.startswith("mvrecon-global"):
         global_mapper.POSITIONS = "pairs" if engine == "mvrecon-global-pairs" else "tracks"
-        result = map_correspondences_globally(corr, MapperConfig(mapper="global"))
+        result = map_correspondences_globally(corr, MapperConfig(mapper="global"), default_workers())
     else:
         result = map_correspondences(corr, MapperConfig())
-    seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
+    seconds, cpu = time.perf_counter() - start, cpu_seconds() - cpu
     return [{m.names[i]: (m.R[i], m.t[i]) for i in m.registered_images()} for m in result.models], seconds, cpu
 
 

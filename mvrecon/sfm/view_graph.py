@@ -14,6 +14,7 @@ angle of its inliers; a pair that a homography of a rotation explains as well (a
 that rotation and no translation direction.
 """
 
+import multiprocessing
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -22,6 +23,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..database import PairGeometry
+from ..executor import WorkerPool
 from ..geometry.rotation import angle_axis_to_rotmat
 from ..geometry.triangulation import triangulation_angle_deg, two_view_midpoints
 from ..geometry.two_view import homography_translation, relative_pose
@@ -35,6 +37,7 @@ _EDGE = 6  # a minimum this close to either end of the range is no estimate
 _SHARPNESS = 0.5  # the minimum's cost must be under this share of the cost at both ends of the range
 _CALIBRATION_SWEEPS = 3
 _MIN_RELATIVE_INLIERS = 15  # a pair's matches fitting its relative pose (COLMAP's min_num_inliers)
+_PARALLEL_PAIRS = 200  # pairs from which `relative_poses` hands them to worker processes
 _CALIBRATION_PAIRS = 300  # a camera's pairs (those with the most matches) its focal is calibrated from
 
 
@@ -168,35 +171,59 @@ def dense_subset(pairs: dict, n: int, size: int, seeds: Iterable[int] = ()) -> n
     return inside
 
 
-def relative_poses(model: Reconstruction, pairs: dict, config: MapperConfig, sample: int = SAMPLE) -> ViewGraph:
+def relative_poses(model: Reconstruction, pairs: dict, config: MapperConfig, sample: int = SAMPLE,
+                   workers: int = 1) -> ViewGraph:
     """The relative pose of each pair at the model's current calibration (see the module docstring), from at
-    most `sample` of its matches."""
-    edges, rejected = {}, {}
+    most `sample` of its matches, in `workers` processes (executor.WorkerPool) when there are enough pairs: a
+    pair costs about 12 ms of CPU, and a 300-image survey has 3,304 of them."""
+    keys, jobs = [], []
     for (a, b), matches in sorted(pairs.items()):
         matches = _sample(matches, config.seed, sample)
         x1, x2 = model.normalized_keypoints(a)[matches[:, 0]], model.normalized_keypoints(b)[matches[:, 1]]
         ok = np.isfinite(x1).all(axis=1) & np.isfinite(x2).all(axis=1)
-        x1, x2 = x1[ok], x2[ok]
         f = 0.5 * (model.camera(a).focal() + model.camera(b).focal())
-        threshold = config.two_view_max_error_px / f
-        est = relative_pose(x1, x2, threshold, seed=config.seed)
-        found = 0 if est is None else int(est[2].sum())
-        turn = _rotation_fit(x1, x2, threshold)
-        if turn is not None and turn[1] >= found and turn[2] < np.radians(config.min_tri_angle_deg):
-            edges[(a, b)] = ViewEdge(turn[0], np.zeros(3), turn[1], 0.0)  # a rotation about the camera centre
-            continue
-        if found < _MIN_RELATIVE_INLIERS:
-            rejected[(a, b)] = (f"{found} of its {len(matches)} matches fit a relative pose in front of both "
-                                f"views, < {_MIN_RELATIVE_INLIERS}")
-            continue
-        R, t, inl = est
-        R, t = refine_relative_pose(R, t, x1[inl], x2[inl])
-        X = two_view_midpoints(R, t, x1[inl], x2[inl])  # the angle needs no refined points
-        front = np.isfinite(X).all(axis=1)
-        front[front] = (X[front, 2] > 0) & (X[front] @ R[2] + t[2] > 0)
-        angle = float(np.median(triangulation_angle_deg(np.zeros(3), -R.T @ t, X[front]))) if front.any() else 0.0
-        edges[(a, b)] = ViewEdge(R, t, found, angle)
+        keys.append((a, b))
+        jobs.append((x1[ok], x2[ok], len(matches), config.two_view_max_error_px / f))
+    settings = (config.min_tri_angle_deg, config.seed)
+    if workers > 1 and len(jobs) >= _PARALLEL_PAIRS and not multiprocessing.current_process().daemon:
+        step = -(-len(jobs) // (4 * workers))  # a few chunks per worker: even loads, little pickling
+        chunks = [(jobs[k:k + step], settings) for k in range(0, len(jobs), step)]
+        with WorkerPool(workers) as pool:
+            found = [edge for chunk in pool.map(_pair_poses, chunks) for edge in chunk]
+    else:
+        found = _pair_poses((jobs, settings))
+    edges, rejected = {}, {}
+    for key, edge in zip(keys, found):
+        if isinstance(edge, ViewEdge):
+            edges[key] = edge
+        else:
+            rejected[key] = edge
     return ViewGraph(edges, rejected)
+
+
+def _pair_poses(chunk: tuple[list, tuple]) -> list:
+    """A ViewEdge, or the reason there is none, for each (x1, x2, matches, threshold) of the chunk."""
+    jobs, (min_tri_angle_deg, seed) = chunk
+    return [_pair_pose(x1, x2, count, threshold, min_tri_angle_deg, seed) for x1, x2, count, threshold in jobs]
+
+
+def _pair_pose(x1: np.ndarray, x2: np.ndarray, count: int, threshold: float, min_tri_angle_deg: float,
+               seed: int) -> "ViewEdge | str":
+    est = relative_pose(x1, x2, threshold, seed=seed)
+    found = 0 if est is None else int(est[2].sum())
+    turn = _rotation_fit(x1, x2, threshold)
+    if turn is not None and turn[1] >= found and turn[2] < np.radians(min_tri_angle_deg):
+        return ViewEdge(turn[0], np.zeros(3), turn[1], 0.0)  # a rotation about the camera centre
+    if found < _MIN_RELATIVE_INLIERS:
+        return (f"{found} of its {count} matches fit a relative pose in front of both views, "
+                f"< {_MIN_RELATIVE_INLIERS}")
+    R, t, inl = est
+    R, t = refine_relative_pose(R, t, x1[inl], x2[inl])
+    X = two_view_midpoints(R, t, x1[inl], x2[inl])  # the angle needs no refined points
+    front = np.isfinite(X).all(axis=1)
+    front[front] = (X[front, 2] > 0) & (X[front] @ R[2] + t[2] > 0)
+    angle = float(np.median(triangulation_angle_deg(np.zeros(3), -R.T @ t, X[front]))) if front.any() else 0.0
+    return ViewEdge(R, t, found, angle)
 
 
 def refine_relative_pose(R: np.ndarray, t: np.ndarray, x1: np.ndarray, x2: np.ndarray,

@@ -20,6 +20,7 @@ from ..cameras import report_entry
 from ..cluster import Cluster
 from ..config import to_dict
 from ..errors import InputError
+from ..executor import default_workers
 from ..io.colmap_model import warn_text_names, write_models, write_points_ply
 from ..io.files import write_json
 from ..matching.overlay import fixed_keypoints, same_view
@@ -132,7 +133,7 @@ def _run_mapper(corr, config, snapshot: Path, resume: bool):
     if config.mapper == "global":
         from ..sfm.global_mapper import map_correspondences_globally  # noqa: PLC0415 - GTSAM, after the workers fork
 
-        return map_correspondences_globally(corr, config)
+        return map_correspondences_globally(corr, config, default_workers())
     from ..sfm.incremental import map_correspondences  # noqa: PLC0415 - GTSAM, after the workers fork
 
     return map_correspondences(corr, config, snapshot_path=snapshot, resume=resume)

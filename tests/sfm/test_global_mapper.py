@@ -13,6 +13,7 @@ from mvrecon.eval.metrics import accuracy_summary
 from mvrecon.eval.models import poses as poses_of
 from mvrecon.eval.models import sparse_models
 from mvrecon.sfm import global_mapper
+from mvrecon.sfm.bundle import bundle_adjust
 from mvrecon.sfm.config import MapperConfig
 from mvrecon.sfm.global_mapper import GlobalMapper, map_correspondences_globally
 from mvrecon.sfm.model import Reconstruction
@@ -168,3 +169,28 @@ def test_map_command_runs_the_global_mapper_and_refuses_an_unknown_one(tmp_path,
     bad.write_text('[mapper]\nmapper = "spiral"\n')
     assert main(["-q", "map", "-w", str(tmp_path / "ws"), "--config", str(bad), "--overwrite"]) == 2
     assert f"{bad}: mapper must be one of incremental, global, not 'spiral'" in capsys.readouterr().err
+
+
+def test_a_large_model_ends_with_a_brief_bundle_adjustment_of_every_point(tmp_path, monkeypatch):
+    """From `_LARGE_MODEL` images (lowered here to 8) the first round optimises the early point quota, every round
+    a subset, and the BA over every point comes last, of `_FINAL_ITERATIONS`; the model stays as accurate."""
+    path = tmp_path / "database.db"
+    gt = synthetic_database(path, num_images=8, num_points=1500)
+    calls = []
+
+    def spy(model, images, config, **kw):
+        out = bundle_adjust(model, images, config, **kw)
+        if kw["max_iterations"] != global_mapper._COARSE_ITERATIONS:  # not the coarse models of the calibration
+            calls.append((len(kw["point_ids"]), len(model.alive_points()), kw["max_iterations"], out.iterations))
+        return out
+
+    monkeypatch.setattr(global_mapper, "bundle_adjust", spy)
+    monkeypatch.setattr(global_mapper, "_LARGE_MODEL", 8)
+    config = MapperConfig(mapper="global", ba_points_per_image=150, ba_points_per_image_early=50)
+    result = map_correspondences_globally(database.read_correspondences(path), config)
+    *rounds, last = calls
+    assert len(rounds) >= 4 and rounds[0][0] < rounds[1][0]  # the early quota, then the usual one
+    assert all(used < alive for used, alive, _, _ in rounds)
+    assert last[0] == last[1] and last[2] == last[3] == global_mapper._FINAL_ITERATIONS
+    summary = accuracy_summary(estimated_poses(result), gt)
+    assert summary["registered"] == 8 and summary["median_rotation_error_deg"] < 0.1

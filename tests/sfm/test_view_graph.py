@@ -3,10 +3,13 @@
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from mvrecon import database
+from mvrecon.sfm import view_graph
 from mvrecon.sfm.config import MapperConfig
 from mvrecon.sfm.global_mapper import GlobalMapper
 from mvrecon.sfm.view_graph import dense_subset, refine_relative_pose, relative_poses
 from tests.sfm.test_global_mapper import rotating_views
+from tests.sfm.test_mapper import synthetic_database
 
 
 def angle_deg(R):
@@ -57,3 +60,24 @@ def test_the_calibration_subset_is_bounded_and_well_connected():
     seeded = dense_subset(pairs, 300, 30, [10])
     assert seeded.sum() == 30 and seeded[10] and np.ptp(np.flatnonzero(seeded)) == 29
     assert dense_subset(pairs, 300, 400).sum() == 300  # no more than there are
+
+
+def test_relative_poses_in_worker_processes_are_those_of_one_process(tmp_path, monkeypatch):
+    """pycolmap's synthetic scene (28 pairs) handed to two worker processes: every pair's pose as in-process,
+    and near the true relative rotation."""
+    path = tmp_path / "database.db"
+    gt = synthetic_database(path)
+    mapper = GlobalMapper(database.read_correspondences(path), MapperConfig(mapper="global"))
+    model = mapper._new_model(mapper.cameras)
+    for cam in model.cameras.values():
+        cam.params = np.array([600.0, 320.0, 240.0, 0.02])  # the scene's true calibration
+    monkeypatch.setattr(view_graph, "_PARALLEL_PAIRS", 1)
+    alone = relative_poses(model, mapper.pairs, mapper.config)
+    shared = relative_poses(model, mapper.pairs, mapper.config, workers=2)
+    assert len(alone.edges) == 28 and sorted(shared.edges) == sorted(alone.edges)
+    errors = []
+    for (a, b), edge in shared.edges.items():
+        assert np.allclose(edge.R, alone.edges[(a, b)].R) and edge.inliers == alone.edges[(a, b)].inliers
+        Ra, Rb = gt[mapper.names[a]][0], gt[mapper.names[b]][0]
+        errors.append(angle_deg(edge.R @ (Rb @ Ra.T).T))
+    assert np.median(errors) < 0.2 and max(errors) < 1.0  # 0.5 px of keypoint noise
