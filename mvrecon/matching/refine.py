@@ -13,6 +13,7 @@ alignment does not converge, moves more than `max_shift` of its scale, or ends w
 below `min_correlation`.
 """
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numba
@@ -23,16 +24,20 @@ from scipy.sparse.csgraph import connected_components
 from ..config import bounded
 from ..io.images import to_gray
 
+_LEVELS = 8  # octaves: patch samples up to 256 pixels apart
+_STEPS = 3  # scale-space steps an octave
+
 
 @dataclass(frozen=True)
 class RefineConfig:
-    patch_size: int = bounded(9, 3)  # samples a side of the square patch
+    enabled: bool = True  # refine after matching (`--refine-keypoints` / `--no-refine-keypoints`)
+    patch_size: int = bounded(13, 3)  # samples a side of the square patch
     patch_radius: float = bounded(3.0, 0.5)  # the patch's half-width in units of the keypoint's scale (sigma)
-    min_radius: float = bounded(0.0, 0.0)  # smallest half-width of the reference's patch, in pixels
+    min_radius: float = bounded(8.0, 0.0)  # smallest half-width of the reference's patch, in pixels
     iterations: int = bounded(10, 1)  # Gauss-Newton steps at most
     max_shift: float = bounded(1.0, 0.0, low_open=True)  # largest move, in units of the keypoint's scale
     min_correlation: float = bounded(0.8, -1.0)  # normalised correlation with the reference after alignment
-    blur: float = bounded(1.0, 0.0)  # Gaussian sigma (pixels of each pyramid level) before sampling
+    blur: float = bounded(1.0, 0.0)  # Gaussian sigma of the sampled image, in units of the patch's sample spacing
     max_track: int = bounded(200, 2)  # larger tracks are left as they are (a repeated texture merges tracks)
 
 
@@ -64,83 +69,86 @@ def tracks(num_keypoints: dict[int, int], pairs: list[tuple[int, int, np.ndarray
     return image[order], index[order], labels[nodes][order]
 
 
-def pyramid(gray: np.ndarray, levels: int, blur: float = 0.0) -> list[np.ndarray]:
-    """Float32 Gaussian pyramid (OpenCV's pyrDown), finest first."""
+def scale_space(gray: np.ndarray, config: RefineConfig) -> list[tuple[np.ndarray, float]]:
+    """(image, pixel size in full-size pixels) of every step of a scale space of `_STEPS` steps an octave: step
+    b's patch samples are 2^(b/_STEPS) full-size pixels apart, and its image is blurred to `config.blur` times
+    that spacing, so that two views' patches of one point carry the same blur whatever their scales."""
     import cv2  # noqa: PLC0415 - as features/sift.py: loaded where it is used
 
-    out = [np.ascontiguousarray(gray, np.float32)]
-    while len(out) < levels and min(out[-1].shape) >= 16:
-        out.append(cv2.pyrDown(out[-1]))
-    if blur > 0:  # bilinear interpolation of a sharp image pulls positions towards pixel centres
-        out = [cv2.GaussianBlur(level, (0, 0), blur) for level in out]
+    out, level = [], np.ascontiguousarray(gray, np.float32)
+    for octave in range(_LEVELS):
+        for step in range(_STEPS):
+            spacing = 2.0 ** (step / _STEPS)  # in this octave's pixels
+            # a pyrDown level already carries about 0.8 pixel of blur (the sensor's, on the finest)
+            sigma = np.sqrt(max((config.blur * spacing) ** 2 - 0.8 ** 2, 0.0))
+            out.append((cv2.GaussianBlur(level, (0, 0), sigma) if sigma > 0.05 else level, float(2 ** octave)))
+        if min(level.shape) < 32:
+            break
+        level = cv2.pyrDown(level)
     return out
 
 
-def _level(scale: np.ndarray, config: RefineConfig, levels: int) -> np.ndarray:
-    """The pyramid level whose pixel is about one patch sample (samples between 1 and 2 pixels apart)."""
+def _level(scale: np.ndarray, config: RefineConfig, steps: int) -> np.ndarray:
+    """The step of the scale space whose sample spacing is the patch's (rounded down)."""
     spacing = 2 * config.patch_radius * scale / (config.patch_size - 1)
-    return np.clip(np.floor(np.log2(np.maximum(spacing, 1e-6))), 0, levels - 1).astype(np.int64)
+    return np.clip(np.floor(np.log2(np.maximum(spacing, 1e-6)) * _STEPS + 1e-9), 0, steps - 1).astype(np.int64)
 
 
-def refine_keypoints(keypoints: dict[int, np.ndarray], images: dict[int, np.ndarray],
+def refine_keypoints(keypoints: dict[int, np.ndarray], load: Callable[[int], np.ndarray],
                      pairs: list[tuple[int, int, np.ndarray]], config: RefineConfig = RefineConfig()
                      ) -> tuple[dict[int, np.ndarray], int]:
     """Keypoints (N,4+: x, y in COLMAP pixels, scale, orientation) of every image with the positions of its
-    tracks' keypoints refined, and the number moved. `images`: image id -> grey image (full size, any dtype);
-    `pairs`: (image id 1, image id 2, (K,2) verified inlier keypoint indices)."""
+    tracks' keypoints refined, and the number moved. `load(image id)`: the image (full size, grey or colour, 8
+    or 16 bit), called twice an image (one image's pyramid in memory at a time); `pairs`: (image id 1, image
+    id 2, (K,2) verified inlier keypoint indices)."""
     image, index, label = tracks({i: len(k) for i, k in keypoints.items()}, pairs)
     out = {i: np.array(k, np.float64, copy=True) for i, k in keypoints.items()}
     if not len(label):
         return out, 0
+    n = len(label)
     starts = np.flatnonzero(np.r_[True, label[1:] != label[:-1]])
-    ends = np.r_[starts[1:], len(label)]
-    sizes = ends - starts
+    sizes = np.diff(np.r_[starts, n])
     # consistent tracks: one keypoint an image, not too many
     ok = sizes <= config.max_track
-    for k in np.flatnonzero(ok):
-        seg = image[starts[k]:ends[k]]
-        if len(np.unique(seg)) != len(seg):
-            ok[k] = False
+    by_image = np.lexsort((image, label))
+    twice = (label[by_image][1:] == label[by_image][:-1]) & (image[by_image][1:] == image[by_image][:-1])
+    ok[np.searchsorted(starts, by_image[1:][twice], side="right") - 1] = False
     scale = np.array([keypoints[i][j, 2] for i, j in zip(image, index)], np.float64)
     # the reference of each track: its finest keypoint
-    ref = np.empty(len(label), np.int64)
-    for k in range(len(starts)):
-        s, e = starts[k], ends[k]
-        ref[s:e] = s + int(np.argmin(scale[s:e]))
-    use = np.repeat(ok, sizes) & (ref != np.arange(len(label)))
+    finest = np.lexsort((scale, label))[starts]  # rows are sorted by label, so each track's first by scale
+    ref = np.repeat(finest, sizes)
+    use = np.repeat(ok, sizes) & (ref != np.arange(n))
     if not use.any():
         return out, 0
-    levels = 8
-    pyramids = {i: pyramid(_gray(images[i]), levels, config.blur) for i in np.unique(image)}
     frame = np.array([keypoints[i][j, :4] for i, j in zip(image, index)], np.float64)
     # a track's patches cover at least min_radius pixels around its reference: a fine blob's own patch holds
     # too little texture to fix a position to a tenth of a pixel
     frame[:, 2] *= np.maximum(1.0, config.min_radius / (config.patch_radius * scale[ref]))
-    sampled = frame[:, 2]
     grid = _grid(config)
     weights = np.exp(-0.5 * (grid ** 2).sum(axis=1) / (config.patch_radius / 2) ** 2)
-    # the reference patches, sampled once
+    # the reference patches, sampled once, then every other keypoint aligned to its reference's
     refs = np.unique(ref[use])
-    ref_patch = np.zeros((len(label), len(grid)), np.float64)
+    ref_patch = np.zeros((n, len(grid)), np.float64)
     for i in np.unique(image[refs]):
+        levels = scale_space(_gray(load(int(i))), config)
         sel = refs[image[refs] == i]
-        lev = _level(sampled[sel], config, len(pyramids[i]))
+        lev = _level(frame[sel, 2], config, len(levels))
         for L in np.unique(lev):
             these = sel[lev == L]
-            ref_patch[these] = _sample(pyramids[i][L], frame[these], grid, float(2 ** L))
+            ref_patch[these] = _sample(levels[L][0], frame[these], grid, levels[L][1])
     moved = 0
     todo = np.flatnonzero(use)
     for i in np.unique(image[todo]):
+        levels = scale_space(_gray(load(int(i))), config)
         sel = todo[image[todo] == i]
-        lev = _level(sampled[sel], config, len(pyramids[i]))
+        lev = _level(frame[sel, 2], config, len(levels))
         for L in np.unique(lev):
             these = sel[lev == L]
-            shift, corr, converged = _align(pyramids[i][L], frame[these], ref_patch[ref[these]], grid, weights,
-                                            float(2 ** L), config.iterations)
+            shift, corr, converged = _align(levels[L][0], frame[these], ref_patch[ref[these]], grid, weights,
+                                            levels[L][1], config.iterations)
             good = (converged & (corr >= config.min_correlation)
                     & (np.hypot(shift[:, 0], shift[:, 1]) <= config.max_shift * scale[these]))
-            rows = index[these[good]]
-            out[i][rows, :2] += shift[good]
+            out[int(i)][index[these[good]], :2] += shift[good]
             moved += int(good.sum())
     return out, moved
 
