@@ -38,6 +38,7 @@ class RefineConfig:
     max_shift: float = bounded(1.0, 0.0, low_open=True)  # largest move, in units of the keypoint's scale
     min_correlation: float = bounded(0.8, -1.0)  # normalised correlation with the reference after alignment
     blur: float = bounded(1.0, 0.0)  # Gaussian sigma of the sampled image, in units of the patch's sample spacing
+    min_scale: float = bounded(0.0, 0.0)  # finer keypoints (sigma in pixels) keep their detected positions
     max_track: int = bounded(200, 2)  # larger tracks are left as they are (a repeated texture merges tracks)
 
 
@@ -117,7 +118,7 @@ def refine_keypoints(keypoints: dict[int, np.ndarray], load: Callable[[int], np.
     # the reference of each track: its finest keypoint
     finest = np.lexsort((scale, label))[starts]  # rows are sorted by label, so each track's first by scale
     ref = np.repeat(finest, sizes)
-    use = np.repeat(ok, sizes) & (ref != np.arange(n))
+    use = np.repeat(ok, sizes) & (ref != np.arange(n)) & (scale >= config.min_scale)
     if not use.any():
         return out, 0
     frame = np.array([keypoints[i][j, :4] for i, j in zip(image, index)], np.float64)
