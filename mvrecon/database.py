@@ -461,55 +461,9 @@ def num_matched_pairs(db: sqlite3.Connection) -> int:
 
 
 def clear_matches(db: sqlite3.Connection) -> None:
-    """Drop raw matches and verified geometries (when the matching config changes), and put back the detected
-    keypoint positions where refined ones replaced them."""
+    """Drop raw matches and verified geometries (when the matching config changes)."""
     db.execute("DELETE FROM matches")
     db.execute("DELETE FROM two_view_geometries")
-    if _has_detected(db):
-        db.execute(f"UPDATE keypoints SET data = (SELECT data FROM {_DETECTED} d WHERE d.image_id = "
-                   f"keypoints.image_id) WHERE image_id IN (SELECT image_id FROM {_DETECTED})")
-        db.execute(f"DROP TABLE {_DETECTED}")
-
-
-# the keypoints as detected, kept beside the keypoints table once refined positions replace them there
-# (matching/refine.py): matching and a later refinement start from these; COLMAP ignores the table
-_DETECTED = "mvrecon_detected_keypoints"
-
-
-def _has_detected(db: sqlite3.Connection) -> bool:
-    return _one(db, "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = ?", _DETECTED) is not None
-
-
-def has_refined_keypoints(db: sqlite3.Connection) -> bool:
-    """Whether refined keypoint positions replaced the detected ones (`write_refined_keypoints`)."""
-    return _has_detected(db)
-
-
-def read_detected_keypoints(db: sqlite3.Connection, image_id: int) -> np.ndarray:
-    """(N,4+) keypoints of one image as detected: `read_keypoints`, before any refinement of their positions."""
-    if _has_detected(db):
-        row = _one(db, f"SELECT rows, cols, data FROM {_DETECTED} WHERE image_id = ?", int(image_id))
-        if row is not None:
-            return _array(row[2], row[0], row[1], np.float32).astype(np.float64) if row[0] else np.zeros((0, 4))
-    return read_keypoints(db, image_id)
-
-
-def write_refined_keypoints(db: sqlite3.Connection, keypoints: dict[int, np.ndarray]) -> None:
-    """Refined keypoints (same rows, new positions) of some images in place of theirs; the detected ones are
-    kept first (`read_detected_keypoints`), once."""
-    db.execute(f"CREATE TABLE IF NOT EXISTS {_DETECTED} (image_id INTEGER PRIMARY KEY NOT NULL, "
-               "rows INTEGER NOT NULL, cols INTEGER NOT NULL, data BLOB)")
-    db.execute(f"INSERT OR IGNORE INTO {_DETECTED} SELECT image_id, rows, cols, data FROM keypoints")
-    for image_id, kp in keypoints.items():
-        rows, cols, data = _blob(kp, np.float32)
-        db.execute("UPDATE keypoints SET rows = ?, cols = ?, data = ? WHERE image_id = ?",
-                   (rows, cols, data, int(image_id)))
-
-
-def read_inlier_matches(db: sqlite3.Connection) -> list[tuple[int, int, np.ndarray]]:
-    """(image_id1, image_id2, (K,2) int64 keypoint indices) of every verified pair's inliers, smaller id first."""
-    return [(*pair_images(pair), _array(data, rows, cols, np.uint32).astype(np.int64)) for pair, rows, cols, data
-            in db.execute("SELECT pair_id, rows, cols, data FROM two_view_geometries WHERE rows > 0 ORDER BY pair_id")]
 
 
 def read_verified_pairs(db: sqlite3.Connection) -> list[tuple[int, int, str, int]]:

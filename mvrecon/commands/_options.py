@@ -116,9 +116,6 @@ def add_matching_options(parser: argparse.ArgumentParser) -> None:
                    help="RANSAC inlier threshold in pixels (default 4)")
     g.add_argument("--min-inliers", type=int, default=None,
                    help="inliers for a pair to count as verified (default 15)")
-    g.add_argument("--refine-keypoints", action=argparse.BooleanOptionalAction, default=None,
-                   help="move the keypoints of each verified track onto its finest observation by aligning "
-                        "image patches (default on; see docs/frontend.md)")
 
 
 def add_workspace(parser: argparse.ArgumentParser, help: str, dest: str = "workspace") -> None:
@@ -192,7 +189,6 @@ _FLAG_FIELDS = {  # argparse dest -> (config section, field)
     "ratio": ("matcher", "max_ratio"),
     "max_error": ("verify", "max_error"),
     "min_inliers": ("verify", "min_num_inliers"),
-    "refine_keypoints": ("refine", "enabled"),
     "masks": (None, "masks"),
     "pose_priors": (None, "pose_priors"),
     "workers": (None, "workers"),
@@ -230,7 +226,7 @@ def warn_if_config_unread(args: argparse.Namespace, command: str, reads: tuple[s
         return
 
     def shown(key):  # a table as the file writes it, a plain key as itself
-        return f"[{key}]" if key in ("camera", "sift", "matcher", "verify", "refine", "mapper") else key
+        return f"[{key}]" if key in ("camera", "sift", "matcher", "verify", "mapper") else key
 
     keys = set(load_toml(args.config))
     if keys and not keys & set(reads):

@@ -32,7 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    warn_if_config_unread(args, "match", ("pairs", "matcher", "verify", "refine", "workers"))
+    warn_if_config_unread(args, "match", ("pairs", "matcher", "verify", "workers"))
     config = frontend_config_from_args(args)
     with cluster_from_args(args) as cluster:
         summary = match(config, args.workspace, overwrite=args.overwrite, cluster=cluster)

@@ -12,7 +12,6 @@ from ..config import bounded
 from ..executor import default_workers
 from ..features.sift import SiftConfig
 from ..matching.matcher import MatcherConfig
-from ..matching.refine import RefineConfig
 from ..matching.verify import VerifyConfig
 from ..workspace import Workspace
 
@@ -26,7 +25,6 @@ class FrontendConfig:
     pairs: str = "auto"  # auto | exhaustive | sequential:K | spatial:K[:R] | retrieval:K | A+B | pairs file
     matcher: MatcherConfig = MatcherConfig()
     verify: VerifyConfig = VerifyConfig()
-    refine: RefineConfig = RefineConfig()
     workers: int = bounded(0, 0, hash=False)  # processes/threads; 0 = all cores
     # folder of masks (io/masks.py); out of the hash, so that runs without masks keep their records, and
     # recorded by the features stage and reconstruct's hash when given

@@ -22,11 +22,9 @@ from ..cluster import Cluster
 from ..config import to_dict
 from ..executor import blas_threads
 from ..io.gps import read_gps
-from ..io.images import read_image
 from ..matching.matcher import match_descriptors, prepare_descriptors
 from ..matching.overlay import drop_static, fixed_keypoints
 from ..matching.pairs import PairPlan, check_spec, plan_pairs
-from ..matching.refine import RefineConfig, refine_keypoints
 from ..matching.verify import verify_pair
 from ..progress import progress
 from ..workspace import Workspace
@@ -48,7 +46,6 @@ class MatchSummary:
     fixed_dropped: int = 0  # matches left out in this run as features printed on the images (matching/overlay.py)
     strategy: str = ""  # the pair selection used (`auto` resolved), and why it was chosen
     strategy_reason: str = ""
-    refined: int | None = None  # keypoints moved by the refinement in this run (None: not run)
 
     def pairs_record(self) -> dict:
         """What report.json says of the pair selection."""
@@ -68,9 +65,7 @@ class MatchSummary:
                 f"inliers per verified pair: {stats_text(list(self.inliers.values()))}."
                 + (f" {self.fixed_dropped} matches that stay on a pixel where half the images have a feature were "
                    "left out (a logo or timestamp printed on the images, or a camera that did not move)."
-                   if self.fixed_dropped else "")
-                + (f" Refined keypoints: {self.refined} moved onto their tracks' finest observations."
-                   if self.refined is not None else ""))
+                   if self.fixed_dropped else ""))
 
 
 def _match_one(task):
@@ -113,8 +108,6 @@ def match(config: FrontendConfig, workspace: Workspace | Path | str, *, overwrit
     check_spec(config.pairs)
     ws.require_stage("features", "run `mvrecon features IMAGES -o WORKSPACE` first")
     record = {"pairs": config.pairs, "matcher": to_dict(config.matcher), "verify": to_dict(config.verify)}
-    if config.refine.enabled:  # a workspace matched without refinement keeps its record
-        record["refine"] = to_dict(config.refine)
     with dbmod.open_database(ws.database_path) as db:
         images = {i.image_id: i for i in dbmod.read_images(db).values() if dbmod.has_features(db, i.image_id)}
         cameras = dbmod.read_cameras(db)
@@ -136,7 +129,7 @@ def match(config: FrontendConfig, workspace: Workspace | Path | str, *, overwrit
         # 8192 keypoints): features printed on the images (a logo, a timestamp) are found among all of them, not
         # only those of the pairs left, so that a resumed run decides as an uninterrupted one.
         every = sorted(images) if todo else []
-        positions = {i: dbmod.read_detected_keypoints(db, i)[:, :2].astype(np.float32) for i in every}
+        positions = {i: dbmod.read_keypoints(db, i)[:, :2].astype(np.float32) for i in every}
         fixed = fixed_keypoints(positions, {i: (cameras[images[i].camera_id].width,
                                                 cameras[images[i].camera_id].height) for i in every})
         cache = _PairFeatures(db, todo, positions, fixed, {i: cameras[images[i].camera_id] for i in every},
@@ -145,33 +138,10 @@ def match(config: FrontendConfig, workspace: Workspace | Path | str, *, overwrit
             dropped = _match_on_cluster(config, ws.database_path, todo, cache, cluster, batch_size, on_batch)
         else:
             dropped = _match_all(config, ws.database_path, db, todo, cache, batch_size, on_batch)
-        refined = None
-        if config.refine.enabled and (todo or not dbmod.has_refined_keypoints(db)):
-            refined = _refine(config.refine, ws, db, images)
         verified, configs = _verified_pairs(db, images, pairs)
     return MatchSummary(num_images=len(images), num_pairs=len(pairs), num_matched=len(todo), inliers=verified,
                         configs=configs, seconds=time.perf_counter() - start, fixed_dropped=dropped,
-                        strategy=plan.spec if not Path(plan.spec).is_file() else "", strategy_reason=plan.reason,
-                        refined=refined)
-
-
-def _refine(config: RefineConfig, ws: Workspace, db, images: dict) -> int | None:
-    """Every verified track's keypoints refined (matching/refine.py) from their detected positions, written in
-    place of the keypoints' positions in one transaction; the number moved, None when the images are not where
-    the features stage read them (a warning says so)."""
-    folder = (ws.stage_config("features") or {}).get("images")
-    names = {i: info.name for i, info in images.items()}
-    missing = [n for n in names.values() if not folder or not (Path(folder) / n).is_file()]
-    if missing:
-        log.warning("keypoints not refined: %d images are not in %s (e.g. %s), where they were read from",
-                    len(missing), folder or "the features stage's folder", missing[0])
-        return None
-    detected = {i: dbmod.read_detected_keypoints(db, i) for i in images}
-    pairs = [(i, j, inliers) for i, j, inliers in dbmod.read_inlier_matches(db) if i in images and j in images]
-    refined, moved = refine_keypoints(detected, lambda i: read_image(Path(folder) / names[i]), pairs, config)
-    with dbmod.transaction(db, ws.database_path, sum(k.nbytes for k in refined.values()) // 2):
-        dbmod.write_refined_keypoints(db, refined)
-    return moved
+                        strategy=plan.spec if not Path(plan.spec).is_file() else "", strategy_reason=plan.reason)
 
 
 def _plan(spec: str, db, images: dict, features_record: dict) -> PairPlan:

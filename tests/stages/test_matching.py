@@ -9,7 +9,6 @@ from PIL import Image
 from mvrecon import database as dbmod
 from mvrecon.eval.ground_truth import load_ground_truth
 from mvrecon.io.gps import from_enu, gps_exif
-from mvrecon.matching.refine import RefineConfig
 from mvrecon.stages.common import FrontendConfig
 from mvrecon.stages.features import extract_features
 from mvrecon.stages.matching import match
@@ -56,33 +55,3 @@ def summary_pairs(workspace) -> set[tuple[str, str]]:
         ids = sorted(names)
         return {tuple(sorted((names[i], names[j]))) for k, i in enumerate(ids) for j in ids[k + 1:]
                 if dbmod.has_two_view_geometry(db, i, j)}
-
-
-def test_refined_keypoints_replace_the_detected_ones_until_matching_starts_over(object_orbit_small, tmp_path):
-    ws = tmp_path / "ws"
-    images = sorted((object_orbit_small / "images").iterdir())[:4]
-    folder = tmp_path / "images"
-    folder.mkdir()
-    for path in images:
-        shutil.copy(path, folder / path.name)
-    config = FrontendConfig(workers=1)
-    extract_features(config, folder, ws)
-    summary = match(config, ws)
-    assert summary.refined and "Refined keypoints" in summary.text()
-    with dbmod.open_database(ws / "database.db") as db:
-        ids = sorted(dbmod.read_images(db))
-        refined = {i: dbmod.read_keypoints(db, i) for i in ids}
-        detected = {i: dbmod.read_detected_keypoints(db, i) for i in ids}
-    moved = sum(int(np.any(refined[i][:, :2] != detected[i][:, :2], axis=1).sum()) for i in ids)
-    assert moved == summary.refined
-    assert all(np.array_equal(refined[i][:, 2:], detected[i][:, 2:]) for i in ids)  # scale, orientation kept
-    shifts = np.concatenate([np.linalg.norm(refined[i][:, :2] - detected[i][:, :2], axis=1) for i in ids])
-    assert np.median(shifts[shifts > 0]) < 1.0
-    # a rerun with the same settings has nothing to do; without refinement it starts over from the detected ones
-    assert match(config, ws).refined is None
-    plain = match(FrontendConfig(workers=1, refine=RefineConfig(enabled=False)), ws, overwrite=True)
-    assert plain.refined is None
-    with dbmod.open_database(ws / "database.db") as db:
-        assert not dbmod.has_refined_keypoints(db)
-        assert all(np.array_equal(dbmod.read_keypoints(db, i), detected[i]) for i in ids)
-    assert "refine" not in Workspace(ws).stage_config("matching")
