@@ -47,7 +47,7 @@ def cpu_seconds() -> float:
     return own.ru_utime + own.ru_stime + _closed_workers_cpu
 
 
-def _process_cpu_seconds(pid: int) -> float:
+def process_cpu_seconds(pid: int) -> float:
     """User + system CPU time of a live process (Linux /proc; 0 where there is none)."""
     try:
         with open(f"/proc/{pid}/stat") as fh:
@@ -286,7 +286,8 @@ class WorkerPool:
     Leaving the `with` block terminates the workers: after an exception or Ctrl-C in the consumer the items in
     flight are dropped and the workers are gone before it propagates; otherwise they end in a thread while the
     caller goes on (`wait_for_ended_pools`). With `workers <= 1` everything runs in the calling process, which
-    keeps tracebacks simple and tests fast (and a crash there ends the run).
+    keeps tracebacks simple and tests fast (and a crash there ends the run); so it does in a daemon process (a
+    worker of another pool, e.g. a part of a partitioned mapping), which may not start processes of its own.
 
     Each worker holds at most two jobs, the one it runs and the next, so it goes on while the parent holds its
     GIL; the last `workers` jobs go only to idle workers, so that none waits behind another's job while a
@@ -295,6 +296,8 @@ class WorkerPool:
 
     def __init__(self, workers: int | None = None):
         self.workers = default_workers() if workers is None else workers
+        if multiprocessing.current_process().daemon:
+            self.workers = 1
         self._live: list[_Worker] = []
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
@@ -406,7 +409,7 @@ class WorkerPool:
             if fresh:
                 return fresh[0]
             self._live.remove(usable[0])
-            self._dead_cpu += _process_cpu_seconds(usable[0].process.pid)
+            self._dead_cpu += process_cpu_seconds(usable[0].process.pid)
             _end_pool([usable[0]])
             worker = self._new_worker()
             self._live.append(worker)
@@ -487,7 +490,7 @@ class WorkerPool:
             if worker not in self._live:
                 return
             self._live.remove(worker)
-        self._dead_cpu += _process_cpu_seconds(worker.process.pid)  # before it is reaped
+        self._dead_cpu += process_cpu_seconds(worker.process.pid)  # before it is reaped
         worker.process.join()
         worker.close()
         why = describe_death(worker.process.exitcode)
@@ -527,7 +530,7 @@ class WorkerPool:
         _pools.remove(self)
         if not _pools:
             _tree.stop()
-        _closed_workers_cpu += self._dead_cpu + sum(_process_cpu_seconds(w.process.pid) for w in workers)
+        _closed_workers_cpu += self._dead_cpu + sum(process_cpu_seconds(w.process.pid) for w in workers)
         if exc[0] is not None:  # an error or Ctrl-C: the workers are gone before it propagates
             _end_pool(workers)
             return False

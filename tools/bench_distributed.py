@@ -45,8 +45,8 @@ sys.path.insert(0, str(ROOT))
 from distributed import get_task_stream  # noqa: E402
 
 from mvrecon.cluster import ClusterSpec, open_cluster  # noqa: E402
-from mvrecon.executor import _process_cpu_seconds as process_cpu_seconds  # noqa: E402
 from mvrecon.executor import cpu_seconds as pool_cpu_seconds  # noqa: E402
+from mvrecon.executor import process_cpu_seconds  # noqa: E402
 from mvrecon.stages.common import FrontendConfig  # noqa: E402
 from mvrecon.stages.features import extract_features  # noqa: E402
 from mvrecon.stages.matching import match  # noqa: E402

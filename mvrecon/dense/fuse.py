@@ -104,7 +104,7 @@ def geometric_filter(ref: DepthView, sources: list[DepthView], *, rel_tolerance:
     return out
 
 
-NONE = np.zeros((0, 0, 3), np.float32)  # a view without colours or normals
+_NONE = np.zeros((0, 0, 3), np.float32)  # a view without colours or normals
 
 
 @njit(cache=True, nogil=True)
@@ -157,7 +157,7 @@ def fuse(views: list[DepthView], *, rel_tolerance: float = 0.01,
             src = views[j]
             ok, sy, sx = _matches(ref.view, ys, xs, z_ref, src.view, src.depth, rel_tolerance, max_reprojection)
             _add_source(ok, sy, sx, used[j], src.depth, src.view.K, src.view.R, src.view.t,
-                        NONE if src.colors is None else src.colors, NONE if src.normals is None else src.normals,
+                        _NONE if src.colors is None else src.colors, _NONE if src.normals is None else src.normals,
                         total, count, rgb, normal)
         all_xyz.append(total / count[:, None])
         all_rgb.append(rgb / count[:, None])

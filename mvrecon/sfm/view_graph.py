@@ -14,7 +14,6 @@ angle of its inliers; a pair that a homography of a rotation explains as well (a
 that rotation and no translation direction.
 """
 
-import multiprocessing
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -185,7 +184,7 @@ def relative_poses(model: Reconstruction, pairs: dict, config: MapperConfig, sam
         keys.append((a, b))
         jobs.append((x1[ok], x2[ok], len(matches), config.two_view_max_error_px / f))
     settings = (config.min_tri_angle_deg, config.seed)
-    if workers > 1 and len(jobs) >= _PARALLEL_PAIRS and not multiprocessing.current_process().daemon:
+    if workers > 1 and len(jobs) >= _PARALLEL_PAIRS:
         step = -(-len(jobs) // (4 * workers))  # a few chunks per worker: even loads, little pickling
         chunks = [(jobs[k:k + step], settings) for k in range(0, len(jobs), step)]
         with WorkerPool(workers) as pool:

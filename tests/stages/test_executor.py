@@ -4,6 +4,7 @@ waiting for a dead worker fails the test instead of hanging it."""
 
 import ast
 import json
+import multiprocessing
 import os
 import subprocess
 import sys
@@ -15,6 +16,7 @@ import psutil
 import pytest
 from PIL import Image
 
+from mvrecon.executor import WorkerPool
 from tests import helpers
 from tests.helpers import textured_views
 
@@ -315,3 +317,19 @@ def test_an_engine_run_that_is_killed_runs_once_more_then_fails_with_the_reason(
     monkeypatch.setenv("DEATHS", "4")  # two marks are there already: the next two runs die
     twice = run_mvrecon(images, tmp_path / "twice", timeout=180)
     assert twice.error == "the process running it died twice: signal 9 (SIGKILL), probably out of memory"
+
+
+def _pool_in_daemon(queue) -> None:
+    with WorkerPool(2) as pool:
+        queue.put((pool.workers, pool.pids(), list(pool.map(abs, [-1, 2, -3])), os.getpid()))
+
+
+def test_a_pool_made_in_a_daemon_process_runs_its_items_there():
+    """A daemon process (another pool's worker) may not start processes: a pool made there runs in-process."""
+    ctx = multiprocessing.get_context("spawn")
+    queue = ctx.Queue()
+    process = ctx.Process(target=_pool_in_daemon, args=(queue,), daemon=True)
+    process.start()
+    workers, pids, results, pid = queue.get(timeout=120)
+    process.join(30)
+    assert (workers, pids, results) == (1, [], [1, 2, 3]) and pid == process.pid and process.exitcode == 0
