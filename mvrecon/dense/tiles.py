@@ -14,15 +14,16 @@ import numpy as np
 
 from .patchmatch import _plane_costs, _propagation_pass
 
-TILE_ROWS = 64  # rows per band: 13 bands in a 1037x773 view, 5 at its 400-px coarse level
+TILE_ROWS = 96  # at most, per band: 9 bands in a 1037x773 view, 5 at its 518x386 coarse level
 HALO = 1  # rows either side a band reads: a pass tries the planes of a pixel's 4-neighbours
 
 
 def bands(rows: int, tile_rows: int = TILE_ROWS) -> list[tuple[int, int]]:
-    """The (first, end) rows of each band of an image of `rows` rows; one band when `tile_rows` <= 0."""
-    if tile_rows <= 0 or tile_rows >= rows:
-        return [(0, rows)]
-    return [(y, min(y + tile_rows, rows)) for y in range(0, rows, tile_rows)]
+    """The (first, end) rows of each band of an image of `rows` rows: as few bands as hold at most `tile_rows`
+    rows each, of equal heights (to a row); one band when `tile_rows` <= 0."""
+    count = 1 if tile_rows <= 0 else -(-rows // tile_rows)
+    edges = [round(i * rows / count) for i in range(count + 1)]
+    return list(zip(edges[:-1], edges[1:]))
 
 
 def run_tasks(tasks: list[Callable[[], None]], threads: int) -> None:
