@@ -128,10 +128,10 @@ def _photometric_job(job) -> dict:
 
 
 def view_threads(position: int, jobs: int, workers: int, cores: int) -> int:
-    """Threads for the view at `position` (from 0) of `jobs` handed in order to `workers` processes on `cores`:
-    the cores shared among the views that run with it. While at least as many views remain as workers, each
-    view has a core; the last views, fewer than the workers, split the cores the finished ones leave (the last
-    of 2 views on 2 cores: 2 threads). Its depth map does not depend on it (`tiles`)."""
+    """Threads for the view at `position` (from 0) of `jobs` handed in order to `workers` processes on
+    `cores`: the cores shared among the views that run with it. While at least as many views remain as
+    workers, each view has a core; the last views, fewer than the workers, split the cores the finished ones
+    leave (the last of 2 views on 2 cores: 2 threads). Its depth map does not depend on it (`tiles`)."""
     return max(1, cores // max(1, min(workers, jobs - position)))
 
 
@@ -212,8 +212,8 @@ def run_dense(model_dir: Path | str, image_dir: Path | str, out_dir: Path | str,
     all_views = read_views(dense_dir / "sparse")
     selections = select_sources(all_views, settings.views)
     summary = DenseSummary(dense_dir)
-    code = code_digest("mvrecon.dense.sweep", "mvrecon.dense.patchmatch", "mvrecon.dense.tiles", "mvrecon.dense.select",
-                       "mvrecon.dense.run", "mvrecon.dense.fuse")
+    code = code_digest("mvrecon.dense.sweep", "mvrecon.dense.patchmatch", "mvrecon.dense.tiles",
+                       "mvrecon.dense.select", "mvrecon.dense.run", "mvrecon.dense.fuse")
     workers = default_workers() if workers is None else workers
 
     # photometric depth maps
@@ -233,7 +233,8 @@ def run_dense(model_dir: Path | str, image_dir: Path | str, out_dir: Path | str,
     if jobs:
         warm_up()  # the numba kernels compiled and cached once, before the workers load them
     processes = min(workers, max(len(jobs), 1))
-    items = [(*job, view_threads(i, len(jobs), processes, default_workers())) for i, job in enumerate(jobs.values())]
+    cores = default_workers()
+    items = [(*job, view_threads(i, len(jobs), processes, cores)) for i, job in enumerate(jobs.values())]
     with WorkerPool(processes) as pool:
         results = pool.map(_photometric_job, items, name=lambda job: job[1].name)
         for name, report in progress(zip(jobs, results), total=len(jobs), desc="depth maps", unit="view"):

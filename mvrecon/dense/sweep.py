@@ -225,9 +225,9 @@ def pyramid_depth(ref: np.ndarray, sources: list[np.ndarray], K_ref: np.ndarray,
         tiling = dict(threads=threads, tile_rows=tile_rows)
         cost = plane_costs(lref, stack, sizes, A, b, q, gx, gy, radius, step, best_k, min_var, **tiling)
         for p in range(passes if level else final_passes):
-            propagation_pass(lref, stack, sizes, A, b, q, gx, gy, cost, dq * 0.5**p, 0.5**p / lK[0, 0], radius,
-                             step, best_k, min_var, p % 2 == 1, 1000 * level + p, settled if level == 0 else -1.0,
-                             **tiling)
+            propagation_pass(lref, stack, sizes, A, b, q, gx, gy, cost, dq * 0.5**p, 0.5**p / lK[0, 0],
+                             radius, step, best_k, min_var, p % 2 == 1, 1000 * level + p,
+                             settled if level == 0 else -1.0, **tiling)
     q[~(cost <= max_cost)] = 0.0
     depth = np.where(q > 0, 1.0 / np.maximum(q, 1e-12), 0.0).astype(np.float32)
     return depth, cost, plane_normals(q, gx, gy, K_ref)

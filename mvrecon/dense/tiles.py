@@ -1,10 +1,11 @@
 """A view's PatchMatch work in tiles: bands of rows, run on threads inside one process (the numba kernels
 release the GIL, so the threads run on as many cores).
 
-The bands depend on the image's size alone, never on the number of threads, and each band of a pass starts from
-the same state - the planes as they were before the pass, its own rows and one row either side (its halo: the
-neighbours its border pixels try, so a good plane crosses a band's border one pass later) - and writes back only
-its own rows, with its own random seed. So a depth map is the same, bit for bit, whatever the number of threads.
+The bands depend on the image's size alone, never on the number of threads, and each band of a pass
+starts from the same state - the planes as they were before the pass, its own rows and one row either
+side (its halo: the neighbours its border pixels try, so a good plane crosses a band's border one pass
+later) - and writes back only its own rows, with its own random seed. So a depth map is the same, bit
+for bit, whatever the number of threads.
 """
 
 from collections.abc import Callable
@@ -42,9 +43,12 @@ def plane_costs(ref: np.ndarray, stack: np.ndarray, sizes: np.ndarray, A: np.nda
                 min_var: float, *, threads: int = 1, tile_rows: int = TILE_ROWS) -> np.ndarray:
     """The cost of every pixel's plane (`patchmatch._plane_costs`), band by band (each pixel's on its own)."""
     cost = np.zeros_like(q)
-    run_tasks([lambda y0=y0, y1=y1: _plane_costs(ref, stack, sizes, A, b, q, gx, gy, radius, step, best_k, min_var,
-                                            cost, y0, y1)
-          for y0, y1 in bands(ref.shape[0], tile_rows)], threads)
+
+    def band(y0: int, y1: int) -> Callable[[], None]:
+        return lambda: _plane_costs(ref, stack, sizes, A, b, q, gx, gy, radius, step, best_k, min_var, cost,
+                                    y0, y1)
+
+    run_tasks([band(y0, y1) for y0, y1 in bands(ref.shape[0], tile_rows)], threads)
     return cost
 
 
@@ -60,9 +64,12 @@ def propagation_pass(ref: np.ndarray, stack: np.ndarray, sizes: np.ndarray, A: n
     for i, (y0, y1) in enumerate(bands(rows, tile_rows)):
         lo, hi = max(y0 - HALO, 0), min(y1 + HALO, rows)
         parts.append((y0, y1, lo, seed + 104729 * i, [a[lo:hi].copy() for a in (q, gx, gy, cost)]))
-    run_tasks([lambda y0=y0, y1=y1, lo=lo, s=s, p=p: _propagation_pass(
-        ref, stack, sizes, A, b, *p, dq, tilt, radius, step, best_k, min_var, reverse, s, settled, lo, y0 - lo,
-        y1 - lo) for y0, y1, lo, s, p in parts], threads)
-    for y0, y1, lo, _, copies in parts:
-        for full, part in zip((q, gx, gy, cost), copies):
+
+    def band(y0: int, y1: int, lo: int, band_seed: int, planes: list[np.ndarray]) -> Callable[[], None]:
+        return lambda: _propagation_pass(ref, stack, sizes, A, b, *planes, dq, tilt, radius, step, best_k,
+                                         min_var, reverse, band_seed, settled, lo, y0 - lo, y1 - lo)
+
+    run_tasks([band(*part) for part in parts], threads)
+    for y0, y1, lo, _, planes in parts:
+        for full, part in zip((q, gx, gy, cost), planes):
             full[y0:y1] = part[y0 - lo: y1 - lo]
