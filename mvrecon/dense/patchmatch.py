@@ -7,9 +7,10 @@ inverse depth q is A @ p + b * q (homogeneous), A = K_s R K_ref^-1, b = K_s t; s
 window by its homography, and the cost of a plane is the mean of the best-k per-source costs 1 - NCC over the
 window (sampled every `step` pixels, bilinear in the sources).
 
-- `_plane_costs`: the cost of every pixel's plane;
-- `_propagation_pass`: one PatchMatch pass in raster order (or reversed): each pixel tries its two already
-  visited neighbours' planes, a random change of its plane's depth and of its slant, and keeps the best.
+- `_plane_costs`: the cost of every pixel's plane in a band of rows;
+- `_propagation_pass`: one PatchMatch pass over a band of rows (`tiles`) in raster order (or reversed): each
+  pixel tries its two already visited neighbours' planes, a random change of its plane's depth and of its
+  slant, and keeps the best.
 Slanted windows are what fronto-parallel ones lack on floors and walls seen at a grazing angle: there a
 fronto-parallel window straddles depths several times the tolerance.
 """
@@ -147,15 +148,16 @@ def _plane_cost(win, srcs, sizes, A, b, x, y, q, gx, gy, radius, step, mr, vr, n
 
 
 @njit(cache=True, nogil=True)
-def _plane_costs(ref, srcs, sizes, A, b, q, gx, gy, radius, step, best_k, min_var,
-                 cost):  # pragma: no cover - compiled
-    """cost[y, x]: the aggregated cost of each pixel's plane (q, gx, gy) over a window of (2 radius / step + 1)^2
-    samples; INVALID where the reference window has no texture or the pixel has no depth (q = 0)."""
-    rows, cols = ref.shape
+def _plane_costs(ref, srcs, sizes, A, b, q, gx, gy, radius, step, best_k, min_var, cost, first,
+                 last):  # pragma: no cover - compiled
+    """cost[y, x] for the rows first <= y < last: the aggregated cost of each pixel's plane (q, gx, gy) over a
+    window of (2 radius / step + 1)^2 samples; INVALID where the reference window has no texture or the pixel
+    has no depth (q = 0)."""
+    cols = ref.shape[1]
     costs = np.empty(srcs.shape[0], np.float32)
     kbuf = np.empty(min(best_k, srcs.shape[0]), np.float32)
     win = np.empty(((2 * radius) // step + 1) ** 2, np.float32)
-    for y in range(rows):
+    for y in range(first, last):
         for x in range(cols):
             mr, vr, n = _ref_window(ref, x, y, radius, step, win)
             if vr < min_var or not q[y, x] > 0:
@@ -167,27 +169,30 @@ def _plane_costs(ref, srcs, sizes, A, b, q, gx, gy, radius, step, best_k, min_va
 
 @njit(cache=True, nogil=True)
 def _propagation_pass(ref, srcs, sizes, A, b, q, gx, gy, cost, dq, tilt, radius, step, best_k, min_var, reverse,
-                      seed, settled):  # pragma: no cover - compiled
-    """One PatchMatch pass over the image, in raster order (`reverse`: from the last pixel back), updating
-    (q, gx, gy, cost) in place: each textured pixel tries the planes of its left and upper neighbours (right
-    and lower when reversed; already updated in this pass, so a good plane spreads across a surface), its own
-    plane with the depth moved by up to `dq`, and with the slant moved by up to `tilt` (gradient change per
-    pixel relative to q: tilt = 1/f is a turn of about 45 degrees), keeping the lowest cost. A pixel whose
-    cost is below `settled` skips the random changes."""
-    rows, cols = ref.shape
+                      seed, settled, row0, first, last):  # pragma: no cover - compiled
+    """One PatchMatch pass over a band of the image, in raster order (`reverse`: from the last pixel back),
+    updating (q, gx, gy, cost) in place: each textured pixel tries the planes of its left and upper
+    neighbours (right and lower when reversed; already updated in this pass, so a good plane spreads across a
+    surface), its own plane with the depth moved by up to `dq`, and with the slant moved by up to `tilt`
+    (gradient change per pixel relative to q: tilt = 1/f is a turn of about 45 degrees), keeping the lowest
+    cost. A pixel whose cost is below `settled` skips the random changes.
+    The plane arrays hold the image's rows row0, row0 + 1, ...; the pass updates their rows first <= y < last
+    and reads the rows around them (a band's halo) only as neighbours; `ref` is the whole reference image."""
+    cols = ref.shape[1]
+    rows = q.shape[0]
     np.random.seed(seed)
     costs = np.empty(srcs.shape[0], np.float32)
     kbuf = np.empty(min(best_k, srcs.shape[0]), np.float32)
     win = np.empty(((2 * radius) // step + 1) ** 2, np.float32)
     d = 1 if reverse else -1
-    total = rows * cols
+    total = (last - first) * cols
     for i in range(total):
         k = total - 1 - i if reverse else i
-        y = k // cols
-        x = k - y * cols
+        y = first + k // cols
+        x = k - (y - first) * cols
         if cost[y, x] >= INVALID:  # no texture: nothing to match
             continue
-        mr, vr, n = _ref_window(ref, x, y, radius, step, win)
+        mr, vr, n = _ref_window(ref, x, row0 + y, radius, step, win)
         for j in range(4):
             if j == 0 or j == 1:  # a neighbour's plane, evaluated at this pixel
                 nx = x + d if j == 0 else x
@@ -211,8 +216,8 @@ def _propagation_pass(ref, srcs, sizes, A, b, q, gx, gy, cost, dq, tilt, radius,
                 cgy = gy[y, x] + tilt * cq * (2.0 * np.random.random() - 1.0)
             if not cq > 0:
                 continue
-            c = _plane_cost(win, srcs, sizes, A, b, x, y, cq, cgx, cgy, radius, step, mr, vr, n, min_var, costs,
-                            kbuf)
+            c = _plane_cost(win, srcs, sizes, A, b, x, row0 + y, cq, cgx, cgy, radius, step, mr, vr, n,
+                            min_var, costs, kbuf)
             if c < cost[y, x]:
                 cost[y, x] = c
                 q[y, x] = cq

@@ -5,7 +5,7 @@ Steps, each recorded in DENSE/.stages/dense.json (`io.record.Record`) so that a 
 what is missing, and a change of settings or code redoes what depends on it:
 1. undistortion to PINHOLE (`views.undistort_into`, the project's export);
 2. per view, its source views and depth range (`select`), then its photometric depth map (`sweep`), in a pool
-   of worker processes, one view per worker;
+   of worker processes, one view per worker, the last views in tiles on the cores the others leave (`tiles`);
 3. per view, the geometric depth map: depths confirmed by at least two source views (`fuse.geometric_filter`);
 4. fusion of the geometric maps into fused.ply, and a Poisson mesh.ply (`mesh`).
 A view without a depth map (too few sparse points, no source view overlapping it) is reported with the reason,
@@ -114,17 +114,25 @@ def _quiet_end() -> None:
 def _photometric_job(job) -> dict:
     """Worker: the photometric depth and normal maps of one view, written to the workspace."""
     _quiet_end()
-    dense_dir, ref, sources, depth_range, settings = job
+    dense_dir, ref, sources, depth_range, settings, threads = job
     t0 = time.perf_counter()
     cost_sources = sources[:COST_SOURCES]
     c0 = time.process_time()
     depth, _, normals = pyramid_depth(_grey(dense_dir, ref.name), [_grey(dense_dir, s.name) for s in cost_sources],
                                       ref.K, [s.K for s in cost_sources], [_relative(ref, s) for s in cost_sources],
                                       depth_range, coarse_size=settings.coarse_size, window=settings.window,
-                                      best_k=BEST_K, max_cost=settings.max_cost)
+                                      best_k=BEST_K, max_cost=settings.max_cost, threads=threads)
     _write_maps(dense_dir, ref, depth, normals, "photometric")
     return {"valid": float(np.mean(depth > 0)), "seconds": time.perf_counter() - t0,
-            "cpu_seconds": time.process_time() - c0}
+            "cpu_seconds": time.process_time() - c0, "threads": threads}
+
+
+def view_threads(position: int, jobs: int, workers: int, cores: int) -> int:
+    """Threads for the view at `position` (from 0) of `jobs` handed in order to `workers` processes on
+    `cores`: the cores shared among the views that run with it. While at least as many views remain as
+    workers, each view has a core; the last views, fewer than the workers, split the cores the finished ones
+    leave (the last of 2 views on 2 cores: 2 threads). Its depth map does not depend on it (`tiles`)."""
+    return max(1, cores // max(1, min(workers, jobs - position)))
 
 
 def _geometric_job(job) -> dict:
@@ -204,8 +212,8 @@ def run_dense(model_dir: Path | str, image_dir: Path | str, out_dir: Path | str,
     all_views = read_views(dense_dir / "sparse")
     selections = select_sources(all_views, settings.views)
     summary = DenseSummary(dense_dir)
-    code = code_digest("mvrecon.dense.sweep", "mvrecon.dense.patchmatch", "mvrecon.dense.select", "mvrecon.dense.run",
-                       "mvrecon.dense.fuse")
+    code = code_digest("mvrecon.dense.sweep", "mvrecon.dense.patchmatch", "mvrecon.dense.tiles",
+                       "mvrecon.dense.select", "mvrecon.dense.run", "mvrecon.dense.fuse")
     workers = default_workers() if workers is None else workers
 
     # photometric depth maps
@@ -224,8 +232,11 @@ def run_dense(model_dir: Path | str, image_dir: Path | str, out_dir: Path | str,
     photometric = {name: record.report(f"photometric/{name}") for name in keys if name not in jobs}
     if jobs:
         warm_up()  # the numba kernels compiled and cached once, before the workers load them
-    with WorkerPool(min(workers, max(len(jobs), 1))) as pool:
-        results = pool.map(_photometric_job, list(jobs.values()), name=lambda job: job[1].name)
+    processes = min(workers, max(len(jobs), 1))
+    cores = default_workers()
+    items = [(*job, view_threads(i, len(jobs), processes, cores)) for i, job in enumerate(jobs.values())]
+    with WorkerPool(processes) as pool:
+        results = pool.map(_photometric_job, items, name=lambda job: job[1].name)
         for name, report in progress(zip(jobs, results), total=len(jobs), desc="depth maps", unit="view"):
             record.put(f"photometric/{name}", keys[name], report)
             photometric[name] = report

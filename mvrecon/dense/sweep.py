@@ -19,7 +19,8 @@ import cv2
 import numpy as np
 from numba import njit
 
-from .patchmatch import INVALID, _mean_of_best, _plane_costs, _propagation_pass
+from .patchmatch import INVALID, _mean_of_best
+from .tiles import TILE_ROWS, plane_costs, propagation_pass, run_tasks
 
 
 @njit(cache=True, nogil=True)
@@ -97,11 +98,12 @@ def plane_homography(K_ref: np.ndarray, K_src: np.ndarray, R: np.ndarray, t: np.
 
 def sweep_depth(ref: np.ndarray, sources: list[np.ndarray], K_ref: np.ndarray, K_srcs: list[np.ndarray],
                 relative: list[tuple[np.ndarray, np.ndarray]], depth_range: tuple[float, float], planes: int, *,
-                window: int = 7, best_k: int = 2, max_cost: float = 0.5,
-                min_std: float = 0.004) -> tuple[np.ndarray, np.ndarray]:
+                window: int = 7, best_k: int = 2, max_cost: float = 0.5, min_std: float = 0.004,
+                threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """(depth, cost) of the grey float32 reference image `ref` (values in [0, 1]) against the grey `sources`:
     depth 0 where no plane reached an NCC cost below `max_cost`; cost is the best aggregated cost (1 - NCC).
-    `relative[i]` = (R, t) from reference camera to source i's; `depth_range` the (near, far) swept."""
+    `relative[i]` = (R, t) from reference camera to source i's; `depth_range` the (near, far) swept. Each
+    plane's sources are scored on `threads` threads (each source's costs on their own: the same result)."""
     near, far = depth_range
     q0, q1 = 1.0 / far, 1.0 / near
     dq = (q1 - q0) / max(planes - 1, 1)
@@ -116,16 +118,20 @@ def sweep_depth(ref: np.ndarray, sources: list[np.ndarray], K_ref: np.ndarray, K
     right = np.full((rows, cols), np.inf, np.float32)
     prev = np.full((rows, cols), np.inf, np.float32)
     min_var = np.float32(min_std * min_std)
+
+    def score(s: int, d: float) -> None:  # costs[s] of the plane at depth d
+        src, K_src, (R, t) = sources[s], K_srcs[s], relative[s]
+        H = plane_homography(K_ref, K_src, R, t, d)
+        warped = cv2.warpPerspective(src, H, (cols, rows), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                     borderMode=cv2.BORDER_REPLICATE)
+        b1 = cv2.blur(warped, **box)
+        b2 = cv2.blur(warped * warped, **box)
+        b12 = cv2.blur(ref * warped, **box)
+        _ncc_cost(mu_r, var_r, b1, b2, b12, H, src.shape[1], src.shape[0], min_var, costs[s])
+
     for p in range(planes):
         d = 1.0 / (q0 + p * dq)
-        for s, (src, K_src, (R, t)) in enumerate(zip(sources, K_srcs, relative)):
-            H = plane_homography(K_ref, K_src, R, t, d)
-            warped = cv2.warpPerspective(src, H, (cols, rows), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                                         borderMode=cv2.BORDER_REPLICATE)
-            b1 = cv2.blur(warped, **box)
-            b2 = cv2.blur(warped * warped, **box)
-            b12 = cv2.blur(ref * warped, **box)
-            _ncc_cost(mu_r, var_r, b1, b2, b12, H, src.shape[1], src.shape[0], min_var, costs[s])
+        run_tasks([lambda s=s, d=d: score(s, d) for s in range(len(sources))], threads)
         _aggregate(costs, best_k, p, prev, best, index, left, right)
     depth = np.zeros((rows, cols), np.float32)
     _refine(best, index, left, right, q0, dq, max_cost, depth)
@@ -173,7 +179,8 @@ def pyramid_depth(ref: np.ndarray, sources: list[np.ndarray], K_ref: np.ndarray,
                   coarse_size: int = 400, pixels_per_plane: float = 2.0, max_planes: int = 192,
                   window: int = 7, best_k: int = 2, max_cost: float = 0.5, min_std: float = 0.004,
                   radius: int = 4, step: int = 2, passes: int = 2, final_passes: int = 1,
-                  settled: float = 0.2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  settled: float = 0.2, threads: int = 1,
+                  tile_rows: int = TILE_ROWS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(depth, cost, normals) as `sweep_depth`, with each pixel's unit normal (`plane_normals`, camera frame;
     zero without depth), coarse to fine with slanted planes: the fronto-parallel sweep on the
     images scaled so the long side is about `coarse_size` (planes `pixels_per_plane` apart in the widest
@@ -186,7 +193,9 @@ def pyramid_depth(ref: np.ndarray, sources: list[np.ndarray], K_ref: np.ndarray,
     pixels within 0.5% of the true depth goes from 0.47 to 0.88; a second pass at full size, or planes one
     pixel apart, add under 0.005 to that for a quarter more time. At full size a pixel whose plane already
     costs under `settled` (1 - NCC) only tries its neighbours' planes, not random changes of its own: those
-    find little there and cost a fifth of the time."""
+    find little there and cost a fifth of the time.
+    The work runs on `threads` threads: the sweep source by source, PatchMatch in bands of `tile_rows` rows
+    (`tiles`); the result does not depend on `threads`."""
     rows, cols = ref.shape
     levels = 0
     while max(rows, cols) / 2 ** (levels + 1) >= coarse_size * 0.75:
@@ -200,7 +209,7 @@ def pyramid_depth(ref: np.ndarray, sources: list[np.ndarray], K_ref: np.ndarray,
     planes = int(np.clip(np.ceil(disparity / pixels_per_plane), 32, max_planes))
     depth, cost = sweep_depth(small_ref, [s for s, _ in small_src], small_K, [K for _, K in small_src], relative,
                               depth_range, planes, window=window, best_k=best_k, max_cost=np.inf,
-                              min_std=min_std)
+                              min_std=min_std, threads=threads)
     q = np.where(depth > 0, 1.0 / np.maximum(depth, 1e-12), 0.0).astype(np.float32)
     gx, gy = np.zeros_like(q), np.zeros_like(q)
     dq = (1.0 / near - 1.0 / far) / max(planes - 1, 1)
@@ -213,11 +222,12 @@ def pyramid_depth(ref: np.ndarray, sources: list[np.ndarray], K_ref: np.ndarray,
             q, gx, gy = _upsample_planes(q, gx, gy, lref.shape)
             dq *= 0.5
         stack, sizes, A, b = _source_stack(lsrc, lK, relative)
-        cost = np.zeros_like(q)
-        _plane_costs(lref, stack, sizes, A, b, q, gx, gy, radius, step, best_k, min_var, cost)
+        tiling = dict(threads=threads, tile_rows=tile_rows)
+        cost = plane_costs(lref, stack, sizes, A, b, q, gx, gy, radius, step, best_k, min_var, **tiling)
         for p in range(passes if level else final_passes):
-            _propagation_pass(lref, stack, sizes, A, b, q, gx, gy, cost, dq * 0.5**p, 0.5**p / lK[0, 0], radius,
-                              step, best_k, min_var, p % 2 == 1, 1000 * level + p, settled if level == 0 else -1.0)
+            propagation_pass(lref, stack, sizes, A, b, q, gx, gy, cost, dq * 0.5**p, 0.5**p / lK[0, 0],
+                             radius, step, best_k, min_var, p % 2 == 1, 1000 * level + p,
+                             settled if level == 0 else -1.0, **tiling)
     q[~(cost <= max_cost)] = 0.0
     depth = np.where(q > 0, 1.0 / np.maximum(q, 1e-12), 0.0).astype(np.float32)
     return depth, cost, plane_normals(q, gx, gy, K_ref)

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from mvrecon.dense import DenseSettings, run_dense
+from mvrecon.dense.run import view_threads
 from mvrecon.dense.select import MIN_POINTS
 from mvrecon.errors import InputError
 from mvrecon.io.colmap_array import read_colmap_array
@@ -91,3 +92,11 @@ def test_the_command_refuses_a_folder_without_a_run_or_model(tmp_path, capsys):
     assert "missing: no such run folder" in capsys.readouterr().err
     assert main(["-q", "dense", str(tmp_path)]) == 2
     assert f"{tmp_path / 'sparse' / '0'}: no sparse model here" in capsys.readouterr().err
+
+
+def test_the_last_views_share_the_cores_the_finished_ones_leave():
+    # 10 views, 2 worker processes on 2 cores: a core each until the last view, which takes both
+    assert [view_threads(i, 10, 2, 2) for i in range(10)] == [1] * 9 + [2]
+    # one view left to redo (a resumed run): the whole machine's cores; 3 views on 4 cores: 1, 2, then 4
+    assert view_threads(0, 1, 1, 2) == 2
+    assert [view_threads(i, 3, 3, 4) for i in range(3)] == [1, 2, 4]

@@ -83,8 +83,15 @@ def orbit_pair(tmp_path_factory):
     return make_scene(str(folder / "orbit_pair.toml"), folder / "scene")
 
 
-@pytest.mark.slow
-def test_depth_of_a_rendered_pair_within_half_percent_on_95_percent_of_the_pixels_both_views_see(orbit_pair):
+@pytest.fixture(scope="module")
+def pair_problem(orbit_pair):
+    """pyramid_depth's inputs for the pair (view 0 against view 1), its true depth, and the pixels that count.
+
+    The pixels that count: those whose whole matching window (radius 4, the default) the source sees - its
+    surface point projects inside the source image and is the surface the source's own true depth shows
+    there (not hidden) - since two views can only agree on what both see; and with the texture the method
+    needs to match at all (a window's grey-level spread of at least min_std = 0.004, its default). That is
+    every surface pixel except the sky, the parts outside the source's view, and occlusion borders."""
     K = np.array([[560.0, 0, 320], [0, 560.0, 240], [0, 0, 1]])
     gt = load_ground_truth(orbit_pair / "gt" / "sparse")
     (R0, t0), (R1, t1) = gt["0000.png"], gt["0001.png"]
@@ -93,13 +100,6 @@ def test_depth_of_a_rendered_pair_within_half_percent_on_95_percent_of_the_pixel
                 for n in ("0000.png", "0001.png"))
     true, true_src = (np.load(orbit_pair / "gt" / "depth" / n) for n in ("0000.npy", "0001.npy"))
     known = np.isfinite(true)
-    depth, _, _ = pyramid_depth(ref, [src], K, [K], [(R, t1 - R @ t0)],
-                             (0.8 * true[known].min(), 1.25 * true[known].max()))
-    # The pixels that count: those whose whole matching window (radius 4, the default) the source sees - its
-    # surface point projects inside the source image and is the surface the source's own true depth shows
-    # there (not hidden) - since two views can only agree on what both see; and with the texture the method
-    # needs to match at all (a window's grey-level spread of at least min_std = 0.004, its default). That is
-    # every surface pixel except the sky, the parts outside the source's view, and occlusion borders.
     rows, cols = true.shape
     ys, xs = np.mgrid[0:rows, 0:cols]
     z = np.where(known, true, 1.0)
@@ -115,6 +115,34 @@ def test_depth_of_a_rendered_pair_within_half_percent_on_95_percent_of_the_pixel
     textured = cv2.blur(ref * ref, (9, 9)) - mean * mean >= 0.004**2
     counted = seen & textured
     assert counted.mean() > 0.5  # most of the image: floor, box faces and sphere
-    error = np.abs(depth[counted] - true[counted]) / true[counted]
+    inputs = (ref, [src], K, [K], [(R, t1 - R @ t0)], (0.8 * true[known].min(), 1.25 * true[known].max()))
+    return inputs, true, counted
+
+
+@pytest.fixture(scope="module")
+def pair_depth(pair_problem):
+    """The pair's depth map as `mvrecon dense` makes it (in bands, one thread)."""
+    return pyramid_depth(*pair_problem[0])[0]
+
+
+@pytest.mark.slow
+def test_depth_of_a_rendered_pair_within_half_percent_on_95_percent_of_the_pixels_both_views_see(pair_problem,
+                                                                                                pair_depth):
+    _, true, counted = pair_problem
+    error = np.abs(pair_depth[counted] - true[counted]) / true[counted]
     assert (error <= 0.005).mean() >= 0.95, f"{(error <= 0.005).mean():.4f} of the pixels within 0.5%"
     assert (error <= 0.01).mean() >= 0.97
+
+
+@pytest.mark.slow
+def test_tiles_give_the_same_depth_on_any_threads_and_score_as_one_whole_view(pair_problem, pair_depth):
+    """Bands of 64 rows, run on 1 or 2 threads: the same map bit for bit (each band starts from the planes as
+    they were before the pass and has its own random seed, whatever thread runs it). Against the truth, the
+    bands score as the whole view in one piece: their borders only delay a plane's spread by a pass."""
+    inputs, true, counted = pair_problem
+    two = pyramid_depth(*inputs, threads=2)[0]
+    assert np.array_equal(two, pair_depth)
+    whole = pyramid_depth(*inputs, tile_rows=0)[0]
+    assert not np.array_equal(whole, pair_depth)  # the bands did split the work
+    within = [np.mean(np.abs(d - true)[counted] <= 0.005 * true[counted]) for d in (pair_depth, whole)]
+    assert abs(within[0] - within[1]) <= 0.005, within
