@@ -1,0 +1,136 @@
+"""The camera model chosen from the data: a lens the default SIMPLE_RADIAL cannot describe becomes OPENCV.
+
+SIMPLE_RADIAL has one radial term. A wide lens (k1 -0.22 and k2 0.05 with tangential terms, say) leaves its image
+corners several pixels off under it: the filters drop those views, and the poses settle on what is left (AUC@1 0.41
+on wide_orbit_small, against 0.94 with OPENCV). So when the user left the model open (`CameraConfig.model_left_open`),
+each SIMPLE_RADIAL camera is tried with the richer models once it has MIN_IMAGES registered images, and again each
+time their count doubles: a bundle adjustment of the whole model with the camera as it is, then one from the same
+start per candidate with its parameters converted (f, f, cx, cy, k, 0, 0, 0 for OPENCV), and the candidate is kept
+when it brings the camera's reprojection error under MAX_ERROR_RATIO of SIMPLE_RADIAL's. The error is the mean over
+the camera's observations, each capped at the filters' threshold, so a few outliers cannot decide.
+"""
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..cameras import fold_radius
+from ..geometry import camera as cammodel
+from .filtering import degenerate_cameras
+from .model import Reconstruction
+
+log = logging.getLogger("mvrecon.sfm")
+
+MODEL = "SIMPLE_RADIAL"  # the model a camera may be moved from (the default)
+CANDIDATES = ("OPENCV",)  # the richer models tried, in order
+MIN_IMAGES = 8  # registered images of a camera before its first trial (distortion is refined from 6)
+MAX_TRIALS = 3  # at 8, 16 and 32 images: the corners are seen by then, and each trial costs 1 + CANDIDATES BAs
+# a candidate is kept below this share of SIMPLE_RADIAL's error; measured (docs/benchmarks.md, "Lens choice"):
+# 0.36-0.55 on the wide lenses, 0.95-1.0 on the SIMPLE_RADIAL lenses of every shared set and catalog scene
+MAX_ERROR_RATIO = 0.8
+
+
+@dataclass
+class LensTrial:
+    """One trial of a camera: its registered images, each model's error (px) after its BA, the model kept."""
+
+    camera_id: int
+    images: int
+    trials: int  # this camera's trials so far, this one included
+    errors: dict = field(default_factory=dict)
+    chosen: str = MODEL
+
+    def record(self) -> dict:
+        """The trial as report.json lists it beside the camera (`Reconstruction.lens_trials`)."""
+        return {"images": self.images, "trials": self.trials, "chosen": self.chosen,
+                "max_error_ratio": MAX_ERROR_RATIO,
+                "mean_error_px": {k: round(v, 4) for k, v in self.errors.items()}}
+
+    def text(self) -> str:
+        base = self.errors[MODEL]
+        shown = ", ".join(f"{k} {v:.3f} px" for k, v in self.errors.items())
+        verdict = (f"switched to {self.chosen}" if self.chosen != MODEL else
+                   f"kept {MODEL} (a richer model must bring the error under {MAX_ERROR_RATIO:g}x {base:.3f} px)")
+        return f"camera {self.camera_id} at {self.images} images: {shown}; {verdict}"
+
+
+def due_cameras(m: Reconstruction) -> list[int]:
+    """The cameras of `m` to try now: SIMPLE_RADIAL, not trusted (known intrinsics), with MIN_IMAGES registered
+    images or twice as many as at their last trial (`m.lens_trials`), and fewer than MAX_TRIALS trials."""
+    users = np.bincount(m.camera_of[m.registered], minlength=int(m.camera_of.max()) + 1)
+    out = []
+    for c, cam in m.cameras.items():
+        last = m.lens_trials.get(c, {})
+        done, last = last.get("trials", 0), last.get("images", 0)
+        if cam.model == MODEL and not cam.prior_trusted and done < MAX_TRIALS \
+                and users[c] >= max(MIN_IMAGES, 2 * last):
+            out.append(int(c))
+    return out
+
+
+def converted_params(model: str, params: np.ndarray) -> np.ndarray:
+    """SIMPLE_RADIAL parameters (f, cx, cy, k) as `model`'s with the same projection: OPENCV's k1 is the same
+    term, its k2, p1 and p2 start at zero."""
+    f, cx, cy, k = np.asarray(params, float)
+    if model == "OPENCV":
+        return np.array([f, f, cx, cy, k, 0.0, 0.0, 0.0])
+    raise ValueError(f"no conversion from {MODEL} to {model}")
+
+
+def camera_error(m: Reconstruction, obs: np.ndarray, cap: float) -> float:
+    """Mean reprojection error (px) of observations `obs`, each capped at `cap`."""
+    err, _ = m.reprojection_errors(obs)
+    return float(np.mean(np.minimum(err, cap))) if len(err) else float("nan")
+
+
+def _state(m: Reconstruction) -> tuple:
+    return (m.R.copy(), m.t.copy(), m.xyz.data.copy(),
+            {c: (cam.model, cam.params.copy()) for c, cam in m.cameras.items()})
+
+
+def _restore(m: Reconstruction, state: tuple) -> None:
+    m.R[:], m.t[:], m.xyz.data[:] = state[0], state[1], state[2]
+    for c, (model, params) in state[3].items():
+        m.set_camera_model(c, model, params)
+
+
+def _plausible(m: Reconstruction, c: int) -> bool:
+    """Not a bogus camera (`degenerate_cameras`), and a lens that does not fold over inside the image."""
+    cam = m.cameras[c]
+    if c in degenerate_cameras(m):
+        return False
+    fx, fy, cx, cy, _ = cammodel.split(cam.model, cam.params)
+    corner = max(np.hypot((u - cx) / fx, (v - cy) / fy) for u in (0.0, cam.width) for v in (0.0, cam.height))
+    return fold_radius(cam.model, cam.params, corner, samples=4000) is None
+
+
+def try_richer_models(m: Reconstruction, c: int, adjust: Callable[[], None], cap: float) -> LensTrial:
+    """Camera `c` tried with each of CANDIDATES: `adjust()` (a bundle adjustment of the model with the
+    intrinsics refined) run with the camera as it is and from the same start with each candidate; the model
+    leaves with the best plausible candidate when its error is under MAX_ERROR_RATIO of the current model's,
+    else as the current model's adjustment left it."""
+    images = np.flatnonzero(m.registered & (m.camera_of == c))
+    obs = m.observations_of_images(images)
+    trial = LensTrial(int(c), len(images), m.lens_trials.get(int(c), {}).get("trials", 0) + 1)
+    start = _state(m)
+    adjust()
+    trial.errors[MODEL] = camera_error(m, obs, cap)
+    kept, best = _state(m), None
+    for model in CANDIDATES:
+        _restore(m, start)
+        m.set_camera_model(c, model, converted_params(model, start[3][c][1]))
+        adjust()
+        error = camera_error(m, obs, cap)
+        trial.errors[model] = error
+        if _plausible(m, c) and error < MAX_ERROR_RATIO * trial.errors[MODEL] and (best is None or error < best[0]):
+            best = (error, model, _state(m))
+    if best is None:
+        _restore(m, kept)
+    else:
+        trial.chosen = best[1]
+        _restore(m, best[2])
+    m.lens_trials[int(c)] = trial.record()
+    log.info("lens of %s", trial.text())
+    return trial
