@@ -24,7 +24,7 @@ from .model import Reconstruction
 log = logging.getLogger("mvrecon.sfm")
 
 MODEL = "SIMPLE_RADIAL"  # the model a camera may be moved from (the default)
-CANDIDATES = ("OPENCV",)  # the richer models tried, in order
+CANDIDATES = ("OPENCV", "OPENCV_FISHEYE")  # the richer models tried, in order
 MIN_IMAGES = 8  # registered images of a camera before its first trial (distortion is refined from 6)
 MAX_TRIALS = 3  # at 8, 16 and 32 images: the corners are seen by then, and each trial costs 1 + CANDIDATES BAs
 # a candidate is kept below this share of SIMPLE_RADIAL's error; measured (docs/benchmarks.md, "Lens choice"):
@@ -70,13 +70,28 @@ def due_cameras(m: Reconstruction) -> list[int]:
     return out
 
 
-def converted_params(model: str, params: np.ndarray) -> np.ndarray:
-    """SIMPLE_RADIAL parameters (f, cx, cy, k) as `model`'s with the same projection: OPENCV's k1 is the same
-    term, its k2, p1 and p2 start at zero."""
+def converted_params(model: str, params: np.ndarray, width: int, height: int) -> np.ndarray:
+    """SIMPLE_RADIAL parameters (f, cx, cy, k) as `model`'s with the same projection over the image: OPENCV's k1
+    is the same term, its k2, p1 and p2 start at zero; OPENCV_FISHEYE's focal, k1 and k2 are fitted by least
+    squares to the pixel radius of rays out to the farthest corner (or short of where the lens flattens)."""
     f, cx, cy, k = np.asarray(params, float)
     if model == "OPENCV":
         return np.array([f, f, cx, cy, k, 0.0, 0.0, 0.0])
-    raise ValueError(f"no conversion from {MODEL} to {model}")
+    if model != "OPENCV_FISHEYE":
+        raise ValueError(f"no conversion from {MODEL} to {model}")
+    corner = max(np.hypot(u - cx, v - cy) for u in (0.0, width) for v in (0.0, height)) / f
+    reach = cammodel.undistort_normalized(MODEL, params, np.array([[corner, 0.0]]))[0, 0]
+    if k < 0:  # r (1 + k r^2) grows at half its first rate at r^2 = -1 / (6k), and stops at -1 / (3k): past
+        # there it is no lens a fisheye polynomial fits (the fitted focal came out negative on a 149 deg lens)
+        flat = np.sqrt(-1.0 / (6.0 * k))
+        reach = min(reach, flat) if 0 < reach else flat  # past the fold Newton may end anywhere (NaN, < 0)
+    r = np.linspace(0.0, reach, 200)[1:]
+    theta = np.arctan(r)
+    rho = f * r * (1.0 + k * r * r)  # pixel radius, to be f' (theta + k1 theta^3 + ... + k4 theta^9)
+    # k3 and k4 start at zero: fitted too, they trade off with k1 and k2 into coefficients past the bogus-camera
+    # bound |k| <= 1 (`filtering.degenerate_cameras`)
+    a = np.linalg.lstsq(np.stack([theta, theta ** 3, theta ** 5], axis=1), rho, rcond=None)[0]
+    return np.array([a[0], a[0], cx, cy, a[1] / a[0], a[2] / a[0], 0.0, 0.0])
 
 
 def camera_error(m: Reconstruction, obs: np.ndarray, cap: float) -> float:
@@ -110,24 +125,25 @@ def try_richer_models(m: Reconstruction, c: int, adjust: Callable[[], None], cap
     """Camera `c` tried with each of CANDIDATES: `adjust()` (a bundle adjustment of the model with the
     intrinsics refined) run with the camera as it is and from the same start with each candidate; the model
     leaves with the best plausible candidate when its error is under MAX_ERROR_RATIO of the current model's,
-    else as the current model's adjustment left it."""
+    else as it came (the trial changes nothing then)."""
     images = np.flatnonzero(m.registered & (m.camera_of == c))
     obs = m.observations_of_images(images)
     trial = LensTrial(int(c), len(images), m.lens_trials.get(int(c), {}).get("trials", 0) + 1)
     start = _state(m)
     adjust()
     trial.errors[MODEL] = camera_error(m, obs, cap)
-    kept, best = _state(m), None
+    best = None
     for model in CANDIDATES:
         _restore(m, start)
-        m.set_camera_model(c, model, converted_params(model, start[3][c][1]))
+        cam = m.cameras[c]
+        m.set_camera_model(c, model, converted_params(model, start[3][c][1], cam.width, cam.height))
         adjust()
         error = camera_error(m, obs, cap)
         trial.errors[model] = error
         if _plausible(m, c) and error < MAX_ERROR_RATIO * trial.errors[MODEL] and (best is None or error < best[0]):
             best = (error, model, _state(m))
-    if best is None:
-        _restore(m, kept)
+    if best is None:  # as before the trial, so that a camera that keeps its model maps as without trials
+        _restore(m, start)
     else:
         trial.chosen = best[1]
         _restore(m, best[2])
