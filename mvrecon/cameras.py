@@ -41,8 +41,8 @@ class CameraConfig:
 
     @property
     def model_left_open(self) -> bool:
-        """Whether the mapper may choose each camera's model from the data (sfm/lens.py): the default model, not
-        named by the user, without known intrinsics."""
+        """Whether the mapper may choose each camera's model from the data (sfm/lens.py): the default model,
+        not named by the user, without known intrinsics."""
         return self.model == CameraConfig.model and not self.model_given and not self.params
 
     def validate(self, origin: dict[str, str] | None = None,
@@ -89,9 +89,9 @@ GIVEN_KEY = "camera_model_given"  # in the features stage's record when the user
 
 
 def recorded_model_left_open(features: dict | None) -> bool:
-    """`CameraConfig.model_left_open` of the run the features stage `features` recorded (its record's config:
-    the camera table, and GIVEN_KEY when the default model was named), so that `map -w` decides as `reconstruct`
-    did; False without a record (a database another tool made: its cameras are that tool's choice)."""
+    """`CameraConfig.model_left_open` of the run the features stage `features` recorded (its record's
+    config: the camera table, and GIVEN_KEY when the default model was named), so that `map -w` decides as
+    `reconstruct` did; False without a record (a database another tool made: its cameras are its choice)."""
     camera = (features or {}).get("camera")
     if not isinstance(camera, dict):
         return False

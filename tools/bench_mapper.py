@@ -210,7 +210,8 @@ def build_database(s: SuiteSet, folder: Path, code: Path, bar) -> tuple[Path | N
     where = str(folder.resolve())
     # the default model is left open, as a user's run leaves it (the mapper may choose the lens: sfm/lens.py)
     named = [] if s.camera_model == DEFAULT_MODEL else ["--camera-model", s.camera_model]
-    commands = [["features", str(s.images.resolve()), "-w", where, "-q", *named], ["match", "-w", where, "-q"]]
+    commands = [["features", str(s.images.resolve()), "-w", where, "-q", *named],
+                ["match", "-w", where, "-q"]]
     logfile = folder.parent / "frontend.log"
     folder.parent.mkdir(parents=True, exist_ok=True)
     for attempt in (1, 2):
@@ -524,8 +525,8 @@ def main(argv=None) -> int:
                         help="the mvrecon source tree whose front end and mapper run (default: this one)")
     parser.add_argument("--map-args", default="", help="extra flags for `mvrecon map`, in one string")
     parser.add_argument("--open-model", action="store_true",
-                        help="map every set from the default camera model left open, the lens chosen from the data "
-                             "(default: a rendered scene's own model where mvrecon has it)")
+                        help="map every set from the default camera model left open, the lens chosen from "
+                             "the data (default: a rendered scene's own model where mvrecon has it)")
     parser.add_argument("--timeout", type=float, default=3600, help="seconds per mapper run (default 3600)")
     raw = sys.argv[1:] if argv is None else argv
     args = parser.parse_args(join_option_value(raw, "--map-args"))

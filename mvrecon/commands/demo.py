@@ -51,9 +51,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"catalog scene to use, a perspective one (`mvrecon scene list`; default: {SCENE})")
     parser.add_argument("--seed", type=non_negative_int, default=0, help="mapper seed (default 0)")
     parser.add_argument("--camera-model", choices=MODELS, default=None,
-                        help=f"camera model to reconstruct with (default: {CameraConfig.model}, which the mapper may "
-                             "turn into OPENCV or OPENCV_FISHEYE from the data; e.g. OPENCV for wide_orbit_small, "
-                             "OPENCV_FISHEYE for fisheye_orbit_small)")
+                        help=f"camera model to reconstruct with (default: {CameraConfig.model}, which the "
+                             "mapper may turn into OPENCV or OPENCV_FISHEYE from the data; e.g. OPENCV for "
+                             "wide_orbit_small, OPENCV_FISHEYE for fisheye_orbit_small)")
     parser.add_argument("--overwrite", action="store_true",
                         help="reconstruct OUT/run again from the start, e.g. with another --seed (the scene is "
                              "kept: it is the same for the same --scene)")

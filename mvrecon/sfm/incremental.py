@@ -205,8 +205,8 @@ class IncrementalMapper:
         return m
 
     def _calibrated_cameras(self) -> dict:
-        """camera id -> (model, parameters), from the largest finished model holding at least distortion_min_images
-        images of that camera (so that its focal and distortion were both refined)."""
+        """camera id -> (model, parameters), from the largest finished model holding at least
+        distortion_min_images images of that camera (so that its focal and distortion were both refined)."""
         out = {}
         for f in sorted(self.finished, key=lambda f: -int(f.registered.sum())):
             for c in np.unique(self.camera_of[f.registered]).tolist():
@@ -770,5 +770,6 @@ def map_correspondences(corr: Correspondences, config: MapperConfig = MapperConf
                         snapshot_path: Path | str | None = None, resume: bool = False,
                         choose_lens: bool = False) -> MappingResult:
     """Run the incremental mapper on a database's correspondences (see `database.read_correspondences`); with
-    `choose_lens` (the user left the camera model open) each camera's model is chosen from the data (sfm/lens.py)."""
+    `choose_lens` (the user left the camera model open) each camera's model is chosen from the data
+    (sfm/lens.py)."""
     return IncrementalMapper(corr, config, snapshot_path, choose_lens=choose_lens).run(resume=resume)

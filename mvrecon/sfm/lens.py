@@ -1,14 +1,14 @@
 """The camera model chosen from the data: a lens the default SIMPLE_RADIAL cannot describe becomes OPENCV.
 
-SIMPLE_RADIAL has one radial term. A wide lens (k1 -0.22 and k2 0.05 with tangential terms, say) leaves its image
-corners several pixels off under it: the filters drop those views, and the poses settle on what is left (AUC@1 0.40
-on wide_orbit_small, against 0.95 once OPENCV). So when the user left the model open (`CameraConfig.model_left_open`),
-each SIMPLE_RADIAL camera is tried with the richer models once it has MIN_IMAGES registered images, and again each
-time their count doubles while its last trial came near a switch: a bundle adjustment of the whole model with the
-camera as it is, then one from the same start per candidate with its parameters converted (f, f, cx, cy, k, 0, 0, 0
-for OPENCV), and the best candidate is kept when it brings the camera's reprojection error under MAX_ERROR_RATIO of
-SIMPLE_RADIAL's. The error is the mean over the camera's observations, each capped at the filters' threshold, so a
-few outliers cannot decide.
+SIMPLE_RADIAL has one radial term. A wide lens (k1 -0.22 and k2 0.05 with tangential terms, say) leaves its
+image corners several pixels off under it: the filters drop those views, and the poses settle on what is left
+(AUC@1 0.40 on wide_orbit_small, against 0.95 once OPENCV). So when the user left the model open
+(`CameraConfig.model_left_open`), each SIMPLE_RADIAL camera is tried with the richer models once it has
+MIN_IMAGES registered images, and again each time their count doubles while its last trial came near a switch:
+a bundle adjustment of the whole model with the camera as it is, then one from the same start per candidate
+with its parameters converted (f, f, cx, cy, k, 0, 0, 0 for OPENCV), and the best candidate is kept when it
+brings the camera's reprojection error under MAX_ERROR_RATIO of SIMPLE_RADIAL's. The error is the mean over
+the camera's observations, each capped at the filters' threshold, so a few outliers cannot decide.
 """
 
 import logging
@@ -27,9 +27,9 @@ log = logging.getLogger("mvrecon.sfm")
 MODEL = "SIMPLE_RADIAL"  # the model a camera may be moved from (the default)
 CANDIDATES = ("OPENCV", "OPENCV_FISHEYE")  # the richer models tried, in order
 MIN_IMAGES = 8  # registered images of a camera before its first trial (distortion is refined from 6)
-MAX_TRIALS = 3  # at 8, 16 and 32 images: the corners are seen by then, and each trial costs 1 + CANDIDATES BAs
-# a camera is tried again only when its last trial came this close to a switch: the SIMPLE_RADIAL lenses of the
-# suite score 0.99-1.0 at their first trial, and each retry cost 15% more mapping time (templeRing)
+MAX_TRIALS = 3  # at 8, 16 and 32 images: the corners are seen by then; a trial costs 1 + CANDIDATES BAs
+# a camera is tried again only when its last trial came this close to a switch: the SIMPLE_RADIAL lenses of
+# the suite score 0.99-1.0 at their first trial, and each retry cost 15% more mapping time (templeRing)
 RETRY_RATIO = 0.9
 # a candidate is kept below this share of SIMPLE_RADIAL's error; measured (docs/benchmarks.md, "Lens choice"):
 # 0.36-0.55 on the wide lenses, 0.95-1.0 on the SIMPLE_RADIAL lenses of every shared set and catalog scene
@@ -56,14 +56,15 @@ class LensTrial:
         base = self.errors[MODEL]
         shown = ", ".join(f"{k} {v:.3f} px" for k, v in self.errors.items())
         verdict = (f"switched to {self.chosen}" if self.chosen != MODEL else
-                   f"kept {MODEL} (a richer model must bring the error under {MAX_ERROR_RATIO:g}x {base:.3f} px)")
+                   f"kept {MODEL} (a richer model must bring the error under {MAX_ERROR_RATIO:g}x "
+                   f"{base:.3f} px)")
         return f"camera {self.camera_id} at {self.images} images: {shown}; {verdict}"
 
 
 def due_cameras(m: Reconstruction) -> list[int]:
-    """The cameras of `m` to try now: SIMPLE_RADIAL, not trusted (known intrinsics), with MIN_IMAGES registered
-    images, or twice as many as at their last trial (`m.lens_trials`) when that one's best ratio was under
-    RETRY_RATIO, and fewer than MAX_TRIALS trials."""
+    """The cameras of `m` to try now: SIMPLE_RADIAL, not trusted (known intrinsics), with MIN_IMAGES
+    registered images, or twice as many as at their last trial (`m.lens_trials`) when that one's best ratio
+    was under RETRY_RATIO, and fewer than MAX_TRIALS trials."""
     users = np.bincount(m.camera_of[m.registered], minlength=int(m.camera_of.max()) + 1)
     out = []
     for c, cam in m.cameras.items():
@@ -82,9 +83,9 @@ def due_cameras(m: Reconstruction) -> list[int]:
 
 
 def converted_params(model: str, params: np.ndarray, width: int, height: int) -> np.ndarray:
-    """SIMPLE_RADIAL parameters (f, cx, cy, k) as `model`'s with the same projection over the image: OPENCV's k1
-    is the same term, its k2, p1 and p2 start at zero; OPENCV_FISHEYE's focal, k1 and k2 are fitted by least
-    squares to the pixel radius of rays out to the farthest corner (or short of where the lens flattens)."""
+    """SIMPLE_RADIAL parameters (f, cx, cy, k) as `model`'s with the same projection over the image: OPENCV's
+    k1 is the same term, its k2, p1 and p2 start at zero; OPENCV_FISHEYE's focal, k1 and k2 are fitted by
+    least squares to the pixel radius of rays out to the farthest corner (or short of where the lens flattens)."""
     f, cx, cy, k = np.asarray(params, float)
     if model == "OPENCV":
         return np.array([f, f, cx, cy, k, 0.0, 0.0, 0.0])
@@ -99,8 +100,8 @@ def converted_params(model: str, params: np.ndarray, width: int, height: int) ->
     r = np.linspace(0.0, reach, 200)[1:]
     theta = np.arctan(r)
     rho = f * r * (1.0 + k * r * r)  # pixel radius, to be f' (theta + k1 theta^3 + ... + k4 theta^9)
-    # k3 and k4 start at zero: fitted too, they trade off with k1 and k2 into coefficients past the bogus-camera
-    # bound |k| <= 1 (`filtering.degenerate_cameras`)
+    # k3 and k4 start at zero: fitted too, they trade off with k1 and k2 into coefficients past the
+    # bogus-camera bound |k| <= 1 (`filtering.degenerate_cameras`)
     a = np.linalg.lstsq(np.stack([theta, theta ** 3, theta ** 5], axis=1), rho, rcond=None)[0]
     return np.array([a[0], a[0], cx, cy, a[1] / a[0], a[2] / a[0], 0.0, 0.0])
 
@@ -151,7 +152,8 @@ def try_richer_models(m: Reconstruction, c: int, adjust: Callable[[], None], cap
         adjust()
         error = camera_error(m, obs, cap)
         trial.errors[model] = error
-        if _plausible(m, c) and error < MAX_ERROR_RATIO * trial.errors[MODEL] and (best is None or error < best[0]):
+        better = best is None or error < best[0]
+        if better and error < MAX_ERROR_RATIO * trial.errors[MODEL] and _plausible(m, c):
             best = (error, model, _state(m))
     if best is None:  # as before the trial, so that a camera that keeps its model maps as without trials
         _restore(m, start)

@@ -282,8 +282,8 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
     failed = _unreadable(folder, skipped)
     stamps = image_stamps(folder, [*names, *failed])
     record = {"images": str(folder.resolve()), "camera": to_dict(config.camera), "sift": to_dict(config.sift)}
-    if config.camera.model_given and config.camera.model == CameraConfig.model:  # named, not left to the mapper
-        record[GIVEN_KEY] = True
+    if config.camera.model_given and config.camera.model == CameraConfig.model:
+        record[GIVEN_KEY] = True  # the default named: kept by the mapper (cameras.recorded_model_left_open)
     masks = _masks(config, names, stamps)
     if config.masks:
         record["masks"] = masks_folder(config)

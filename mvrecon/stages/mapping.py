@@ -98,8 +98,9 @@ def map_workspace(config: MapperConfig, workspace: Workspace | Path | str, *,
     if config.partition_size and len(corr.images) > config.partition_size:
         result = map_in_parts(corr, config, ws, resume, cluster=cluster)
     else:
-        open_model = recorded_model_left_open((stages.get("features") or {}).get("config"))
-        result = _run_mapper(corr, config, snapshot, resume, choose_lens=config.choose_camera_model and open_model)
+        features = (stages.get("features") or {}).get("config")
+        choose = config.choose_camera_model and recorded_model_left_open(features)
+        result = _run_mapper(corr, config, snapshot, resume, choose_lens=choose)
     georef = georeference_models(result.models, CenterPriors.of(corr.priors), frame=config.frame,
                                  max_sigmas=config.prior_max_sigmas, seed=config.seed)
     _write_models(ws, result.models, image_dir, text, keypoint_colors)
@@ -130,8 +131,8 @@ def _run_mapper(corr, config, snapshot: Path, resume: bool, choose_lens: bool = 
     """The models of the correspondences `corr` (database.Correspondences), with each image's status: the
     incremental mapper (sfm/incremental.py; with `choose_lens`, each camera's model chosen from the data,
     sfm/lens.py) or, with `mapper = "global"`, the global one (sfm/global_mapper.py, which maps in one go, has
-    no snapshot to resume from and keeps the database's camera models). Their modules load only when mapping runs (GTSAM
-    is heavy for the commands that never map)."""
+    no snapshot to resume from and keeps the database's camera models). Their modules load only when mapping
+    runs (GTSAM is heavy for the commands that never map)."""
     if config.mapper == "global":
         from ..sfm.global_mapper import map_correspondences_globally  # noqa: PLC0415 - GTSAM, after the workers fork
 

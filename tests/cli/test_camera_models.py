@@ -263,13 +263,14 @@ def test_demo_names_the_scenes_camera_model_and_reports_the_cameras(fisheye, cap
     assert cameras == [
         {"camera_id": cid, "model": "OPENCV_FISHEYE", "width": 640, "height": 480, "params": list(cam.params)}
         for cid, cam in sorted(written.items())]
-    assert len(cameras) == 1 and report["models"][0]["cameras"][0]["model_choice"]["chosen"] == "OPENCV_FISHEYE"
+    assert len(cameras) == 1
+    assert report["models"][0]["cameras"][0]["model_choice"]["chosen"] == "OPENCV_FISHEYE"
     from mvrecon.commands.demo import scene_model_hint  # with the scene's own model there is nothing to say
 
     assert scene_model_hint(SCENE, scene, "OPENCV_FISHEYE") is None
     assert scene_model_hint(SCENE, scene, "SIMPLE_RADIAL") == (
-        f"scene {SCENE} is rendered with OPENCV_FISHEYE cameras and this demo reconstructs with SIMPLE_RADIAL; "
-        "--camera-model OPENCV_FISHEYE fits the scene")
+        f"scene {SCENE} is rendered with OPENCV_FISHEYE cameras and this demo reconstructs with "
+        "SIMPLE_RADIAL; --camera-model OPENCV_FISHEYE fits the scene")
 
 
 def test_colmap_run_reports_list_the_cameras_the_same_way():

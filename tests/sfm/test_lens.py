@@ -1,5 +1,5 @@
-"""The camera model chosen from the data (sfm/lens.py): a wide lens left at the default becomes OPENCV, a lens the
-default describes keeps it, and a model the user named is never changed."""
+"""The camera model chosen from the data (sfm/lens.py): a wide lens left at the default becomes OPENCV, a lens
+the default describes keeps it, and a model the user named is never changed."""
 
 import json
 import shutil
@@ -20,22 +20,24 @@ from mvrecon.sfm.lens import converted_params
 
 
 def test_converted_parameters_project_as_the_simple_radial_lens():
-    """OPENCV takes SIMPLE_RADIAL's k as its k1 (the same projection); the fisheye fit, a start its BA refines,
-    is within 0.5 px over the image for a mild lens and the 149 deg lens's SIMPLE_RADIAL fit (f 263, k -0.092)."""
+    """OPENCV takes SIMPLE_RADIAL's k as its k1 (the same projection); the fisheye fit, a start its BA
+    refines, is within 0.5 px over the image for a mild lens and the 149 deg lens's SIMPLE_RADIAL fit (f 263,
+    k -0.092)."""
     rays = np.c_[np.random.default_rng(0).uniform(-1.0, 1.0, (400, 2)), np.ones(400)]
     for params in (np.array([500.0, 320.0, 240.0, 0.02]), np.array([263.0, 320.0, 240.0, -0.092])):
         sr = cammodel.project("SIMPLE_RADIAL", params, rays)
         inside = (np.abs(sr[:, 0] - 320) < 320) & (np.abs(sr[:, 1] - 240) < 240)
         opencv = cammodel.project("OPENCV", converted_params("OPENCV", params, 640, 480), rays)
         assert np.abs(opencv - sr).max() < 1e-9
-        fisheye = cammodel.project("OPENCV_FISHEYE", converted_params("OPENCV_FISHEYE", params, 640, 480), rays)
+        fisheye_params = converted_params("OPENCV_FISHEYE", params, 640, 480)
+        fisheye = cammodel.project("OPENCV_FISHEYE", fisheye_params, rays)
         central = inside & (np.linalg.norm(sr - [320, 240], axis=1) < 200)  # short of where the lens flattens
         assert np.abs(fisheye - sr)[central].max() < 0.5
 
 
 def test_a_named_default_model_is_recorded_and_never_left_open(tmp_path):
-    """`--camera-model SIMPLE_RADIAL` names the default: the features stage records that, so `map -w` keeps the
-    model as `reconstruct` does; without the flag the model is left open."""
+    """`--camera-model SIMPLE_RADIAL` names the default: the features stage records that, so `map -w` keeps
+    the model as `reconstruct` does; without the flag the model is left open."""
     parser = build_parser("reconstruct")
     for flags, left_open in (([], True), (["--camera-model", "SIMPLE_RADIAL"], False),
                              (["--camera-model", "OPENCV"], False)):
@@ -52,7 +54,8 @@ def test_a_named_default_model_is_recorded_and_never_left_open(tmp_path):
 
 @pytest.fixture(scope="module")
 def wide_half(tmp_path_factory):
-    """wide_orbit_small (an OPENCV lens, k1 -0.22, about 100 deg across) at half its size: 12 views, 320x240."""
+    """wide_orbit_small (an OPENCV lens, k1 -0.22, about 100 deg across) at half its size: 12 views,
+    320x240."""
     folder = tmp_path_factory.mktemp("wide_half")
     text = load_entry("wide_orbit_small")[2].read_text()
     for old, new in {"width = 640": "width = 320", "height = 480": "height = 240", "supersample = 2":
@@ -74,10 +77,9 @@ def _run(scene, out, *flags):
 
 @pytest.mark.slow
 def test_a_wide_lens_left_at_the_default_becomes_opencv(wide_half, tmp_path):
-    """Default settings: the camera ends OPENCV, report.json gives the errors that chose it, and the poses are
-    far better than SIMPLE_RADIAL's; `--camera-model SIMPLE_RADIAL` named keeps SIMPLE_RADIAL on the same images
-    (AUC@1 0.71 against 0.09 with SIMPLE_RADIAL
-    kept)."""
+    """Default settings: the camera ends OPENCV, report.json gives the errors that chose it, and the poses
+    are far better than SIMPLE_RADIAL's; `--camera-model SIMPLE_RADIAL` named keeps SIMPLE_RADIAL on the same
+    images (AUC@1 0.71 against 0.09 with SIMPLE_RADIAL kept)."""
     camera, auc = _run(wide_half, tmp_path / "open")
     assert camera["model"] == "OPENCV", camera
     errors = camera["model_choice"]["mean_error_px"]
