@@ -85,7 +85,8 @@ def due_cameras(m: Reconstruction) -> list[int]:
 def converted_params(model: str, params: np.ndarray, width: int, height: int) -> np.ndarray:
     """SIMPLE_RADIAL parameters (f, cx, cy, k) as `model`'s with the same projection over the image: OPENCV's
     k1 is the same term, its k2, p1 and p2 start at zero; OPENCV_FISHEYE's focal, k1 and k2 are fitted by
-    least squares to the pixel radius of rays out to the farthest corner (or short of where the lens flattens)."""
+    least squares to the pixel radius of rays out to the farthest corner (or short of where the lens
+    flattens)."""
     f, cx, cy, k = np.asarray(params, float)
     if model == "OPENCV":
         return np.array([f, f, cx, cy, k, 0.0, 0.0, 0.0])
