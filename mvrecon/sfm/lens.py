@@ -31,8 +31,8 @@ MAX_TRIALS = 3  # at 8, 16 and 32 images: the corners are seen by then; a trial 
 # a camera is tried again only when its last trial came this close to a switch: the SIMPLE_RADIAL lenses of
 # the suite score 0.99-1.0 at their first trial, and each retry cost 15% more mapping time (templeRing)
 RETRY_RATIO = 0.9
-# a candidate is kept below this share of SIMPLE_RADIAL's error; measured (docs/benchmarks.md, "Lens choice"):
-# 0.36-0.55 on the wide lenses, 0.95-1.0 on the SIMPLE_RADIAL lenses of every shared set and catalog scene
+# a candidate is kept below this share of SIMPLE_RADIAL's error; measured (docs/benchmarks.md, "Lens chosen
+# from the data"): 0.30-0.44 on the wide lenses, 0.99-1.0 on the SIMPLE_RADIAL lenses of the suite
 MAX_ERROR_RATIO = 0.8
 
 
