@@ -86,8 +86,10 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.output)
     log.info("rendering scene %s into %s ...", args.scene, out / "scene")
     scene = make_scene(args.scene, out / "scene")
-    hint = scene_model_hint(args.scene, scene, args.camera_model) if args.camera_model else None
-    if hint:  # a model named; one left open is chosen by the mapper, which logs its choice
+    # a model left open that the mapper may choose needs no hint: it logs its choice (sfm/lens.py)
+    chooses = not args.camera_model and MapperConfig.choose_camera_model
+    hint = None if chooses else scene_model_hint(args.scene, scene, args.camera_model or CameraConfig.model)
+    if hint:
         log.info("%s", hint)
     run_dir = out / "run"
     camera = CameraConfig(model=args.camera_model, model_given=True) if args.camera_model else CameraConfig()

@@ -253,24 +253,20 @@ def test_demo_names_the_scenes_camera_model_and_reports_the_cameras(fisheye, cap
     root, scene, _ = fisheye
     with caplog.at_level("INFO"):
         assert main(["demo", "-o", str(root / "demo"), "--scene", SCENE]) == 0
-    # the model left open, the mapper chooses the fisheye from the data (sfm/lens.py): no hint is needed
-    assert not [r.getMessage() for r in caplog.records if "--camera-model" in r.getMessage()]
+    hints = [r.getMessage() for r in caplog.records if "--camera-model" in r.getMessage()]
+    assert hints == [f"scene {SCENE} is rendered with OPENCV_FISHEYE cameras and this demo reconstructs with "
+                     "SIMPLE_RADIAL; --camera-model OPENCV_FISHEYE fits the scene"]
     # report.json holds each model's cameras with their final parameters, as sparse/0 has them
     run = root / "demo" / "run"
     report = json.loads((run / "report.json").read_text())
     written = pycolmap.Reconstruction(str(run / "sparse" / "0")).cameras
-    cameras = [{k: v for k, v in c.items() if k != "model_choice"} for c in report["models"][0]["cameras"]]
-    assert cameras == [
-        {"camera_id": cid, "model": "OPENCV_FISHEYE", "width": 640, "height": 480, "params": list(cam.params)}
+    assert report["models"][0]["cameras"] == [
+        {"camera_id": cid, "model": "SIMPLE_RADIAL", "width": 640, "height": 480, "params": list(cam.params)}
         for cid, cam in sorted(written.items())]
-    assert len(cameras) == 1
-    assert report["models"][0]["cameras"][0]["model_choice"]["chosen"] == "OPENCV_FISHEYE"
+    assert len(report["models"][0]["cameras"]) == 1
     from mvrecon.commands.demo import scene_model_hint  # with the scene's own model there is nothing to say
 
     assert scene_model_hint(SCENE, scene, "OPENCV_FISHEYE") is None
-    assert scene_model_hint(SCENE, scene, "SIMPLE_RADIAL") == (
-        f"scene {SCENE} is rendered with OPENCV_FISHEYE cameras and this demo reconstructs with "
-        "SIMPLE_RADIAL; --camera-model OPENCV_FISHEYE fits the scene")
 
 
 def test_colmap_run_reports_list_the_cameras_the_same_way():
