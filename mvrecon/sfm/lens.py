@@ -3,12 +3,13 @@
 SIMPLE_RADIAL has one radial term. A wide lens (k1 -0.22 and k2 0.05 with tangential terms, say) leaves its
 image corners several pixels off under it: the filters drop those views, and the poses settle on what is left
 (AUC@1 0.40 on wide_orbit_small, against 0.95 once OPENCV). So when the user left the model open
-(`CameraConfig.model_left_open`), each SIMPLE_RADIAL camera is tried with the richer models once it has
-MIN_IMAGES registered images, and again each time their count doubles while its last trial came near a switch:
-a bundle adjustment of the whole model with the camera as it is, then one from the same start per candidate
-with its parameters converted (f, f, cx, cy, k, 0, 0, 0 for OPENCV), and the best candidate is kept when it
-brings the camera's reprojection error under MAX_ERROR_RATIO of SIMPLE_RADIAL's. The error is the mean over
-the camera's observations, each capped at the filters' threshold, so a few outliers cannot decide.
+(`CameraConfig.model_left_open`) and `MapperConfig.choose_camera_model` is on, each SIMPLE_RADIAL camera is
+tried with the richer models once it has MIN_IMAGES registered images, and again each time their count doubles
+while its last trial came near a switch: a bundle adjustment of the whole model with the camera as it is, then
+one from the same start per candidate with its parameters converted (f, f, cx, cy, k, 0, 0, 0 for OPENCV), and
+the best candidate is kept when it brings the camera's reprojection error under MAX_ERROR_RATIO of
+SIMPLE_RADIAL's. The error is the mean over the camera's observations, each capped at the filters' threshold,
+so a few outliers cannot decide.
 """
 
 import logging
