@@ -8,7 +8,7 @@ essential matrix with it); otherwise it is COLMAP's guess 1.2 * max(width, heigh
 given by the user are trusted as they are.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import PurePosixPath
 
 import numpy as np
@@ -35,6 +35,15 @@ class CameraConfig:
     params: tuple[float, ...] = ()  # known intrinsics in the model's COLMAP order; trusted; empty = from EXIF
     # focal guess without EXIF = factor * max(width, height), as COLMAP
     default_focal_factor: float = bounded(1.2, 0.0, low_open=True)
+    # the user named the model (a flag or a config file), even the default one: the mapper then keeps it
+    # (sfm/lens.py); out of the hash, and recorded by the features stage only when true (`model_left_open`)
+    model_given: bool = field(default=False, metadata={"hash": False})
+
+    @property
+    def model_left_open(self) -> bool:
+        """Whether the mapper may choose each camera's model from the data (sfm/lens.py): the default model,
+        not named by the user, without known intrinsics."""
+        return self.model == CameraConfig.model and not self.model_given and not self.params
 
     def validate(self, origin: dict[str, str] | None = None,
                  size: tuple[int, int] | None = None) -> "CameraConfig":
@@ -74,6 +83,20 @@ class CameraConfig:
         if self.params:
             _refuse_fold(self.model, self.params, size, where('params'))
         return self
+
+
+GIVEN_KEY = "camera_model_given"  # in the features stage's record when the user named the default model
+
+
+def recorded_model_left_open(features: dict | None) -> bool:
+    """`CameraConfig.model_left_open` of the run the features stage `features` recorded (its record's
+    config: the camera table, and GIVEN_KEY when the default model was named), so that `map -w` decides as
+    `reconstruct` did; False without a record (a database another tool made: its cameras are its choice)."""
+    camera = (features or {}).get("camera")
+    if not isinstance(camera, dict):
+        return False
+    return (camera.get("model") == CameraConfig.model and not camera.get("params")
+            and not features.get(GIVEN_KEY, False))
 
 
 def _refuse_fold(model: str, params, size: tuple[int, int] | None, where: str) -> None:

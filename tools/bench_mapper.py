@@ -16,7 +16,9 @@ find is named, with the reason.
 
 Per set, mvrecon's front end builds one database (`mvrecon features` + `mvrecon match`, default settings,
 camera mode auto; the camera model is the scene's own where mvrecon has it, e.g. OPENCV for wide_orbit,
-OPENCV_FISHEYE for fisheye_orbit_small, else SIMPLE_RADIAL, which the real sets use); then on that same
+OPENCV_FISHEYE for fisheye_orbit_small, else the default SIMPLE_RADIAL left open, as the real sets use it, so
+that mvrecon's mapper may choose the lens from the data; `--open-model`: the default, left open, for every
+set); then on that same
 database (a) mvrecon's mapper, `mvrecon map --seed S` in a subprocess, and (b) COLMAP's incremental mapper
 (pycolmap, `eval.runners.run_colmap_on_database`) with the same seed. The front end and the mapper run from
 the source tree --code (default: this one), so an earlier commit's checkout can be measured with this tool.
@@ -129,14 +131,15 @@ def scene_camera_model(gt: Path | None) -> str:
     return models.pop() if len(models) == 1 and next(iter(models)) in MODELS else DEFAULT_MODEL
 
 
-def plan_sets(work: Path, wanted) -> tuple[list[SuiteSet], list[str]]:
-    """The sets to run (small ones first) and a line for each left out, with the reason."""
+def plan_sets(work: Path, wanted, open_model: bool = False) -> tuple[list[SuiteSet], list[str]]:
+    """The sets to run (small ones first) and a line for each left out, with the reason; with `open_model`
+    every set is mapped from the default camera model left open (no --camera-model)."""
     sets, skipped = [], []
     scenes = [n for n in catalog_scenes() if wanted(n)]
     for name in progress(scenes, desc="rendering scenes", unit="scene"):
         try:  # a scene the renderer fails on is a line of the report, not the end of the suite
             images, gt = render_scene(name, work)
-            model = scene_camera_model(gt)
+            model = DEFAULT_MODEL if open_model else scene_camera_model(gt)
         except Exception as exc:
             skipped.append(f"{name}: not rendered ({failure(exc)})")
             continue
@@ -205,7 +208,9 @@ def build_database(s: SuiteSet, folder: Path, code: Path, bar) -> tuple[Path | N
     again from scratch."""
     env, cwd = code_environment(code)
     where = str(folder.resolve())
-    commands = [["features", str(s.images.resolve()), "-w", where, "-q", "--camera-model", s.camera_model],
+    # the default model is left open, as a user's run leaves it (the mapper may choose the lens: sfm/lens.py)
+    named = [] if s.camera_model == DEFAULT_MODEL else ["--camera-model", s.camera_model]
+    commands = [["features", str(s.images.resolve()), "-w", where, "-q", *named],
                 ["match", "-w", where, "-q"]]
     logfile = folder.parent / "frontend.log"
     folder.parent.mkdir(parents=True, exist_ok=True)
@@ -519,6 +524,9 @@ def main(argv=None) -> int:
     parser.add_argument("--code", type=Path, default=ROOT,
                         help="the mvrecon source tree whose front end and mapper run (default: this one)")
     parser.add_argument("--map-args", default="", help="extra flags for `mvrecon map`, in one string")
+    parser.add_argument("--open-model", action="store_true",
+                        help="map every set from the default camera model left open, the lens chosen from "
+                             "the data (default: a rendered scene's own model where mvrecon has it)")
     parser.add_argument("--timeout", type=float, default=3600, help="seconds per mapper run (default 3600)")
     raw = sys.argv[1:] if argv is None else argv
     args = parser.parse_args(join_option_value(raw, "--map-args"))
@@ -544,7 +552,7 @@ def main(argv=None) -> int:
 
     say(f"mapper suite: mvrecon {version} from {code}, seeds {','.join(map(str, args.seeds))}, "
         f"work folder {args.work}")
-    sets, skipped = plan_sets(args.work, wanted)
+    sets, skipped = plan_sets(args.work, wanted, args.open_model)
     for line in skipped:
         say(f"not run: {line}")
     rows = []

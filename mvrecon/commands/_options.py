@@ -257,11 +257,21 @@ def frontend_config_from_args(args: argparse.Namespace,
         elif value != getattr(default, name):  # not a flag, not the default: the file's
             origin[name] = f"{args.config}: camera: {name} = {list(value) if name == 'params' else value!r}"
     config.camera.validate(origin)
+    if "model" in origin or "model" in _file_camera_table(args):  # named, even as the default: kept as named
+        config = dataclasses.replace(config, camera=dataclasses.replace(config.camera, model_given=True))
     if getattr(args, "pairs", None) is not None:
         check_spec(config.pairs)
     elif config.pairs != type(config)().pairs:
         check_spec(config.pairs, where=f"{args.config}: pairs = {config.pairs!r}")
     return config
+
+
+def _file_camera_table(args: argparse.Namespace) -> dict:
+    """The [camera] table of the --config file, {} without one."""
+    if not getattr(args, "config", None):
+        return {}
+    table = load_toml(args.config).get("camera", {})
+    return table if isinstance(table, dict) else {}
 
 
 DASHED_VALUES = ("--mvrecon-args",)  # options whose value is itself a list of flags

@@ -50,8 +50,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", default=SCENE,
                         help=f"catalog scene to use, a perspective one (`mvrecon scene list`; default: {SCENE})")
     parser.add_argument("--seed", type=non_negative_int, default=0, help="mapper seed (default 0)")
-    parser.add_argument("--camera-model", choices=MODELS, default=CameraConfig.model,
-                        help=f"camera model to reconstruct with (default {CameraConfig.model}; e.g. OPENCV for "
+    parser.add_argument("--camera-model", choices=MODELS, default=None,
+                        help=f"camera model to reconstruct with (default: {CameraConfig.model}, which the "
+                             "mapper may turn into OPENCV or OPENCV_FISHEYE from the data; e.g. OPENCV for "
                              "wide_orbit_small, OPENCV_FISHEYE for fisheye_orbit_small)")
     parser.add_argument("--overwrite", action="store_true",
                         help="reconstruct OUT/run again from the start, e.g. with another --seed (the scene is "
@@ -85,12 +86,14 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.output)
     log.info("rendering scene %s into %s ...", args.scene, out / "scene")
     scene = make_scene(args.scene, out / "scene")
-    hint = scene_model_hint(args.scene, scene, args.camera_model)
+    # a model left open that the mapper may choose needs no hint: it logs its choice (sfm/lens.py)
+    chooses = not args.camera_model and MapperConfig.choose_camera_model
+    hint = None if chooses else scene_model_hint(args.scene, scene, args.camera_model or CameraConfig.model)
     if hint:
         log.info("%s", hint)
     run_dir = out / "run"
-    config = ReconstructConfig(frontend=FrontendConfig(camera=CameraConfig(model=args.camera_model)),
-                               mapper=MapperConfig(seed=args.seed))
+    camera = CameraConfig(model=args.camera_model, model_given=True) if args.camera_model else CameraConfig()
+    config = ReconstructConfig(frontend=FrontendConfig(camera=camera), mapper=MapperConfig(seed=args.seed))
     report = reconstruct(config, scene / "images", run_dir, resume=True, overwrite=args.overwrite)
     models = sparse_models(run_dir / "sparse")
     gt = load_ground_truth(scene / "gt" / "sparse")

@@ -172,7 +172,9 @@ def reconstruct_args(image_dir: Path | str, out_dir: Path | str, options: RunOpt
     """The `mvrecon` arguments of `run_mvrecon` (`reconstruct IMAGES -o OUT ...`, the extra flags last): one
     place, so that `--mvrecon-args` can be checked against the very command that will run."""
     args = ["reconstruct", str(image_dir), "-o", str(out_dir), "-q", "--seed", str(options.seed),
-            "--camera-mode", options.camera_mode, "--camera-model", options.camera_model]
+            "--camera-mode", options.camera_mode]
+    if options.camera_model != RunOptions.camera_model:  # the default stays open, as in a user's run:
+        args += ["--camera-model", options.camera_model]  # mvrecon's mapper chooses the lens (sfm/lens.py)
     if options.camera_params:  # known intrinsics stay fixed, in both engines
         args += ["--camera-params", ",".join(f"{p:.17g}" for p in options.camera_params), "--fix-intrinsics"]
     if options.masks:

@@ -79,6 +79,10 @@ class MapperConfig:
     focal_min_images: int = bounded(3, 2)
     # below this many images only the focal is refined: a few views fit a wrong distortion
     distortion_min_images: int = bounded(6, 2)
+    # when the user left the camera model open (no --camera-model, no --camera-params), a SIMPLE_RADIAL camera
+    # becomes OPENCV or OPENCV_FISHEYE where that fits its views clearly better (sfm/lens.py; the incremental
+    # mapper only); off until the mapper suite has shown it neutral on every set (docs/benchmarks.md)
+    choose_camera_model: bool = False
     # "incremental": image by image (sfm/incremental.py); "global": all poses at once (sfm/global_mapper.py)
     mapper: str = "incremental"
     # images per part of a partitioned mapping (sfm/partition.py: parts mapped alone, then merged); 0: no parts

@@ -27,7 +27,7 @@ from ..geometry.camera import num_distortion_terms
 from ..io.files import replace_whole
 from ..progress import progress
 from ..startup import hand_back_freed_memory
-from . import filtering
+from . import filtering, lens
 from .ba_points import select_points
 from .bundle import bundle_adjust as _bundle_adjust
 from .config import MapperConfig
@@ -117,8 +117,9 @@ def _signature(corr, config: MapperConfig) -> tuple:
 
 class IncrementalMapper:
     def __init__(self, corr: Correspondences, config: MapperConfig = MapperConfig(),
-                 snapshot_path: Path | str | None = None):
+                 snapshot_path: Path | str | None = None, choose_lens: bool = False):
         self.config = config
+        self.choose_lens = choose_lens  # the cameras' models were left open: sfm/lens.py may change them
         self.image_ids, self.names, self.camera_of, self.cameras = images_and_cameras(corr)
         ids = self.image_ids.tolist()
         self.keypoints = KeypointSet([corr.keypoints.get(i, np.zeros((0, 2))) for i in ids])
@@ -197,21 +198,21 @@ class IncrementalMapper:
         m = Reconstruction(self.image_ids, self.names, self.camera_of, self.cameras, self.keypoints,
                            len(self.tracks))
         m.priors = self.priors
-        for cid, params in self._calibrated_cameras().items():
+        for cid, (model, params) in self._calibrated_cameras().items():
+            m.set_camera_model(cid, model, params)  # with the model it was calibrated in (sfm/lens.py)
             cam = m.cameras[cid]
-            cam.params, cam.prior_trusted = params.copy(), True
-            cam.prior_focal = cam.focal()
+            cam.prior_trusted, cam.prior_focal = True, cam.focal()
         return m
 
     def _calibrated_cameras(self) -> dict:
-        """camera id -> parameters, from the largest finished model holding at least distortion_min_images
-        images of that camera (so that its focal and distortion were both refined)."""
+        """camera id -> (model, parameters), from the largest finished model holding at least
+        distortion_min_images images of that camera (so that its focal and distortion were both refined)."""
         out = {}
         for f in sorted(self.finished, key=lambda f: -int(f.registered.sum())):
             for c in np.unique(self.camera_of[f.registered]).tolist():
                 users = int((f.registered & (self.camera_of == c)).sum())
                 if c not in out and users >= self.config.distortion_min_images:
-                    out[c] = f.cameras[c].params
+                    out[c] = (f.cameras[c].model, f.cameras[c].params)
         return out
 
     def _save(self) -> None:
@@ -530,6 +531,7 @@ class IncrementalMapper:
                   m.num_points)
         if m.registered.sum() >= cfg.global_ba_growth * self.last_global:
             self._global_refine(m, growing=True)
+            self._choose_lenses(m)
             self.last_global = int(m.registered.sum())
             self._save()
             return True
@@ -541,6 +543,21 @@ class IncrementalMapper:
         if time.monotonic() - self.saved_at >= SNAPSHOT_SECONDS:
             self._save()
         return False
+
+    def _choose_lenses(self, m: Reconstruction) -> None:
+        """When the user left the camera model open, each camera due a trial (`lens.due_cameras`) is tried
+        with the richer models (`lens.try_richer_models`, a BA of every image per model); after a switch, a
+        global refinement brings back the views the old model's filters dropped."""
+        cfg, switched = self.config, False
+        if not self.choose_lens or not cfg.refine_intrinsics:
+            return
+        for c in lens.due_cameras(m):
+            trial = lens.try_richer_models(m, c, lambda: self._bundle(
+                m, m.registered_images(), refine_intrinsics=True, refine_distortion=True,
+                max_iterations=cfg.global_ba_iterations), cfg.filter_max_reproj_error_px)
+            switched |= trial.chosen != lens.MODEL
+        if switched:
+            self._global_refine(m)
 
     def _filter(self, m: Reconstruction, point_ids=None) -> None:
         """The filters after a BA (of `point_ids`, or all points); an image they leave without observations
@@ -750,6 +767,9 @@ def _swapped(p):
 
 
 def map_correspondences(corr: Correspondences, config: MapperConfig = MapperConfig(),
-                        snapshot_path: Path | str | None = None, resume: bool = False) -> MappingResult:
-    """Run the incremental mapper on a database's correspondences (see `database.read_correspondences`)."""
-    return IncrementalMapper(corr, config, snapshot_path).run(resume=resume)
+                        snapshot_path: Path | str | None = None, resume: bool = False,
+                        choose_lens: bool = False) -> MappingResult:
+    """Run the incremental mapper on a database's correspondences (see `database.read_correspondences`); with
+    `choose_lens` (the user left the camera model open) each camera's model is chosen from the data
+    (sfm/lens.py)."""
+    return IncrementalMapper(corr, config, snapshot_path, choose_lens=choose_lens).run(resume=resume)

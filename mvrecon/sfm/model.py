@@ -183,6 +183,7 @@ class Reconstruction:
         self._ba_factors: tuple = (None, {})  # (loss width, observation -> GTSAM factor), sfm/bundle.py
         self.priors = None  # georef.CenterPriors of the images, or None
         self.georeferenced = False  # moved into the priors' frame: the BAs hold the centres to them (georef.py)
+        self.lens_trials: dict = {}  # camera -> its last lens trial's record (sfm/lens.py), for report.json
 
     # ----- images -----
     def register(self, i: int, R: np.ndarray, t: np.ndarray) -> None:
@@ -209,6 +210,14 @@ class Reconstruction:
 
     def camera(self, i: int) -> Camera:
         return self.cameras[int(self.camera_of[i])]
+
+    def set_camera_model(self, c: int, model: str, params: np.ndarray) -> None:
+        """Give camera `c` another model (sfm/lens.py) or parameters; the bundle-adjustment factors stored for
+        the old model's calibration class are dropped."""
+        cam = self.cameras[int(c)]
+        if cam.model != model:
+            self._ba_factors = (None, {})
+        cam.model, cam.params = model, np.array(params, float)
 
     def cameras_shared(self, images: np.ndarray | list[int], least: int = 3) -> bool:
         """Whether every camera of `images` is shared by `least` or more registered images: then the observations
@@ -433,6 +442,7 @@ class Reconstruction:
         s["names"] = list(self.names)
         s["registration_order"] = list(self.registration_order)
         s["priors"], s["georeferenced"] = self.priors, self.georeferenced
+        s["lens_trials"] = dict(self.lens_trials)
         s["cameras"] = {k: (c.model, c.width, c.height, c.params.copy(), c.prior_trusted, c.prior_focal)
                         for k, c in self.cameras.items()}
         return s
@@ -448,6 +458,7 @@ class Reconstruction:
             setattr(m, k, _Buffer.of(s[k]))
         m.registration_order = list(s["registration_order"])
         m.priors, m.georeferenced = s.get("priors"), bool(s.get("georeferenced", False))
+        m.lens_trials = dict(s.get("lens_trials", {}))
         # the indexes of the alive observations (`add_observations` keeps them up to date)
         m.obs_next = _Buffer.of(np.full(m.obs_point.n, -1, np.int64))
         m.point_first_obs = _Buffer.of(np.full(m.xyz.n, -1, np.int64))

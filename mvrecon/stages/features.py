@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import database as dbmod
-from ..cameras import group_cameras
+from ..cameras import GIVEN_KEY, CameraConfig, group_cameras
 from ..cluster import Cluster
 from ..config import to_dict
 from ..errors import InputError
@@ -282,6 +282,8 @@ def _extract_all(config: FrontendConfig, folder: Path, ws: Workspace, overwrite:
     failed = _unreadable(folder, skipped)
     stamps = image_stamps(folder, [*names, *failed])
     record = {"images": str(folder.resolve()), "camera": to_dict(config.camera), "sift": to_dict(config.sift)}
+    if config.camera.model_given and config.camera.model == CameraConfig.model:
+        record[GIVEN_KEY] = True  # the default named: kept by the mapper (cameras.recorded_model_left_open)
     masks = _masks(config, names, stamps)
     if config.masks:
         record["masks"] = masks_folder(config)

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import database as dbmod
-from ..cameras import report_entry
+from ..cameras import recorded_model_left_open, report_entry
 from ..cluster import Cluster
 from ..config import to_dict
 from ..errors import InputError
@@ -98,7 +98,9 @@ def map_workspace(config: MapperConfig, workspace: Workspace | Path | str, *,
     if config.partition_size and len(corr.images) > config.partition_size:
         result = map_in_parts(corr, config, ws, resume, cluster=cluster)
     else:
-        result = _run_mapper(corr, config, snapshot, resume)
+        features = (stages.get("features") or {}).get("config")
+        choose = config.choose_camera_model and recorded_model_left_open(features)
+        result = _run_mapper(corr, config, snapshot, resume, choose_lens=choose)
     georef = georeference_models(result.models, CenterPriors.of(corr.priors), frame=config.frame,
                                  max_sigmas=config.prior_max_sigmas, seed=config.seed)
     _write_models(ws, result.models, image_dir, text, keypoint_colors)
@@ -125,18 +127,19 @@ def _write_georef(ws: Workspace, georef: dict | None) -> None:
                       "models": [{k: v for k, v in m.items() if k != "flagged"} for m in georef["models"]]}, indent=1)
 
 
-def _run_mapper(corr, config, snapshot: Path, resume: bool):
+def _run_mapper(corr, config, snapshot: Path, resume: bool, choose_lens: bool = False):
     """The models of the correspondences `corr` (database.Correspondences), with each image's status: the
-    incremental mapper (sfm/incremental.py) or, with `mapper = "global"`, the global one (sfm/global_mapper.py,
-    which maps in one go and has no snapshot to resume from). Their modules load only when mapping runs (GTSAM
-    is heavy for the commands that never map)."""
+    incremental mapper (sfm/incremental.py; with `choose_lens`, each camera's model chosen from the data,
+    sfm/lens.py) or, with `mapper = "global"`, the global one (sfm/global_mapper.py, which maps in one go, has
+    no snapshot to resume from and keeps the database's camera models). Their modules load only when mapping
+    runs (GTSAM is heavy for the commands that never map)."""
     if config.mapper == "global":
         from ..sfm.global_mapper import map_correspondences_globally  # noqa: PLC0415 - GTSAM, after the workers fork
 
         return map_correspondences_globally(corr, config, default_workers())
     from ..sfm.incremental import map_correspondences  # noqa: PLC0415 - GTSAM, after the workers fork
 
-    return map_correspondences(corr, config, snapshot_path=snapshot, resume=resume)
+    return map_correspondences(corr, config, snapshot_path=snapshot, resume=resume, choose_lens=choose_lens)
 
 
 def _write_models(ws: Workspace, models: list, image_dir, text: bool, keypoint_colors) -> None:
@@ -164,8 +167,12 @@ def _write_models(ws: Workspace, models: list, image_dir, text: bool, keypoint_c
 def camera_entries(model: Reconstruction) -> list[dict]:
     """The cameras of a model's registered images with their final parameters (COLMAP's order), as report.json
     lists them: the refined intrinsics were only in sparse/N/cameras.bin."""
-    cams = [(cid, model.cameras[int(cid)]) for cid in np.unique(model.camera_of[model.registered])]
-    return [report_entry(cid, cam.model, cam.width, cam.height, cam.params) for cid, cam in cams]
+    cams = [(int(cid), model.cameras[int(cid)]) for cid in np.unique(model.camera_of[model.registered])]
+    out = [report_entry(cid, cam.model, cam.width, cam.height, cam.params) for cid, cam in cams]
+    for entry, (cid, _) in zip(out, cams):
+        if cid in model.lens_trials:  # the model was chosen from the data: the errors that chose it
+            entry["model_choice"] = model.lens_trials[cid]
+    return out
 
 
 class NoVerifiedPairs(InputError):
