@@ -644,6 +644,7 @@ class IncrementalMapper:
 
         georeference(m, cfg.seed)  # into the priors' frame once they allow it (no-op without priors)
         filtering.plausible_bundle(m, intrinsics, distortion, adjust)
+        hand_back_freed_memory()  # else the next global BA (loops closed, then the final one) stacks on its fragments
 
     def _close_loops(self, m: Reconstruction) -> None:
         """Views of existing points that the drift of growth left past the 4 px gate rejoin through the loose
