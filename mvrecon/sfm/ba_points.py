@@ -5,7 +5,8 @@ iteration costs in proportion to the observations. Each image's frame is cut int
 are taken round by round (the best point of every cell, then the second best of every cell, ...), best meaning
 the longest track, then the lowest reprojection error, until the image has `per_image` of them. An image with
 fewer points keeps them all, so sparse scenes are optimised in full. The points left out are re-fitted to the
-new poses afterwards (`triangulate.refine_existing_points`); the final BAs of a model use every point.
+new poses afterwards (`triangulate.refine_existing_points`); the final BAs of a model use every point, except
+in a large model (MapperConfig.final_ba_subset_min_images).
 """
 
 import numpy as np

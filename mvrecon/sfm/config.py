@@ -68,6 +68,9 @@ class MapperConfig:
     ba_points_per_image: int = bounded(300, 0)
     # the same quota below distortion_min_images images, for cameras 3+ registered images share
     ba_points_per_image_early: int = bounded(100, 0)
+    # from this many registered images the final refinement's BAs optimise ba_points_per_image well-spread points
+    # per image and re-fit the others to the poses, as the BAs during growth do (0: every point at any size)
+    final_ba_subset_min_images: int = bounded(100, 0)
     # a second final refinement round runs when the first changed this fraction of observations
     # (COLMAP: ba_global_max_refinement_change, 0.05%, up to 5 rounds)
     final_min_change: float = bounded(0.01, 0.0, 1.0)

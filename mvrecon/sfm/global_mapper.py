@@ -269,7 +269,10 @@ class GlobalMapper:
         and the last round is a subset BA to convergence, then a BA over every point of `_FINAL_ITERATIONS` from
         there: on a 300-image survey (555,000 observations) each of its iterations cost as much as 8 of the
         subset's, and the poses it moves were already fixed by the subset's 300 points per image (cost 1.12e4 ->
-        1.10e4 in its first three)."""
+        1.10e4 in its first three). From final_ba_subset_min_images images (MapperConfig, shared with the
+        incremental mapper) that BA over every point is left out: the subset BA to convergence is the last, its
+        points re-fitted, as at the incremental mapper's end; a BA over every point holds a dense block per
+        point over the cameras that see it."""
         cfg = self.config
         large = int(m.registered.sum()) >= _LARGE_MODEL
         for k, gate in enumerate([*_GATES_PX, cfg.max_reproj_error_px]):
@@ -292,9 +295,11 @@ class GlobalMapper:
         retriangulate(m, self.tracks, cfg, cfg.seed)
         m.priors = self.priors  # the final BA holds the centres to their position priors, as the incremental
         georeference(m, cfg.seed)  # mapper's do once in the priors' frame (georef.py; no-op without priors)
-        if large:
+        final_subset = 0 < cfg.final_ba_subset_min_images <= int(m.registered.sum())
+        if large or final_subset:
             self._bundle(m, intrinsics=True, subset=True)
-        self._bundle(m, intrinsics=True, iterations=_FINAL_ITERATIONS if large else None)
+        if not final_subset:
+            self._bundle(m, intrinsics=True, iterations=_FINAL_ITERATIONS if large else None)
         self._filter(m, cfg)
 
     def _note_lost(self, m: Reconstruction) -> None:

@@ -583,12 +583,14 @@ class IncrementalMapper:
         """Up to `rounds` of global BA (while `growing`: on a point subset, and of `_growth_images` once the
         model is large; LM to `relative_tolerance` when given), retriangulation and filtering (of the
         optimised images' tracks and points); stops early once a round adds and removes fewer than `min_change`
-        of the observations (COLMAP's iterative global refinement)."""
+        of the observations (COLMAP's iterative global refinement). A large model's refinement of every image
+        optimises a point subset too (`_final_subset`)."""
         cfg = self.config
         images = self._growth_images(m) if growing else None
+        subset = growing or self._final_subset(m)
         for _ in range(rounds):
             alive_before, n_before = m.obs_alive.data.copy(), m.obs_alive.n
-            self._global_bundle(m, growing, relative_tolerance=relative_tolerance, images=images)
+            self._global_bundle(m, subset, relative_tolerance=relative_tolerance, images=images)
             retriangulate(m, self.tracks, cfg, cfg.seed, images=images)
             self._filter(m, None if images is None else self._points_of(m, images))
             changed = (m.obs_alive.n - n_before) + int((alive_before & ~m.obs_alive.data[:n_before]).sum())
@@ -599,6 +601,15 @@ class IncrementalMapper:
         if images is None:
             self.full_at = int(m.registered.sum())
         hand_back_freed_memory()
+
+    def _final_subset(self, m: Reconstruction) -> bool:
+        """Whether a BA of every image (the model's final refinement) optimises a point subset, as the BAs during
+        growth do, and re-fits the other points to its poses: from final_ba_subset_min_images registered images.
+        A BA of every point holds, per point, a dense block over the cameras that see it: it held the run's peak
+        memory at scale, while the poses are pinned as well by the well-spread subset. Smaller models keep
+        the BA of every point."""
+        least = self.config.final_ba_subset_min_images
+        return least > 0 and int(m.registered.sum()) >= least
 
     def _growth_images(self, m: Reconstruction) -> np.ndarray | None:
         """The images a global BA during growth optimises: None (every image) up to growth_ba_max_images
@@ -627,7 +638,7 @@ class IncrementalMapper:
     def _points_of(m: Reconstruction, images) -> np.ndarray:
         return np.unique(m.obs_point.data[m.observations_of_images(images)])
 
-    def _global_bundle(self, m: Reconstruction, growing: bool, keep=(), relative_tolerance=None,
+    def _global_bundle(self, m: Reconstruction, subset: bool, keep=(), relative_tolerance=None,
                        images: np.ndarray | None = None) -> None:
         """Global BA of every registered image (or of `images`, the others held). One that leaves a camera
         implausible (focal 10x off its prior or |k| > 1, COLMAP's bogus-camera test) is undone and repeated with
@@ -644,12 +655,13 @@ class IncrementalMapper:
         points = m.alive_points() if images is None else self._points_of(m, images)
 
         def adjust(intr: bool, dist: bool) -> None:
-            self._bundle_points(m, variable, points, growing, keep,
+            self._bundle_points(m, variable, points, subset, keep,
                                 refine_intrinsics=intr, refine_distortion=dist,
                                 max_iterations=cfg.global_ba_iterations, relative_tolerance=relative_tolerance)
 
         georeference(m, cfg.seed)  # into the priors' frame once they allow it (no-op without priors)
         filtering.plausible_bundle(m, intrinsics, distortion, adjust)
+        hand_back_freed_memory()  # else the next global BA (loops closed, then the final one) stacks on its fragments
 
     def _close_loops(self, m: Reconstruction) -> None:
         """Views of existing points that the drift of growth left past the 4 px gate rejoin through the loose
@@ -668,7 +680,8 @@ class IncrementalMapper:
         self._filter(m)
 
     def _finish_model(self, m: Reconstruction) -> None:
-        # loops closed, then global BA with every point (those during growth used a subset),
+        # loops closed, then global BA with every point (those during growth used a subset; so does a large
+        # model's, `_final_subset`),
         # retriangulation and filtering, a second round only when the first still changed final_min_change
         # of the observations; LM run further for a four-term lens (config.py)
         self._close_loops(m)

@@ -171,9 +171,12 @@ def test_map_command_runs_the_global_mapper_and_refuses_an_unknown_one(tmp_path,
     assert f"{bad}: mapper must be one of incremental, global, not 'spiral'" in capsys.readouterr().err
 
 
-def test_a_large_model_ends_with_a_brief_bundle_adjustment_of_every_point(tmp_path, monkeypatch):
+@pytest.mark.parametrize("final_subset", [False, True])
+def test_a_large_model_ends_with_a_brief_or_no_bundle_adjustment_of_every_point(tmp_path, monkeypatch, final_subset):
     """From `_LARGE_MODEL` images (lowered here to 8) the first round optimises the early point quota, every round
-    a subset, and the BA over every point comes last, of `_FINAL_ITERATIONS`; the model stays as accurate."""
+    a subset, and the BA over every point comes last, of `_FINAL_ITERATIONS`; from final_ba_subset_min_images
+    (lowered to 8 too) no BA takes every point, the last is a subset BA to convergence. The model stays as
+    accurate."""
     path = tmp_path / "database.db"
     gt = synthetic_database(path, num_images=8, num_points=1500)
     calls = []
@@ -186,11 +189,15 @@ def test_a_large_model_ends_with_a_brief_bundle_adjustment_of_every_point(tmp_pa
 
     monkeypatch.setattr(global_mapper, "bundle_adjust", spy)
     monkeypatch.setattr(global_mapper, "_LARGE_MODEL", 8)
-    config = MapperConfig(mapper="global", ba_points_per_image=150, ba_points_per_image_early=50)
+    config = MapperConfig(mapper="global", ba_points_per_image=150, ba_points_per_image_early=50,
+                          final_ba_subset_min_images=8 if final_subset else 100)
     result = map_correspondences_globally(database.read_correspondences(path), config)
     *rounds, last = calls
-    assert len(rounds) >= 4 and rounds[0][0] < rounds[1][0]  # the early quota, then the usual one
-    assert all(used < alive for used, alive, _, _ in rounds)
-    assert last[0] == last[1] and last[2] == last[3] == global_mapper._FINAL_ITERATIONS
+    assert len(rounds) >= 3 + (not final_subset) and rounds[0][0] < rounds[1][0]  # the early quota, then the usual
+    assert all(used <= 150 * 8 and used < alive for used, alive, _, _ in rounds)
+    if final_subset:
+        assert last[0] <= 150 * 8 and last[0] < last[1] and last[2] == config.global_ba_iterations
+    else:
+        assert last[0] == last[1] and last[2] == last[3] == global_mapper._FINAL_ITERATIONS
     summary = accuracy_summary(estimated_poses(result), gt)
     assert summary["registered"] == 8 and summary["median_rotation_error_deg"] < 0.1
