@@ -84,8 +84,9 @@ class MapperConfig:
     distortion_min_images: int = bounded(6, 2)
     # when the user left the camera model open (no --camera-model, no --camera-params), a SIMPLE_RADIAL camera
     # becomes OPENCV or OPENCV_FISHEYE where that fits its views clearly better (sfm/lens.py; the incremental
-    # mapper only); off until the mapper suite has shown it neutral on every set (docs/benchmarks.md)
-    choose_camera_model: bool = False
+    # mapper only); on every shared set and catalog scene it either kept SIMPLE_RADIAL (the models unchanged) or
+    # chose the lens's own model (docs/benchmarks.md, "Lens chosen from the data")
+    choose_camera_model: bool = True
     # "incremental": image by image (sfm/incremental.py); "global": all poses at once (sfm/global_mapper.py)
     mapper: str = "incremental"
     # images per part of a partitioned mapping (sfm/partition.py: parts mapped alone, then merged); 0: no parts

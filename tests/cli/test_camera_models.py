@@ -18,6 +18,7 @@ import pytest
 
 from mvrecon.cameras import CameraConfig, group_cameras
 from mvrecon.cli import main
+from mvrecon.commands.demo import scene_model_hint
 from mvrecon.errors import InputError
 from mvrecon.eval.runners import run_meta
 from mvrecon.io.images import image_metadata
@@ -253,20 +254,21 @@ def test_demo_names_the_scenes_camera_model_and_reports_the_cameras(fisheye, cap
     root, scene, _ = fisheye
     with caplog.at_level("INFO"):
         assert main(["demo", "-o", str(root / "demo"), "--scene", SCENE]) == 0
-    hints = [r.getMessage() for r in caplog.records if "--camera-model" in r.getMessage()]
-    assert hints == [f"scene {SCENE} is rendered with OPENCV_FISHEYE cameras and this demo reconstructs with "
-                     "SIMPLE_RADIAL; --camera-model OPENCV_FISHEYE fits the scene"]
+    # the model left open, the mapper chooses the scene's lens itself (sfm/lens.py): no hint to name it
+    assert [r.getMessage() for r in caplog.records if "--camera-model" in r.getMessage()] == []
     # report.json holds each model's cameras with their final parameters, as sparse/0 has them
     run = root / "demo" / "run"
     report = json.loads((run / "report.json").read_text())
     written = pycolmap.Reconstruction(str(run / "sparse" / "0")).cameras
     assert report["models"][0]["cameras"] == [
-        {"camera_id": cid, "model": "SIMPLE_RADIAL", "width": 640, "height": 480, "params": list(cam.params)}
+        {"camera_id": cid, "model": "OPENCV_FISHEYE", "width": 640, "height": 480, "params": list(cam.params)}
         for cid, cam in sorted(written.items())]
+    # a model named keeps the hint
+    assert scene_model_hint(SCENE, scene, "SIMPLE_RADIAL") == (
+        f"scene {SCENE} is rendered with OPENCV_FISHEYE cameras and this demo reconstructs with SIMPLE_RADIAL; "
+        "--camera-model OPENCV_FISHEYE fits the scene")
     assert len(report["models"][0]["cameras"]) == 1
-    from mvrecon.commands.demo import scene_model_hint  # with the scene's own model there is nothing to say
-
-    assert scene_model_hint(SCENE, scene, "OPENCV_FISHEYE") is None
+    assert scene_model_hint(SCENE, scene, "OPENCV_FISHEYE") is None  # the scene's own model: nothing to say
 
 
 def test_colmap_run_reports_list_the_cameras_the_same_way():
