@@ -3,6 +3,7 @@
 import pytest
 
 from mvrecon.scenes import make_scene
+from tests.helpers import edited_scene
 
 
 @pytest.fixture(scope="session")
@@ -15,14 +16,6 @@ def object_orbit_small(tmp_path_factory):
 def aerial_survey_half(tmp_path_factory):
     """The catalog's aerial_survey_small (24 drone views in 4 lines, GPS EXIF with 2.5 / 5 m noise) at half its
     size (320x240, one ray per pixel), rendered once."""
-    from mvrecon.scenes.catalog import load_entry  # noqa: PLC0415 - only this fixture reads a catalog file
-
-    folder = tmp_path_factory.mktemp("aerial_survey_half")
-    text = load_entry("aerial_survey_small")[2].read_text()
-    for old, new in {"width = 640": "width = 320", "height = 480": "height = 240", "supersample = 2":
-                     "supersample = 1", "[500.0, 320.0, 240.0, -0.02]": "[250.0, 160.0, 120.0, -0.02]",
-                     "texture_size = 512": "texture_size = 256"}.items():
-        assert old in text
-        text = text.replace(old, new)
-    (folder / "aerial_survey_half.toml").write_text(text)
-    return make_scene(str(folder / "aerial_survey_half.toml"), folder / "scene")
+    return edited_scene("aerial_survey_small", tmp_path_factory.mktemp("aerial_survey_half"), {
+        "width = 640": "width = 320", "height = 480": "height = 240", "supersample = 2": "supersample = 1",
+        "[500.0, 320.0, 240.0, -0.02]": "[250.0, 160.0, 120.0, -0.02]", "texture_size = 512": "texture_size = 256"})

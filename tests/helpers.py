@@ -11,6 +11,9 @@ import numpy as np
 import pycolmap
 from PIL import Image
 
+from mvrecon.scenes import make_scene
+from mvrecon.scenes.catalog import load_entry
+
 ROOT = Path(__file__).resolve().parents[1]  # the repository: pyproject.toml, mvrecon/, tests/
 DATA = ROOT.parent / "shared" / "data"  # the public image sets, read in place; tests skip without them
 
@@ -80,3 +83,15 @@ def bilinear(image, u, v):
         smooth &= (q.max(0) - q.min(0)) < 0.02 * q.min(0)
     value = (q[0] * (1 - fx) + q[1] * fx) * (1 - fy) + (q[2] * (1 - fx) + q[3] * fx) * fy
     return value, smooth
+
+
+def edited_scene(name: str, folder: Path, edits: dict[str, str]) -> Path:
+    """The catalog scene `name` with each `old` string of its TOML replaced by `new` (each must be there, so an
+    edit of the catalog that drops one fails here, not as a silently different scene), rendered into `folder`."""
+    text = load_entry(name)[2].read_text()
+    for old, new in edits.items():
+        assert old in text, (name, old)
+        text = text.replace(old, new)
+    toml = folder / f"{folder.name}.toml"
+    toml.write_text(text)
+    return make_scene(str(toml), folder / "scene")

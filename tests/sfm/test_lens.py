@@ -14,9 +14,8 @@ from mvrecon.eval.ground_truth import load_ground_truth
 from mvrecon.eval.metrics import accuracy_summary
 from mvrecon.eval.models import poses, sparse_models
 from mvrecon.geometry import camera as cammodel
-from mvrecon.scenes import make_scene
-from mvrecon.scenes.catalog import load_entry
 from mvrecon.sfm.lens import converted_params
+from tests.helpers import edited_scene
 
 
 def test_converted_parameters_project_as_the_simple_radial_lens():
@@ -56,15 +55,9 @@ def test_a_named_default_model_is_recorded_and_never_left_open(tmp_path):
 def wide_half(tmp_path_factory):
     """wide_orbit_small (an OPENCV lens, k1 -0.22, about 100 deg across) at half its size: 12 views,
     320x240."""
-    folder = tmp_path_factory.mktemp("wide_half")
-    text = load_entry("wide_orbit_small")[2].read_text()
-    for old, new in {"width = 640": "width = 320", "height = 480": "height = 240", "supersample = 2":
-                     "supersample = 1", "[269.0, 269.0, 320.0, 240.0,": "[134.5, 134.5, 160.0, 120.0,",
-                     "size = 2048": "size = 1024"}.items():
-        assert old in text
-        text = text.replace(old, new)
-    (folder / "wide_half.toml").write_text(text)
-    return make_scene(str(folder / "wide_half.toml"), folder / "scene")
+    return edited_scene("wide_orbit_small", tmp_path_factory.mktemp("wide_half"), {
+        "width = 640": "width = 320", "height = 480": "height = 240", "supersample = 2": "supersample = 1",
+        "[269.0, 269.0, 320.0, 240.0,": "[134.5, 134.5, 160.0, 120.0,", "size = 2048": "size = 1024"})
 
 
 def _run(scene, out, *flags):
