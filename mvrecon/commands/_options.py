@@ -216,7 +216,10 @@ def config_file(args: argparse.Namespace) -> tuple[FrontendConfig, dict]:
     for key in tables:
         if key not in known:
             raise InputError(f"{args.config}: unknown table or option {key!r} (known: {', '.join(known)})")
-    return with_overrides(FrontendConfig(), tables, source=args.config), mapper
+    config = with_overrides(FrontendConfig(), tables, source=args.config)
+    if "model" in tables.get("camera", {}):  # named, even as the default: kept as named (sfm/lens.py)
+        config = dataclasses.replace(config, camera=dataclasses.replace(config.camera, model_given=True))
+    return config, mapper
 
 
 def warn_if_config_unread(args: argparse.Namespace, command: str, reads: tuple[str, ...]) -> None:
@@ -257,21 +260,13 @@ def frontend_config_from_args(args: argparse.Namespace,
         elif value != getattr(default, name):  # not a flag, not the default: the file's
             origin[name] = f"{args.config}: camera: {name} = {list(value) if name == 'params' else value!r}"
     config.camera.validate(origin)
-    if "model" in origin or "model" in _file_camera_table(args):  # named, even as the default: kept as named
+    if "model" in origin:  # named by a flag, even as the default: kept as named (a file's: `config_file`)
         config = dataclasses.replace(config, camera=dataclasses.replace(config.camera, model_given=True))
     if getattr(args, "pairs", None) is not None:
         check_spec(config.pairs)
     elif config.pairs != type(config)().pairs:
         check_spec(config.pairs, where=f"{args.config}: pairs = {config.pairs!r}")
     return config
-
-
-def _file_camera_table(args: argparse.Namespace) -> dict:
-    """The [camera] table of the --config file, {} without one."""
-    if not getattr(args, "config", None):
-        return {}
-    table = load_toml(args.config).get("camera", {})
-    return table if isinstance(table, dict) else {}
 
 
 DASHED_VALUES = ("--mvrecon-args",)  # options whose value is itself a list of flags
