@@ -23,11 +23,12 @@ from scipy.optimize import least_squares
 
 from ..database import PairGeometry
 from ..executor import WorkerPool
+from ..geometry import camera as cammodel
 from ..geometry.rotation import angle_axis_to_rotmat
 from ..geometry.triangulation import triangulation_angle_deg, two_view_midpoints
 from ..geometry.two_view import homography_translation, relative_pose
 from .config import MapperConfig
-from .model import Reconstruction
+from .model import Camera, Reconstruction
 
 SAMPLE = 1000  # matches a pair's pose and angle are estimated from (as the initial pair's)
 COARSE_SAMPLE = 300  # the same for the coarse models that calibrate a focal
@@ -133,6 +134,17 @@ def calibrate_focals(model: Reconstruction, pairs: dict, seed: int = 0) -> dict:
         if not moved:
             break
     return changed
+
+
+def calibration_shift_px(before: Camera, after: Camera, grid: int = 9) -> float:
+    """The largest distance (pixels) between where `before` and `after` project the rays that `before` sees at a
+    grid of points over the image: how far a change of calibration moves the matches a pair's pose is fit to."""
+    u, v = np.meshgrid(np.linspace(0, before.width, grid), np.linspace(0, before.height, grid))
+    uv = np.c_[u.ravel(), v.ravel()]
+    xy = cammodel.pixels_to_normalized(before.model, before.params, uv)
+    moved = cammodel.normalized_to_pixels(after.model, after.params, cammodel.distort(after.model, after.params, xy))
+    shift = np.linalg.norm(moved - uv, axis=1)
+    return float(np.nanmax(shift)) if np.isfinite(shift).any() else float("inf")
 
 
 def matches_per_image(pairs: dict, n: int) -> np.ndarray:
