@@ -8,7 +8,8 @@ GLOMAP's pipeline on GTSAM and the incremental mapper's own parts:
    pairs whose rotation disagrees by more than 5 degrees are outliers; the largest consistent component is a
    model.
 3. Camera centres: global positioning (global_positioning.py, GLOMAP's): centres and points at once from the
-   tracks' rays turned into the world frame. The coarse models that calibrate a guessed focal take theirs from
+   tracks' rays turned into the world frame, from a random start and from translation averaging's centres, the
+   solution of lower cost kept. The coarse models that calibrate a guessed focal take theirs from
    translation averaging (translation_averaging.py: the pairs' directions, `gtsam.MFAS`,
    `gtsam.TranslationRecovery`) instead: tracks fit a focal far off as well as the right one (on templeSparseRing,
    768 px for the true 1520, a coarse model from tracks moved the focal by 1%, one from pairs to 1100). Measured
@@ -23,6 +24,10 @@ GLOMAP's pipeline on GTSAM and the incremental mapper's own parts:
    after the rounds (fewer than abs_pose_min_inliers, or under abs_pose_min_inlier_ratio of its triangulated
    matches), are taken out of the model with that reason and the model is refined again, rather than written at
    a flipped or far-away pose; each may come back by absolute pose against the points.
+6. While the first models' bundle adjustment moves the calibration the view graph was estimated at by more than
+   a pair's inlier threshold in the image (a guessed focal found only near, a distortion the pairs ignored), the
+   view graph is estimated again at the refined calibration and the models are made again from it (at most
+   `_RECALIBRATIONS` times).
 A consistent view graph of fewer than three images (a single pair) is no model: its images say so.
 The images the first model leaves (other components of the view graph, or images whose pairs were outliers)
 are mapped again as the next model, as the incremental mapper starts new models; every image left

@@ -7,7 +7,8 @@ from mvrecon import database
 from mvrecon.sfm import view_graph
 from mvrecon.sfm.config import MapperConfig
 from mvrecon.sfm.global_mapper import GlobalMapper
-from mvrecon.sfm.view_graph import dense_subset, refine_relative_pose, relative_poses
+from mvrecon.sfm.model import Camera
+from mvrecon.sfm.view_graph import calibration_shift_px, dense_subset, refine_relative_pose, relative_poses
 from tests.sfm.test_global_mapper import rotating_views
 from tests.sfm.test_mapper import synthetic_database
 
@@ -81,3 +82,14 @@ def test_relative_poses_in_worker_processes_are_those_of_one_process(tmp_path, m
         Ra, Rb = gt[mapper.names[a]][0], gt[mapper.names[b]][0]
         errors.append(angle_deg(edge.R @ (Rb @ Ra.T).T))
     assert np.median(errors) < 0.2 and max(errors) < 1.0  # 0.5 px of keypoint noise
+
+
+def test_a_calibration_change_is_measured_by_how_far_it_moves_the_image_corners():
+    """A focal 3% longer moves a 640 x 480 image's corners by 3% of their 400 px from the centre; a distortion
+    k1 of -0.02 at a focal of 450 px by about 6 px; the same calibration moves nothing."""
+    before = Camera("SIMPLE_RADIAL", 640, 480, np.array([450.0, 320.0, 240.0, 0.0]))
+    longer = Camera("SIMPLE_RADIAL", 640, 480, np.array([463.5, 320.0, 240.0, 0.0]))
+    barrel = Camera("SIMPLE_RADIAL", 640, 480, np.array([450.0, 320.0, 240.0, -0.02]))
+    assert calibration_shift_px(before, before) < 1e-9
+    assert abs(calibration_shift_px(before, longer) - 12.0) < 0.01
+    assert 5.0 < calibration_shift_px(before, barrel) < 7.0
