@@ -6,7 +6,8 @@ singular values, so the focal that makes (s1 - s2) / (s1 + s2) smallest over the
 `_CALIBRATION_PAIRS` with the most matches: the estimate needs no more, and its cost then does not grow with the
 set) is the one the pairs support (one scale per camera, searched over 0.25-3x the guess, cameras in turn;
 herzjesu: 2776 px for the true 2760, from 3686). Where the cost has no clear minimum inside that range (under
-half the cost at both ends) the guess stays: when the optical axes meet (an orbit around an object) the pairs do
+0.65 of the cost at both ends: a street's or a facade's minimum is at 0.53-0.62, an orbit's at 0.76-1) the guess
+stays: when the optical axes meet (an orbit around an object) the pairs do
 not observe the focal, and the smallest focal tried wins (object_orbit_small: 384 px for the true 560); the
 global mapper then finds it with coarse models (global_mapper.py). Then `relative_poses` estimates each pair's
 relative pose from its matches in normalised coordinates (five-point RANSAC), with the median triangulation
@@ -34,7 +35,7 @@ SAMPLE = 1000  # matches a pair's pose and angle are estimated from (as the init
 COARSE_SAMPLE = 300  # the same for the coarse models that calibrate a focal
 _SCALES = np.geomspace(0.25, 3.0, 161)  # of a guessed focal, tried by the calibration (steps of 1.6%)
 _EDGE = 6  # a minimum this close to either end of the range is no estimate
-_SHARPNESS = 0.5  # the minimum's cost must be under this share of the cost at both ends of the range
+_SHARPNESS = 0.65  # the minimum's cost must be under this share of the cost at both ends of the range
 _CALIBRATION_SWEEPS = 3
 _MIN_RELATIVE_INLIERS = 15  # a pair's matches fitting its relative pose (COLMAP's min_num_inliers)
 _PARALLEL_PAIRS = 200  # pairs from which `relative_poses` hands them to worker processes
