@@ -134,7 +134,7 @@ class GlobalMapper:
         start = self._clock("view_graph", start)
         models = self._models(scratch.cameras, graph)
         # the view graph again at the calibration the models' bundle adjustment found, while it moves the image
-        # points more than a pair's inlier threshold (`recalibrated`): relative poses at a focal 3% off, or
+        # points more than a pair's inlier threshold (`_recalibrated`): relative poses at a focal 3% off, or
         # without the lens's distortion, hold biases that averaging turns into drift (street_long_small, forward
         # motion: rotations 2 deg off and AUC@5 0.35 from the guessed focal's calibration)
         for _ in range(_RECALIBRATIONS):
