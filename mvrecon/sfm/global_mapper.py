@@ -37,7 +37,7 @@ import numpy as np
 
 from ..database import Correspondences
 from ..progress import progress
-from . import filtering
+from . import filtering, lens
 from .ba_points import select_points
 from .bundle import bundle_adjust
 from .config import MapperConfig
@@ -71,8 +71,10 @@ POSITIONS = "tracks"
 
 
 class GlobalMapper:
-    def __init__(self, corr: Correspondences, config: MapperConfig = MapperConfig(), workers: int = 1):
+    def __init__(self, corr: Correspondences, config: MapperConfig = MapperConfig(), workers: int = 1,
+                 choose_lens: bool = False):
         self.config = config
+        self.choose_lens = choose_lens  # the cameras' models were left open: sfm/lens.py may change them
         self.workers = workers  # processes of the view graph's relative poses (view_graph.relative_poses)
         self.image_ids, self.names, self.camera_of, self.cameras = images_and_cameras(corr)
         ids = self.image_ids.tolist()
@@ -90,10 +92,38 @@ class GlobalMapper:
         return now
 
     def run(self) -> MappingResult:
+        bar = progress(total=len(self.image_ids), desc="mapping", unit="img")
+        models, graph = self._map_all(self.cameras, bar)
+        chosen = lens.switched_cameras(models) if self.choose_lens else {}
+        if chosen:  # the view graph and the averaged poses came from the old model's undistortion: again
+            cameras = {c: replace(cam) for c, cam in self.cameras.items()}
+            for c, (model, params, _) in chosen.items():
+                cameras[c] = replace(cameras[c], model=model, params=params, prior_trusted=True)
+                cameras[c].prior_focal = cameras[c].focal()
+                log.info("camera %d: mapped again as %s (%s)", c, model, np.round(params, 4).tolist())
+            self.reasons, self.choose_lens = {}, False
+            bar.close()
+            bar = progress(total=len(self.image_ids), desc="mapping with the lens chosen", unit="img")
+            models, graph = self._map_all(cameras, bar)
+            for m in models:
+                for c in np.unique(m.camera_of[m.registered]).tolist():
+                    if c in chosen:
+                        m.cameras[c].prior_trusted = False  # calibrated here, as the first mapping left it
+                        m.lens_trials[c] = chosen[c][2]
+        bar.close()
+        models.sort(key=lambda m: -int(m.registered.sum()))
+        return MappingResult(models, self._status(models),
+                             {"tracks": len(self.tracks), "split_inconsistent_tracks": self.tracks.split_inconsistent,
+                              "ba_calls": self.ba_calls, "ba_seconds": self.ba_seconds,
+                              "view_graph_edges": len(graph.edges),
+                              "seconds": {k: round(v, 3) for k, v in self.seconds.items()}})
+
+    def _map_all(self, cameras: dict, bar) -> tuple[list[Reconstruction], object]:
+        """(models, view graph) of every image from the starting `cameras`: the view graph calibrated and
+        estimated, then a model per consistent component (see the module docstring)."""
         n = len(self.image_ids)
-        bar = progress(total=n, desc="mapping", unit="img")
         start = time.perf_counter()
-        scratch = self._new_model(self.cameras)
+        scratch = self._new_model(cameras)
         found = calibrate_focals(scratch, self.pairs, self.config.seed)
         for c, (guess, focal) in found.items():
             log.info("camera %d: focal %.1f px from the view graph (guessed %.1f)", c, focal, guess)
@@ -138,14 +168,8 @@ class GlobalMapper:
                 for i in m.registered_images().tolist():
                     self.reasons[i] = (f"its model stayed at {int(m.registered.sum())} images, under "
                                        f"min_model_size {self.min_model_size()}, and was discarded")
-        bar.close()
-        models.sort(key=lambda m: -int(m.registered.sum()))
         self._clock("models", start)
-        return MappingResult(models, self._status(models),
-                             {"tracks": len(self.tracks), "split_inconsistent_tracks": self.tracks.split_inconsistent,
-                              "ba_calls": self.ba_calls, "ba_seconds": self.ba_seconds,
-                              "view_graph_edges": len(graph.edges),
-                              "seconds": {k: round(v, 3) for k, v in self.seconds.items()}})
+        return models, graph
 
     def min_model_size(self) -> int:
         """As the incremental mapper's: min(min_model_size, 0.8 x the number of images, rounded down)."""
@@ -301,6 +325,9 @@ class GlobalMapper:
         if not final_subset:
             self._bundle(m, intrinsics=True, iterations=_FINAL_ITERATIONS if large else None)
         self._filter(m, cfg)
+        if self.choose_lens and cfg.refine_intrinsics:
+            lens.choose_models(m, lambda: self._bundle(m, intrinsics=True, subset=True),
+                               cfg.filter_max_reproj_error_px)
 
     def _note_lost(self, m: Reconstruction) -> None:
         for i in m.deregister_empty_images():
@@ -400,8 +427,9 @@ class GlobalMapper:
                             lambda i: self.reasons.get(i, "not part of any model's consistent view graph"))
 
 def map_correspondences_globally(corr: Correspondences, config: MapperConfig = MapperConfig(),
-                                 workers: int = 1) -> MappingResult:
+                                 workers: int = 1, choose_lens: bool = False) -> MappingResult:
     """Run the global mapper on a database's correspondences (see `database.read_correspondences`), the view
     graph's relative poses in `workers` processes (a script that asks for more than one needs the
-    `if __name__ == "__main__":` guard that Python's process start methods require)."""
-    return GlobalMapper(corr, config, workers).run()
+    `if __name__ == "__main__":` guard that Python's process start methods require). With `choose_lens` (the
+    user left the camera model open) each camera's model is chosen from the data (sfm/lens.py)."""
+    return GlobalMapper(corr, config, workers, choose_lens).run()

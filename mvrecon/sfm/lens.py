@@ -9,7 +9,9 @@ while its last trial came near a switch: a bundle adjustment of the whole model 
 one from the same start per candidate with its parameters converted (f, f, cx, cy, k, 0, 0, 0 for OPENCV), and
 the best candidate is kept when it brings the camera's reprojection error under MAX_ERROR_RATIO of
 SIMPLE_RADIAL's. The error is the mean over the camera's observations, each capped at the filters' threshold,
-so a few outliers cannot decide.
+so a few outliers cannot decide. The global mapper tries the cameras of each finished model the same way
+(`choose_models`) and, where one switched, maps again from the chosen models (`switched_cameras`): its view
+graph's relative poses and the averaged poses all came from the old model's undistortion.
 """
 
 import logging
@@ -165,3 +167,24 @@ def try_richer_models(m: Reconstruction, c: int, adjust: Callable[[], None], cap
     m.lens_trials[int(c)] = trial.record()
     log.info("lens of %s", trial.text())
     return trial
+
+
+def choose_models(m: Reconstruction, adjust: Callable[[], None], cap: float) -> bool:
+    """Each camera of `m` due a trial (`due_cameras`) tried with the richer models (`try_richer_models`,
+    `adjust()` a BA of the model with the intrinsics refined, `cap` the filters' threshold); True when one
+    switched."""
+    switched = False
+    for c in due_cameras(m):
+        switched |= try_richer_models(m, c, adjust, cap).chosen != MODEL
+    return switched
+
+
+def switched_cameras(models: list[Reconstruction]) -> dict[int, tuple[str, np.ndarray, dict]]:
+    """Camera id -> (model, parameters, trial record) of the cameras a trial moved off MODEL, from the first of
+    `models` (the largest first) that moved each."""
+    out = {}
+    for m in models:
+        for c, record in m.lens_trials.items():
+            if record["chosen"] != MODEL and c not in out:
+                out[int(c)] = (m.cameras[c].model, m.cameras[c].params.copy(), record)
+    return out
