@@ -132,19 +132,20 @@ class GlobalMapper:
         uncalibrated = [c for c, cam in scratch.cameras.items() if not cam.prior_trusted and c not in found]
         if uncalibrated:
             sample = self._calibration_pairs(uncalibrated)
-            graph = relative_poses(scratch, sample, self.config, COARSE_SAMPLE, self.workers)
-            start = self._clock("view_graph", start)
-            for k in range(_CALIBRATION_PASSES if graph.edges else 0):
-                calibrated = self._calibrate_by_bundle(scratch.cameras, graph)
-                for c, params in calibrated.items():
-                    log.info("camera %d: focal %.1f px from a coarse global model (was %.1f)", c, params[0],
-                             scratch.cameras[c].params[0])
-                    scratch.cameras[c].params = params
-                if not calibrated:
-                    break
-                if k + 1 < _CALIBRATION_PASSES:
-                    graph = relative_poses(scratch, sample, self.config, COARSE_SAMPLE, self.workers)
-                start = self._clock("calibration", start)
+            fit = self._calibrate(scratch, sample)
+            # a lens left open may be wide: a coarse model from a wide focal too, kept where it fits better
+            wide = [c for c in uncalibrated if self.choose_lens and scratch.cameras[c].model == lens.MODEL]
+            if wide:
+                other = self._new_model(cameras)
+                for c in wide:
+                    other.cameras[c].set_focal(lens.WIDE_FOCAL * max(other.cameras[c].width, other.cameras[c].height))
+                wide_fit = self._calibrate(other, sample)
+                better = lens.fits_better(wide_fit, fit)
+                log.info("coarse model from a wide focal: %d images, %d observations within the gate, against %d "
+                         "and %d from the guess; %s", *wide_fit, *fit, "kept" if better else "not kept")
+                for c in wide if better else []:
+                    scratch.cameras[c] = other.cameras[c]
+            start = self._clock("calibration", start)
         graph = relative_poses(scratch, self.pairs, self.config, workers=self.workers)
         start = self._clock("view_graph", start)
         for (a, b), why in graph.rejected.items():
@@ -192,7 +193,25 @@ class GlobalMapper:
                 inside |= dense_subset(self.pairs, n, _CALIBRATION_IMAGES, [int(mine[np.argmax(degree[mine])])])
         return {k: v for k, v in self.pairs.items() if inside[k[0]] and inside[k[1]]}
 
-    def _calibrate_by_bundle(self, cameras, graph) -> dict:
+    def _calibrate(self, scratch: Reconstruction, sample: dict) -> tuple[int, int]:
+        """The guessed focal lengths of `scratch`'s cameras refined by coarse models of the pairs `sample`
+        (`_calibrate_by_bundle`, up to `_CALIBRATION_PASSES`); returns the last coarse model's fit (registered
+        images, observations within the filters' gate), (0, 0) without one."""
+        graph = relative_poses(scratch, sample, self.config, COARSE_SAMPLE, self.workers)
+        fit = (0, 0)
+        for k in range(_CALIBRATION_PASSES if graph.edges else 0):
+            calibrated, fit = self._calibrate_by_bundle(scratch.cameras, graph)
+            for c, params in calibrated.items():
+                log.info("camera %d: focal %.1f px from a coarse global model (was %.1f)", c, params[0],
+                         scratch.cameras[c].params[0])
+                scratch.cameras[c].params = params
+            if not calibrated:
+                break
+            if k + 1 < _CALIBRATION_PASSES:
+                graph = relative_poses(scratch, sample, self.config, COARSE_SAMPLE, self.workers)
+        return fit
+
+    def _calibrate_by_bundle(self, cameras, graph) -> tuple[dict, tuple[int, int]]:
         """Camera id -> parameters with the focal refined by a coarse global model (one round of triangulation
         and BA at a loose gate), for the guessed cameras it holds `focal_min_images` images of, where the focal
         moved more than 5% (a coarse model finds it within a few percent; orbit150: 671, 550, 569 px for the true
@@ -204,7 +223,9 @@ class GlobalMapper:
         m, _ = self._map_component(cameras, graph, list(graph.edges), np.ones(len(self.image_ids), bool),
                                    coarse=True)
         if m is None:
-            return {}
+            return {}, (0, 0)
+        err, _ = m.reprojection_errors(m.alive_observations())
+        fit = (int(m.registered.sum()), int(np.count_nonzero(err <= self.config.filter_max_reproj_error_px)))
         out = {}
         for c in np.unique(m.camera_of[m.registered]).tolist():
             before, cam = cameras[c], m.cameras[c]
@@ -212,7 +233,7 @@ class GlobalMapper:
             if not before.prior_trusted and users >= self.config.focal_min_images \
                     and abs(cam.focal() / before.focal() - 1) > 0.05:
                 out[c] = cam.params.copy()
-        return out
+        return out, fit
 
     # ----- one model -----
     def _map_component(self, cameras, graph, keys, pool, coarse: bool = False):

@@ -37,6 +37,11 @@ RETRY_RATIO = 0.9
 # a candidate is kept below this share of SIMPLE_RADIAL's error; measured (docs/benchmarks.md, "Lens chosen
 # from the data"): 0.30-0.44 on the wide lenses, 0.99-1.0 on the SIMPLE_RADIAL lenses of the suite
 MAX_ERROR_RATIO = 0.8
+# the global mapper's second start for a focal its view graph cannot calibrate, as a share of max(width, height)
+# (about 100 deg across): from the 1.2 guess, coarse models of a 100 deg lens kept 2 of 12 images at 643 px,
+# for the lens's 269
+WIDE_FOCAL = 0.42
+MIN_GAIN = 1.2  # `fits_better`: observations a coarse model of as many images needs, as a share of the other's
 
 
 @dataclass
@@ -167,6 +172,13 @@ def try_richer_models(m: Reconstruction, c: int, adjust: Callable[[], None], cap
     m.lens_trials[int(c)] = trial.record()
     log.info("lens of %s", trial.text())
     return trial
+
+
+def fits_better(fit: tuple[int, int], other: tuple[int, int]) -> bool:
+    """Whether a coarse model's fit (registered images, observations within the filters' gate) beats `other`'s:
+    more images, or as many with MIN_GAIN times the observations; a focal far off leaves a coarse model of few
+    images (a 150 deg lens: 3 of 12 from the guess, 5 from WIDE_FOCAL)."""
+    return fit[0] > other[0] or (fit[0] == other[0] and fit[1] > MIN_GAIN * other[1])
 
 
 def choose_models(m: Reconstruction, adjust: Callable[[], None], cap: float) -> bool:
