@@ -101,6 +101,7 @@ class GlobalMapper:
                 cameras[c] = replace(cameras[c], model=model, params=params, prior_trusted=True)
                 cameras[c].prior_focal = cameras[c].focal()
                 log.info("camera %d: mapped again as %s (%s)", c, model, np.round(params, 4).tolist())
+            first = (models, graph, self.reasons)
             self.reasons, self.choose_lens = {}, False
             bar.close()
             bar = progress(total=len(self.image_ids), desc="mapping with the lens chosen", unit="img")
@@ -110,6 +111,10 @@ class GlobalMapper:
                     if c in chosen:
                         m.cameras[c].prior_trusted = False  # calibrated here, as the first mapping left it
                         m.lens_trials[c] = chosen[c][2]
+            if _coverage(models) < _coverage(first[0]):
+                log.info("mapped again with the lens chosen: %s images against %s; the first models are kept",
+                         _coverage(models), _coverage(first[0]))
+                models, graph, self.reasons = first
         bar.close()
         models.sort(key=lambda m: -int(m.registered.sum()))
         return MappingResult(models, self._status(models),
@@ -346,9 +351,11 @@ class GlobalMapper:
         if not final_subset:
             self._bundle(m, intrinsics=True, iterations=_FINAL_ITERATIONS if large else None)
         self._filter(m, cfg)
-        if self.choose_lens and cfg.refine_intrinsics:
-            lens.choose_models(m, lambda: self._bundle(m, intrinsics=True, subset=True),
-                               cfg.filter_max_reproj_error_px)
+        if self.choose_lens and cfg.refine_intrinsics and lens.choose_models(
+                m, lambda: self._bundle(m, intrinsics=True, subset=True), cfg.filter_max_reproj_error_px):
+            retriangulate(m, self.tracks, cfg, cfg.seed)  # the views the old model's filters dropped
+            self._bundle(m, intrinsics=True, subset=final_subset)
+            self._filter(m, cfg)
 
     def _note_lost(self, m: Reconstruction) -> None:
         for i in m.deregister_empty_images():
@@ -446,6 +453,12 @@ class GlobalMapper:
     def _status(self, models: list[Reconstruction]) -> dict:
         return image_status(self.names, self.keypoints, self.pairs, models,
                             lambda i: self.reasons.get(i, "not part of any model's consistent view graph"))
+
+def _coverage(models: list[Reconstruction]) -> tuple[int, int]:
+    """(images of the largest model, images of all models): which of two mappings of a set registered more."""
+    sizes = [int(m.registered.sum()) for m in models]
+    return max(sizes, default=0), sum(sizes)
+
 
 def map_correspondences_globally(corr: Correspondences, config: MapperConfig = MapperConfig(),
                                  workers: int = 1, choose_lens: bool = False) -> MappingResult:

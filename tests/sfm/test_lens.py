@@ -98,3 +98,18 @@ def test_a_simple_radial_lens_keeps_its_model(object_orbit_small, tmp_path):
     errors = camera["model_choice"]["mean_error_px"]
     assert min(errors["OPENCV"], errors["OPENCV_FISHEYE"]) > 0.8 * errors["SIMPLE_RADIAL"], errors
     assert auc["auc@5"] > 0.98, auc
+
+
+@pytest.mark.slow
+def test_the_global_mapper_chooses_the_wide_lens_too(wide_half, tmp_path):
+    """`--mapper global`, default camera settings: the guessed focal (2.9x the lens's) is calibrated from the
+    wide start, the camera ends OPENCV with the errors that chose it in report.json, and the poses are far
+    better than with SIMPLE_RADIAL named on the same images."""
+    camera, auc = _run(wide_half, tmp_path / "open", "--mapper", "global")
+    assert camera["model"] == "OPENCV", camera
+    errors = camera["model_choice"]["mean_error_px"]
+    assert errors["OPENCV"] < 0.8 * errors["SIMPLE_RADIAL"], errors
+    assert auc["registered"] == 12 and auc["auc@5"] > 0.8, auc
+    named, named_auc = _run(wide_half, tmp_path / "named", "--mapper", "global", "--camera-model", "SIMPLE_RADIAL")
+    assert named["model"] == "SIMPLE_RADIAL" and "model_choice" not in named, named
+    assert named_auc["auc@5"] < auc["auc@5"] - 0.3, (named_auc, auc)
