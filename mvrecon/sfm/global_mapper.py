@@ -143,9 +143,10 @@ class GlobalMapper:
         if uncalibrated:
             sample = self._calibration_pairs(uncalibrated)
             fit = self._calibrate(scratch, sample)
-            # a lens left open may be wide: a coarse model from a wide focal too, kept where it fits better
+            # a lens left open may be wide: when the guess's coarse model kept few of the images, one from a wide
+            # focal too, kept where it fits better
             wide = [c for c in uncalibrated if self.choose_lens and scratch.cameras[c].model == lens.MODEL]
-            if wide:
+            if wide and fit[0] < lens.WIDE_TRY * len(np.unique(np.array(list(sample)))):
                 other = self._new_model(cameras)
                 for c in wide:
                     other.cameras[c].set_focal(lens.WIDE_FOCAL * max(other.cameras[c].width, other.cameras[c].height))

@@ -41,6 +41,9 @@ MAX_ERROR_RATIO = 0.8
 # (about 100 deg across): from the 1.2 guess, coarse models of a 100 deg lens kept 2 of 12 images at 643 px,
 # for the lens's 269
 WIDE_FOCAL = 0.42
+# tried only when the guess's coarse model kept under this share of its images: 2-4 of 12-24 on the wide lenses,
+# 17-19 of 19-20 on the lenses SIMPLE_RADIAL describes (where the wide start cost 22% more mapping time)
+WIDE_TRY = 0.8
 MIN_GAIN = 1.2  # `fits_better`: observations a coarse model of as many images needs, as a share of the other's
 
 
