@@ -24,8 +24,9 @@ GLOMAP's pipeline on GTSAM and the incremental mapper's own parts:
    matches), are taken out of the model with that reason and the model is refined again, rather than written at
    a flipped or far-away pose; each may come back by absolute pose against the points.
 6. The camera model chosen from the data (`choose_lens`, the model left open; sfm/lens.py): a focal the view
-   graph cannot tell is calibrated from a wide lens's start too (`lens.WIDE_FOCAL`, kept by `lens.fits_better`:
-   from the guess, a 100 deg lens's coarse models kept 2 of 12 images), each finished model tries its cameras
+   graph cannot tell whose coarse models keep few images (`lens.WIDE_TRY`; a 100 deg lens's kept 2 of 12 from
+   the guess) is calibrated from a wide lens's start too (`lens.WIDE_FOCAL`, kept by `lens.fits_better`), each
+   finished model tries its cameras
    with the richer models, and a switch maps everything again from the chosen lens, as every pose came from
    relative poses at the old one (fisheye_orbit_small: AUC@5 0.00 -> 0.99); kept unless it registers fewer.
 A consistent view graph of fewer than three images (a single pair) is no model: its images say so.
