@@ -26,9 +26,9 @@ GLOMAP's pipeline on GTSAM and the incremental mapper's own parts:
 6. The camera model chosen from the data (`choose_lens`, the model left open; sfm/lens.py): a focal the view
    graph cannot tell whose coarse models keep few images (`lens.WIDE_TRY`; a 100 deg lens's kept 2 of 12 from
    the guess) is calibrated from a wide lens's start too (`lens.WIDE_FOCAL`, kept by `lens.fits_better`), each
-   finished model tries its cameras
-   with the richer models, and a switch maps everything again from the chosen lens, as every pose came from
-   relative poses at the old one (fisheye_orbit_small: AUC@5 0.00 -> 0.99); kept unless it registers fewer.
+   finished model tries its cameras with the richer models, and a switch maps everything again from the chosen
+   lens, as every pose came from relative poses at the old one (fisheye_orbit_small: AUC@5 0.00 -> 0.99); that
+   mapping is kept unless it registers fewer images.
 A consistent view graph of fewer than three images (a single pair) is no model: its images say so.
 The images the first model leaves (other components of the view graph, or images whose pairs were outliers)
 are mapped again as the next model, as the incremental mapper starts new models; every image left
