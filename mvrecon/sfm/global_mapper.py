@@ -28,6 +28,12 @@ GLOMAP's pipeline on GTSAM and the incremental mapper's own parts:
    a pair's inlier threshold in the image (a guessed focal found only near, a distortion the pairs ignored), the
    view graph is estimated again at the refined calibration and the models are made again from it (at most
    `_RECALIBRATIONS` times).
+7. The camera model chosen from the data (`choose_lens`, the model left open; sfm/lens.py): a focal the view
+   graph cannot tell whose coarse models keep few images (`lens.WIDE_TRY`; a 100 deg lens's kept 2 of 12 from
+   the guess) is calibrated from a wide lens's start too (`lens.WIDE_FOCAL`, kept by `lens.fits_better`), each
+   finished model tries its cameras with the richer models, and a switch maps everything again from the chosen
+   lens, as every pose came from relative poses at the old one (fisheye_orbit_small: AUC@5 0.00 -> 0.99); that
+   mapping is kept unless it registers fewer images.
 A consistent view graph of fewer than three images (a single pair) is no model: its images say so.
 The images the first model leaves (other components of the view graph, or images whose pairs were outliers)
 are mapped again as the next model, as the incremental mapper starts new models; every image left
@@ -42,7 +48,7 @@ import numpy as np
 
 from ..database import Correspondences
 from ..progress import progress
-from . import filtering
+from . import filtering, lens
 from .ba_points import select_points
 from .bundle import bundle_adjust
 from .config import MapperConfig
@@ -85,8 +91,10 @@ POSITIONS = "tracks"
 
 
 class GlobalMapper:
-    def __init__(self, corr: Correspondences, config: MapperConfig = MapperConfig(), workers: int = 1):
+    def __init__(self, corr: Correspondences, config: MapperConfig = MapperConfig(), workers: int = 1,
+                 choose_lens: bool = False):
         self.config = config
+        self.choose_lens = choose_lens  # the cameras' models were left open: sfm/lens.py may change them
         self.workers = workers  # processes of the view graph's relative poses (view_graph.relative_poses)
         self.image_ids, self.names, self.camera_of, self.cameras = images_and_cameras(corr)
         ids = self.image_ids.tolist()
@@ -104,10 +112,42 @@ class GlobalMapper:
         return now
 
     def run(self) -> MappingResult:
-        n = len(self.image_ids)
-        bar = progress(total=n, desc="mapping", unit="img")
+        bar = progress(total=len(self.image_ids), desc="mapping", unit="img")
+        models, graph = self._map_all(self.cameras, bar)
+        chosen = lens.switched_cameras(models) if self.choose_lens else {}
+        if chosen:  # the view graph and the averaged poses came from the old model's undistortion: again
+            cameras = {c: replace(cam) for c, cam in self.cameras.items()}
+            for c, (model, params, _) in chosen.items():
+                cameras[c] = replace(cameras[c], model=model, params=params, prior_trusted=True)
+                cameras[c].prior_focal = cameras[c].focal()
+                log.info("camera %d: mapped again as %s (%s)", c, model, np.round(params, 4).tolist())
+            first = (models, graph, self.reasons)
+            self.reasons, self.choose_lens = {}, False
+            bar.close()
+            bar = progress(total=len(self.image_ids), desc="mapping with the lens chosen", unit="img")
+            models, graph = self._map_all(cameras, bar)
+            for m in models:
+                for c in np.unique(m.camera_of[m.registered]).tolist():
+                    if c in chosen:
+                        m.cameras[c].prior_trusted = False  # calibrated here, as the first mapping left it
+                        m.lens_trials[c] = chosen[c][2]
+            if _coverage(models) < _coverage(first[0]):
+                log.info("mapped again with the lens chosen: %s images against %s; the first models are kept",
+                         _coverage(models), _coverage(first[0]))
+                models, graph, self.reasons = first
+        bar.close()
+        models.sort(key=lambda m: -int(m.registered.sum()))
+        return MappingResult(models, self._status(models),
+                             {"tracks": len(self.tracks), "split_inconsistent_tracks": self.tracks.split_inconsistent,
+                              "ba_calls": self.ba_calls, "ba_seconds": self.ba_seconds,
+                              "view_graph_edges": len(graph.edges),
+                              "seconds": {k: round(v, 3) for k, v in self.seconds.items()}})
+
+    def _map_all(self, cameras: dict, bar) -> tuple[list[Reconstruction], object]:
+        """(models, view graph) of every image from the starting `cameras`: the view graph calibrated and
+        estimated, then a model per consistent component (see the module docstring)."""
         start = time.perf_counter()
-        scratch = self._new_model(self.cameras)
+        scratch = self._new_model(cameras)
         found = calibrate_focals(scratch, self.pairs, self.config.seed)
         for c, (guess, focal) in found.items():
             log.info("camera %d: focal %.1f px from the view graph (guessed %.1f)", c, focal, guess)
@@ -116,19 +156,21 @@ class GlobalMapper:
         uncalibrated = [c for c, cam in scratch.cameras.items() if not cam.prior_trusted and c not in found]
         if uncalibrated:
             sample = self._calibration_pairs(uncalibrated)
-            graph = relative_poses(scratch, sample, self.config, COARSE_SAMPLE, self.workers)
-            start = self._clock("view_graph", start)
-            for k in range(_CALIBRATION_PASSES if graph.edges else 0):
-                calibrated = self._calibrate_by_bundle(scratch.cameras, graph)
-                for c, params in calibrated.items():
-                    log.info("camera %d: focal %.1f px from a coarse global model (was %.1f)", c, params[0],
-                             scratch.cameras[c].params[0])
-                    scratch.cameras[c].params = params
-                if not calibrated:
-                    break
-                if k + 1 < _CALIBRATION_PASSES:
-                    graph = relative_poses(scratch, sample, self.config, COARSE_SAMPLE, self.workers)
-                start = self._clock("calibration", start)
+            fit = self._calibrate(scratch, sample)
+            # a lens left open may be wide: when the guess's coarse model kept few of the images, one from a wide
+            # focal too, kept where it fits better
+            wide = [c for c in uncalibrated if self.choose_lens and scratch.cameras[c].model == lens.MODEL]
+            if wide and fit[0] < lens.WIDE_TRY * len(np.unique(np.array(list(sample)))):
+                other = self._new_model(cameras)
+                for c in wide:
+                    other.cameras[c].set_focal(lens.WIDE_FOCAL * max(other.cameras[c].width, other.cameras[c].height))
+                wide_fit = self._calibrate(other, sample)
+                better = lens.fits_better(wide_fit, fit)
+                log.info("coarse model from a wide focal: %d images, %d observations within the gate, against %d "
+                         "and %d from the guess; %s", *wide_fit, *fit, "kept" if better else "not kept")
+                for c in wide if better else []:
+                    scratch.cameras[c] = other.cameras[c]
+            start = self._clock("calibration", start)
         reasons = dict(self.reasons)
         graph = relative_poses(scratch, self.pairs, self.config, workers=self.workers)
         start = self._clock("view_graph", start)
@@ -138,10 +180,10 @@ class GlobalMapper:
         # percent off hold biases that averaging turns into drift (toy_object_small, a guessed focal the coarse
         # models left at 788 px for the true 667: AUC@5 0.66 without this, 0.76 with it; about 2x the mapping time)
         for _ in range(_RECALIBRATIONS):
-            cameras = self._recalibrated(scratch.cameras, models)
-            if not cameras:
+            changed = self._recalibrated(scratch.cameras, models)
+            if not changed:
                 break
-            for c, cam in cameras.items():
+            for c, cam in changed.items():
                 log.info("camera %d: the view graph again at %s %s (was %s)", c, cam.model,
                          np.round(cam.params, 4).tolist(), np.round(scratch.cameras[c].params, 4).tolist())
                 scratch.cameras[c] = cam
@@ -151,13 +193,8 @@ class GlobalMapper:
             self.reasons = dict(reasons)
             models = self._models(scratch.cameras, graph)
         bar.update(sum(int(m.registered.sum()) for m in models))
-        bar.close()
         self._clock("models", start)
-        return MappingResult(models, self._status(models),
-                             {"tracks": len(self.tracks), "split_inconsistent_tracks": self.tracks.split_inconsistent,
-                              "ba_calls": self.ba_calls, "ba_seconds": self.ba_seconds,
-                              "view_graph_edges": len(graph.edges),
-                              "seconds": {k: round(v, 3) for k, v in self.seconds.items()}})
+        return models, graph
 
     def _models(self, cameras, graph) -> list[Reconstruction]:
         """The models of the view graph, largest first: the largest consistent component, then the largest of
@@ -219,7 +256,25 @@ class GlobalMapper:
                 inside |= dense_subset(self.pairs, n, _CALIBRATION_IMAGES, [int(mine[np.argmax(degree[mine])])])
         return {k: v for k, v in self.pairs.items() if inside[k[0]] and inside[k[1]]}
 
-    def _calibrate_by_bundle(self, cameras, graph) -> dict:
+    def _calibrate(self, scratch: Reconstruction, sample: dict) -> tuple[int, int]:
+        """The guessed focal lengths of `scratch`'s cameras refined by coarse models of the pairs `sample`
+        (`_calibrate_by_bundle`, up to `_CALIBRATION_PASSES`); returns the last coarse model's fit (registered
+        images, observations within the filters' gate), (0, 0) without one."""
+        graph = relative_poses(scratch, sample, self.config, COARSE_SAMPLE, self.workers)
+        fit = (0, 0)
+        for k in range(_CALIBRATION_PASSES if graph.edges else 0):
+            calibrated, fit = self._calibrate_by_bundle(scratch.cameras, graph)
+            for c, params in calibrated.items():
+                log.info("camera %d: focal %.1f px from a coarse global model (was %.1f)", c, params[0],
+                         scratch.cameras[c].params[0])
+                scratch.cameras[c].params = params
+            if not calibrated:
+                break
+            if k + 1 < _CALIBRATION_PASSES:
+                graph = relative_poses(scratch, sample, self.config, COARSE_SAMPLE, self.workers)
+        return fit
+
+    def _calibrate_by_bundle(self, cameras, graph) -> tuple[dict, tuple[int, int]]:
         """Camera id -> parameters with the focal refined by a coarse global model (one round of triangulation
         and BA at a loose gate), for the guessed cameras it holds `focal_min_images` images of, where the focal
         moved more than 5% (a coarse model finds it within a few percent; orbit150: 671, 550, 569 px for the true
@@ -231,7 +286,9 @@ class GlobalMapper:
         m, _ = self._map_component(cameras, graph, list(graph.edges), np.ones(len(self.image_ids), bool),
                                    coarse=True)
         if m is None:
-            return {}
+            return {}, (0, 0)
+        err, _ = m.reprojection_errors(m.alive_observations())
+        fit = (int(m.registered.sum()), int(np.count_nonzero(err <= self.config.filter_max_reproj_error_px)))
         out = {}
         for c in np.unique(m.camera_of[m.registered]).tolist():
             before, cam = cameras[c], m.cameras[c]
@@ -239,7 +296,7 @@ class GlobalMapper:
             if not before.prior_trusted and users >= self.config.focal_min_images \
                     and abs(cam.focal() / before.focal() - 1) > 0.05:
                 out[c] = cam.params.copy()
-        return out
+        return out, fit
 
     # ----- one model -----
     def _map_component(self, cameras, graph, keys, pool, coarse: bool = False):
@@ -353,6 +410,11 @@ class GlobalMapper:
         if not final_subset:
             self._bundle(m, intrinsics=True, iterations=_FINAL_ITERATIONS if large else None)
         self._filter(m, cfg)
+        if self.choose_lens and cfg.refine_intrinsics and lens.choose_models(
+                m, lambda: self._bundle(m, intrinsics=True, subset=True), cfg.filter_max_reproj_error_px):
+            retriangulate(m, self.tracks, cfg, cfg.seed)  # the views the old model's filters dropped
+            self._bundle(m, intrinsics=True, subset=final_subset)
+            self._filter(m, cfg)
 
     def _note_lost(self, m: Reconstruction) -> None:
         for i in m.deregister_empty_images():
@@ -451,9 +513,16 @@ class GlobalMapper:
         return image_status(self.names, self.keypoints, self.pairs, models,
                             lambda i: self.reasons.get(i, "not part of any model's consistent view graph"))
 
+def _coverage(models: list[Reconstruction]) -> tuple[int, int]:
+    """(images of the largest model, images of all models): which of two mappings of a set registered more."""
+    sizes = [int(m.registered.sum()) for m in models]
+    return max(sizes, default=0), sum(sizes)
+
+
 def map_correspondences_globally(corr: Correspondences, config: MapperConfig = MapperConfig(),
-                                 workers: int = 1) -> MappingResult:
+                                 workers: int = 1, choose_lens: bool = False) -> MappingResult:
     """Run the global mapper on a database's correspondences (see `database.read_correspondences`), the view
     graph's relative poses in `workers` processes (a script that asks for more than one needs the
-    `if __name__ == "__main__":` guard that Python's process start methods require)."""
-    return GlobalMapper(corr, config, workers).run()
+    `if __name__ == "__main__":` guard that Python's process start methods require). With `choose_lens` (the
+    user left the camera model open) each camera's model is chosen from the data (sfm/lens.py)."""
+    return GlobalMapper(corr, config, workers, choose_lens).run()

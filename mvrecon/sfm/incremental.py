@@ -548,15 +548,12 @@ class IncrementalMapper:
         """When the user left the camera model open, each camera due a trial (`lens.due_cameras`) is tried
         with the richer models (`lens.try_richer_models`, a BA of every image per model); after a switch, a
         global refinement brings back the views the old model's filters dropped."""
-        cfg, switched = self.config, False
+        cfg = self.config
         if not self.choose_lens or not cfg.refine_intrinsics:
             return
-        for c in lens.due_cameras(m):
-            trial = lens.try_richer_models(m, c, lambda: self._bundle(
+        if lens.choose_models(m, lambda: self._bundle(
                 m, m.registered_images(), refine_intrinsics=True, refine_distortion=True,
-                max_iterations=cfg.global_ba_iterations), cfg.filter_max_reproj_error_px)
-            switched |= trial.chosen != lens.MODEL
-        if switched:
+                max_iterations=cfg.global_ba_iterations), cfg.filter_max_reproj_error_px):
             self._global_refine(m)
 
     def _filter(self, m: Reconstruction, point_ids=None) -> None:

@@ -9,7 +9,9 @@ while its last trial came near a switch: a bundle adjustment of the whole model 
 one from the same start per candidate with its parameters converted (f, f, cx, cy, k, 0, 0, 0 for OPENCV), and
 the best candidate is kept when it brings the camera's reprojection error under MAX_ERROR_RATIO of
 SIMPLE_RADIAL's. The error is the mean over the camera's observations, each capped at the filters' threshold,
-so a few outliers cannot decide.
+so a few outliers cannot decide. The global mapper tries the cameras of each finished model the same way
+(`choose_models`) and, where one switched, maps again from the chosen models (`switched_cameras`): its view
+graph's relative poses and the averaged poses all came from the old model's undistortion.
 """
 
 import logging
@@ -35,6 +37,14 @@ RETRY_RATIO = 0.9
 # a candidate is kept below this share of SIMPLE_RADIAL's error; measured (docs/benchmarks.md, "Lens chosen
 # from the data"): 0.30-0.44 on the wide lenses, 0.99-1.0 on the SIMPLE_RADIAL lenses of the suite
 MAX_ERROR_RATIO = 0.8
+# the global mapper's second start for a focal its view graph cannot calibrate, as a share of max(width, height)
+# (about 100 deg across): from the 1.2 guess, coarse models of a 100 deg lens kept 2 of 12 images at 643 px,
+# for the lens's 269
+WIDE_FOCAL = 0.42
+# tried only when the guess's coarse model kept under this share of its images: 2-4 of 12-24 on the wide lenses,
+# 17-19 of 19-20 on the lenses SIMPLE_RADIAL describes (where the wide start cost 22% more mapping time)
+WIDE_TRY = 0.8
+MIN_GAIN = 1.2  # `fits_better`: observations a coarse model of as many images needs, as a share of the other's
 
 
 @dataclass
@@ -165,3 +175,31 @@ def try_richer_models(m: Reconstruction, c: int, adjust: Callable[[], None], cap
     m.lens_trials[int(c)] = trial.record()
     log.info("lens of %s", trial.text())
     return trial
+
+
+def fits_better(fit: tuple[int, int], other: tuple[int, int]) -> bool:
+    """Whether a coarse model's fit (registered images, observations within the filters' gate) beats `other`'s:
+    more images, or as many with MIN_GAIN times the observations; a focal far off leaves a coarse model of few
+    images (a 150 deg lens: 3 of 12 from the guess, 5 from WIDE_FOCAL)."""
+    return fit[0] > other[0] or (fit[0] == other[0] and fit[1] > MIN_GAIN * other[1])
+
+
+def choose_models(m: Reconstruction, adjust: Callable[[], None], cap: float) -> bool:
+    """Each camera of `m` due a trial (`due_cameras`) tried with the richer models (`try_richer_models`,
+    `adjust()` a BA of the model with the intrinsics refined, `cap` the filters' threshold); True when one
+    switched."""
+    switched = False
+    for c in due_cameras(m):
+        switched |= try_richer_models(m, c, adjust, cap).chosen != MODEL
+    return switched
+
+
+def switched_cameras(models: list[Reconstruction]) -> dict[int, tuple[str, np.ndarray, dict]]:
+    """Camera id -> (model, parameters, trial record) of the cameras a trial moved off MODEL, from the first of
+    `models` (the largest first) that moved each."""
+    out = {}
+    for m in models:
+        for c, record in m.lens_trials.items():
+            if record["chosen"] != MODEL and c not in out:
+                out[int(c)] = (m.cameras[c].model, m.cameras[c].params.copy(), record)
+    return out

@@ -130,13 +130,13 @@ def _write_georef(ws: Workspace, georef: dict | None) -> None:
 def _run_mapper(corr, config, snapshot: Path, resume: bool, choose_lens: bool = False):
     """The models of the correspondences `corr` (database.Correspondences), with each image's status: the
     incremental mapper (sfm/incremental.py; with `choose_lens`, each camera's model chosen from the data,
-    sfm/lens.py) or, with `mapper = "global"`, the global one (sfm/global_mapper.py, which maps in one go, has
-    no snapshot to resume from and keeps the database's camera models). Their modules load only when mapping
-    runs (GTSAM is heavy for the commands that never map)."""
+    sfm/lens.py) or, with `mapper = "global"`, the global one (sfm/global_mapper.py, which maps in one go and
+    has no snapshot to resume from; it chooses the models with `choose_lens` too). Their modules load only
+    when mapping runs (GTSAM is heavy for the commands that never map)."""
     if config.mapper == "global":
         from ..sfm.global_mapper import map_correspondences_globally  # noqa: PLC0415 - GTSAM, after the workers fork
 
-        return map_correspondences_globally(corr, config, default_workers())
+        return map_correspondences_globally(corr, config, default_workers(), choose_lens=choose_lens)
     from ..sfm.incremental import map_correspondences  # noqa: PLC0415 - GTSAM, after the workers fork
 
     return map_correspondences(corr, config, snapshot_path=snapshot, resume=resume, choose_lens=choose_lens)
