@@ -180,6 +180,8 @@ class GlobalMapper:
         # percent off hold biases that averaging turns into drift (toy_object_small, a guessed focal the coarse
         # models left at 788 px for the true 667: AUC@5 0.66 without this, 0.76 with it; about 2x the mapping time)
         for _ in range(_RECALIBRATIONS):
+            if self.choose_lens and lens.switched_cameras(models):
+                break  # `run` maps everything again from the lens chosen, and may recalibrate there
             changed = self._recalibrated(scratch.cameras, models)
             if not changed:
                 break
