@@ -7,6 +7,7 @@ complete by the other (`shared_folder`).
 
 import pytest
 
+from mvrecon.cli import main
 from mvrecon.scenes import make_scene
 from tests.helpers import edited_scene, shared_folder
 
@@ -43,3 +44,22 @@ def aerial_survey_half(tmp_path_factory):
         return edited_scene("aerial_survey_small", folder, {
             "width = 640": "width = 320", "height = 480": "height = 240", "supersample = 2": "supersample = 1",
             "[500.0, 320.0, 240.0, -0.02]": "[250.0, 160.0, 120.0, -0.02]", "texture_size = 512": "texture_size = 256"})
+
+
+@pytest.fixture(scope="session")
+def aerial_survey_half_run(aerial_survey_half, tmp_path_factory):
+    """`mvrecon reconstruct` of aerial_survey_half with the default settings (GPS EXIF: a georeferenced model),
+    made once; tests copy it before changing it."""
+    with shared_folder(tmp_path_factory, "aerial_survey_half_run") as folder:
+        out = folder / "run"
+        if not (out / "report.json").is_file():
+            assert main(["-q", "reconstruct", str(aerial_survey_half / "images"), "-o", str(out)]) == 0
+        return out
+
+
+@pytest.fixture(scope="session")
+def fisheye_orbit_small(tmp_path_factory):
+    """The catalog's fisheye_orbit_small (12 views through an OPENCV_FISHEYE lens, 640x480), rendered once;
+    tests copy it where a command looks for it (`mvrecon demo -o ROOT` finds ROOT/scene up to date)."""
+    with shared_folder(tmp_path_factory, "fisheye_orbit_small") as folder:
+        return make_scene("fisheye_orbit_small", folder)
