@@ -4,11 +4,16 @@ Helpers that take arguments live here and are imported (`from tests.helpers impo
 shared by several folders live in conftest.py.
 """
 
+import fcntl
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pycolmap
+import pytest
 from PIL import Image
 
 from mvrecon.scenes import make_scene
@@ -95,3 +100,21 @@ def edited_scene(name: str, folder: Path, edits: dict[str, str]) -> Path:
     toml = folder / f"{folder.name}.toml"
     toml.write_text(text)
     return make_scene(str(toml), folder / "scene")
+
+
+@contextmanager
+def shared_folder(tmp_path_factory: pytest.TempPathFactory, name: str) -> Iterator[Path]:
+    """The folder `name` of this test run, held by one process at a time: a worker's own temporary folder lies
+    in the run's, which every worker of the run shares. What is made there must be found complete when made
+    again (catalog scenes and the COLMAP runners' outputs are)."""
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent
+    folder = root / name
+    folder.mkdir(exist_ok=True)
+    with open(root / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            yield folder
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)

@@ -30,13 +30,11 @@ COLMAP_FISHEYE_NOTE = "COLMAP verifies no pair of a fisheye camera without a kno
 
 
 @pytest.fixture(scope="module")
-def fisheye(tmp_path_factory):
-    """The fisheye scene (made where `demo -o ROOT/demo` finds it) and pycolmap's database of four of its views,
+def fisheye(fisheye_orbit_small, tmp_path_factory):
+    """The fisheye scene (copied where `demo -o ROOT/demo` finds it) and pycolmap's database of four of its views,
     extracted as OPENCV_FISHEYE without a focal prior and matched exhaustively."""
-    from mvrecon.scenes import make_scene
-
     root = tmp_path_factory.mktemp("fisheye")
-    scene = make_scene(SCENE, root / "demo" / "scene")
+    scene = Path(shutil.copytree(fisheye_orbit_small, root / "demo" / "scene"))
     db = root / "colmap.db"
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "OPENCV_FISHEYE"

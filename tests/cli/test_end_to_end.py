@@ -4,6 +4,7 @@ and the clear failure when a database has no verified pairs."""
 import json
 import logging
 import re
+import shutil
 
 import numpy as np
 import pycolmap
@@ -19,8 +20,10 @@ from mvrecon.io.ply import read_ply_points
 
 
 @pytest.fixture(scope="module")
-def demo(tmp_path_factory):
+def demo(object_orbit_small, tmp_path_factory):
+    """`mvrecon demo` on its scene, object_orbit_small, rendered once for the run (demo finds it up to date)."""
     out = tmp_path_factory.mktemp("demo")
+    shutil.copytree(object_orbit_small, out / "scene")
     assert main(["-q", "demo", "-o", str(out)]) == 0
     return out
 

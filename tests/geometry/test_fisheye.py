@@ -118,12 +118,13 @@ def test_a_guessed_focal_moves_fx_and_fy_together():
 
 
 @pytest.fixture(scope="module")
-def fisheye_run(tmp_path_factory):
-    """fisheye_orbit_small rendered and reconstructed by `mvrecon demo --camera-model OPENCV_FISHEYE` (which runs
+def fisheye_run(fisheye_orbit_small, tmp_path_factory):
+    """fisheye_orbit_small reconstructed by `mvrecon demo --camera-model OPENCV_FISHEYE` (which runs
     `reconstruct` on its images; no EXIF: the focal starts at the 768 px guess for 285)."""
     import json
 
     root = tmp_path_factory.mktemp("fisheye")
+    shutil.copytree(fisheye_orbit_small, root / "scene")  # rendered once: demo finds it up to date
     assert main(["-q", "demo", "-o", str(root), "--scene", "fisheye_orbit_small", "--camera-model", FISHEYE]) == 0
     scene, run = root / "scene", root / "run"
     assert Workspace(run).stage_config("features")["camera"]["model"] == FISHEYE

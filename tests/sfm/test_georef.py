@@ -18,7 +18,7 @@ from mvrecon.geometry.sim3 import umeyama
 from mvrecon.io.gps import enu_to_ecef, from_ecef, from_enu, to_enu
 from mvrecon.sfm import global_mapper
 
-pytestmark = pytest.mark.slow  # four 24-view reconstructions at 320x240
+pytestmark = pytest.mark.slow  # 24-view reconstructions at 320x240
 
 
 def _positions(out, gps):
@@ -39,10 +39,9 @@ def _rms(d):
 
 
 @pytest.fixture(scope="module")
-def exif_run(aerial_survey_half, tmp_path_factory):
-    out = tmp_path_factory.mktemp("georef") / "exif"
-    assert main(["-q", "reconstruct", str(aerial_survey_half / "images"), "-o", str(out)]) == 0
-    return out
+def exif_run(aerial_survey_half_run):
+    """The survey reconstructed with the default settings: the GPS EXIF of its images places the model."""
+    return aerial_survey_half_run
 
 
 def test_gps_exif_puts_the_model_in_enu_within_its_noise(aerial_survey_half, exif_run):

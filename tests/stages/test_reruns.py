@@ -17,11 +17,10 @@ from mvrecon.workspace import Workspace
 
 
 @pytest.fixture(scope="module")
-def base(tmp_path_factory):
+def base(object_orbit_small, tmp_path_factory):
     """object_orbit_small (10 views, 640x480) and a finished `reconstruct` of it (seed 0)."""
     root = tmp_path_factory.mktemp("orbit")
-    assert main(["-q", "scene", "make", "object_orbit_small", "-o", str(root / "scene")]) == 0
-    images = root / "scene" / "images"
+    images = object_orbit_small / "images"
     assert main(["-q", "reconstruct", str(images), "-o", str(root / "run")]) == 0
     assert (root / "run" / "snapshots" / "mapper.pkl").is_file()
     return images, root / "run"
