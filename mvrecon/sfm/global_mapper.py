@@ -515,6 +515,7 @@ class GlobalMapper:
         return image_status(self.names, self.keypoints, self.pairs, models,
                             lambda i: self.reasons.get(i, "not part of any model's consistent view graph"))
 
+
 def _coverage(models: list[Reconstruction]) -> tuple[int, int]:
     """(images of the largest model, images of all models): which of two mappings of a set registered more."""
     sizes = [int(m.registered.sum()) for m in models]
