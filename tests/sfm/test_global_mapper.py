@@ -3,6 +3,7 @@ catalog scene end to end through `mvrecon reconstruct --mapper global`."""
 
 import json
 import re
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from mvrecon.sfm.bundle import bundle_adjust
 from mvrecon.sfm.config import MapperConfig
 from mvrecon.sfm.global_mapper import GlobalMapper, map_correspondences_globally
 from mvrecon.sfm.model import Reconstruction
+from mvrecon.sfm.view_graph import calibration_shift_px
 from tests.sfm.test_mapper import _accuracy, estimated_poses, lined_up_views, synthetic_database
 
 GLOBAL = MapperConfig(mapper="global")
@@ -201,3 +203,17 @@ def test_a_large_model_ends_with_a_brief_or_no_bundle_adjustment_of_every_point(
         assert last[0] == last[1] and last[2] == last[3] == global_mapper._FINAL_ITERATIONS
     summary = accuracy_summary(estimated_poses(result), gt)
     assert summary["registered"] == 8 and summary["median_rotation_error_deg"] < 0.1
+
+
+def test_the_view_graph_is_made_again_only_for_a_focal_that_moved_far(scene):
+    """`_recalibrated`: a calibration the models moved 3% off the view graph's (a corner shifts by more than a
+    pair's inlier threshold) is not worth a second view graph; one moved 20% is."""
+    _, corr, result = scene
+    m = result.models[0]
+    refined = m.cameras[1]
+    mapper = GlobalMapper(corr, GLOBAL)
+    for scale, again in ((1.03, False), (1.2, True)):
+        before = replace(refined, params=refined.params.copy())
+        before.params[0] *= scale
+        assert calibration_shift_px(before, refined) > GLOBAL.two_view_max_error_px
+        assert (1 in mapper._recalibrated({1: before}, [m])) == again
