@@ -100,7 +100,6 @@ def test_a_simple_radial_lens_keeps_its_model(object_orbit_small, tmp_path):
     assert auc["auc@5"] > 0.98, auc
 
 
-
 @pytest.fixture(scope="module")
 def wide_480(tmp_path_factory):
     """wide_orbit_small at 480x360 (12 views): at 320x240 the global mapper's view graph has too few matches
