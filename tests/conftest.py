@@ -8,6 +8,7 @@ complete by the other (`shared_folder`).
 import pytest
 
 from mvrecon.cli import main
+from mvrecon.io.files import printable_name
 from mvrecon.scenes import make_scene
 from tests.helpers import edited_scene, shared_folder
 
@@ -16,7 +17,7 @@ def _utf8(value):
     """`value` with every string UTF-8 encodable: a file name that is not UTF-8 (tests/stages/test_workspace.py
     makes some) reaches the captured log as surrogates, which a worker cannot send to the main process."""
     if isinstance(value, str):
-        return value.encode("utf-8", "backslashreplace").decode("utf-8")
+        return printable_name(value)
     if isinstance(value, dict):
         return {_utf8(k): _utf8(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):

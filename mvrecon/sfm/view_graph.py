@@ -143,7 +143,7 @@ def calibration_shift_px(before: Camera, after: Camera, grid: int = 9) -> float:
     u, v = np.meshgrid(np.linspace(0, before.width, grid), np.linspace(0, before.height, grid))
     uv = np.c_[u.ravel(), v.ravel()]
     xy = cammodel.pixels_to_normalized(before.model, before.params, uv)
-    moved = cammodel.normalized_to_pixels(after.model, after.params, cammodel.distort(after.model, after.params, xy))
+    moved = cammodel.project(after.model, after.params, np.c_[xy, np.ones(len(xy))])
     shift = np.linalg.norm(moved - uv, axis=1)
     return float(np.nanmax(shift)) if np.isfinite(shift).any() else float("inf")
 
