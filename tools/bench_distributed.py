@@ -2,6 +2,7 @@
 
     python tools/bench_distributed.py SCENE/images                       # local pool vs local:2, 3 rounds
     python tools/bench_distributed.py SCENE/images --repeats 2 --map     # and the mapping stage, timed once
+    python tools/bench_distributed.py SCENE/images --partition-size 200  # and mapping in parts on the cluster
     python tools/bench_distributed.py SCENE/images --out docs/distributed.md  # the measured section of the page
 
 (1) Overhead: the features and matching stages (default settings, `--pairs auto`) in a fresh workspace, as
@@ -20,7 +21,11 @@ result into the one database).
 the bandwidth being --bandwidth MB/s (default 110: one 1 Gbit/s link into the client and into the file server
 holding the images; assumed, not measured: a LocalCluster moves its bytes over loopback). The stage whose
 non-shrinking term first exceeds its compute term stops scaling first. With --map, the mapping stage is timed
-once (`mvrecon map`, in this process's machine) and added as a serial term: it runs on the client.
+once on the client (the features and matching's workspace copied, the model scored against SCENE/gt/sparse when
+there is one) and added as a serial term: it runs on the client whatever the cluster. With --partition-size P it
+is also mapped in parts of at most P images on the cluster (`map --partition-size P --cluster`, each part one
+task): the parts' compute shrinks with the machines down to the largest part; what runs on the client (reading
+the database, splitting the view graph, merging the parts and the final bundle adjustment) does not.
 
 It prints the tables and, with --out, writes them into that markdown page between the markers
 `<!-- bench_distributed -->` and `<!-- /bench_distributed -->` (the rest of the page is left as it is).
@@ -45,25 +50,68 @@ sys.path.insert(0, str(ROOT))
 from distributed import get_task_stream  # noqa: E402
 
 from mvrecon.cluster import ClusterSpec, open_cluster  # noqa: E402
+from mvrecon.eval.ground_truth import load_ground_truth  # noqa: E402
+from mvrecon.eval.metrics import accuracy_summary  # noqa: E402
+from mvrecon.eval.models import poses, sparse_models  # noqa: E402
 from mvrecon.executor import cpu_seconds as pool_cpu_seconds  # noqa: E402
 from mvrecon.executor import process_cpu_seconds  # noqa: E402
+from mvrecon.sfm.config import MapperConfig  # noqa: E402
 from mvrecon.stages.common import FrontendConfig  # noqa: E402
 from mvrecon.stages.features import extract_features  # noqa: E402
+from mvrecon.stages.mapping import map_workspace  # noqa: E402
 from mvrecon.stages.matching import match  # noqa: E402
 from mvrecon.workspace import Workspace  # noqa: E402
 
 MARK, END = "<!-- bench_distributed -->", "<!-- /bench_distributed -->"
 # task key prefix -> stage (client.submit names a task by its function)
 STAGE_OF_TASK = {"_extract_job": "features", "_extract_sent": "features", "_match_batch": "matching",
-                 "mvrecon-image": "matching"}
+                 "mvrecon-image": "matching", "map_part_item": "mapping"}
 
 
-def mvrecon(*args: str) -> float:
-    """Wall time (s) of `mvrecon ARGS` in a subprocess, this checkout's code; an error ends the benchmark."""
-    start = time.perf_counter()
-    subprocess.run([sys.executable, "-c", "import sys; from mvrecon.cli import main; sys.exit(main())",
-                    "-q", *args], check=True, env=code_env())
-    return time.perf_counter() - start
+def mapping_times(images: Path, source: Path, ws: Path, address: str | None, partition_size: int) -> dict:
+    """The mapping of `source`'s database (a finished front end's workspace) in a copy `ws`, in a subprocess
+    (`run_mapping`): on the client without `address`, else in parts of at most `partition_size` images on the
+    cluster. Returns run_mapping's figures."""
+    shutil.rmtree(ws, ignore_errors=True)
+    shutil.copytree(source, ws, ignore=shutil.ignore_patterns("sparse", "snapshots", "points.ply", "*.lock"))
+    cmd = [sys.executable, __file__, "--mapping", str(images), "--work", str(ws)]
+    if address:
+        cmd += ["--cluster", address, "--partition-size", str(partition_size)]
+    out = subprocess.run(cmd, check=True, env=code_env(), stdout=subprocess.PIPE, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def run_mapping(images: Path, ws: Path, address: str | None, partition_size: int) -> None:
+    """The subprocess of `mapping_times`: maps `ws` with default settings (in parts on the cluster of `address`
+    when given, its start not counted) and prints, as its last line, {"mapping": wall s, "cpu": CPU s of this
+    process and its workers, "peak_mb": the largest resident memory of this process and of any worker,
+    "registered", "models", "auc@1", "auc@5" (against images/../gt/sparse, None without it), and with a cluster
+    "costs": {"mapping": the costs of `stage_costs`}}."""
+    config = MapperConfig(partition_size=partition_size if address else 0)
+    out = {"costs": {}}
+    with open_cluster(ClusterSpec(address)) if address else contextlib.nullcontext() as cluster:
+        start, cpu = time.perf_counter(), all_cpu_seconds(cluster)
+        with stage_costs(cluster, "mapping", images, out) if cluster else contextlib.nullcontext():
+            map_workspace(config, ws, image_dir=images, overwrite=True, cluster=cluster)
+        out["mapping"] = time.perf_counter() - start
+        out["cpu"] = all_cpu_seconds(cluster) - cpu
+        if cluster:  # the parts' results, as kept in the workspace (Dask's sizeof does not see into them)
+            kept = sum(f.stat().st_size for f in (ws / "snapshots" / "parts").glob("part-*.pkl"))
+            out["costs"]["mapping"]["received_mb"] = kept / 1e6
+        peaks = [peak_mb()] + (list(cluster.client.run(peak_mb).values()) if cluster else [])
+    out["peak_mb"] = max(peaks)
+    models = sparse_models(ws / "sparse") if (ws / "sparse").is_dir() else []
+    out["registered"] = max((m.num_reg_images() for m in models), default=0)
+    out["models"] = len(models)
+    gt_dir = images.parent / "gt" / "sparse"
+    acc = accuracy_summary([poses(m) for m in models], load_ground_truth(gt_dir)) if gt_dir.is_dir() else {}
+    out["auc@1"], out["auc@5"] = acc.get("auc@1"), acc.get("auc@5")
+    print(json.dumps(out))
+
+
+def peak_mb() -> float:
+    """The largest resident memory of this process so far (MB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def code_env() -> dict:
@@ -153,14 +201,15 @@ def cpu_seconds() -> float:
 @contextlib.contextmanager
 def stage_costs(cluster, stage: str, images: Path, out: dict):
     """The costs of the stage run in the block, into out["costs"][stage]: its tasks, their compute and transfer
-    seconds on the workers (Dask's task stream), this process's CPU seconds (the client, and a LocalCluster's
-    scheduler), the MB the client sent and received, the MB the workers sent one another, the images' MB."""
+    seconds on the workers (Dask's task stream), the longest task's compute, the seconds from the first task's
+    start to the last one's end, this process's CPU seconds (the client, and a LocalCluster's scheduler), the MB
+    the client sent and received, the MB the workers sent one another, the images' MB."""
     sent, received, peer = cluster.sent_bytes, cluster.received_bytes, cluster.peer_bytes()
     cpu = cpu_seconds()
     with get_task_stream(cluster.client) as stream:
         yield
     cpu = cpu_seconds() - cpu
-    tasks, compute, transfer = 0, 0.0, 0.0
+    tasks, compute, transfer, longest, first, last = 0, 0.0, 0.0, 0.0, float("inf"), 0.0
     for record in stream.data:
         if stage_of(record["key"]) != stage:
             continue
@@ -168,12 +217,15 @@ def stage_costs(cluster, stage: str, images: Path, out: dict):
         for step in record["startstops"]:
             if step["action"] == "compute":
                 compute += step["stop"] - step["start"]
+                longest = max(longest, step["stop"] - step["start"])
+                first, last = min(first, step["start"]), max(last, step["stop"])
             elif step["action"] == "transfer":
                 transfer += step["stop"] - step["start"]
     image_bytes = sum(p.stat().st_size for p in images.rglob("*") if p.is_file()) if stage == "features" else 0
     received = cluster.received_bytes - received
     peer = cluster.peer_bytes() - peer - received  # what workers sent, less the results fetched from them
     out["costs"][stage] = {"tasks": tasks, "compute_s": compute, "transfer_s": transfer, "client_cpu_s": cpu,
+                           "longest_task_s": longest, "tasks_span_s": max(0.0, last - first),
                            "sent_mb": (cluster.sent_bytes - sent) / 1e6, "received_mb": received / 1e6,
                            "peer_mb": max(0, peer) / 1e6, "image_mb": image_bytes / 1e6}
 
@@ -187,8 +239,9 @@ def predict(stage: dict, machines: int, cores: int, bandwidth_mbs: float) -> tup
     return terms[bound], bound
 
 
-def report(images: Path, runs: dict, model: dict, started: float, workers: int, mapping_s: float | None,
-           args) -> str:
+def report(images: Path, runs: dict, model: dict, started: float, workers: int, mapping: dict, args) -> str:
+    """The markdown section: the overhead, the measured costs, the mapping runs (`mapping`: "whole" and "parts",
+    run_mapping's figures, when measured) and the prediction for N machines."""
     lines = []
     n_images = sum(1 for p in images.rglob("*") if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
     lines.append(f"Scene: `{images}` ({n_images} images); cluster `{args.cluster}` ({workers} worker threads); "
@@ -221,11 +274,18 @@ def report(images: Path, runs: dict, model: dict, started: float, workers: int, 
         n = max(1, s["tasks"])
         lines.append(f"| {stage} | {s['tasks']} | {s['compute_s'] / n:.3f} | {1000 * s['client_cpu_s'] / n:.1f} | "
                      f"{s['sent_mb']:.1f} | {s['received_mb']:.1f} | {s['peer_mb']:.1f} | {s['image_mb']:.1f} |")
+    whole, parts = mapping.get("whole"), mapping.get("parts")
+    if whole is not None:
+        lines.append(mapping_table(whole, parts, args))
     lines.append(f"\nPredicted wall time on N machines of {args.cores} cores (bandwidth {args.bandwidth:g} MB/s "
-                 "into the client and the file server; the bounding term in brackets)"
-                 + (f"; mapping, on the client, {mapping_s:.0f} s whatever N" if mapping_s is not None else "")
-                 + ":\n")
-    head = "| N | features (s) | matching (s) |" + (" mapping (s) | whole run (s) |" if mapping_s else "")
+                 "into the client and the file server; the bounding term in brackets):\n")
+    head = "| N | features (s) | matching (s) |"
+    if whole is not None:
+        head += " mapping on the client (s) |"
+    if parts is not None:
+        head += " mapping in parts (s) |"
+    if whole is not None:
+        head += " whole run (s) |"
     lines.append(head)
     lines.append("|" + "---|" * (head.count("|") - 1))
     first = {}
@@ -237,22 +297,67 @@ def report(images: Path, runs: dict, model: dict, started: float, workers: int, 
                 first.setdefault(stage, machines)
             cells.append(f"{t:.1f} ({bound})")
             total += t
-        row = f"| {machines} | " + " | ".join(cells) + " |"
-        if mapping_s is not None:
-            row += f" {mapping_s:.0f} | {total + mapping_s:.0f} |"
-        lines.append(row)
+        mapped = None if whole is None else whole["mapping"]
+        if whole is not None:
+            cells.append(f"{whole['mapping']:.0f}")
+        if parts is not None:
+            t, bound = predict_parts(parts, machines, args.cores)
+            if bound != "parts":
+                first.setdefault("mapping in parts", machines)
+            cells.append(f"{t:.0f} ({bound})")
+            mapped = min(mapped, t)
+        if mapped is not None:
+            cells.append(f"{total + mapped:.0f}")
+        lines.append(f"| {machines} | " + " | ".join(cells) + " |")
     stops = sorted(first.items(), key=lambda kv: kv[1])
     if stops:
         lines.append("\nStops scaling first: " + "; ".join(f"{s} at N = {n} machines" for s, n in stops) + ".")
     else:
-        lines.append("\nNeither stage stops scaling up to 64 machines in this model.")
-    if mapping_s is not None:
-        lines.append(f"The whole run is bounded by the mapping stage ({mapping_s:.0f} s on the client) long "
-                     "before: it does not shrink with the cluster.")
+        lines.append("\nNo stage stops scaling up to 64 machines in this model.")
+    if whole is not None:
+        lines.append(f"Mapped whole, the mapping runs on the client ({whole['mapping']:.0f} s) whatever N"
+                     + (": the whole run takes the faster of the two mappings." if parts is not None else "."))
     lines.append(f"\nCommand: `python tools/bench_distributed.py {images} --repeats {args.repeats}"
-                 + (" --map" if args.map else "") + (f" --cluster {args.cluster}" if args.cluster != "local:2"
-                                                      else "") + "`")
+                 + (" --map" if args.map and not args.partition_size else "")
+                 + (f" --partition-size {args.partition_size}" if args.partition_size else "")
+                 + (f" --cluster {args.cluster}" if args.cluster != "local:2" else "") + "`")
     return "\n".join(lines) + "\n"
+
+
+def mapping_table(whole: dict, parts: dict | None, args) -> str:
+    """The mapping runs' table and, for the parts, where their time went."""
+    def fmt(x):
+        return "-" if x is None else f"{x:.3f}"
+
+    lines = ["\nMapping, once each, default settings (the matching's database; the model scored against the scene's "
+             "ground truth):\n",
+             "| mapping | wall s | CPU s | peak MB (one process) | registered | models | AUC@1 | AUC@5 |",
+             "|---|---|---|---|---|---|---|---|"]
+    rows = [("whole, on the client", whole)]
+    if parts is not None:
+        c = parts["costs"]["mapping"]
+        rows.append((f"in parts of at most {args.partition_size} ({c['tasks']} parts) on `{args.cluster}`", parts))
+    for label, r in rows:
+        lines.append(f"| {label} | {r['mapping']:.0f} | {r['cpu']:.0f} | {r['peak_mb']:.0f} | {r['registered']} | "
+                     f"{r['models']} | {fmt(r['auc@1'])} | {fmt(r['auc@5'])} |")
+    if parts is not None:
+        c = parts["costs"]["mapping"]
+        serial = parts["mapping"] - c["tasks_span_s"]
+        lines.append(f"\nIn parts: {serial:.0f} s on the client (reading the database, splitting the view graph, "
+                     f"merging the parts, the final bundle adjustment) and {c['tasks_span_s']:.0f} s from the first "
+                     f"part's start to the last one's end; the parts' compute {c['compute_s']:.0f} s in all, the "
+                     f"longest {c['longest_task_s']:.0f} s; the client sent {c['sent_mb']:.1f} MB and received "
+                     f"{c['received_mb']:.1f} MB (the parts' models).")
+    return "\n".join(lines)
+
+
+def predict_parts(run: dict, machines: int, cores: int) -> tuple[float, str]:
+    """(predicted wall s, bounding term) of mapping in parts on `machines` machines of `cores` cores: the client's
+    share as measured, plus the parts' compute spread over the worker threads but never below the longest part."""
+    c = run["costs"]["mapping"]
+    serial = run["mapping"] - c["tasks_span_s"]
+    spread, longest = c["compute_s"] / (machines * cores), c["longest_task_s"]
+    return serial + max(spread, longest), "parts" if spread >= longest else "longest part"
 
 
 def write_section(path: Path, text: str) -> None:
@@ -274,6 +379,9 @@ def main(argv=None) -> int:
     parser.add_argument("--cores", type=int, default=2, help="cores per machine in the prediction (2)")
     parser.add_argument("--bandwidth", type=float, default=110.0, help="MB/s of the client's link (110)")
     parser.add_argument("--map", action="store_true", help="time the mapping stage once, as a serial term")
+    parser.add_argument("--partition-size", type=int, default=0,
+                        help="also map in parts of at most P images on the cluster (implies --map)")
+    parser.add_argument("--mapping", action="store_true", help=argparse.SUPPRESS)  # mapping_times's run
     parser.add_argument("--work", type=Path, default=Path("out/bench_distributed"), help="scratch folder")
     parser.add_argument("--out", type=Path, default=None, help="markdown page to write the section into")
     parser.add_argument("--front-end", action="store_true", help=argparse.SUPPRESS)  # front_end_times's run
@@ -281,15 +389,26 @@ def main(argv=None) -> int:
     if args.front_end:
         run_front_end(args.images, args.work, args.cluster)
         return 0
+    if args.mapping:
+        run_mapping(args.images, args.work, args.cluster, args.partition_size)
+        return 0
     args.cluster = args.cluster or "local:2"
     args.work.mkdir(parents=True, exist_ok=True)
     runs = overhead(args.images, args.work, args.cluster, args.repeats)
     last = runs["cluster"][args.repeats - 1]  # the costs of the last cluster run
     model, started, workers = last["costs"], last["started"], last["workers"]
-    mapping_s = mvrecon("map", "-o", str(args.work / "ws-cluster")) if args.map else None
+    mapping = {}
+    if args.map or args.partition_size:
+        source = args.work / "ws-pool"
+        mapping["whole"] = mapping_times(args.images, source, args.work / "ws-map-whole", None, 0)
+        print(f"mapping on the client: {mapping['whole']['mapping']:.1f} s", flush=True)
+    if args.partition_size:
+        mapping["parts"] = mapping_times(args.images, source, args.work / "ws-map-parts", args.cluster,
+                                         args.partition_size)
+        print(f"mapping in parts on {args.cluster}: {mapping['parts']['mapping']:.1f} s", flush=True)
     (args.work / "figures.json").write_text(json.dumps({"runs": runs, "model": model, "cluster_start_s": started,
-                                                        "mapping_s": mapping_s}, indent=1))
-    text = report(args.images, runs, model, started, workers, mapping_s, args)
+                                                        "mapping": mapping}, indent=1))
+    text = report(args.images, runs, model, started, workers, mapping, args)
     print(text)
     if args.out is not None:
         write_section(args.out, text)
