@@ -37,6 +37,7 @@ from .model import KeypointSet, Reconstruction, image_status, images_and_cameras
 from .register import CandidateRanking, correspondences_2d3d, rank_candidates, register_image
 from .tracks import build_tracks
 from .triangulate import continue_points, refine_existing_points, retriangulate, tracks_of_image, triangulate_tracks
+from .view_graph import calibrate_focals
 
 log = logging.getLogger("mvrecon.sfm")
 SNAPSHOT_VERSION = 4  # 2: small models kept as candidates (1 dropped them); 3: only the largest of them;
@@ -130,6 +131,7 @@ class IncrementalMapper:
             if a is not None and b is not None and len(p.inliers):
                 self.pairs[(a, b) if a < b else (b, a)] = p if a < b else _swapped(p)
         self.tracks = build_tracks(self.image_ids, [len(k) for k in self.keypoints], corr.pairs)
+        self._calibrate_guessed_focals()
         self.snapshot = _Snapshot(snapshot_path, _signature(corr, config))
         self.priors = CenterPriors.of(corr.priors)  # camera position priors (georef.py), None without
         self.finished: list[Reconstruction] = []
@@ -188,6 +190,20 @@ class IncrementalMapper:
         if m.cameras_shared(images):
             return cfg.ba_points_per_image_early
         return cfg.ba_points_per_image
+
+    def _calibrate_guessed_focals(self) -> None:
+        """Start each guessed focal from the one the verified pairs' fundamental matrices support together
+        (view_graph.calibrate_focals, as the global mapper does), where they observe it (not in an orbit, whose
+        cameras keep the guess and the initial pair's estimate). One pair's estimate can be far off: a
+        200-image part of a nadir survey started from 807 px for 500, its BAs drove it to 6,098 px and no pose
+        came out right; the view graph gave 519 px."""
+        scratch = Reconstruction(self.image_ids, self.names, self.camera_of, self.cameras, self.keypoints, 0)
+        found = calibrate_focals(scratch, {k: p.inliers for k, p in self.pairs.items()}, self.config.seed)
+        for c, (guess, focal) in found.items():
+            cam = self.cameras[c]
+            cam.set_focal(focal)
+            cam.prior_focal, cam.prior_calibrated = focal, True
+            log.info("camera %d: focal %.1f px from the view graph (guessed %.1f)", c, focal, guess)
 
     # ----- state -----
     def _new_model(self) -> Reconstruction:
@@ -405,7 +421,7 @@ class IncrementalMapper:
         0.860 without); within +-0.02 AUC@1 elsewhere (docs/benchmarks.md, "Mapper rules")."""
         cam_id = int(self.camera_of[init.image1])
         cam = model.cameras[cam_id]
-        if cam.prior_trusted or int(self.camera_of[init.image2]) != cam_id:
+        if cam.prior_trusted or cam.prior_calibrated or int(self.camera_of[init.image2]) != cam_id:
             return init
         if not np.isclose(cam.focal(), cam.prior_focal):  # the pair's F gave a plausible focal: not a guess
             return init

@@ -26,7 +26,8 @@ _UNDISTORT_TOLERANCE_PX = 1e-3  # a keypoint whose ray reprojects farther than t
 
 @dataclass
 class Camera:
-    """One calibration shared by all images that use it. prior_focal: the focal the database started with."""
+    """One calibration shared by all images that use it. prior_focal: the focal the database started with, or
+    the one the view graph calibrated (prior_calibrated: view_graph.calibrate_focals) in place of a guess."""
 
     model: str
     width: int
@@ -34,6 +35,7 @@ class Camera:
     params: np.ndarray
     prior_trusted: bool = False
     prior_focal: float = 0.0
+    prior_calibrated: bool = False
 
     def K(self) -> np.ndarray:
         return cammodel.calibration_matrix(self.model, self.params)
@@ -150,7 +152,7 @@ class Reconstruction:
         self.names = list(names)
         self.camera_of = np.asarray(camera_of, dtype=np.int64)
         self.cameras = {int(k): Camera(c.model, c.width, c.height, np.array(c.params, float), c.prior_trusted,
-                                       c.prior_focal) for k, c in cameras.items()}
+                                       c.prior_focal, c.prior_calibrated) for k, c in cameras.items()}
         self.keypoints = keypoints if isinstance(keypoints, KeypointSet) else KeypointSet(keypoints)
         n = len(self.image_ids)
         self.R = np.tile(np.eye(3), (n, 1, 1))
@@ -443,8 +445,8 @@ class Reconstruction:
         s["registration_order"] = list(self.registration_order)
         s["priors"], s["georeferenced"] = self.priors, self.georeferenced
         s["lens_trials"] = dict(self.lens_trials)
-        s["cameras"] = {k: (c.model, c.width, c.height, c.params.copy(), c.prior_trusted, c.prior_focal)
-                        for k, c in self.cameras.items()}
+        s["cameras"] = {k: (c.model, c.width, c.height, c.params.copy(), c.prior_trusted, c.prior_focal,
+                            c.prior_calibrated) for k, c in self.cameras.items()}
         return s
 
     @classmethod
