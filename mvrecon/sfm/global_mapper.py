@@ -83,6 +83,7 @@ _CALIBRATION_IMAGES = 60  # images of the coarse models (`_calibration_pairs`)
 _MAX_ROTATION_ERROR_DEG = 5.0  # GLOMAP's threshold on a pair's rotation residual
 _MIN_VIEWS = 3  # images of a consistent view graph the mapper makes a model of
 _RECALIBRATIONS = 2  # view graphs again at a model's refined calibration (`_recalibrated`)
+_REGISTRATION_ROUNDS = 5  # absolute-pose registration rounds of the images a model leaves (`_refine`)
 # ... only when the refined focal is this far (relative) from the view graph's: where it moved 8-15% (toy_object_small,
 # opensfm_lund twice) the view graph again gained 0.10-0.36 AUC@5; where it moved 2-3% (aerial_survey 300,
 # street_long_small) it gained nothing and cost 1.8x the mapping (aerial_survey 300: 327 CPU s against 180, AUC@5
@@ -379,19 +380,20 @@ class GlobalMapper:
         return m, component | m.registered
 
     def _refine(self, m: Reconstruction, pool) -> None:
-        """Triangulation, global BA and filtering rounds at narrowing gates; then the poses too few matches support
-        are taken out, and the images of `pool` left out (poses lost to the filters, taken out, or never placed
-        by the averaging) are registered by absolute pose against the points, as the incremental mapper does;
-        a last round of refinement. Every BA but the last optimises a point subset (`_bundle`), the others
-        re-fitted to its poses: on a 150-view orbit BA took 1016 s of a 1625 s mapping, and three of its eight BAs
-        were over every point. In a model of `_LARGE_MODEL` images or more the first round takes the early quota
-        and the last round is a subset BA to convergence, then a BA over every point of `_FINAL_ITERATIONS` from
-        there: on a 300-image survey (555,000 observations) each of its iterations cost as much as 8 of the
-        subset's, and the poses it moves were already fixed by the subset's 300 points per image (cost 1.12e4 ->
-        1.10e4 in its first three). From final_ba_subset_min_images images (MapperConfig, shared with the
-        incremental mapper) that BA over every point is left out: the subset BA to convergence is the last, its
-        points re-fitted, as at the incremental mapper's end; a BA over every point holds a dense block per
-        point over the cameras that see it."""
+        """Triangulation, global BA and filtering rounds at narrowing gates; then the poses too few matches support are
+        taken out, and the images of `pool` left out (poses lost to the filters, or never placed by the
+        averaging) are registered by absolute pose against the points, as the incremental mapper does, in rounds
+        while images join (an image next to one just registered needs that one's points: a 12-view wide orbit
+        whose averaging placed 6 ended in models of 9 and 3 with one round); a last round of refinement. Every
+        BA but the last optimises a point subset (`_bundle`), the others re-fitted to its poses: on a 150-view
+        orbit BA took 1016 s of a 1625 s mapping, and three of its eight BAs were over every point. In a model
+        of `_LARGE_MODEL` images or more the first round takes the early quota and the last round is a subset BA
+        to convergence, then a BA over every point of `_FINAL_ITERATIONS` from there: on a 300-image survey
+        (555,000 observations) each of its iterations cost as much as 8 of the subset's, and the poses it moves
+        were already fixed by the subset's 300 points per image (cost 1.12e4 -> 1.10e4 in its first three). From
+        final_ba_subset_min_images images (MapperConfig, shared with the incremental mapper) that BA over every
+        point is left out: the subset BA to convergence is the last, its points re-fitted, as at the incremental
+        mapper's end; a BA over every point holds a dense block per point over the cameras that see it."""
         cfg = self.config
         large = int(m.registered.sum()) >= _LARGE_MODEL
         for k, gate in enumerate([*_GATES_PX, cfg.max_reproj_error_px]):
@@ -404,11 +406,16 @@ class GlobalMapper:
             self._bundle(m, intrinsics=True, subset=True, early=large and k == 0)
             self._filter(m, loose)
         dropped = self._drop_unsupported(m)
-        if self._register_left(m, pool) or dropped:
+        out = np.zeros(len(self.image_ids), bool)  # images taken out here: not registered again
+        for _ in range(_REGISTRATION_ROUNDS):
+            out[dropped] = True
+            if not (self._register_left(m, pool & ~out) or dropped):
+                break
             retriangulate(m, self.tracks, cfg, cfg.seed)
             self._bundle(m, intrinsics=True, subset=True)
             self._filter(m, cfg)
-            if self._drop_unsupported(m):
+            dropped = self._drop_unsupported(m)
+            if dropped:
                 self._bundle(m, intrinsics=True, subset=True)
                 self._filter(m, cfg)
         retriangulate(m, self.tracks, cfg, cfg.seed)
