@@ -4,6 +4,7 @@ import copy
 import logging
 import pickle
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +16,7 @@ from mvrecon import database
 from mvrecon.eval.metrics import accuracy_summary
 from mvrecon.eval.models import model_stats, poses
 from mvrecon.io.colmap_model import write_models
-from mvrecon.sfm import bundle, incremental, triangulate
+from mvrecon.sfm import bundle, incremental, triangulate, view_graph
 from mvrecon.sfm.config import MapperConfig
 from mvrecon.sfm.incremental import map_correspondences
 from mvrecon.sfm.triangulate import continue_points, retriangulate
@@ -243,6 +244,22 @@ def test_a_guessed_focal_starts_from_the_view_graphs_calibration(aerial_survey_h
     result = mapper.run()
     assert int(result.models[0].registered.sum()) == 24
     assert abs(result.models[0].cameras[1].focal() / 250.0 - 1) < 0.01
+
+
+def test_cameras_of_a_single_image_keep_their_guessed_focal(aerial_survey_half_run):
+    """A camera per image: each focal meets only other unknown focals in its pairs, so the view graph's
+    calibration leaves them at the guess (on imc_reichstag, a camera per image, calibrating them lost AUC@5); the
+    same survey's pairs move most of them when they are not held."""
+    corr = database.read_correspondences(aerial_survey_half_run / "database.db")
+    cam = corr.cameras[1]
+    corr.cameras = {i: replace(cam, camera_id=i) for i in corr.images}
+    corr.images = {i: replace(im, camera_id=i) for i, im in corr.images.items()}
+    mapper = incremental.IncrementalMapper(corr, MapperConfig())
+    assert len(mapper.cameras) == 24
+    assert not any(c.prior_calibrated for c in mapper.cameras.values())
+    assert {c.focal() for c in mapper.cameras.values()} == {384.0}
+    scratch = mapper._new_model()
+    assert len(view_graph.calibrate_focals(scratch, {k: p.inliers for k, p in mapper.pairs.items()})) >= 20
 
 
 @pytest.mark.parametrize("num_rigs, early_quota", [(1, 100), (8, 300)])
