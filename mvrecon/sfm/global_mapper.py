@@ -406,10 +406,10 @@ class GlobalMapper:
             self._bundle(m, intrinsics=True, subset=True, early=large and k == 0)
             self._filter(m, loose)
         dropped = self._drop_unsupported(m)
-        out = np.zeros(len(self.image_ids), bool)  # images taken out here: not registered again
-        for _ in range(_REGISTRATION_ROUNDS):
-            out[dropped] = True
-            if not (self._register_left(m, pool & ~out) or dropped):
+        added = self._register_left(m, pool)
+        out = np.zeros(len(self.image_ids), bool)  # images taken out after a round: not registered again
+        for k in range(_REGISTRATION_ROUNDS):
+            if not (added or (dropped and k == 0)):
                 break
             retriangulate(m, self.tracks, cfg, cfg.seed)
             self._bundle(m, intrinsics=True, subset=True)
@@ -418,6 +418,8 @@ class GlobalMapper:
             if dropped:
                 self._bundle(m, intrinsics=True, subset=True)
                 self._filter(m, cfg)
+            out[dropped] = True
+            added = self._register_left(m, pool & ~out) if added else []
         retriangulate(m, self.tracks, cfg, cfg.seed)
         m.priors = self.priors  # the final BA holds the centres to their position priors, as the incremental
         georeference(m, cfg.seed)  # mapper's do once in the priors' frame (georef.py; no-op without priors)

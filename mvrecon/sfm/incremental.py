@@ -198,7 +198,7 @@ class IncrementalMapper:
         200-image part of a nadir survey started from 807 px for 500, its BAs drove it to 6,098 px and no pose
         came out right; the view graph gave 519 px. A camera of a single image is held at its guess: its focal
         meets only other unknown focals in its pairs (imc_reichstag, a camera per image: AUC@5 0.711 -> 0.635
-        when calibrated so)."""
+        when calibrated so). Neutral or better on every set where it fires (docs/benchmarks.md, "Mapper rules")."""
         scratch = Reconstruction(self.image_ids, self.names, self.camera_of, self.cameras, self.keypoints, 0)
         users = np.bincount(self.camera_of, minlength=int(self.camera_of.max()) + 1)
         for c, cam in scratch.cameras.items():
