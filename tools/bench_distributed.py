@@ -55,6 +55,7 @@ from mvrecon.eval.metrics import accuracy_summary  # noqa: E402
 from mvrecon.eval.models import poses, sparse_models  # noqa: E402
 from mvrecon.executor import cpu_seconds as pool_cpu_seconds  # noqa: E402
 from mvrecon.executor import process_cpu_seconds  # noqa: E402
+from mvrecon.memory import main_peak_mb  # noqa: E402
 from mvrecon.sfm.config import MapperConfig  # noqa: E402
 from mvrecon.stages.common import FrontendConfig  # noqa: E402
 from mvrecon.stages.features import extract_features  # noqa: E402
@@ -73,7 +74,7 @@ def mapping_times(images: Path, source: Path, ws: Path, address: str | None, par
     (`run_mapping`): on the client without `address`, else in parts of at most `partition_size` images on the
     cluster. Returns run_mapping's figures."""
     shutil.rmtree(ws, ignore_errors=True)
-    shutil.copytree(source, ws, ignore=shutil.ignore_patterns("sparse", "snapshots", "points.ply", "*.lock"))
+    shutil.copytree(source, ws, ignore=shutil.ignore_patterns("sparse", "snapshots", "points.ply"))
     cmd = [sys.executable, __file__, "--mapping", str(images), "--work", str(ws)]
     if address:
         cmd += ["--cluster", address, "--partition-size", str(partition_size)]
@@ -98,7 +99,7 @@ def run_mapping(images: Path, ws: Path, address: str | None, partition_size: int
         if cluster:  # the parts' results, as kept in the workspace (Dask's sizeof does not see into them)
             kept = sum(f.stat().st_size for f in (ws / "snapshots" / "parts").glob("part-*.pkl"))
             out["costs"]["mapping"]["received_mb"] = kept / 1e6
-        peaks = [peak_mb()] + (list(cluster.client.run(peak_mb).values()) if cluster else [])
+        peaks = [main_peak_mb()] + (list(cluster.client.run(main_peak_mb).values()) if cluster else [])
     out["peak_mb"] = max(peaks)
     models = sparse_models(ws / "sparse") if (ws / "sparse").is_dir() else []
     out["registered"] = max((m.num_reg_images() for m in models), default=0)
@@ -107,11 +108,6 @@ def run_mapping(images: Path, ws: Path, address: str | None, partition_size: int
     acc = accuracy_summary([poses(m) for m in models], load_ground_truth(gt_dir)) if gt_dir.is_dir() else {}
     out["auc@1"], out["auc@5"] = acc.get("auc@1"), acc.get("auc@5")
     print(json.dumps(out))
-
-
-def peak_mb() -> float:
-    """The largest resident memory of this process so far (MB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def code_env() -> dict:

@@ -155,8 +155,6 @@ class GlobalMapper:
         start = time.perf_counter()
         scratch = self._new_model(cameras)
         found = calibrate_focals(scratch, self.pairs, self.config.seed)
-        for c, (guess, focal) in found.items():
-            log.info("camera %d: focal %.1f px from the view graph (guessed %.1f)", c, focal, guess)
         # a focal the view graph could not calibrate is found by coarse models first, from rougher relative poses
         # of the pairs of a bounded, well-connected set of images (`_calibration_pairs`)
         uncalibrated = [c for c, cam in scratch.cameras.items() if not cam.prior_trusted and c not in found]

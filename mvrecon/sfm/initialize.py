@@ -157,10 +157,10 @@ def _focal_from_pair(model, i1: int, i2: int, k1, k2) -> None:
     estimate is NaN or implausible and the prior stays.
     """
     c1, c2 = model.camera(i1), model.camera(i2)
-    if _kept_focal(c1) and _kept_focal(c2):
+    if c1.focal_kept and c2.focal_kept:
         return
     for cam in (c1, c2):
-        if not _kept_focal(cam):
+        if not cam.focal_kept:
             cam.set_focal(cam.prior_focal)
     u1, u2 = model.keypoints[i1][k1], model.keypoints[i2][k2]
     F, mask = cv2.findFundamentalMat(u1, u2, cv2.FM_RANSAC, 1.0, 0.999, 5000)
@@ -175,14 +175,8 @@ def _focal_from_pair(model, i1: int, i2: int, k1, k2) -> None:
     for cam in (c1, c2):
         f = estimates[id(cam)]
         plausible = np.isfinite(f) and _FOCAL_RANGE[0] < f / cam.prior_focal < _FOCAL_RANGE[1]
-        if not _kept_focal(cam) and plausible:
+        if not cam.focal_kept and plausible:
             cam.set_focal(f)
-
-
-def _kept_focal(cam) -> bool:
-    """A focal one pair's estimate does not replace: a trusted one, or one calibrated from the whole view graph
-    (hundreds of pairs' fundamental matrices against one pair's)."""
-    return cam.prior_trusted or cam.prior_calibrated
 
 
 def find_initial_pair(model: Reconstruction, pairs_by_index: dict[tuple[int, int], PairGeometry],

@@ -37,6 +37,12 @@ class Camera:
     prior_focal: float = 0.0
     prior_calibrated: bool = False
 
+    @property
+    def focal_kept(self) -> bool:
+        """Whether the focal is one a single pair's or view's estimate does not replace: trusted (EXIF, given), or
+        calibrated from the whole view graph (hundreds of pairs' fundamental matrices against one pair's)."""
+        return self.prior_trusted or self.prior_calibrated
+
     def K(self) -> np.ndarray:
         return cammodel.calibration_matrix(self.model, self.params)
 

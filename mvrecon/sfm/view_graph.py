@@ -15,6 +15,7 @@ angle of its inliers; a pair that a homography of a rotation explains as well (a
 that rotation and no translation direction.
 """
 
+import logging
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -30,6 +31,8 @@ from ..geometry.triangulation import triangulation_angle_deg, two_view_midpoints
 from ..geometry.two_view import homography_translation, relative_pose
 from .config import MapperConfig
 from .model import Camera, Reconstruction
+
+log = logging.getLogger("mvrecon.sfm")
 
 SAMPLE = 1000  # matches a pair's pose and angle are estimated from (as the initial pair's)
 COARSE_SAMPLE = 300  # the same for the coarse models that calibrate a focal
@@ -93,7 +96,7 @@ def _essential_costs(F, K1s, K2s) -> np.ndarray:
 
 def calibrate_focals(model: Reconstruction, pairs: dict, seed: int = 0) -> dict:
     """Set the focal of every camera whose focal is guessed to the one its pairs' fundamental matrices support
-    best (see the module docstring); returns camera id -> (guess, calibrated focal) of those it changed."""
+    best (see the module docstring), logged; returns camera id -> (guess, calibrated focal) of those it changed."""
     guessed = {c for c, cam in model.cameras.items() if not cam.prior_trusted}
     if not guessed:
         return {}
@@ -134,6 +137,8 @@ def calibrate_focals(model: Reconstruction, pairs: dict, seed: int = 0) -> dict:
                 moved = True
         if not moved:
             break
+    for c, (guess, focal) in changed.items():
+        log.info("camera %d: focal %.1f px from the view graph (guessed %.1f)", c, focal, guess)
     return changed
 
 
