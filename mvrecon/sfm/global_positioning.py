@@ -179,17 +179,16 @@ def _minimise(cam, point, v, C, X, s, iterations):
     eye = np.eye(3)
     order = np.argsort(point, kind="stable")
     bounds = np.r_[0, np.cumsum(np.bincount(point, minlength=num_points))]
-    # every ordered pair (k, l) of observations of one point: the points' part of the reduced camera system
-    length = np.diff(bounds)[point[order]]
-    first = np.repeat(np.arange(len(order)), length)
-    within = np.arange(len(first)) - np.repeat(np.r_[0, np.cumsum(length)[:-1]], length)
-    pair_k, pair_l = order[first], order[bounds[point[order[first]]] + within]
-    # the reduced camera system is sparse: a 3x3 block per pair of cameras that share a point (and the diagonal)
-    block_id = np.r_[cam[pair_k] * num_cams + cam[pair_l], np.arange(num_cams) * (num_cams + 1)]
-    ids, slot = np.unique(block_id, return_inverse=True)
-    slot_of_pair, slot_of_cam = slot[:len(pair_k)], slot[len(pair_k):]
-    block_row, block_col = ids // num_cams, ids % num_cams
-    indptr = np.searchsorted(block_row, np.arange(num_cams + 1))
+    # the reduced camera system is sparse: a 3x3 block per pair of cameras that share a point (and the diagonal),
+    # row by row; each ordered pair of observations of one point adds to one block (`_pair_slots`)
+    by_cam = np.argsort(cam, kind="stable")
+    cam_bounds = np.r_[0, np.cumsum(np.bincount(cam, minlength=num_cams))]
+    indptr, block_col = _camera_blocks(cam, point, order, bounds, by_cam, cam_bounds)
+    block_row = np.repeat(np.arange(num_cams), np.diff(indptr))
+    slot_of_pair = _pair_slots(cam, order, bounds, indptr, block_col)
+    slot_of_cam = indptr[:-1] + np.array([np.searchsorted(block_col[indptr[c]:indptr[c + 1]], c)
+                                          for c in range(num_cams)], dtype=np.int64)
+    num_blocks = len(block_col)
     gauge = (block_row == 0) | (block_col == 0)  # camera 0 held: its rows and columns are the identity's
     # Huber's loss from the random start, then Cauchy's from there: a redescending loss lets the rays of a wrong
     # rotation go instead of pulling every point (a camera turned 10 deg: its rays' median miss 0.7 deg against
@@ -220,9 +219,9 @@ def _minimise(cam, point, v, C, X, s, iterations):
             Xinv = np.linalg.inv(H_XX)
             # the points eliminated: S = H_CC - sum over a point's observation pairs of Q_k Xinv Q_l^T
             QX = Q @ Xinv[point]
-            blocks = np.zeros((len(ids), 3, 3))
+            blocks = np.zeros((num_blocks, 3, 3))
             blocks[slot_of_cam] = H_CC
-            _subtract_products(QX, Q, pair_k, pair_l, slot_of_pair, blocks)
+            _subtract_products(QX, Q, order, bounds, slot_of_pair, blocks)
             blocks[gauge] = 0.0
             blocks[slot_of_cam[0]] = eye
             rhs_C -= _sum(cam, (QX @ rhs_X[point][:, :, None])[:, :, 0], num_cams)
@@ -264,14 +263,68 @@ def _sum(index: np.ndarray, values: np.ndarray, size: int) -> np.ndarray:
 
 
 @njit(cache=True)
-def _subtract_products(QX, Q, pair_k, pair_l, slot, blocks):  # pragma: no cover - compiled
-    """blocks[slot[p]] -= QX[pair_k[p]] @ Q[pair_l[p]].T for every pair p of observations of one point: the
-    points' share of the reduced camera system, in one pass over the pairs."""
-    for p in range(len(pair_k)):
-        k, ll, b = pair_k[p], pair_l[p], slot[p]
-        for r in range(3):
-            for c in range(3):
-                blocks[b, r, c] -= QX[k, r, 0] * Q[ll, c, 0] + QX[k, r, 1] * Q[ll, c, 1] + QX[k, r, 2] * Q[ll, c, 2]
+def _camera_blocks(cam, point, order, bounds, by_cam, cam_bounds):  # pragma: no cover - compiled
+    """(indptr, columns) of the reduced camera system's blocks in CSR form, columns sorted in each row: camera a's
+    row holds every camera that shares a point with it, itself included. Built camera by camera over its points'
+    observations, so that memory grows with the blocks and not with the pairs of observations (a point seen
+    L times makes L^2 of those: hundreds of millions of entries on a large survey)."""
+    num_cams = len(cam_bounds) - 1
+    mark = np.full(num_cams, -1, np.int64)
+    indptr = np.zeros(num_cams + 1, np.int64)
+    for sweep in range(2):
+        cols = np.empty(indptr[-1], np.int64)
+        for a in range(num_cams):
+            n = 0
+            for i in range(cam_bounds[a], cam_bounds[a + 1]):
+                p = point[by_cam[i]]
+                for j in range(bounds[p], bounds[p + 1]):
+                    c = cam[order[j]]
+                    if mark[c] != a + sweep * num_cams:
+                        mark[c] = a + sweep * num_cams
+                        if sweep:
+                            cols[indptr[a] + n] = c
+                        n += 1
+            if sweep:
+                cols[indptr[a]:indptr[a] + n].sort()
+            else:
+                indptr[a + 1] = indptr[a] + n
+    return indptr, cols
+
+
+@njit(cache=True)
+def _pair_slots(cam, order, bounds, indptr, cols):  # pragma: no cover - compiled
+    """For every ordered pair (k, l) of observations of one point, point by point in `order`, the block of
+    (cam[k], cam[l]) in the CSR layout of `_camera_blocks`: 4 bytes a pair."""
+    total = 0
+    for p in range(len(bounds) - 1):
+        total += (bounds[p + 1] - bounds[p]) ** 2
+    slots = np.empty(total, np.int32)
+    q = 0
+    for p in range(len(bounds) - 1):
+        for a in range(bounds[p], bounds[p + 1]):
+            row = cam[order[a]]
+            lo, hi = indptr[row], indptr[row + 1]
+            for b in range(bounds[p], bounds[p + 1]):
+                slots[q] = lo + np.searchsorted(cols[lo:hi], cam[order[b]])
+                q += 1
+    return slots
+
+
+@njit(cache=True)
+def _subtract_products(QX, Q, order, bounds, slot, blocks):  # pragma: no cover - compiled
+    """blocks[slot] -= QX[k] @ Q[l].T for every ordered pair (k, l) of observations of one point, in
+    `_pair_slots`'s order: the points' share of the reduced camera system, in one pass over the pairs."""
+    q = 0
+    for p in range(len(bounds) - 1):
+        for a in range(bounds[p], bounds[p + 1]):
+            k = order[a]
+            for bb in range(bounds[p], bounds[p + 1]):
+                ll, b = order[bb], slot[q]
+                q += 1
+                for r in range(3):
+                    for c in range(3):
+                        blocks[b, r, c] -= (QX[k, r, 0] * Q[ll, c, 0] + QX[k, r, 1] * Q[ll, c, 1]
+                                            + QX[k, r, 2] * Q[ll, c, 2])
 
 
 def outlier_cameras(result: PositioningResult) -> dict[int, str]:

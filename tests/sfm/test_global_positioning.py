@@ -9,7 +9,13 @@ from mvrecon.geometry.rotation import angle_axis_to_rotmat
 from mvrecon.geometry.sim3 import umeyama
 from mvrecon.sfm.config import MapperConfig
 from mvrecon.sfm.global_mapper import GlobalMapper
-from mvrecon.sfm.global_positioning import global_positions, outlier_cameras, solve_positions
+from mvrecon.sfm.global_positioning import (
+    _camera_blocks,
+    _pair_slots,
+    global_positions,
+    outlier_cameras,
+    solve_positions,
+)
 from mvrecon.sfm.translation_averaging import average_translations
 from tests.sfm.test_mapper import synthetic_database
 from tests.sfm.test_translation_averaging import similarity_error
@@ -31,6 +37,27 @@ def test_centres_are_recovered_up_to_a_similarity():
     assert similarity_error(found, C) < 1e-3
     off = np.linalg.norm(umeyama(found, C).apply(points) - X, axis=1)  # the points, by the centres' similarity
     assert np.mean(off < 1e-2) > 0.95
+
+
+def test_the_reduced_systems_blocks_are_the_camera_pairs_that_share_a_point():
+    """The reduced camera system's CSR blocks are exactly the ordered camera pairs seen together in a point, and
+    every ordered pair of a point's observations is given its own cameras' block."""
+    rng = np.random.default_rng(4)
+    views = [rng.choice(25, rng.integers(2, 8), replace=False) for _ in range(300)]
+    cam = np.concatenate(views)
+    point = np.repeat(np.arange(300), [len(v) for v in views])
+    order = np.argsort(point, kind="stable")
+    bounds = np.r_[0, np.cumsum(np.bincount(point, minlength=300))]
+    by_cam = np.argsort(cam, kind="stable")
+    cam_bounds = np.r_[0, np.cumsum(np.bincount(cam, minlength=25))]
+    indptr, cols = _camera_blocks(cam, point, order, bounds, by_cam, cam_bounds)
+    rows = np.repeat(np.arange(25), np.diff(indptr))
+    assert set(zip(rows.tolist(), cols.tolist())) == {(a, b) for v in views for a in v.tolist() for b in v.tolist()}
+    slots = _pair_slots(cam, order, bounds, indptr, cols)
+    pairs = [(a, b) for p in range(300) for a in cam[order[bounds[p]:bounds[p + 1]]].tolist()
+             for b in cam[order[bounds[p]:bounds[p + 1]]].tolist()]
+    assert len(slots) == len(pairs)
+    assert list(zip(rows[slots].tolist(), cols[slots].tolist())) == pairs
 
 
 def test_collinear_cameras_are_placed_where_pair_directions_cannot_place_them():

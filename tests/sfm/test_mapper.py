@@ -354,6 +354,35 @@ def test_retriangulation_retries_failed_tracks_only_after_a_change(scene, monkey
     assert (m.point_of_track[tracks] >= 0).sum() > 0.95 * len(pids)
 
 
+def test_many_tracks_are_triangulated_in_groups_to_the_same_points(scene, monkeypatch):
+    """Tracks beyond the padded-view bound are triangulated group by group, numbered in track order, to the
+    points one group makes (a two-view hypothesis draw may differ on a track spoilt by an outlier view)."""
+    _, corr, _ = scene
+    mapper = incremental.IncrementalMapper(corr, MapperConfig(seed=3))
+    m = mapper.run().models[0]
+    m.delete_points(m.alive_points())
+    whole = copy.deepcopy(m)
+    assert triangulate.triangulate_tracks(whole, mapper.tracks, np.arange(len(mapper.tracks)), mapper.config) > 400
+    groups = []
+    real = triangulate._triangulate_group
+
+    def counting(model, tracks, ids, *args):
+        groups.append(len(ids))
+        return real(model, tracks, ids, *args)
+
+    monkeypatch.setattr(triangulate, "_triangulate_group", counting)
+    monkeypatch.setattr(triangulate, "_PADDED_VIEWS", 400)
+    made = triangulate.triangulate_tracks(m, mapper.tracks, np.arange(len(mapper.tracks)), mapper.config)
+    assert len(groups) > 10 and max(groups) * 2 <= 400
+    assert abs(made - whole.num_points) <= 0.01 * whole.num_points
+    tracks_made = m.point_track.data[m.alive_points()]
+    assert np.all(np.diff(tracks_made) > 0)  # numbered in track order, as one group numbers them
+    both = np.intersect1d(tracks_made, whole.point_track.data[whole.alive_points()])
+    same = np.all(np.isclose(m.xyz.data[m.point_of_track[both]], whole.xyz.data[whole.point_of_track[both]],
+                             rtol=0, atol=1e-9), axis=1)
+    assert same.mean() > 0.99
+
+
 def test_resume_continues_from_the_snapshot(tmp_path, monkeypatch, caplog):
     path = tmp_path / "database.db"
     gt = synthetic_database(path, num_images=10, num_points=400, seed=1)
