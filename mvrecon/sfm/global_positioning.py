@@ -266,8 +266,8 @@ def _sum(index: np.ndarray, values: np.ndarray, size: int) -> np.ndarray:
 def _camera_blocks(cam, point, order, bounds, by_cam, cam_bounds):  # pragma: no cover - compiled
     """(indptr, columns) of the reduced camera system's blocks in CSR form, columns sorted in each row: camera a's
     row holds every camera that shares a point with it, itself included. Built camera by camera over its points'
-    observations, so that memory grows with the blocks and not with the pairs of observations (a point seen
-    L times makes L^2 of those: hundreds of millions of entries on a large survey)."""
+    observations, so that its memory grows with the blocks and not with the pairs of observations (a point seen
+    L times makes L^2 of those)."""
     num_cams = len(cam_bounds) - 1
     mark = np.full(num_cams, -1, np.int64)
     indptr = np.zeros(num_cams + 1, np.int64)

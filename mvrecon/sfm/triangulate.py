@@ -103,7 +103,7 @@ def triangulate_tracks(model: Reconstruction, tracks: Tracks, track_ids: np.ndar
 
     The tracks are padded to the longest, so that many at once (a global mapper's every track) are taken in
     groups of at most _PADDED_VIEWS padded views: at once, the padded poses and rays of a 300-image survey's
-    110,000 tracks held 1.3 GB."""
+    tracks held 1.6 GB above the model."""
     track_ids = np.unique(np.asarray(track_ids, dtype=np.int64))
     track_ids = track_ids[model.point_of_track[track_ids] < 0]
     if len(track_ids) == 0:
