@@ -480,7 +480,9 @@ class GlobalMapper:
         per image and stops after `_COARSE_ITERATIONS`: the next pass goes on from where it stopped. `early`
         (the first round, from global positioning's poses, where most LM iterations are spent: 18 of 25 on a
         100-image survey) takes ba_points_per_image_early points per image as well, to convergence.
-        `iterations` caps the LM iterations (default the config's global_ba_iterations)."""
+        `iterations` caps the LM iterations (default the config's global_ba_iterations). Except in the coarse
+        models, only the points seen by three images or more are optimised (`_long_points`), the others
+        re-fitted to the poses after."""
         cfg = self.config
         n = int(m.registered.sum())
         focal = intrinsics and cfg.refine_intrinsics and n >= cfg.focal_min_images
