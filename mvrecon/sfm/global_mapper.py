@@ -19,7 +19,8 @@ GLOMAP's pipeline on GTSAM and the incremental mapper's own parts:
 4. Tracks (tracks.py) triangulated (triangulate.py) in rounds with the reprojection gate narrowing from 8 px to
    the config's, each round followed by a global bundle adjustment (bundle.py: the incremental mapper's factors,
    intrinsics refined as there) and the filters (filtering.py). The bundle adjustments optimise the points seen
-   by three images or more, as GLOMAP's (`_long_points`); the two-view points are re-fitted to their poses.
+   by three images or more, as GLOMAP's (`ba_points.long_points`); the two-view points are re-fitted to their
+   poses.
 5. Catastrophic poses: a camera whose rays miss the points of its tracks after global positioning
    (`global_positioning.outlier_cameras`), and an image that keeps too few observations fitting within the gate
    after the rounds (fewer than abs_pose_min_inliers, or under abs_pose_min_inlier_ratio of its triangulated
@@ -50,7 +51,7 @@ import numpy as np
 from ..database import Correspondences
 from ..progress import progress
 from . import filtering, lens
-from .ba_points import select_points
+from .ba_points import long_points, select_points
 from .bundle import bundle_adjust
 from .config import MapperConfig
 from .georef import CenterPriors, georeference
@@ -78,8 +79,9 @@ log = logging.getLogger("mvrecon.sfm")
 _GATES_PX = (8.0,)
 _COARSE_GATE_PX = 16.0
 # views of the points a bundle adjustment optimises (GLOMAP's min_track_length), except in an image with fewer
-# than `_BA_MIN_HOLD` observations of such points, which keeps its two-view points too (`_long_points`): a pose
-# held by fewer views is all but free. facade_bricks_small AUC@5 0.43 with 6, 0.30 with 30 (abs_pose_min_inliers)
+# than `_BA_MIN_HOLD` observations of such points, which keeps its two-view points too (`ba_points.long_points`):
+# a pose held by fewer views is all but free. facade_bricks_small AUC@5 0.43 with 6, 0.30 with 30
+# (abs_pose_min_inliers)
 _BA_MIN_VIEWS = 3
 _BA_MIN_HOLD = 6
 _COARSE_ITERATIONS = 15  # LM iterations of a coarse model's BA
@@ -481,7 +483,7 @@ class GlobalMapper:
         (the first round, from global positioning's poses, where most LM iterations are spent: 18 of 25 on a
         100-image survey) takes ba_points_per_image_early points per image as well, to convergence.
         `iterations` caps the LM iterations (default the config's global_ba_iterations). Except in the coarse
-        models, only the points seen by three images or more are optimised (`_long_points`), the others
+        models, only the points seen by three images or more are optimised (`ba_points.long_points`), the others
         re-fitted to the poses after."""
         cfg = self.config
         n = int(m.registered.sum())
@@ -494,7 +496,7 @@ class GlobalMapper:
             if subset and quota > 0:
                 points = select_points(m, m.registered_images(), quota)
             if not coarse:  # a coarse model at a focal far off holds few three-view tracks: it needs them all
-                points = _long_points(m, points, _BA_MIN_HOLD)
+                points = long_points(m, points, _BA_MIN_VIEWS, _BA_MIN_HOLD)
             out = bundle_adjust(m, m.registered_images(), cfg, point_ids=points, refine_intrinsics=intr,
                                 refine_distortion=dist,
                                 max_iterations=_COARSE_ITERATIONS if coarse else iterations or cfg.global_ba_iterations)
@@ -542,25 +544,6 @@ class GlobalMapper:
     def _status(self, models: list[Reconstruction]) -> dict:
         return image_status(self.names, self.keypoints, self.pairs, models,
                             lambda i: self.reasons.get(i, "not part of any model's consistent view graph"))
-
-
-def _long_points(m: Reconstruction, points: np.ndarray, enough: int) -> np.ndarray:
-    """The ids of `points` seen by `_BA_MIN_VIEWS` images or more, and the others of each image that has fewer than
-    `enough` observations of those (so that no pose loses its hold). A point seen twice is where a repeated
-    structure's wrong match lives: nothing checks it but its own two rays, and in a bundle adjustment it pulls
-    the two poses as hard as a true one (facade_small, our rounds from pycolmap global's poses and camera, AUC@5
-    0.95: 0.88 after them with the two-view points left out, 0.81 with them)."""
-    views = m.point_num_observations()[points]
-    long = views >= _BA_MIN_VIEWS
-    obs = m.observations_of_points(points[long])
-    held = np.bincount(m.obs_image.data[obs], minlength=len(m.image_ids))
-    weak = m.registered & (held < enough)
-    if long.all() or not weak.any():
-        return points[long]
-    short = points[~long]
-    obs = m.observations_of_points(short)
-    rescue = np.unique(m.obs_point.data[obs][weak[m.obs_image.data[obs]]])
-    return np.union1d(points[long], rescue)
 
 
 def _coverage(models: list[Reconstruction]) -> tuple[int, int]:

@@ -14,6 +14,7 @@ from mvrecon.eval.metrics import accuracy_summary
 from mvrecon.eval.models import poses as poses_of
 from mvrecon.eval.models import sparse_models
 from mvrecon.sfm import global_mapper
+from mvrecon.sfm.ba_points import long_points
 from mvrecon.sfm.bundle import bundle_adjust
 from mvrecon.sfm.config import MapperConfig
 from mvrecon.sfm.global_mapper import GlobalMapper, map_correspondences_globally
@@ -143,8 +144,8 @@ def test_a_pose_its_matches_do_not_support_is_taken_out(scene, turn_deg):
 
 
 def test_bundle_adjustments_optimise_the_points_three_images_see_unless_a_pose_would_lose_its_hold(scene):
-    """`_long_points`: of the points given, those seen by three images or more; an image with fewer than `enough`
-    observations of those keeps its two-view points as well, so that no pose is left to a handful of views."""
+    """`ba_points.long_points`: of the points given, those seen by three images or more; an image with fewer than
+    `enough` observations of those keeps its two-view points as well, so that no pose is left to a handful of views."""
     _, _, result = scene
     m = Reconstruction.from_state(result.models[0].state(), result.models[0].keypoints)
     alive = m.alive_points()
@@ -161,12 +162,12 @@ def test_bundle_adjustments_optimise_the_points_three_images_see_unless_a_pose_w
     alive = m.alive_points()
     views = m.point_num_observations()[alive]
     assert (views == 2).sum() > 100 and (views >= 3).sum() > 100
-    chosen = global_mapper._long_points(m, alive, enough=1)
+    chosen = long_points(m, alive, 3, enough=1)
     obs = m.observations_of_points(alive)
     of_five = np.unique(m.obs_point.data[obs[m.obs_image.data[obs] == 5]])
     assert np.array_equal(chosen, np.union1d(alive[views >= 3], of_five))  # image 5 holds by its two-view points
-    assert np.array_equal(global_mapper._long_points(m, alive, enough=10 ** 6), alive)  # every image weak
-    strong = global_mapper._long_points(m, alive[views >= 3], enough=1)
+    assert np.array_equal(long_points(m, alive, 3, enough=10 ** 6), alive)  # every image weak
+    strong = long_points(m, alive[views >= 3], 3, enough=1)
     assert np.array_equal(strong, alive[views >= 3])
 
 
