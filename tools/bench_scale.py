@@ -27,20 +27,22 @@ exponent of each stage: the least-squares slope of log(wall time) against log(im
 linear, 2: quadratic; "-" with one size).
 
 The targets, stated for 1,000 images and checked on every row: registered >= COLMAP's; AUC@5 >= COLMAP's -
-0.02; whole wall time <= 0.5 x COLMAP's, measured in the same call; peak memory <= COLMAP's; and per scene
+0.02; whole wall time <= 0.5 x COLMAP's; peak memory <= COLMAP's; and per scene
 mvrecon's mapping exponent <= 1.3. Each is a pass/FAIL column.
 
 It writes --out (default docs/scale.md, the whole file: what large sets need from the user, the tables and the
 command) and beside it the log-log plot of wall time against images (the same name, .svg).
 
-Cache and resume (WORK, default out/bench_scale): the scenes; the runs in WORK/NAME-N/VERSION/, VERSION being
-mvrecon's code version (git HEAD, plus a hash of mvrecon/'s files when they differ from it) and the hash of
---mvrecon-args: other code measures COLMAP again too, so that both engines' times are of one call (on a shared
-machine the load changes by the hour). A finished run (or one that timed out) is read back, so a second call
-only runs what is missing; an interrupted one is started again from nothing, so that its time is whole. A
-failed run (a crash, no model, a timeout) is a row saying so. The exit code is 0 whatever the verdicts (a
-report; 2 on bad arguments, 130 after Ctrl-C, with the rows measured so far written). Delete WORK/NAME-N to
-measure a row again.
+Cache and resume (WORK, default out/bench_scale): the scenes; mvrecon's runs in WORK/NAME-N/VERSION/mvrecon,
+VERSION being mvrecon's code version (git HEAD, plus a hash of mvrecon/'s files when they differ from it) and the
+hash of --mvrecon-args; COLMAP's in WORK/NAME-N/colmap-PAIRS, one per scene and size whatever mvrecon's version
+(its result does not depend on mvrecon's code; at 1,000 images it takes hours). A finished run (or one that timed
+out) is read back, so a second call only runs what is missing. An interrupted mvrecon run is started again from
+nothing, so that its time is whole; an interrupted COLMAP run goes on from its database and newest mapping
+snapshot, each stage's time counted once (mvrecon/eval/resumable.py): at 1,000 images it takes COLMAP longer than
+the machine may be left to it. A failed run (a crash, no model, a timeout) is a row saying so. The exit code is 0
+whatever the verdicts (a report; 2 on bad arguments, 130 after Ctrl-C, with the rows measured so far written).
+Delete WORK/NAME-N to measure a row again.
 """
 
 import argparse
@@ -212,12 +214,13 @@ def measure(name: str, count: int, work: Path, mvrecon_args: list[str], version:
     options = RunOptions(camera_model=scene_camera_model(gt_path), seed=0, colmap_matching=matching,
                          mvrecon_args=tuple(mvrecon_args))
     args_key = f"-{hashlib.sha256(shlex.join(mvrecon_args).encode()).hexdigest()[:8]}" if mvrecon_args else ""
-    folder = work / f"{name}-{count}" / f"{version}{args_key}"  # both engines measured in the same call
+    scene = work / f"{name}-{count}"
     results = {}
-    outs = {"mvrecon": folder / "mvrecon", "colmap": folder / f"colmap-{matching}"}
+    outs = {"mvrecon": scene / f"{version}{args_key}" / "mvrecon", "colmap": scene / f"colmap-{matching}"}
     for engine, out in outs.items():
         forget_other_run(engine, images, out, options)
-        start_over_if_interrupted(out)
+        if engine == "mvrecon":
+            start_over_if_interrupted(out)
         bar.set_postfix_str(f"{name} {count}: {ENGINES[engine]}")
         run = run_mvrecon if engine == "mvrecon" else run_colmap
         results[engine] = run(images, out, options, timeout=timeout, code=ROOT)
@@ -342,7 +345,7 @@ COLMAP (pycolmap) on the same rendered scenes.
 """
 
 HOW = """
-Each cell is `mvrecon / COLMAP`. Both ran one after the other in subprocesses on the same images: mvrecon
+Each cell is `mvrecon / COLMAP`. Both ran in subprocesses on the same images: mvrecon
 `reconstruct` with its default settings, COLMAP (pycolmap {pycolmap}, CPU) extract_features, the matching of
 the *COLMAP pairs* column (spatial: by the EXIF GPS positions; sequential: each image with the next ones, no
 loop detection, which needs a vocabulary tree; exhaustive: every pair) and incremental_mapping; the same
@@ -350,11 +353,12 @@ camera model, seed 0. *whole s*: the whole process, start-up included; *peak MB*
 memory of the run's process tree; *registered*: images in the largest model (a model without 3D points, or
 with most of its image pairs more than 5 deg off, counts 0); *verified pairs*: image pairs with a two-view
 geometry in the run's database; AUC@t: relative-pose AUC over all image pairs against the ground truth (a pair
-with an unregistered image, or split across models, counts 180 deg). The targets, stated for 1,000 images:
+with an unregistered image, or split across models, counts 180 deg). COLMAP's run of a scene and size is made
+once and read back by later calls; one cut off goes on from where it stopped, each stage's time counted once,
+the work repeated after its last snapshot left out. The targets, stated for 1,000 images:
 registered >= COLMAP's, AUC@5 >= COLMAP's - {margin}, whole wall time <= {ratio} x COLMAP's, peak memory <=
 COLMAP's, and mapping time growing at most as images ** {exponent}. On a machine shared with other work, wall
-times drift by a third between calls: compare the two engines of a row, measured one after the other, more
-than rows of different calls.
+times drift by a third between calls, so a ratio between the engines holds to about that.
 """
 
 

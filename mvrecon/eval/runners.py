@@ -13,7 +13,9 @@ Each run happens in a subprocess so its wall time and peak memory are its own an
 down. Each OUT keeps the record of its run (`io.record.Record`, OUT/.stages/runner.json: the run's identity as
 its config, and a report of whether it finished, its wall time, peak memory, error and command; `run_meta`). A
 finished OUT is read back instead of rerun, and so is a run that timed out (rerunning would only time out again);
-a run that failed otherwise is retried next time. OUT with a run made with other options is refused, so numbers
+a run that failed otherwise is retried next time. A COLMAP run cut off part way (Ctrl-C, a killed process)
+goes on from its database and newest mapping snapshot next time, each stage's time counted once (resumable.py).
+OUT with a run made with other options is refused, so numbers
 from different settings never mix; the options that count are those the engine's result depends on
 (`RunOptions.identity`: COLMAP's own runs ignore `mvrecon_args`). Delete OUT to rerun after changing an engine.
 """
@@ -26,11 +28,13 @@ import logging
 import os
 import shutil
 import signal
+import sqlite3
 import subprocess
 import sys
 import tempfile
 import threading
 import time
+from contextlib import closing
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -47,13 +51,14 @@ from ..database import (
     read_correspondences,
 )
 from ..errors import InputError
-from ..executor import StageClock, describe_death, user_environment
+from ..executor import describe_death, user_environment
 from ..io.files import read_json_object, some_names
 from ..io.images import image_metadata, list_images
 from ..io.masks import check_masks, find_masks
 from ..io.record import Record
 from ..memory import INTERVAL_S, PeakSampler, process_tree
 from .models import model_stats, poses, sparse_models
+from .resumable import SNAPSHOT_FRAMES, StageProgress, counted_before
 
 log = logging.getLogger("mvrecon.eval.runners")
 
@@ -337,7 +342,8 @@ def _run(engine, cmd, source: Path, out_dir: Path, options: RunOptions, timeout,
     run_record.put(RUN, config_hash(identity), {**(record or {}), "finished": False}, config=identity)
     _cache_bytecode()
     log.debug("running %s on %s -> %s", engine, source, out_dir)
-    wall, peaks = 0.0, []
+    wall, before_mb = counted_before(out_dir)  # a COLMAP run cut off earlier resumes: its counted part
+    peaks = [before_mb] if before_mb else []
     for attempt in (1, 2):
         error = None
         code, peak_mb, wall_s = measured_process(cmd, out_dir / "run.log", timeout, tree)
@@ -444,31 +450,65 @@ def _result(engine, out_dir: Path, meta: dict) -> RunResult:
 # --- the COLMAP side, run inside the subprocess ---------------------------------------------------------------
 
 def _colmap_main(image_dir: Path, out_dir: Path, options: dict, global_mapper: bool) -> None:
+    """COLMAP end to end into OUT, resuming an attempt that was cut off (resumable.py)."""
     pycolmap.set_random_seed(int(options["seed"]))
     db = out_dir / "database.db"
-    if db.exists():
-        db.unlink()  # an unfinished earlier attempt: start clean
-    stages = StageClock()
+    progress = StageProgress(out_dir)
+    if not progress.resumed and db.exists():
+        db.unlink()  # an attempt of a version that did not resume: start clean
+    if not progress.done("features"):
+        with progress.stage("features"):
+            _extract_features(db, image_dir, options)
+    if not progress.done("matching"):
+        with progress.stage("matching"):
+            _match(db, options)
+    models = _mapped(db, image_dir, out_dir, options, global_mapper, progress)
+    _write_outputs(out_dir, "colmap-global" if global_mapper else "colmap", options, models, db, progress)
+
+
+def _extract_features(db: Path, image_dir: Path, options: dict) -> None:
+    """pycolmap's SIFT into `db` with the run's camera mode and model; the images already there are skipped, and
+    the images of a camera some of whose images are there join that camera."""
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = options["camera_model"]
     if options["camera_params"]:
         reader.camera_params = ",".join(f"{p:.17g}" for p in options["camera_params"])
     if options.get("masks"):
         reader.mask_path = options["masks"]
-    mode = {"auto": pycolmap.CameraMode.AUTO, "single": pycolmap.CameraMode.SINGLE,
-            "per-folder": pycolmap.CameraMode.PER_FOLDER, "per-image": pycolmap.CameraMode.PER_IMAGE}
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.use_gpu = False
-    if options["camera_mode"] == "auto":
-        for names in _camera_groups(image_dir):  # one SINGLE-camera extraction per group of mvrecon's auto rule
-            pycolmap.extract_features(db, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
-                                      reader_options=reader, extraction_options=extraction,
-                                      device=pycolmap.Device.cpu)
-    else:  # the same images as mvrecon's listing (no hidden files such as degrade's record)
-        pycolmap.extract_features(db, image_dir, image_names=sorted(sum(_camera_groups(image_dir), [])),
-                                  camera_mode=mode[options["camera_mode"]], reader_options=reader,
+    done = _camera_of_images(db)
+    names = sorted(sum(_camera_groups(image_dir), []))  # mvrecon's listing (no hidden files such as degrade's)
+    if options["camera_mode"] == "auto":  # one SINGLE-camera extraction per group of mvrecon's auto rule
+        groups = [(pycolmap.CameraMode.SINGLE, group) for group in _camera_groups(image_dir)]
+    elif options["camera_mode"] == "single":
+        groups = [(pycolmap.CameraMode.SINGLE, names)]
+    elif options["camera_mode"] == "per-image":
+        groups = [(pycolmap.CameraMode.PER_IMAGE, names)]
+    else:  # per folder: one camera per subfolder, which a resumed extraction would split; it starts again
+        if done:
+            db.unlink()
+        groups = [(pycolmap.CameraMode.PER_FOLDER, names)]
+    for mode, group in groups:
+        if all(n in done for n in group):
+            continue
+        reader.existing_camera_id = next((done[n] for n in group if n in done), -1) \
+            if mode == pycolmap.CameraMode.SINGLE else -1
+        pycolmap.extract_features(db, image_dir, image_names=group, camera_mode=mode, reader_options=reader,
                                   extraction_options=extraction, device=pycolmap.Device.cpu)
-    stages.done("features")
+
+
+def _camera_of_images(db: Path) -> dict[str, int]:
+    """Image name -> camera id of the images in `db` that have their features, {} without a database."""
+    if not db.is_file():
+        return {}
+    with closing(sqlite3.connect(db)) as con:
+        return dict(con.execute("SELECT images.name, images.camera_id FROM images JOIN descriptors "
+                                "ON descriptors.image_id = images.image_id WHERE descriptors.rows > 0"))
+
+
+def _match(db: Path, options: dict) -> None:
+    """The run's pairs matched and verified (the pairs already in `db` are skipped)."""
     matching = pycolmap.FeatureMatchingOptions()
     matching.use_gpu = False
     verification = pycolmap.TwoViewGeometryOptions()
@@ -483,20 +523,32 @@ def _colmap_main(image_dir: Path, out_dir: Path, options: dict, global_mapper: b
     else:
         pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification,
                                   device=pycolmap.Device.cpu)
-    stages.done("matching")
-    models = _map(db, image_dir, out_dir, options, global_mapper)
-    stages.done("mapping")
-    _write_outputs(out_dir, "colmap-global" if global_mapper else "colmap", options, models, db, stages)
 
 
 def _colmap_db_main(database: Path, out_dir: Path, options: dict, image_dir: Path | None) -> None:
+    """COLMAP's incremental mapper on a copy of `database`, resuming an attempt that was cut off."""
     pycolmap.set_random_seed(int(options["seed"]))
     db = out_dir / "database.db"
-    shutil.copyfile(database, db)
-    stages = StageClock()
-    models = _map(db, image_dir, out_dir, options, False)
-    stages.done("mapping")
-    _write_outputs(out_dir, "colmap-same-matches", options, models, db, stages)
+    progress = StageProgress(out_dir)
+    if not progress.resumed or not db.exists():
+        shutil.copyfile(database, db)
+    models = _mapped(db, image_dir, out_dir, options, False, progress)
+    _write_outputs(out_dir, "colmap-same-matches", options, models, db, progress)
+
+
+def _mapped(db: Path, image_dir, out_dir: Path, options: dict, global_mapper: bool,
+            progress: StageProgress) -> list:
+    """`_map` as the run's mapping stage, its models written to OUT/sparse (read back from there once mapped):
+    incremental mapping snapshots its model into OUT/snapshots and resumes from the newest whole one."""
+    if progress.done("mapping"):
+        return sparse_models(out_dir / "sparse")
+    snapshots = out_dir / "snapshots"
+    start = None if global_mapper else progress.snapshot("mapping")
+    with progress.stage("mapping", snapshots=None if global_mapper else snapshots):
+        models = _map(db, image_dir, out_dir, options, global_mapper, snapshots, start)
+        _write_models(out_dir / "sparse", models)
+    shutil.rmtree(snapshots, ignore_errors=True)
+    return models
 
 
 def _camera_groups(image_dir: Path) -> list[list[str]]:
@@ -510,7 +562,10 @@ def _camera_groups(image_dir: Path) -> list[list[str]]:
     return [members for _, members in group_cameras(names, metas, CameraConfig(mode="auto"))]
 
 
-def _map(db: Path, image_dir, out_dir: Path, options: dict, global_mapper: bool) -> list:
+def _map(db: Path, image_dir, out_dir: Path, options: dict, global_mapper: bool, snapshots: Path,
+         start: Path | None = None) -> list:
+    """COLMAP's models of `db`, largest first; incremental mapping writes a snapshot of its model into
+    `snapshots` every SNAPSHOT_FRAMES images, and starts from the model in `start` when given."""
     with tempfile.TemporaryDirectory(dir=out_dir, prefix="mapper-") as tmp:
         if global_mapper:
             opts = pycolmap.GlobalPipelineOptions()
@@ -522,17 +577,27 @@ def _map(db: Path, image_dir, out_dir: Path, options: dict, global_mapper: bool)
             if options["camera_params"]:
                 opts.ba_refine_focal_length = False
                 opts.ba_refine_extra_params = False
-            found = pycolmap.incremental_mapping(db, image_dir or "", tmp, opts)
+            snapshots.mkdir(exist_ok=True)
+            opts.snapshot_path = str(snapshots)
+            opts.snapshot_frames_freq = SNAPSHOT_FRAMES
+            if start is not None:
+                log.info("mapping resumes from the snapshot %s", start)
+            found = pycolmap.incremental_mapping(db, image_dir or "", tmp, opts, input_path=start or "")
         return sorted(found.values(), key=lambda r: r.num_reg_images(), reverse=True)
 
 
-def _write_outputs(out_dir: Path, engine: str, options: dict, models: list, db: Path, stages: StageClock) -> None:
-    sparse = out_dir / "sparse"
+def _write_models(sparse: Path, models: list) -> None:
+    """The models into sparse/0, sparse/1, ..., largest first (an earlier attempt's replaced)."""
     if sparse.exists():
         shutil.rmtree(sparse)
     for k, rec in enumerate(models):
         (sparse / str(k)).mkdir(parents=True)
         rec.write(str(sparse / str(k)))
+
+
+def _write_outputs(out_dir: Path, engine: str, options: dict, models: list, db: Path,
+                   progress: StageProgress) -> None:
+    """points.ply of the largest model and report.json (every image's status, the stages' counted times)."""
     if models:
         models[0].export_PLY(str(out_dir / "points.ply"))
     corr = read_correspondences(db, mapped=False)  # COLMAP's own run: any of its camera models
@@ -561,7 +626,7 @@ def _write_outputs(out_dir: Path, engine: str, options: dict, models: list, db: 
         "engine": engine, "version": f"pycolmap {_pycolmap_version()} via mvrecon {__version__}",
         "config_hash": "", "seed": int(options["seed"]), "images": images,
         "models": [{"index": k, **model_stats(rec), "cameras": _cameras(rec)} for k, rec in enumerate(models)],
-        "stages": stages.stages, "total": stages.total(), "counts": database_counts(db),
+        "stages": progress.stages(), "total": progress.total(), "counts": database_counts(db),
     }
     (out_dir / "report.json").write_text(json.dumps(report, indent=1))
 
