@@ -19,6 +19,7 @@ import json
 import shutil
 import threading
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -55,7 +56,7 @@ class StageProgress:
         return Path(path) if path and Path(path).is_dir() else None
 
     @contextmanager
-    def stage(self, name: str, snapshots: Path | None = None):
+    def stage(self, name: str, snapshots: Path | None = None) -> Iterator[None]:
         """Time the stage run inside the `with` block; its counted time grows with heartbeats while it runs, and
         is whole when the block ends. With `snapshots` (the folder the stage writes snapshots to) it grows only
         to the newest whole snapshot, which the record keeps (`snapshot`). Callers skip the block when

@@ -78,15 +78,15 @@ def test_compare_warns_before_running_colmap_on_a_fisheye_without_params(tmp_pat
 
 
 def test_colmaps_empty_result_on_a_fisheye_without_a_prior_gives_the_reason(fisheye, tmp_path):
+    from mvrecon.eval.resumable import StageProgress
     from mvrecon.eval.runners import _write_outputs
-    from mvrecon.executor import StageClock
 
     _, _, db = fisheye
     con = __import__("sqlite3").connect(db)
     assert con.execute("SELECT DISTINCT config FROM two_view_geometries").fetchall() == [
         (int(pycolmap.TwoViewGeometryConfiguration.DEGENERATE),)]  # pycolmap's rule, checked on its own output
     con.close()
-    _write_outputs(tmp_path, "colmap", {"seed": 0}, [], db, StageClock())
+    _write_outputs(tmp_path, "colmap", {"seed": 0}, [], db, StageProgress(tmp_path))
     reasons = {v["reason"] for v in json.loads((tmp_path / "report.json").read_text())["images"].values()}
     assert reasons == {f"{COLMAP_FISHEYE_NOTE} (camera 1 is OPENCV_FISHEYE without one); give --camera-params to "
                        "compare with it"}  # was "no verified pairs"
