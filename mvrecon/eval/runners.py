@@ -15,9 +15,9 @@ its config, and a report of whether it finished, its wall time, peak memory, err
 finished OUT is read back instead of rerun, and so is a run that timed out (rerunning would only time out again);
 a run that failed otherwise is retried next time. A COLMAP run cut off part way (Ctrl-C, a killed process)
 goes on from its database and newest mapping snapshot next time, each stage's time counted once (resumable.py).
-OUT with a run made with other options is refused, so numbers
-from different settings never mix; the options that count are those the engine's result depends on
-(`RunOptions.identity`: COLMAP's own runs ignore `mvrecon_args`). Delete OUT to rerun after changing an engine.
+OUT with a run made with other options is refused, so numbers from different settings never mix; the options
+that count are those the engine's result depends on (`RunOptions.identity`: COLMAP's own runs ignore
+`mvrecon_args`). Delete OUT to rerun after changing an engine.
 """
 
 import argparse
@@ -488,6 +488,7 @@ def _extract_features(db: Path, image_dir: Path, options: dict) -> None:
     else:  # per folder: one camera per subfolder, which a resumed extraction would split; it starts again
         if done:
             db.unlink()
+            done = {}
         groups = [(pycolmap.CameraMode.PER_FOLDER, names)]
     for mode, group in groups:
         if all(n in done for n in group):
