@@ -35,9 +35,10 @@ def filter_small_angle_points(model: Reconstruction, config: MapperConfig,
     pids = pids[model.point_alive.data[pids]]
     if len(pids) == 0:
         return 0
-    uniq, obs, mask = model.padded_observations(pids)
-    centers = model.centers()[model.obs_image.data[obs]]
-    bad = uniq[~reaches_triangulation_angle(model.xyz.data[uniq], centers, mask, config.filter_min_tri_angle_deg)]
+    centers = model.centers()
+    bad = np.concatenate([uniq[~reaches_triangulation_angle(model.xyz.data[uniq], centers[model.obs_image.data[obs]],
+                                                            mask, config.filter_min_tri_angle_deg)]
+                          for uniq, obs, mask in model.padded_groups(pids)])
     model.delete_points(bad)
     return len(bad)
 

@@ -19,12 +19,11 @@ import numpy as np
 from ..geometry.absolute_pose import pnp_ransac
 from ..geometry.triangulation import reaches_triangulation_angle, refine_points, triangulate_dlt
 from .config import MapperConfig
-from .model import Reconstruction
+from .model import PADDED_VIEWS, Reconstruction
 from .tracks import Tracks
 
 _PAIR_HYPOTHESES = 8
-# padded views handled at once (`triangulate_tracks`, `refine_existing_points`): some 100 MB of arrays
-_PADDED_VIEWS = 250_000
+_PADDED_VIEWS = PADDED_VIEWS  # padded views handled at once (`triangulate_tracks`, `refine_existing_points`)
 
 
 def _registered_elements(model, tracks, track_ids):

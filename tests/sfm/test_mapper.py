@@ -16,7 +16,7 @@ from mvrecon import database
 from mvrecon.eval.metrics import accuracy_summary
 from mvrecon.eval.models import model_stats, poses
 from mvrecon.io.colmap_model import write_models
-from mvrecon.sfm import bundle, incremental, triangulate, view_graph
+from mvrecon.sfm import bundle, filtering, incremental, model, triangulate, view_graph
 from mvrecon.sfm.config import MapperConfig
 from mvrecon.sfm.incremental import map_correspondences
 from mvrecon.sfm.triangulate import continue_points, retriangulate
@@ -381,6 +381,30 @@ def test_many_tracks_are_triangulated_in_groups_to_the_same_points(scene, monkey
     same = np.all(np.isclose(m.xyz.data[m.point_of_track[both]], whole.xyz.data[whole.point_of_track[both]],
                              rtol=0, atol=1e-9), axis=1)
     assert same.mean() > 0.99
+
+
+def test_the_angle_filter_pads_points_in_bounded_groups_to_the_same_verdicts(scene, monkeypatch):
+    """One long track no longer pads every point to its length: the filter takes the points in groups of at
+    most the padded-view bound, shortest tracks first, and deletes the same points as one group does."""
+    _, corr, _ = scene
+    m = incremental.IncrementalMapper(corr, MapperConfig(seed=3)).run().models[0]
+    strict = MapperConfig(filter_min_tri_angle_deg=150.0)  # the cameras ring the points: this deletes some
+    whole = copy.deepcopy(m)
+    deleted = filtering.filter_small_angle_points(whole, strict)
+    assert 0 < deleted < 0.9 * m.num_points
+    groups = []
+    real = m.padded_observations
+
+    def padding(pids):
+        points, obs, mask = real(pids)
+        groups.append(mask.size)
+        return points, obs, mask
+
+    monkeypatch.setattr(m, "padded_observations", padding)
+    monkeypatch.setattr(model, "PADDED_VIEWS", 400)
+    assert filtering.filter_small_angle_points(m, strict) == deleted
+    assert len(groups) > 10 and max(groups) <= 400
+    assert np.array_equal(m.alive_points(), whole.alive_points())
 
 
 def test_resume_continues_from_the_snapshot(tmp_path, monkeypatch, caplog):
