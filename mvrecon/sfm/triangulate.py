@@ -288,16 +288,13 @@ def _registered_views(model: Reconstruction, tracks: Tracks, track_ids: np.ndarr
 
 def refine_existing_points(model: Reconstruction, point_ids: np.ndarray, iterations: int = 3) -> None:
     """Re-fit points to their observations with the poses held fixed: the points a subset bundle adjustment
-    left out follow the poses it moved (their outliers go to the filters that run next). Rows of at most
-    _PADDED_VIEWS padded views at a time, each as the whole would be (the same result to the bit): at once,
-    a pose per padded view held the peak of a 300-image survey's final refinement (85,000 points padded to
-    their longest track)."""
-    pids, obs, mask = model.padded_observations(point_ids)
-    rows = max(1, _PADDED_VIEWS // max(obs.shape[1], 1))
-    for start in range(0, len(pids), rows):
-        p, o = pids[start:start + rows], obs[start:start + rows]
+    left out follow the poses it moved (their outliers go to the filters that run next). Groups of at most
+    PADDED_VIEWS padded views at a time (`Reconstruction.padded_groups`), each point as the whole would be:
+    at once, a pose per padded view held the peak of a 300-image survey's final refinement (85,000 points
+    padded to their longest track)."""
+    for p, o, mask in model.padded_groups(point_ids):
         images, kps = model.obs_image.data[o], model.obs_kp.data[o]
-        x, m = _normalized(model, images, kps, mask[start:start + rows])
+        x, m = _normalized(model, images, kps, mask)
         X = refine_points(model.xyz.data[p], model.R[images], model.t[images], x, m, iterations)
         ok = np.isfinite(X).all(axis=1)
         model.xyz.data[p[ok]] = X[ok]
