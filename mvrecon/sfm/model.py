@@ -402,9 +402,8 @@ class Reconstruction:
 
     def padded_groups(self, pids: np.ndarray) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """`padded_observations` of `pids` in groups of at most PADDED_VIEWS padded views (one group for a point
-        longer than that), the points ordered by track length: padded together, one long track made every
-        point as long (a 1,000-frame street: 340,000 points padded to a track of hundreds of views, 7 GB in
-        the angle filter)."""
+        longer than that), the points ordered by track length: padded together, one long track makes every
+        point as long, which in a long forward-moving sequence is hundreds of views for every point."""
         budget = PADDED_VIEWS
         pids = np.asarray(pids, dtype=np.int64)
         lengths = self.point_num_observations()[pids]
