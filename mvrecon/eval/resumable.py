@@ -15,7 +15,6 @@ attempt, and never more than an uninterrupted run's: a comparison against it err
 the attempts made; a record of another pycolmap version is dropped, and the run starts again.
 """
 
-import json
 import shutil
 import threading
 import time
@@ -26,7 +25,7 @@ from pathlib import Path
 import pycolmap
 
 from ..executor import cpu_seconds, tree_peak_memory_mb
-from ..io.files import read_json_object
+from ..io.files import read_json_object, write_json
 
 PROGRESS = "colmap-progress.json"
 HEARTBEAT_S = 10.0
@@ -98,15 +97,10 @@ class StageProgress:
 
     def total(self) -> dict:
         """report.json's `total`: the stages' counted times summed, their peak memory the largest."""
-        entries = self.data["stages"].values()
-        return {"wall_s": sum(e["wall_s"] for e in entries), "cpu_s": sum(e["cpu_s"] for e in entries),
-                "peak_mem_mb": max((e["peak_mem_mb"] for e in entries), default=0.0),
-                "attempts": self.data["attempts"]}
+        return {**_summed(self.data["stages"]), "attempts": self.data["attempts"]}
 
     def _save(self) -> None:
-        tmp = self.path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(self.data, indent=1))
-        tmp.replace(self.path)
+        write_json(self.path, self.data, indent=1)
 
 
 class SnapshotSealer:
@@ -146,6 +140,12 @@ def counted_before(out_dir: Path | str) -> tuple[float, float]:
     data = read_json_object(Path(out_dir) / PROGRESS) or {}
     if data.get("pycolmap") != pycolmap.__version__:
         return 0.0, 0.0
-    entries = data.get("stages", {}).values()
-    return (sum(e.get("wall_s", 0.0) for e in entries),
-            max((e.get("peak_mem_mb", 0.0) for e in entries), default=0.0))
+    total = _summed(data.get("stages", {}))
+    return total["wall_s"], total["peak_mem_mb"]
+
+
+def _summed(stages: dict) -> dict:
+    """The stages' counted wall and CPU seconds summed, and their largest peak memory."""
+    entries = stages.values()
+    return {"wall_s": sum(e.get("wall_s", 0.0) for e in entries), "cpu_s": sum(e.get("cpu_s", 0.0) for e in entries),
+            "peak_mem_mb": max((e.get("peak_mem_mb", 0.0) for e in entries), default=0.0)}
