@@ -478,9 +478,10 @@ def _extract_features(db: Path, image_dir: Path, options: dict) -> None:
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.use_gpu = False
     done = _camera_of_images(db)
-    names = sorted(sum(_camera_groups(image_dir), []))  # mvrecon's listing (no hidden files such as degrade's)
+    auto = _camera_groups(image_dir)
+    names = sorted(sum(auto, []))  # mvrecon's listing (no hidden files such as degrade's)
     if options["camera_mode"] == "auto":  # one SINGLE-camera extraction per group of mvrecon's auto rule
-        groups = [(pycolmap.CameraMode.SINGLE, group) for group in _camera_groups(image_dir)]
+        groups = [(pycolmap.CameraMode.SINGLE, group) for group in auto]
     elif options["camera_mode"] == "single":
         groups = [(pycolmap.CameraMode.SINGLE, names)]
     elif options["camera_mode"] == "per-image":
