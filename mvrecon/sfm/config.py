@@ -41,6 +41,9 @@ class MapperConfig:
     min_tri_angle_deg: float = bounded(1.5, 0.0, 90.0)
     # angular gate of the loop-closing continuation (COLMAP: tri_continue_max_angle_error)
     tri_max_angle_error_deg: float = bounded(2.0, 0.0, low_open=True)
+    # points of its tracks an image must see elsewhere, fitted by one other pose, to close an open loop there
+    # (sfm/loop_closure.py; 0: never)
+    loop_min_inliers: int = bounded(50, 0)
     # reprojection error allowed when creating and continuing points (COLMAP: tri_merge_max_reproj_error)
     max_reproj_error_px: float = bounded(4.0, 0.0, low_open=True)
     # observations above this reprojection error are filtered out (COLMAP: filter_max_reproj_error)

@@ -473,6 +473,10 @@ class Reconstruction:
                             c.prior_calibrated) for k, c in self.cameras.items()}
         return s
 
+    def restore(self, s: dict) -> None:
+        """Return to an earlier `state()` of this model (a trial undone)."""
+        self.__dict__.update(type(self).from_state(s, self.keypoints).__dict__)
+
     @classmethod
     def from_state(cls, s: dict, keypoints: list[np.ndarray]) -> "Reconstruction":
         cams = {k: Camera(*v) for k, v in s["cameras"].items()}

@@ -173,17 +173,7 @@ def continue_points(model: Reconstruction, tracks: Tracks, config: MapperConfig,
     """Add observations of existing points in registered views of their tracks (restricted to `images` when
     given) that pass the pixel gate, or with `loose` the angular one and then `_refits` or `_coherent`.
     Returns observations added."""
-    if images is None:
-        e = np.arange(len(tracks.image))
-    else:
-        e = tracks.elements_of_images(images)
-    model.scanned += len(e)
-    img, kp = tracks.image[e], tracks.keypoint[e]
-    p = model.point_of_track[tracks.element_track[e]]
-    cand = (p >= 0) & model.registered[img]
-    e, img, kp, p = e[cand], img[cand], kp[cand], p[cand]
-    free = model.obs_of_kp_flat[model.kp_offset[img] + kp] < 0
-    e, img, kp, p = e[free], img[free], kp[free], p[free]
+    e, img, kp, p = unobserved_views(model, tracks, images)
     if len(e) == 0:
         return 0
     x = None
@@ -195,6 +185,20 @@ def continue_points(model: Reconstruction, tracks: Tracks, config: MapperConfig,
                       | _coherent(model, model.xyz.data[p[good]], img[good], x[good], config, seed))
     model.add_observations(p[good], img[good], kp[good])
     return int(good.sum())
+
+
+def unobserved_views(model: Reconstruction, tracks: Tracks, images: np.ndarray | list[int] | None = None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(elements, images, keypoints, points): the track elements in registered images (of `images` when given)
+    whose track has a point that the keypoint does not observe."""
+    e = np.arange(len(tracks.image)) if images is None else tracks.elements_of_images(images)
+    model.scanned += len(e)
+    img, kp = tracks.image[e], tracks.keypoint[e]
+    p = model.point_of_track[tracks.element_track[e]]
+    cand = (p >= 0) & model.registered[img]
+    e, img, kp, p = e[cand], img[cand], kp[cand], p[cand]
+    free = model.obs_of_kp_flat[model.kp_offset[img] + kp] < 0
+    return e[free], img[free], kp[free], p[free]
 
 
 def _refits(model, points, images, kps, config: MapperConfig) -> np.ndarray:

@@ -16,7 +16,7 @@ from mvrecon import database
 from mvrecon.eval.metrics import accuracy_summary
 from mvrecon.eval.models import model_stats, poses
 from mvrecon.io.colmap_model import write_models
-from mvrecon.sfm import bundle, filtering, incremental, model, triangulate, view_graph
+from mvrecon.sfm import bundle, filtering, incremental, loop_closure, model, triangulate, view_graph
 from mvrecon.sfm.config import MapperConfig
 from mvrecon.sfm.incremental import map_correspondences
 from mvrecon.sfm.triangulate import continue_points, retriangulate
@@ -116,14 +116,16 @@ def _turned(R, degrees):
     return np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]) @ R
 
 
-@pytest.mark.parametrize("drift_deg, rejoined", [(1.0, True), (4.0, False)])
-def test_loop_closure_takes_back_views_that_drift_pushed_past_4_px(scene, drift_deg, rejoined):
+@pytest.mark.parametrize("drift_deg, loop_min_inliers, rejoined", [(1.0, 50, True), (4.0, 50, True),
+                                                                   (4.0, 0, False)])
+def test_loop_closure_takes_back_views_that_drift_pushed_past_4_px(scene, drift_deg, loop_min_inliers, rejoined):
     """An image turned 1 deg (about 10 px here: what the image closing a loop sees of the loop's first points)
     and stripped of its views gets none back through the 4 px gate, gets them back through the loose angular
-    gate, and the bundle adjustment after it turns the image back. At 4 deg (past the 2 deg gate) nothing
+    gate, and the bundle adjustment after it turns the image back. At 4 deg (past the 2 deg gate) the image is
+    a hinge of an open loop, and the pose graph turns it back (`loop_closure`); without that step nothing
     rejoins, and the next global refinement deregisters the image."""
     _, corr, _ = scene
-    mapper = incremental.IncrementalMapper(corr, MapperConfig(seed=3))
+    mapper = incremental.IncrementalMapper(corr, MapperConfig(seed=3, loop_min_inliers=loop_min_inliers))
     m = mapper.run().models[0]
     i = m.registration_order[-1]
     R_true, center = m.R[i].copy(), m.centers()[i]
@@ -146,6 +148,75 @@ def test_loop_closure_takes_back_views_that_drift_pushed_past_4_px(scene, drift_
         mapper._global_refine(m)
         assert not m.registered[i] and "lost all its 2D-3D matches" in mapper.reasons[i]
         assert m.registered.sum() == 7
+
+
+def _hinged(m, images, seed=0):
+    """The model split at a hinge, as growth leaves an open loop: `images` and a random half of the points move
+    by a similarity (3 deg, 10% in scale, a shift of half the model's size), and each point loses its views on
+    the other side, so that either side sees the other's points displaced together."""
+    rng = np.random.default_rng(seed)
+    turn = Rotation.from_euler("xyz", [3.0, -2.0, 1.0], degrees=True).as_matrix()
+    centers = m.centers()
+    shift = 0.5 * np.ptp(centers, axis=0)
+
+    def moved(X):
+        return 1.1 * X @ turn.T + shift
+
+    for i in images:
+        m.R[i] = m.R[i] @ turn.T
+        m.t[i] = -m.R[i] @ moved(centers[i])
+    points = m.alive_points()
+    moving = np.zeros(m.xyz.n, bool)
+    moving[points[rng.random(len(points)) < 0.5]] = True
+    m.xyz.data[moving] = moved(m.xyz.data[moving])
+    obs = m.alive_observations()
+    m.remove_observations(obs[np.isin(m.obs_image.data[obs], images) != moving[m.obs_point.data[obs]]])
+
+
+def test_an_open_loop_is_found_at_its_hinge_and_closed_by_the_pose_graph(scene):
+    """A model split at a hinge (`_hinged`) is past both gates: the loose continuation takes back no view. The
+    images on either side see the other side's points fitted by one other pose, and `_close_loops` puts the
+    sides back together: the poses as accurate as before the split, and the views taken back. The model as
+    mapped has no hinge."""
+    gt, corr, _ = scene
+    mapper = incremental.IncrementalMapper(corr, MapperConfig(seed=3))
+    m = mapper.run().models[0]
+    assert loop_closure.find_hinges(m, mapper.tracks, mapper.config) == []
+    views = int(m.obs_alive.data.sum())
+    images = m.registration_order[4:]
+    _hinged(m, images)
+    assert int(m.obs_alive.data.sum()) < 0.6 * views
+    assert continue_points(m, mapper.tracks, mapper.config, loose=True) == 0
+    split = accuracy_summary([{m.names[i]: (m.R[i], m.t[i]) for i in m.registered_images()}], gt)
+    assert split["auc@5"] < 0.5
+
+    hinges = loop_closure.find_hinges(m, mapper.tracks, mapper.config)
+    assert {h.image for h in hinges} == set(m.registration_order)
+    mapper._close_loops(m)
+    closed = accuracy_summary([{m.names[i]: (m.R[i], m.t[i]) for i in m.registered_images()}], gt)
+    assert closed["registered"] == 8 and closed["auc@1"] >= 0.9
+    assert int(m.obs_alive.data.sum()) > 0.95 * views
+
+
+def test_a_loop_closure_that_leaves_fewer_views_is_undone(scene, monkeypatch):
+    """A closure that bends the model (here: every image turned a random 5 deg instead) loses views to the
+    filters after its bundle adjustment, and the model returns to what it was."""
+    _, corr, _ = scene
+    mapper = incremental.IncrementalMapper(corr, MapperConfig(seed=3))
+    m = mapper.run().models[0]
+    _hinged(m, m.registration_order[4:])
+    before = m.state()
+    rng = np.random.default_rng(1)
+
+    def bend(model, hinges):
+        for i in model.registered_images():
+            model.R[i] = Rotation.from_rotvec(np.radians(5) * Rotation.random(random_state=rng).as_rotvec()
+                                              / np.pi).as_matrix() @ model.R[i]
+
+    monkeypatch.setattr(incremental, "close_loop", bend)
+    mapper._close_open_loop(m)
+    assert np.array_equal(m.R, before["R"]) and np.array_equal(m.xyz.data, before["xyz"])
+    assert np.array_equal(m.obs_alive.data, before["obs_alive"])
 
 
 @pytest.mark.parametrize("removed, rounds", [(0.004, 1), (0.02, 2)])
