@@ -567,7 +567,10 @@ def _camera_groups(image_dir: Path) -> list[list[str]]:
 def _map(db: Path, image_dir, out_dir: Path, options: dict, global_mapper: bool, snapshots: Path,
          start: Path | None = None) -> list:
     """COLMAP's models of `db`, largest first; incremental mapping writes a snapshot of its model into
-    `snapshots` every SNAPSHOT_FRAMES images, and starts from the model in `start` when given."""
+    `snapshots` every SNAPSHOT_FRAMES images, and starts from the model in `start` when given. The scratch
+    folders of attempts that were cut off (a killed process leaves its temporary folder) are removed first."""
+    for stale in out_dir.glob("mapper-*"):
+        shutil.rmtree(stale, ignore_errors=True)
     with tempfile.TemporaryDirectory(dir=out_dir, prefix="mapper-") as tmp:
         if global_mapper:
             opts = pycolmap.GlobalPipelineOptions()

@@ -106,9 +106,11 @@ def test_incremental_mapping_goes_on_from_a_snapshot(tmp_path, monkeypatch, capl
     sizes = [pycolmap.Reconstruction(str(p)).num_reg_images() for p in written]
     assert len(sizes) == 2 and sizes[0] < sizes[1] == 8
 
+    (tmp_path / "mapper-cut-off").mkdir()  # the scratch folder a killed attempt leaves behind
     with caplog.at_level(logging.INFO, logger="mvrecon.eval.runners"):
         models = runners._map(db, images, tmp_path, options, False, tmp_path / "again", start=written[0])
 
     assert f"resumes from the snapshot {written[0]}" in caplog.text
+    assert not list(tmp_path.glob("mapper-*"))
     summary = accuracy(models, gt_path)
     assert summary["registered"] == 8 and summary["auc@5"] > 0.9
