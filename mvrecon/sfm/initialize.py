@@ -188,19 +188,45 @@ def find_initial_pair(model: Reconstruction, pairs_by_index: dict[tuple[int, int
     place); evaluated: pair -> `assess_pair` result, so relaxing the angle does not estimate a pair again.
     """
     candidates = _candidates(pairs_by_index, excluded, config)
-    for min_angle in config.init_min_tri_angles_deg:
-        for _, key in candidates[:config.init_max_pairs]:
-            if (key, min_angle) in tried:
-                continue
-            tried.add((key, min_angle))
-            if key not in evaluated:
-                evaluated[key] = assess_pair(model, pairs_by_index[key], key[0], key[1], config)
-            found = evaluated[key]
-            if isinstance(found, InitialPair) and found.median_angle_deg >= min_angle:
-                for cid, focal in found.focals.items():  # later candidates may have moved a guessed focal
-                    model.cameras[cid].set_focal(focal)
-                return found
+    for keys in ([key for _, key in candidates[:config.init_max_pairs]], _image_first(candidates, config)):
+        for min_angle in config.init_min_tri_angles_deg:
+            for key in keys:
+                if (key, min_angle) in tried:
+                    continue
+                tried.add((key, min_angle))
+                if key not in evaluated:
+                    evaluated[key] = assess_pair(model, pairs_by_index[key], key[0], key[1], config)
+                found = evaluated[key]
+                if isinstance(found, InitialPair) and found.median_angle_deg >= min_angle:
+                    for cid, focal in found.focals.items():  # later candidates may have moved a guessed focal
+                        model.cameras[cid].set_focal(focal)
+                    return found
     return None
+
+
+def _image_first(candidates: list, config: MapperConfig) -> list:
+    """The next init_max_pairs candidates in COLMAP's order, past the init_max_pairs with the most inliers:
+    the images with the most inliers first, each with all its partners, most inliers first. Tried when none of
+    the pairs with the most inliers starts a model: in a dense sequence (1,000 frames of an orbit) those are all
+    neighbouring frames with no baseline, while each image's farther partners have one."""
+    first = {key for _, key in candidates[:config.init_max_pairs]}
+    weight: dict[int, int] = {}
+    for n, (i, j) in candidates:
+        weight[i] = weight.get(i, 0) + n
+        weight[j] = weight.get(j, 0) + n
+    partners: dict[int, list] = {}
+    for n, key in candidates:  # most inliers first
+        for i in key:
+            partners.setdefault(i, []).append(key)
+    out, seen = [], set(first)
+    for i in sorted(weight, key=lambda i: (-weight[i], i)):
+        for key in partners[i]:
+            if key not in seen:
+                seen.add(key)
+                out.append(key)
+                if len(out) == config.init_max_pairs:
+                    return out
+    return out
 
 
 def rejected_for_few_inliers(found: InitialPair | PairRejection) -> bool:
@@ -230,10 +256,11 @@ def initial_pair_rejections(model: Reconstruction, pairs_by_index: dict[tuple[in
     thresholds = config.init_min_tri_angles_deg
     loosest = min(thresholds) if thresholds else np.inf
     for rank, (n, key) in enumerate(_candidates(pairs_by_index, excluded, config)):
-        if rank >= config.init_max_pairs:
+        if rank >= config.init_max_pairs and key not in evaluated:
             out[key] = PairRejection(*key, (_NOT_TRIED, float(n)),
                                      f"{n} inliers, but is not among the init_max_pairs "
-                                     f"{config.init_max_pairs} pairs with the most, which are the ones tried")
+                                     f"{config.init_max_pairs} pairs with the most, nor among those of the "
+                                     f"images with the most, which are the ones tried")
             continue
         if key not in evaluated:
             evaluated[key] = assess_pair(model, pairs_by_index[key], key[0], key[1], config)

@@ -150,6 +150,30 @@ def test_loop_closure_takes_back_views_that_drift_pushed_past_4_px(scene, drift_
         assert m.registered.sum() == 7
 
 
+def test_a_dense_sequence_starts_from_farther_partners_when_its_best_matched_pairs_have_no_baseline(monkeypatch):
+    """In a dense sequence the pairs with the most inliers are all neighbouring frames, too close to triangulate
+    (dense_orbit at 1,000 frames made no model: its 40 best-matched pairs, the ones tried, were all neighbours).
+    The search then goes on in COLMAP's order, each of the most matched images with all its partners, and starts
+    from a farther one. Here 60 frames, each matched with the next 10: neighbours (600 inliers) at 0.5 deg,
+    pairs of frames k apart (600 - 30 k inliers) at 0.5 k deg."""
+    from mvrecon.database import PairGeometry
+    from mvrecon.sfm import initialize
+
+    pairs = {(i, j): PairGeometry(image_id1=i, image_id2=j, config="CALIBRATED",
+                                  inliers=np.zeros((600 - 30 * (j - i), 2), np.int64))
+             for i in range(60) for j in range(i + 1, min(i + 11, 60))}
+
+    def assess(model, pair, i1, i2, config, focal_from_pair=True):
+        return initialize.InitialPair(i1, i2, np.eye(3), np.array([1.0, 0, 0]), 0.5 * (i2 - i1), {})
+
+    monkeypatch.setattr(initialize, "assess_pair", assess)
+    config = MapperConfig()
+    found = initialize.find_initial_pair(None, pairs, set(), config, set(), {})
+    assert found is not None and found.median_angle_deg >= 4.0 and found.image2 - found.image1 >= 8
+    first_only = {key for _, key in initialize._candidates(pairs, set(), config)[:config.init_max_pairs]}
+    assert all(j - i == 1 for i, j in first_only)
+
+
 def _hinged(m, images, seed=0):
     """The model split at a hinge, as growth leaves an open loop: `images` and a random half of the points move
     by a similarity (3 deg, 10% in scale, a shift of half the model's size), and each point loses its views on
