@@ -1,6 +1,7 @@
 """The initial pair: two views with many verified matches and a wide enough baseline to triangulate well.
 
-Candidates are tried in order of inlier count (COLMAP also favours images with many correspondences); for each
+Candidates are tried in order of inlier count (COLMAP also favours images with many correspondences), then,
+when none of the first init_max_pairs starts a model, as many more in COLMAP's image-first order; for each
 the relative pose comes from the essential matrix (with the camera's focal prior when it is not known) and is
 accepted when enough points triangulate with a median angle above the threshold. Each pair is estimated once
 (from at most 1000 of its matches); the mapper then triangulates all the tracks the two images share.
