@@ -16,7 +16,7 @@ from mvrecon import database
 from mvrecon.eval.metrics import accuracy_summary
 from mvrecon.eval.models import model_stats, poses
 from mvrecon.io.colmap_model import write_models
-from mvrecon.sfm import bundle, filtering, incremental, loop_closure, model, triangulate, view_graph
+from mvrecon.sfm import bundle, filtering, incremental, initialize, loop_closure, model, triangulate, view_graph
 from mvrecon.sfm.config import MapperConfig
 from mvrecon.sfm.incremental import map_correspondences
 from mvrecon.sfm.triangulate import continue_points, retriangulate
@@ -154,13 +154,10 @@ def test_a_dense_sequence_starts_from_farther_partners_when_its_best_matched_pai
     """In a dense sequence the pairs with the most inliers are all neighbouring frames, too close to triangulate
     (dense_orbit at 1,000 frames made no model: its 40 best-matched pairs, the ones tried, were all neighbours).
     The search then goes on in COLMAP's order, each of the most matched images with all its partners, and starts
-    from a farther one. Here 60 frames, each matched with the next 10: neighbours (600 inliers) at 0.5 deg,
-    pairs of frames k apart (600 - 30 k inliers) at 0.5 k deg."""
-    from mvrecon.database import PairGeometry
-    from mvrecon.sfm import initialize
-
-    pairs = {(i, j): PairGeometry(image_id1=i, image_id2=j, config="CALIBRATED",
-                                  inliers=np.zeros((600 - 30 * (j - i), 2), np.int64))
+    from a farther one. Here 60 frames, each matched with the next 10: frames k apart have 600 - 30 k inliers
+    and a median triangulation angle of 0.5 k deg."""
+    pairs = {(i, j): database.PairGeometry(image_id1=i, image_id2=j, config="CALIBRATED",
+                                           inliers=np.zeros((600 - 30 * (j - i), 2), np.int64))
              for i in range(60) for j in range(i + 1, min(i + 11, 60))}
 
     def assess(model, pair, i1, i2, config, focal_from_pair=True):
