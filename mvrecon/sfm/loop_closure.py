@@ -55,22 +55,24 @@ def find_hinges(model: Reconstruction, tracks: Tracks, config: MapperConfig, see
     if least <= 0:
         return []
     _, img, kp, pts = unobserved_views(model, tracks)
-    counts = np.bincount(img, minlength=len(model.image_ids))
+    order = np.argsort(img, kind="stable")
+    img, kp, pts = img[order], kp[order], pts[order]
+    images, start, count = np.unique(img, return_index=True, return_counts=True)
     hinges = []
-    for i in np.flatnonzero(counts >= least).tolist():
-        sel = np.flatnonzero(img == i)
+    for i, a, n in zip(images.tolist(), start.tolist(), count.tolist()):
+        if n < least:
+            continue
+        sel = slice(a, a + n)
         X = model.xyz.data[pts[sel]]
         K = model.camera(i).K()
         uv = model.normalized_at(img[sel], kp[sel]) * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
         est = pnp_ransac(X, uv, K, config.max_reproj_error_px, seed=seed, max_iterations=_PNP_ITERATIONS)
-        if est is None or est[2].sum() < max(least, 0.5 * len(sel)):
+        if est is None or est[2].sum() < max(least, 0.5 * n):
             continue
         R, t, inl = est
-        Xc = X[inl] @ model.R[i].T + model.t[i]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            now = Xc[:, :2] / Xc[:, 2:] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
-        err = np.linalg.norm(now - uv[inl], axis=1)
-        err[~np.isfinite(err) | (Xc[:, 2] <= 0)] = np.inf
+        now, depth = model.project(img[sel][inl], X[inl])
+        err = np.linalg.norm(now - model.keypoints_at(img[sel][inl], kp[sel][inl]), axis=1)
+        err[~np.isfinite(err) | (depth <= 0)] = np.inf
         if np.median(err) > config.max_reproj_error_px:
             hinges.append(Hinge(i, R, np.asarray(t, float).ravel(), pts[sel][inl]))
     return hinges

@@ -61,6 +61,18 @@ class Camera:
         self.params = p
 
 
+def padded_slices(lengths: np.ndarray) -> Iterator[slice]:
+    """Consecutive slices of items of these lengths (tracks, points' views), in the given order, each padded to
+    its longest item at most PADDED_VIEWS views; an item longer than that makes a slice of its own."""
+    budget, start = PADDED_VIEWS, 0
+    while start < len(lengths):
+        window = np.maximum.accumulate(lengths[start:start + budget])
+        padded = np.arange(1, len(window) + 1) * window
+        stop = start + max(1, int(np.searchsorted(padded, budget, side="right")))
+        yield slice(start, stop)
+        start = stop
+
+
 def images_and_cameras(corr: Correspondences) -> tuple[np.ndarray, list[str], np.ndarray, dict[int, Camera]]:
     """What both mappers start from: the database's image ids in ascending order (a model's internal index is the
     position in it), their names and camera ids, and a `Camera` per database camera whose prior focal is its
@@ -404,17 +416,12 @@ class Reconstruction:
         """`padded_observations` of `pids` in groups of at most PADDED_VIEWS padded views (one group for a point
         longer than that), the points ordered by track length: padded together, one long track makes every
         point as long, which in a long forward-moving sequence is hundreds of views for every point."""
-        budget = PADDED_VIEWS
         pids = np.asarray(pids, dtype=np.int64)
         lengths = self.point_num_observations()[pids]
         order = np.argsort(lengths, kind="stable")
         pids, lengths = pids[order], lengths[order]
-        start = 0
-        while start < len(pids):
-            padded = np.arange(1, min(len(pids) - start, budget) + 1) * lengths[start:start + budget]
-            stop = start + max(1, int(np.searchsorted(padded, budget, side="right")))
-            yield self.padded_observations(pids[start:stop])
-            start = stop
+        for part in padded_slices(lengths):
+            yield self.padded_observations(pids[part])
 
     # ----- errors and statistics -----
     def project(self, images: np.ndarray, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

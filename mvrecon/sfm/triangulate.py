@@ -19,11 +19,10 @@ import numpy as np
 from ..geometry.absolute_pose import pnp_ransac
 from ..geometry.triangulation import reaches_triangulation_angle, refine_points, triangulate_dlt
 from .config import MapperConfig
-from .model import PADDED_VIEWS, Reconstruction
+from .model import Reconstruction, padded_slices
 from .tracks import Tracks
 
 _PAIR_HYPOTHESES = 8
-_PADDED_VIEWS = PADDED_VIEWS  # padded views handled at once (`triangulate_tracks`, `refine_existing_points`)
 
 
 def _registered_elements(model, tracks, track_ids):
@@ -101,21 +100,15 @@ def triangulate_tracks(model: Reconstruction, tracks: Tracks, track_ids: np.ndar
     added.
 
     The tracks are padded to the longest, so that many at once (a global mapper's every track) are taken in
-    groups of at most _PADDED_VIEWS padded views: at once, the padded poses and rays of a 300-image survey's
-    tracks held 1.6 GB above the model."""
+    groups of at most model.PADDED_VIEWS padded views (`padded_slices`): at once, the padded poses and rays of a
+    300-image survey's tracks held 1.6 GB above the model."""
     track_ids = np.unique(np.asarray(track_ids, dtype=np.int64))
     track_ids = track_ids[model.point_of_track[track_ids] < 0]
     if len(track_ids) == 0:
         return 0
-    lengths = tracks.lengths()[track_ids]
-    added, start = 0, 0
-    while start < len(track_ids):  # in the given order, so that points are numbered as in one group
-        window = np.maximum.accumulate(lengths[start:start + _PADDED_VIEWS // 2])  # a track has 2 views or more
-        padded = np.arange(1, len(window) + 1) * window
-        stop = start + max(1, int(np.searchsorted(padded, _PADDED_VIEWS, side="right")))
-        added += _triangulate_group(model, tracks, track_ids[start:stop], config, seed)
-        start = stop
-    return added
+    # in the given order, so that points are numbered as in one group
+    return sum(_triangulate_group(model, tracks, track_ids[part], config, seed)
+               for part in padded_slices(tracks.lengths()[track_ids]))
 
 
 def _triangulate_group(model, tracks, track_ids, config, seed) -> int:

@@ -463,7 +463,7 @@ def test_many_tracks_are_triangulated_in_groups_to_the_same_points(scene, monkey
         return real(model, tracks, ids, *args)
 
     monkeypatch.setattr(triangulate, "_triangulate_group", counting)
-    monkeypatch.setattr(triangulate, "_PADDED_VIEWS", 400)
+    monkeypatch.setattr(model, "PADDED_VIEWS", 400)
     made = triangulate.triangulate_tracks(m, mapper.tracks, np.arange(len(mapper.tracks)), mapper.config)
     assert len(groups) > 10 and max(groups) * 2 <= 400
     assert abs(made - whole.num_points) <= 0.01 * whole.num_points
