@@ -42,6 +42,8 @@ from .model import Reconstruction
 log = logging.getLogger("mvrecon.sfm")
 _TIGHT = 1e-6
 _LOOSE = 1e6
+BYTES_PER_BLOCK = 50  # a BA's memory per pair of variable views of one point (_split_long_tracks)
+MIN_SUB_VIEWS = 8  # the least views per sub-point a split point's views are shared out to
 _CERES_LAMBDA = 1e-4  # LM's initial damping (CeresDefaults), except in BAs of shared cameras (MapperConfig)
 
 
@@ -52,6 +54,7 @@ class BundleResult:
     iterations: int
     seconds: float
     num_observations: int
+    sub_points: int = 0  # variables added by splitting long tracks (_split_long_tracks)
 
 
 _FOCAL_ENTRIES = {"Cal3Bundler": [0], "Cal3_S2": [0, 1], "Cal3DS2": [0, 1], "Cal3Fisheye": [0, 1]}
@@ -114,6 +117,7 @@ class _Window:
     obs_img: np.ndarray
     obs_pt: np.ndarray
     obs_kp: np.ndarray
+    split: np.ndarray | None = None  # per observation: its sub-point (-1: the point itself), see _split_long_tracks
 
     @property
     def optimised(self) -> list[int]:
@@ -144,6 +148,10 @@ def bundle_adjust(model: Reconstruction, variable_images: np.ndarray | list[int]
     point_keys, xyz = _keys("l", points), model.xyz.data
     for k, p in zip(point_keys, points.tolist()):
         values.insertPoint3(k, xyz[p])  # `insert` would store a dynamic Vector, cast at every access
+    sub_points = _split_long_tracks(window, config.ba_memory_mb)
+    sub_keys = _keys("s", range(len(sub_points)))
+    for k, p in zip(sub_keys, sub_points.tolist()):
+        values.insertPoint3(k, xyz[p])
     _add_views(gtsam, graph, model, window, config.huber_px, cal_kind, fixed_cams)
     if not _add_center_priors(gtsam, graph, model, window.variable):
         _fix_gauge(gtsam, graph, model, window.variable, len(fixed_cams))
@@ -152,16 +160,18 @@ def bundle_adjust(model: Reconstruction, variable_images: np.ndarray | list[int]
     # points first (the Schur complement, and no COLAMD run per call), then poses, calibrations last: every
     # reduced factor touches the calibration, so eliminating it before the poses joins them all at once
     # (an LM iteration of templeRing's final BA: 98 ms median against 114)
-    ordering = gtsam.Ordering([*point_keys, *_keys("x", optimised), *_keys("k", list(var_cams))])
+    ordering = gtsam.Ordering([*point_keys, *sub_keys, *_keys("x", optimised), *_keys("k", list(var_cams))])
     lam = config.ba_shared_initial_lambda if model.cameras_shared(optimised) else _CERES_LAMBDA
     tolerance = relative_tolerance or config.ba_relative_tolerance
     result, used, initial, final = _optimize(gtsam, graph, values, optimizer or config.optimizer, iterations,
                                              tolerance, ordering, lam)
 
-    focals = _write_back(gtsam, model, result, optimised, points, refined_cams, cal_kind)
-    out = BundleResult(float(initial), float(final), used, time.perf_counter() - start, len(window.obs))
-    log.debug("BA %d images (%d constant), %d points, %d observations: cost %.4g -> %.4g in %d iterations, "
-              "%.3f s%s", len(optimised), len(fixed_cams), len(points), len(window.obs), out.initial_error,
+    focals = _write_back(gtsam, model, result, optimised, points, window, sub_points, refined_cams, cal_kind)
+    out = BundleResult(float(initial), float(final), used, time.perf_counter() - start, len(window.obs),
+                       len(sub_points))
+    log.debug("BA %d images (%d constant), %d points (%d sub-points), %d observations: cost %.4g -> %.4g in %d "
+              "iterations, %.3f s%s", len(optimised), len(fixed_cams), len(points), len(sub_points),
+              len(window.obs), out.initial_error,
               out.final_error, used, out.seconds, "".join(f"; {f}" for f in focals))
     return out
 
@@ -180,6 +190,58 @@ def _window(model, variable_images, point_ids) -> _Window | None:
     if len(obs) == 0 or not variable.any():
         return None
     return _Window(variable, obs, obs_img, obs_pt, obs_kp)
+
+
+def _split_long_tracks(window: _Window, memory_mb: float) -> np.ndarray:
+    """Bound the BA's memory: eliminating a point leaves a dense block over the variable images that see it
+    (about BYTES_PER_BLOCK per pair of its variable views, measured), held until those poses are eliminated, so
+    the points of a dense orbit's 1,000-image refinement, 38 variable views each on average, held 2.5 GB. When
+    the blocks would pass `memory_mb` (0: never), each point with more than K variable views becomes ceil(k / K)
+    sub-points, the point and new variables, each taking K / 2 views or more drawn across the track (a fixed
+    scramble, not in turn: images must not fall into classes that share no variable); K is the largest that
+    fits (at least MIN_SUB_VIEWS). Every view stays in the BA; the sub-points of a point are not tied to each
+    other, and it is written back as their mean. Sets `window.split` (per observation: its sub-point, -1 for the point itself) and returns the point of each
+    sub-point."""
+    none = np.zeros(0, np.int64)
+    if memory_mb <= 0:
+        return none
+    points, inverse = np.unique(window.obs_pt, return_inverse=True)
+    k = np.bincount(inverse, weights=window.variable[window.obs_img], minlength=len(points)).astype(np.int64)
+    budget = memory_mb * 2 ** 20 / BYTES_PER_BLOCK
+
+    def blocks(cap: int) -> tuple[float, np.ndarray]:
+        n = np.maximum(-(-k // cap), 1)
+        q, r = np.divmod(k, n)
+        return float((r * (q + 1) ** 2 + (n - r) * q ** 2).sum()), n
+
+    if blocks(int(k.max(initial=1)))[0] <= budget:
+        return none
+    low, high = MIN_SUB_VIEWS, max(int(k.max()), MIN_SUB_VIEWS)  # the largest cap whose blocks fit
+    while low < high:
+        mid = (low + high + 1) // 2
+        low, high = (mid, high) if blocks(mid)[0] <= budget else (low, mid - 1)
+    per_point = blocks(low)[1]
+    n = per_point[inverse]
+    # views in a scrambled order (fixed by image and point): in image order every track of a set seen by all its
+    # images splits the same way, and the two halves of the images then share no variable at all
+    order = np.lexsort((_scrambled(window.obs_pt, window.obs_img), inverse))
+    start = np.searchsorted(inverse[order], inverse[order])
+    turn = np.empty(len(order), np.int64)
+    turn[order] = (np.arange(len(order)) - start) % n[order]  # 0, 1, ..., n - 1, 0, 1, ... in that order
+    # sub-points numbered point by point; turn 0 keeps the point's own variable
+    added = per_point - 1
+    first = np.r_[0, np.cumsum(added)[:-1]]
+    window.split = np.where(turn > 0, first[inverse] + turn - 1, -1)
+    return np.repeat(points, added)
+
+
+def _scrambled(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """A fixed pseudo-random 64-bit key per pair (a, b) (splitmix64's mix): orders that differ from one `a` to
+    the next, where a linear key would order every `a`'s `b`s alike."""
+    x = (a.astype(np.uint64) << np.uint64(32)) ^ b.astype(np.uint64)
+    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return x ^ (x >> np.uint64(31))
 
 
 def _refined_cameras(model, variable, cameras) -> set:
@@ -230,32 +292,44 @@ def _add_views(gtsam, graph, model, window: _Window, huber_px: float, cal_kind: 
     cache = model.ba_factor_cache(huber_px)
     factors = [cache.get(o) for o in obs.tolist()]
     var_obs = window.variable[obs_img].tolist()
+    sub = [-1] * len(obs) if window.split is None else window.split.tolist()
     make = {c: getattr(gtsam, f"GeneralSFMFactor2{kind}") for c, kind in cal_kind.items()}
     tri = {kind: getattr(gtsam, f"TriangulationFactor{kind}") for kind in _KINDS}
-    for row in [k for k, (f, var) in enumerate(zip(factors, var_obs)) if f is None or not var]:
-        i, p = int(obs_img[row]), int(obs_pt[row])
+    for row in [k for k, (f, var, s) in enumerate(zip(factors, var_obs, sub)) if f is None or not var or s >= 0]:
+        i, p, s = int(obs_img[row]), int(obs_pt[row]), sub[row]
+        key = gtsam.symbol("l", p) if s < 0 else gtsam.symbol("s", s)  # a sub-point's view is not cached
         if var_obs[row]:
             c = int(model.camera_of[i])
-            factors[row] = cache[int(obs[row])] = make[c](
-                uv[row], noise, gtsam.symbol("x", i), gtsam.symbol("l", p), gtsam.symbol("k", c))
+            factors[row] = make[c](uv[row], noise, gtsam.symbol("x", i), key, gtsam.symbol("k", c))
+            if s < 0:
+                cache[int(obs[row])] = factors[row]
         else:
             kind, camera = fixed_cams[i]
-            factors[row] = tri[kind](camera, uv[row], noise, gtsam.symbol("l", p))
+            factors[row] = tri[kind](camera, uv[row], noise, key)
     for f in factors:
         graph.add(f)
 
 
-def _write_back(gtsam, model, result, optimised: list[int], points, refined_cams: set,
-                cal_kind: dict) -> list[str]:
-    """Copy the optimised poses, points and refined calibrations into the model; returns a line per refined
-    camera's focal change (logged: a guessed focal walking far in the first BAs is what makes them take 50
-    iterations)."""
+def _write_back(gtsam, model, result, optimised: list[int], points, window: _Window, sub_points,
+                refined_cams: set, cal_kind: dict) -> list[str]:
+    """Copy the optimised poses, points (a split point: the mean of its sub-points, weighted by their views)
+    and refined calibrations into the model; returns a line per refined camera's focal change (logged: a
+    guessed focal walking far in the first BAs is what makes them take 50 iterations)."""
     for i in optimised:
         pose = result.atPose3(gtsam.symbol("x", i))
         R = np.asarray(pose.rotation().matrix()).T
         model.R[i] = R
         model.t[i] = -R @ np.asarray(pose.translation())
-    model.xyz.data[points] = gtsam.utilities.extractPoint3(result)  # every Point3 in the values, in key order
+    xyz = gtsam.utilities.extractPoint3(result)  # every Point3 in the values in key order: "l" before "s"
+    if len(sub_points):
+        slot = np.searchsorted(points, window.obs_pt)
+        slot = np.where(window.split < 0, slot, len(points) + window.split)  # each view's variable
+        views = np.bincount(slot, minlength=len(xyz)).astype(float)
+        total = np.zeros((len(points), 3))
+        owner = np.r_[np.arange(len(points)), np.searchsorted(points, sub_points)]
+        np.add.at(total, owner, xyz * views[:, None])
+        xyz = total / np.bincount(owner, weights=views, minlength=len(points))[:, None]
+    model.xyz.data[points] = xyz
     focals = []
     for c in sorted(refined_cams):
         before = model.cameras[c].focal()

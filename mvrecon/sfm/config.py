@@ -94,6 +94,8 @@ class MapperConfig:
     mapper: str = "incremental"
     # images per part of a partitioned mapping (sfm/partition.py: parts mapped alone, then merged); 0: no parts
     partition_size: int = bounded(0, 0)
+    # MB a bundle adjustment's point blocks may take; past it the longest tracks are split (sfm/bundle.py; 0: never)
+    ba_memory_mb: float = bounded(1000.0, 0.0)
     # "lm": Levenberg-Marquardt with points eliminated first; "sfm": gtsam.SfmLevenbergMarquardtOptimizer
     optimizer: str = "lm"
     # images a model needs, at most 0.8 x the images, else the largest one stays (COLMAP: min_model_size)

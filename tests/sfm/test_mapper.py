@@ -1095,6 +1095,54 @@ def test_global_bundle_adjustments_during_growth_optimise_a_bounded_subset(monke
     assert max(held) >= 12  # the held images grow with the model, the optimised ones do not
 
 
+def test_a_bundle_adjustment_over_its_memory_budget_splits_long_tracks_to_the_same_poses(tmp_path):
+    """Past ba_memory_mb, a BA shares each long track's views out to sub-points of at least MIN_SUB_VIEWS / 2
+    views, within the budget's blocks, and every two images that see a point still share a variable (shared out
+    in image order, this set's tracks split the images into two halves that shared none: 0.06 deg off); from
+    poses disturbed by 0.3 deg it ends as close to the truth as the BA of whole tracks (rotation error within
+    0.005 deg), with every point within 1% of the depth range of where that BA put it."""
+    path = tmp_path / "database.db"
+    gt = synthetic_database(path, num_images=20, num_points=1500)
+    corr = database.read_correspondences(path)
+    built = incremental.IncrementalMapper(corr, MapperConfig(seed=3)).run().models[0]
+    assert built.registered.sum() == 20
+    images = built.registered_images()
+    window = bundle._window(built, images, None)
+    views = np.bincount(window.obs_pt)[window.obs_pt]
+    assert views.max() >= 2 * bundle.MIN_SUB_VIEWS  # tracks long enough to be split
+    blocks = np.bincount(window.obs_pt).astype(float) ** 2
+    budget_mb = blocks.sum() / 2 * bundle.BYTES_PER_BLOCK / 2 ** 20
+    owners = bundle._split_long_tracks(window, budget_mb)
+    assert len(owners) > 0
+    var = np.where(window.split < 0, window.obs_pt, window.obs_pt.max() + 1 + window.split)  # each view's variable
+    count = np.unique(var, return_counts=True)[1]
+    assert count.min() >= bundle.MIN_SUB_VIEWS // 2
+    assert (count.astype(float) ** 2).sum() * bundle.BYTES_PER_BLOCK / 2 ** 20 <= budget_mb
+    def pairs_sharing(labels):  # image pairs that share a variable
+        seen = np.zeros((labels.max() + 1, len(built.image_ids)), bool)
+        seen[labels, window.obs_img] = True
+        return (seen.T.astype(int) @ seen.astype(int)) > 0
+
+    assert np.array_equal(pairs_sharing(var), pairs_sharing(window.obs_pt))
+    rng = np.random.default_rng(0)
+    disturbed = copy.deepcopy(built)
+    for i in images.tolist():
+        angle = np.deg2rad(0.3) * rng.normal(size=3) / np.sqrt(3)
+        disturbed.R[i] = Rotation.from_rotvec(angle).as_matrix() @ disturbed.R[i]
+    adjusted, results = {}, {}
+    for mb in (0.0, budget_mb):
+        adjusted[mb] = m = copy.deepcopy(disturbed)
+        results[mb] = bundle.bundle_adjust(m, images, MapperConfig(ba_memory_mb=mb), refine_intrinsics=True)
+    assert results[0.0].sub_points == 0 and results[budget_mb].sub_points == len(owners)
+    errors = {mb: accuracy_summary([{m.names[i]: (m.R[i], m.t[i]) for i in images}], gt)
+              ["median_rotation_error_deg"] for mb, m in adjusted.items()}
+    assert errors[0.0] < 0.05 and abs(errors[budget_mb] - errors[0.0]) < 0.005
+    points = built.alive_points()
+    xyz = {mb: m.xyz.data[points] for mb, m in adjusted.items()}
+    depth = np.ptp(xyz[0.0], axis=0).max()
+    assert np.linalg.norm(xyz[budget_mb] - xyz[0.0], axis=1).max() < 0.01 * depth
+
+
 def test_a_large_models_final_refinement_adjusts_a_point_subset_to_the_same_poses(tmp_path, monkeypatch):
     """From final_ba_subset_min_images registered images (lowered here to 8) the final refinement's BAs take
     at most ba_points_per_image points per image, never every point, and re-fit the rest: from poses disturbed
