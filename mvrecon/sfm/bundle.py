@@ -148,7 +148,7 @@ def bundle_adjust(model: Reconstruction, variable_images: np.ndarray | list[int]
     point_keys, xyz = _keys("l", points), model.xyz.data
     for k, p in zip(point_keys, points.tolist()):
         values.insertPoint3(k, xyz[p])  # `insert` would store a dynamic Vector, cast at every access
-    sub_points = _split_long_tracks(window, config.ba_memory_mb)
+    window.split, sub_points = _split_long_tracks(window, config.ba_memory_mb)
     sub_keys = _keys("s", range(len(sub_points)))
     for k, p in zip(sub_keys, sub_points.tolist()):
         values.insertPoint3(k, xyz[p])
@@ -192,7 +192,7 @@ def _window(model, variable_images, point_ids) -> _Window | None:
     return _Window(variable, obs, obs_img, obs_pt, obs_kp)
 
 
-def _split_long_tracks(window: _Window, memory_mb: float) -> np.ndarray:
+def _split_long_tracks(window: _Window, memory_mb: float) -> tuple[np.ndarray | None, np.ndarray]:
     """Bound the BA's memory: eliminating a point leaves a dense block over the variable images that see it,
     held until those poses are eliminated (about BYTES_PER_BLOCK per pair of its variable views, measured on a
     finished model's BA; one inside a mapping held up to three times that), so the points of a dense orbit's
@@ -202,9 +202,9 @@ def _split_long_tracks(window: _Window, memory_mb: float) -> np.ndarray:
     images must not fall into classes that share no variable); K is the largest that fits (at least
     MIN_SUB_VIEWS). Every view stays in the BA; the sub-points of a point are not tied to each other, and it is
     written back as their mean. Fires on no set of the mapper suite; on a 1,000-view dense orbit AUC@1 -0.001
-    (docs/benchmarks.md, "Mapper rules"). Sets `window.split` (per observation: its sub-point, -1 for the point
-    itself) and returns the point of each sub-point."""
-    none = np.zeros(0, np.int64)
+    (docs/benchmarks.md, "Mapper rules"). Returns, per observation, its sub-point (-1: the point itself; None
+    when nothing is split), and the point of each sub-point."""
+    none = None, np.zeros(0, np.int64)
     if memory_mb <= 0:
         return none
     points, inverse = np.unique(window.obs_pt, return_inverse=True)
@@ -233,8 +233,7 @@ def _split_long_tracks(window: _Window, memory_mb: float) -> np.ndarray:
     # sub-points numbered point by point; turn 0 keeps the point's own variable
     added = per_point - 1
     first = np.r_[0, np.cumsum(added)[:-1]]
-    window.split = np.where(turn > 0, first[inverse] + turn - 1, -1)
-    return np.repeat(points, added)
+    return np.where(turn > 0, first[inverse] + turn - 1, -1), np.repeat(points, added)
 
 
 def _scrambled(a: np.ndarray, b: np.ndarray) -> np.ndarray:

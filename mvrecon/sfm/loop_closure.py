@@ -70,8 +70,9 @@ def find_hinges(model: Reconstruction, tracks: Tracks, config: MapperConfig, see
         if est is None or est[2].sum() < max(least, 0.5 * n):
             continue
         R, t, inl = est
-        now, depth = model.project(img[sel][inl], X[inl])
-        err = np.linalg.norm(now - model.keypoints_at(img[sel][inl], kp[sel][inl]), axis=1)
+        views = img[sel][inl]
+        now, depth = model.project(views, X[inl])
+        err = np.linalg.norm(now - model.keypoints_at(views, kp[sel][inl]), axis=1)
         err[~np.isfinite(err) | (depth <= 0)] = np.inf
         if np.median(err) > config.max_reproj_error_px:
             hinges.append(Hinge(i, R, np.asarray(t, float).ravel(), pts[sel][inl]))
