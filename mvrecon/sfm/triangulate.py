@@ -19,7 +19,7 @@ import numpy as np
 from ..geometry.absolute_pose import pnp_ransac
 from ..geometry.triangulation import reaches_triangulation_angle, refine_points, triangulate_dlt
 from .config import MapperConfig
-from .model import Reconstruction, padded_slices
+from .model import PADDED_VIEWS, Reconstruction, padded_slices
 from .tracks import Tracks
 
 _PAIR_HYPOTHESES = 8
@@ -112,29 +112,76 @@ def triangulate_tracks(model: Reconstruction, tracks: Tracks, track_ids: np.ndar
 
 
 def _triangulate_group(model, tracks, track_ids, config, seed) -> int:
-    """`triangulate_tracks` on tracks without a point, padded together."""
-    images, kps, mask = _registered_elements(model, tracks, track_ids)
-    x, mask = _normalized(model, images, kps, mask)
-    keep = mask.sum(axis=1) >= 2
-    track_ids, images, kps, mask, x = track_ids[keep], images[keep], kps[keep], mask[keep], x[keep]
-    if len(track_ids) == 0:
+    """`triangulate_tracks` on tracks without a point. They are solved in buckets of similar registered view
+    counts (`_count_buckets`), each padded to its own longest track rather than the group's: a few long tracks
+    padded every short one of a 1,000-image street's registrations to their length, 19 padded views per real one.
+    Each track's point is the one a single padded array gives (up to rounding): the two-view hypotheses are
+    drawn in track order over the whole group, and the points are added in track order."""
+    parts = []
+    for pos in _count_buckets(_registered_counts(model, tracks, track_ids)):
+        images, kps, mask = _registered_elements(model, tracks, track_ids[pos])
+        x, mask = _normalized(model, images, kps, mask)
+        keep = mask.sum(axis=1) >= 2
+        if keep.any():
+            parts.append(_Bucket(model, pos[keep], images[keep], kps[keep], mask[keep], x[keep], config))
+    if not parts:
         return 0
-    R, t = model.R[images], model.t[images]
-    X = refine_points(triangulate_dlt(R, t, x, mask), R, t, x, mask)
-    inl, ok = _check(model, X, images, kps, mask, config)
-
     # Joint solution spoiled by an outlier view: best of a few two-view hypotheses, refined on its inliers.
-    retry = np.flatnonzero(~ok & (mask.sum(axis=1) >= 3))
+    retry = np.sort(np.concatenate([b.pos[b.retry] for b in parts]))
     if len(retry):
         rng = np.random.default_rng(seed)
-        nview = mask[retry].sum(axis=1)
+        draws = np.array([(rng.random(len(retry)), rng.random(len(retry))) for _ in range(_PAIR_HYPOTHESES)])
+        for b in parts:
+            b.try_pairs(model, draws[:, :, np.searchsorted(retry, b.pos[b.retry])], config)
+    for b in parts:
+        b.refit_partial(model, config)
+    return _add_in_track_order(model, track_ids, parts)
+
+
+def _registered_counts(model, tracks, track_ids) -> np.ndarray:
+    """Registered views of each track."""
+    lengths = tracks.lengths()[track_ids]
+    first = np.repeat(tracks.ptr[track_ids] - np.cumsum(lengths) + lengths, lengths)
+    elements = first + np.arange(int(lengths.sum()))
+    return np.bincount(np.repeat(np.arange(len(track_ids)), lengths),
+                       weights=model.registered[tracks.image[elements]], minlength=len(track_ids)).astype(np.int64)
+
+
+def _count_buckets(counts: np.ndarray) -> list[np.ndarray]:
+    """Positions (ascending) of the items grouped by the power of two their count rounds up to: padded to the
+    longest of its bucket, an item's row is at most half padding."""
+    level = np.ceil(np.log2(np.maximum(counts, 1))).astype(np.int64)
+    order = np.argsort(level, kind="stable")
+    cuts = np.flatnonzero(np.diff(level[order])) + 1
+    return np.split(order, cuts)
+
+
+class _Bucket:
+    """Tracks padded together (`pos`: their positions in the group): the DLT point refined over all registered
+    views, then the checks; `retry` are the rows an outlier view may have spoilt (failed, three views or more)."""
+
+    def __init__(self, model, pos, images, kps, mask, x, config):
+        self.pos, self.images, self.kps, self.mask, self.x = pos, images, kps, mask, x
+        self.R, self.t = model.R[images], model.t[images]
+        self.X = refine_points(triangulate_dlt(self.R, self.t, x, mask), self.R, self.t, x, mask)
+        self.inl, self.ok = _check(model, self.X, images, kps, mask, config)
+        self.retry = np.flatnonzero(~self.ok & (mask.sum(axis=1) >= 3))
+
+    def try_pairs(self, model, draws, config) -> None:
+        """The best of the two-view hypotheses of the retried rows, `draws` (hypotheses, 2, rows) in [0, 1)
+        choosing each hypothesis's two views, refined on its inliers."""
+        retry = self.retry
+        if len(retry) == 0:
+            return
+        nview = self.mask[retry].sum(axis=1)
         best_count = np.full(len(retry), -1)
-        best_X = X[retry].copy()
+        best_X = self.X[retry].copy()
         rr = np.arange(len(retry))
-        Rr, tr, xr, mr, kr, ir = R[retry], t[retry], x[retry], mask[retry], kps[retry], images[retry]
-        for _ in range(_PAIR_HYPOTHESES):
-            a = (rng.random(len(retry)) * nview).astype(int)
-            b = (a + 1 + (rng.random(len(retry)) * (nview - 1)).astype(int)) % nview
+        Rr, tr, xr, mr = self.R[retry], self.t[retry], self.x[retry], self.mask[retry]
+        kr, ir = self.kps[retry], self.images[retry]
+        for first, second in draws:
+            a = (first * nview).astype(int)
+            b = (a + 1 + (second * (nview - 1)).astype(int)) % nview
             sub = np.zeros_like(mr)
             sub[rr, a] = True
             sub[rr, b] = True
@@ -142,23 +189,43 @@ def _triangulate_group(model, tracks, track_ids, config, seed) -> int:
             count = _inlier_views(model, Xh, ir, kr, mr, config).sum(axis=1)  # counts need no angles
             better = count > best_count
             best_count[better], best_X[better] = count[better], Xh[better]
-        X[retry] = best_X
         inl_r = _inlier_views(model, best_X, ir, kr, mr, config)
-        X[retry] = refine_points(best_X, Rr, tr, xr, inl_r)
-        inl[retry], ok[retry] = _check(model, X[retry], ir, kr, inl_r, config)
+        self.X[retry] = refine_points(best_X, Rr, tr, xr, inl_r)
+        self.inl[retry], self.ok[retry] = _check(model, self.X[retry], ir, kr, inl_r, config)
 
-    partial = ok & (inl.sum(axis=1) < mask.sum(axis=1))
-    if partial.any():  # refit on the inlier views only
-        p = np.flatnonzero(partial)
-        X[p] = refine_points(X[p], R[p], t[p], x[p], inl[p], iterations=3)
-        inl[p], ok[p] = _check(model, X[p], images[p], kps[p], inl[p], config)
+    def refit_partial(self, model, config) -> None:
+        """Refit the kept points that some views failed on their inlier views only."""
+        partial = self.ok & (self.inl.sum(axis=1) < self.mask.sum(axis=1))
+        if partial.any():
+            p = np.flatnonzero(partial)
+            self.X[p] = refine_points(self.X[p], self.R[p], self.t[p], self.x[p], self.inl[p], iterations=3)
+            self.inl[p], self.ok[p] = _check(model, self.X[p], self.images[p], self.kps[p], self.inl[p], config)
 
-    sel = np.flatnonzero(ok)
-    if len(sel) == 0:
+
+def _add_in_track_order(model, track_ids, parts) -> int:
+    """Add the kept points of the buckets, numbered in the group's track order, each with its inlier views in
+    track order. Returns points added."""
+    pos, X, local, images, kps, offset = [], [], [], [], [], 0
+    for b in parts:
+        sel = np.flatnonzero(b.ok)
+        row, view = np.nonzero(b.inl[sel])
+        pos.append(b.pos[sel])
+        X.append(b.X[sel])
+        local.append(row + offset)
+        images.append(b.images[sel][row, view])
+        kps.append(b.kps[sel][row, view])
+        offset += len(sel)
+    if offset == 0:
         return 0
-    local, view = np.nonzero(inl[sel])
-    model.add_points(X[sel], track_ids[sel], local, images[sel][local, view], kps[sel][local, view])
-    return len(sel)
+    pos = np.concatenate(pos)
+    order = np.argsort(pos, kind="stable")
+    rank = np.empty(len(pos), np.int64)
+    rank[order] = np.arange(len(pos))
+    local = rank[np.concatenate(local)]
+    views = np.argsort(local, kind="stable")
+    model.add_points(np.concatenate(X)[order], track_ids[pos[order]], local[views],
+                     np.concatenate(images)[views], np.concatenate(kps)[views])
+    return offset
 
 
 def continue_points(model: Reconstruction, tracks: Tracks, config: MapperConfig,
@@ -201,17 +268,28 @@ def _refits(model, points, images, kps, config: MapperConfig) -> np.ndarray:
     degrees are tens of pixels at a long focal length) cannot be fitted so. Fitted by the bundle adjustment
     that follows, such matches bent blurred and noisy models."""
     pids, obs, mask = model.padded_observations(np.unique(points))
-    row = np.searchsorted(pids, points)
-    ok = row < len(pids)
-    row = np.minimum(row, max(len(pids) - 1, 0))
-    ok &= pids[row] == points if len(pids) else np.zeros(len(points), bool)
-    images_k = np.c_[model.obs_image.data[obs][row], images]
-    kps_k = np.c_[model.obs_kp.data[obs][row], kps]
-    mask_k = np.c_[mask[row], np.ones(len(points), bool)] & ok[:, None]
+    found = np.zeros(len(points), bool)
+    if len(pids) == 0:
+        return found
+    row = np.minimum(np.searchsorted(pids, points), len(pids) - 1)
+    found = pids[row] == points
+    # the new views in slices of at most PADDED_VIEWS padded views: at once, a 1,000-view dense orbit's loop
+    # closure padded 1.8 GB of arrays; every slice keeps the whole width, so each view's verdict is unchanged
+    step = max(1, PADDED_VIEWS // (obs.shape[1] + 1))
+    return np.concatenate([_refit_slice(model, obs[row[s]], mask[row[s]] & found[s, None], images[s], kps[s],
+                                        model.xyz.data[points[s]], found[s], config)
+                           for s in map(slice, range(0, len(points), step), range(step, len(points) + step, step))])
+
+
+def _refit_slice(model, obs, mask, images, kps, X, found, config) -> np.ndarray:
+    """`_refits` of the new views (images, kps) of points X whose padded observations are `obs`, `mask`."""
+    images_k = np.c_[model.obs_image.data[obs], images]
+    kps_k = np.c_[model.obs_kp.data[obs], kps]
+    mask_k = np.c_[mask, found]
     x, valid = _normalized(model, images_k, kps_k, mask_k)
-    X = refine_points(model.xyz.data[points], model.R[images_k], model.t[images_k], x, valid, iterations=3)
+    X = refine_points(X, model.R[images_k], model.t[images_k], x, valid, iterations=3)
     inl = _inlier_views(model, X, images_k, kps_k, valid, config)
-    return ok & np.isfinite(X).all(axis=1) & (inl == valid).all(axis=1)
+    return found & np.isfinite(X).all(axis=1) & (inl == valid).all(axis=1)
 
 
 def _coherent(model, X, images, x, config: MapperConfig, seed: int) -> np.ndarray:

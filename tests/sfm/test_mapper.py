@@ -475,6 +475,65 @@ def test_many_tracks_are_triangulated_in_groups_to_the_same_points(scene, monkey
     assert same.mean() > 0.99
 
 
+def test_tracks_of_mixed_lengths_are_solved_in_buckets_to_the_points_one_array_gives(wall, monkeypatch):
+    """Tracks along a wall, with a third of the images unregistered, have from 2 to many registered views: each
+    bucket is padded to its own longest track (at most twice any track's count), and the points, their views
+    and their numbering are those of one padded array, the positions within rounding."""
+    _, _, mapper, result, _ = wall
+    m = copy.deepcopy(result.models[0])
+    m.delete_points(m.alive_points())
+    m.registered[np.random.default_rng(0).permutation(len(m.registered))[:len(m.registered) // 3]] = False
+    one = copy.deepcopy(m)
+    ids = np.arange(len(mapper.tracks))
+    with monkeypatch.context() as patch:
+        patch.setattr(triangulate, "_count_buckets", lambda counts: [np.arange(len(counts))])
+        made = triangulate.triangulate_tracks(one, mapper.tracks, ids, mapper.config, seed=5)
+    widths = []
+    real = triangulate._Bucket.__init__
+
+    def recording(bucket, model, pos, images, kps, mask, x, config):
+        real(bucket, model, pos, images, kps, mask, x, config)
+        widths.append((mask.shape[1], int(mask.sum(axis=1).min())))
+
+    monkeypatch.setattr(triangulate._Bucket, "__init__", recording)
+    assert triangulate.triangulate_tracks(m, mapper.tracks, ids, mapper.config, seed=5) == made > 1000
+    assert len(widths) >= 3 and all(width <= 2 * least for width, least in widths)
+    n = m.obs_alive.n
+    assert n == one.obs_alive.n
+    for name in ("obs_point", "obs_image", "obs_kp"):
+        np.testing.assert_array_equal(getattr(m, name).data[:n], getattr(one, name).data[:n])
+    np.testing.assert_array_equal(m.point_track.data[:m.xyz.n], one.point_track.data[:one.xyz.n])
+    np.testing.assert_allclose(m.xyz.data[:m.xyz.n], one.xyz.data[:one.xyz.n], rtol=0, atol=1e-9)
+
+
+def test_the_loose_continuation_refits_in_bounded_slices_to_the_same_views(wall, monkeypatch):
+    """The loose gate's refits (`_refits`) take the new views in slices of at most the padded-view bound and
+    add exactly the views one slice adds, on a model whose poses drifted and lost a quarter of their views."""
+    _, _, mapper, result, _ = wall
+    m = copy.deepcopy(result.models[0])
+    rng = np.random.default_rng(0)
+    alive = m.alive_observations()
+    m.remove_observations(rng.choice(alive, len(alive) // 4, replace=False))
+    for i in m.registered_images():
+        m.R[i] = Rotation.from_rotvec(rng.normal(scale=0.002, size=3)).as_matrix() @ m.R[i]
+    whole = copy.deepcopy(m)
+    added = continue_points(whole, mapper.tracks, mapper.config, loose=True, seed=1)
+    slices = []
+    real = triangulate._refit_slice
+
+    def counting(model, obs, *args):
+        slices.append(obs.size)
+        return real(model, obs, *args)
+
+    monkeypatch.setattr(triangulate, "_refit_slice", counting)
+    monkeypatch.setattr(triangulate, "PADDED_VIEWS", 2000)
+    assert continue_points(m, mapper.tracks, mapper.config, loose=True, seed=1) == added > 0.1 * len(alive) // 4
+    assert len(slices) > 10 and max(slices) <= 2000
+    n = m.obs_alive.n
+    np.testing.assert_array_equal(m.obs_point.data[:n], whole.obs_point.data[:n])
+    np.testing.assert_array_equal(m.obs_kp.data[:n], whole.obs_kp.data[:n])
+
+
 def test_the_angle_filter_pads_points_in_bounded_groups_to_the_same_verdicts(scene, monkeypatch):
     """One long track no longer pads every point to its length: the filter takes the points in groups of at
     most the padded-view bound, shortest tracks first, and deletes the same points as one group does."""
