@@ -141,8 +141,9 @@ def _triangulate_group(model, tracks, track_ids, config, seed) -> int:
 def _registered_counts(model, tracks, track_ids) -> np.ndarray:
     """Registered views of each track."""
     lengths = tracks.lengths()[track_ids]
-    first = np.repeat(tracks.ptr[track_ids] - np.cumsum(lengths) + lengths, lengths)
-    elements = first + np.arange(int(lengths.sum()))
+    # the tracks' elements one after the other: each track's start, plus the position within it
+    before = np.cumsum(lengths) - lengths
+    elements = np.repeat(tracks.ptr[track_ids] - before, lengths) + np.arange(int(lengths.sum()))
     return np.bincount(np.repeat(np.arange(len(track_ids)), lengths),
                        weights=model.registered[tracks.image[elements]], minlength=len(track_ids)).astype(np.int64)
 
@@ -276,9 +277,9 @@ def _refits(model, points, images, kps, config: MapperConfig) -> np.ndarray:
     # the new views in slices of at most PADDED_VIEWS padded views: at once, a 1,000-view dense orbit's loop
     # closure padded 1.8 GB of arrays; every slice keeps the whole width, so each view's verdict is unchanged
     step = max(1, PADDED_VIEWS // (obs.shape[1] + 1))
+    slices = [slice(start, start + step) for start in range(0, len(points), step)]
     return np.concatenate([_refit_slice(model, obs[row[s]], mask[row[s]] & found[s, None], images[s], kps[s],
-                                        model.xyz.data[points[s]], found[s], config)
-                           for s in map(slice, range(0, len(points), step), range(step, len(points) + step, step))])
+                                        model.xyz.data[points[s]], found[s], config) for s in slices])
 
 
 def _refit_slice(model, obs, mask, images, kps, X, found, config) -> np.ndarray:
