@@ -114,9 +114,9 @@ def triangulate_tracks(model: Reconstruction, tracks: Tracks, track_ids: np.ndar
 def _triangulate_group(model, tracks, track_ids, config, seed) -> int:
     """`triangulate_tracks` on tracks without a point. They are solved in buckets of similar registered view
     counts (`_count_buckets`), each padded to its own longest track rather than the group's: a few long tracks
-    padded every short one of a 1,000-image street's registrations to their length, 19 padded views per real one.
-    Each track's point is the one a single padded array gives (up to rounding): the two-view hypotheses are
-    drawn in track order over the whole group, and the points are added in track order."""
+    padded every short one to their length (a 1,000-frame street's triangulation after each registration: 77 s
+    so, 33 s in buckets). Each track's point is the one a single padded array gives (up to rounding): the
+    two-view hypotheses are drawn in track order over the whole group, and the points are added in track order."""
     parts = []
     for pos in _count_buckets(_registered_counts(model, tracks, track_ids)):
         images, kps, mask = _registered_elements(model, tracks, track_ids[pos])
