@@ -113,9 +113,9 @@ def triangulate_tracks(model: Reconstruction, tracks: Tracks, track_ids: np.ndar
 
 def _triangulate_group(model, tracks, track_ids, config, seed) -> int:
     """`triangulate_tracks` on tracks without a point. They are solved in buckets of similar registered view
-    counts (`_count_buckets`), each padded to its own longest track rather than the group's: a few long tracks
-    padded every short one to their length (a 1,000-frame street's triangulation after each registration: 77 s
-    so, 33 s in buckets). Each track's point is the one a single padded array gives (up to rounding): the
+    counts (`_count_buckets`), each padded to its own longest track rather than the group's: padded together,
+    a few long tracks make every short one as long, and in a long sequence they grow with the model
+    (docs/scale.md, street_long). Each track's point is the one a single padded array gives (up to rounding): the
     two-view hypotheses are drawn in track order over the whole group, and the points are added in track order."""
     parts = []
     for pos in _count_buckets(_registered_counts(model, tracks, track_ids)):
@@ -274,8 +274,9 @@ def _refits(model, points, images, kps, config: MapperConfig) -> np.ndarray:
         return found
     row = np.minimum(np.searchsorted(pids, points), len(pids) - 1)
     found = pids[row] == points
-    # the new views in slices of at most PADDED_VIEWS padded views: at once, a 1,000-view dense orbit's loop
-    # closure padded 1.8 GB of arrays; every slice keeps the whole width, so each view's verdict is unchanged
+    # the new views in slices of at most PADDED_VIEWS padded views: at once, the padded arrays of a dense orbit's
+    # loop closure were its mapping's memory peak (docs/scale.md); every slice keeps the whole width, so each
+    # view's verdict is unchanged
     step = max(1, PADDED_VIEWS // (obs.shape[1] + 1))
     slices = [slice(start, start + step) for start in range(0, len(points), step)]
     return np.concatenate([_refit_slice(model, obs[row[s]], mask[row[s]] & found[s, None], images[s], kps[s],
