@@ -195,15 +195,15 @@ def _window(model, variable_images, point_ids) -> _Window | None:
 def _split_long_tracks(window: _Window, memory_mb: float) -> tuple[np.ndarray | None, np.ndarray]:
     """Bound the BA's memory: eliminating a point leaves a dense block over the variable images that see it,
     held until those poses are eliminated (about BYTES_PER_BLOCK per pair of its variable views, measured on a
-    finished model's BA; one inside a mapping held up to three times that), so the points of a dense orbit's
-    1,000-image refinement, 38 variable views each on average, held 2.5 GB. When the blocks would pass
-    `memory_mb` (0: never), each point with more than K variable views becomes ceil(k / K) sub-points, the point
-    and new variables, each taking K / 2 views or more drawn across the track (a fixed scramble, not in turn:
-    images must not fall into classes that share no variable); K is the largest that fits (at least
-    MIN_SUB_VIEWS). Every view stays in the BA; the sub-points of a point are not tied to each other, and it is
-    written back as their mean. Fires on no set of the mapper suite; on a 1,000-view dense orbit AUC@1 -0.001
-    (docs/benchmarks.md, "Mapper rules"). Returns, per observation, its sub-point (-1: the point itself; None
-    when nothing is split), and the point of each sub-point."""
+    finished model's BA), so the points of a dense orbit's 1,000-image refinement, 38 variable views each on
+    average, held 2.5 GB. When the blocks would pass `memory_mb` (0: never), each point with more than K
+    variable views becomes ceil(k / K) sub-points, the point and new variables, each taking K / 2 views or more
+    drawn across the track (a fixed scramble, not in turn: images must not fall into classes that share no
+    variable); K is the largest that fits (at least MIN_SUB_VIEWS). Every view stays in the BA; the sub-points
+    of a point are not tied to each other, and it is written back as their mean. Fires on no set of the mapper
+    suite; on a 1,000-view dense orbit AUC@1 -0.001 (docs/benchmarks.md, "Mapper rules"). Returns, per
+    observation, its sub-point (-1: the point itself; None when nothing is split), and the point of each
+    sub-point."""
     none = None, np.zeros(0, np.int64)
     if memory_mb <= 0:
         return none

@@ -173,10 +173,7 @@ def track_links(tracks: Tracks, image: int) -> np.ndarray:
     """Per image, the tracks it shares with `image` (0 for `image` itself): how strongly two views are tied,
     about the inliers of their verified pair plus the matches that reach it through third views."""
     t = tracks.track_of[image]
-    t = t[t >= 0]
-    lengths = tracks.ptr[t + 1] - tracks.ptr[t]
-    first = np.repeat(tracks.ptr[t] - np.cumsum(lengths) + lengths, lengths)
-    elements = first + np.arange(int(lengths.sum()))
+    elements, _ = tracks.elements_of_tracks(t[t >= 0])
     links = np.bincount(tracks.image[elements], minlength=len(tracks.track_of))
     links[image] = 0
     return links

@@ -50,6 +50,15 @@ class Tracks:
         flat[offsets[self.image] + self.keypoint] = np.arange(len(self.image))
         return flat, offsets
 
+    def elements_of_tracks(self, track_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The elements of `track_ids`, track after track, and the position in `track_ids` of each one's track:
+        what a question about some tracks costs their own elements, not a pass over every track."""
+        track_ids = np.asarray(track_ids, dtype=np.int64)
+        lengths = self.ptr[track_ids + 1] - self.ptr[track_ids]
+        owner = np.repeat(np.arange(len(track_ids)), lengths)
+        before = np.cumsum(lengths) - lengths  # elements of the earlier tracks
+        return np.repeat(self.ptr[track_ids] - before, lengths) + np.arange(len(owner)), owner
+
     def elements_of_images(self, images: np.ndarray | list[int]) -> np.ndarray:
         """The elements (ascending) of the keypoints of `images`: what one image's registration changes costs its
         own keypoints, not a pass over every track."""

@@ -19,7 +19,7 @@ import numpy as np
 from ..geometry.absolute_pose import pnp_ransac
 from ..geometry.triangulation import reaches_triangulation_angle, refine_points, triangulate_dlt
 from .config import MapperConfig
-from .model import PADDED_VIEWS, Reconstruction, padded_slices
+from .model import Reconstruction, padded_slices
 from .tracks import Tracks
 
 _PAIR_HYPOTHESES = 8
@@ -118,7 +118,7 @@ def _triangulate_group(model, tracks, track_ids, config, seed) -> int:
     (docs/scale.md, street_long). Each track's point is the one a single padded array gives (up to rounding): the
     two-view hypotheses are drawn in track order over the whole group, and the points are added in track order."""
     parts = []
-    for pos in _count_buckets(_registered_counts(model, tracks, track_ids)):
+    for pos in _count_buckets(_registered_views(model, tracks, track_ids)):
         images, kps, mask = _registered_elements(model, tracks, track_ids[pos])
         x, mask = _normalized(model, images, kps, mask)
         keep = mask.sum(axis=1) >= 2
@@ -136,16 +136,6 @@ def _triangulate_group(model, tracks, track_ids, config, seed) -> int:
     for b in parts:
         b.refit_partial(model, config)
     return _add_in_track_order(model, track_ids, parts)
-
-
-def _registered_counts(model, tracks, track_ids) -> np.ndarray:
-    """Registered views of each track."""
-    lengths = tracks.lengths()[track_ids]
-    # the tracks' elements one after the other: each track's start, plus the position within it
-    before = np.cumsum(lengths) - lengths
-    elements = np.repeat(tracks.ptr[track_ids] - before, lengths) + np.arange(int(lengths.sum()))
-    return np.bincount(np.repeat(np.arange(len(track_ids)), lengths),
-                       weights=model.registered[tracks.image[elements]], minlength=len(track_ids)).astype(np.int64)
 
 
 def _count_buckets(counts: np.ndarray) -> list[np.ndarray]:
@@ -274,11 +264,10 @@ def _refits(model, points, images, kps, config: MapperConfig) -> np.ndarray:
         return found
     row = np.minimum(np.searchsorted(pids, points), len(pids) - 1)
     found = pids[row] == points
-    # the new views in slices of at most PADDED_VIEWS padded views: at once, the padded arrays of a dense orbit's
-    # loop closure were its mapping's memory peak (docs/scale.md); every slice keeps the whole width, so each
-    # view's verdict is unchanged
-    step = max(1, PADDED_VIEWS // (obs.shape[1] + 1))
-    slices = [slice(start, start + step) for start in range(0, len(points), step)]
+    # the new views in slices of at most PADDED_VIEWS padded views (`padded_slices`): at once, the padded arrays
+    # of a dense orbit's loop closure were its mapping's memory peak (docs/scale.md); every slice keeps the whole
+    # width, so each view's verdict is unchanged
+    slices = padded_slices(np.full(len(points), obs.shape[1] + 1))
     return np.concatenate([_refit_slice(model, obs[row[s]], mask[row[s]] & found[s, None], images[s], kps[s],
                                         model.xyz.data[points[s]], found[s], config) for s in slices])
 
@@ -355,9 +344,7 @@ def retriangulate(model: Reconstruction, tracks: Tracks, config: MapperConfig,
 
 def _registered_views(model: Reconstruction, tracks: Tracks, track_ids: np.ndarray) -> np.ndarray:
     """The registered views of each of `track_ids`, visiting only their elements."""
-    lengths = tracks.ptr[track_ids + 1] - tracks.ptr[track_ids]
-    owner = np.repeat(np.arange(len(track_ids)), lengths)
-    elements = tracks.ptr[track_ids][owner] + np.arange(len(owner)) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    elements, owner = tracks.elements_of_tracks(track_ids)
     model.scanned += len(elements)
     return np.bincount(owner, weights=model.registered[tracks.image[elements]],
                        minlength=len(track_ids)).astype(np.int64)

@@ -526,7 +526,7 @@ def test_the_loose_continuation_refits_in_bounded_slices_to_the_same_views(wall,
         return real(model, obs, *args)
 
     monkeypatch.setattr(triangulate, "_refit_slice", counting)
-    monkeypatch.setattr(triangulate, "PADDED_VIEWS", 2000)
+    monkeypatch.setattr(model, "PADDED_VIEWS", 2000)
     assert continue_points(m, mapper.tracks, mapper.config, loose=True, seed=1) == added > 0.1 * len(alive) // 4
     assert len(slices) > 10 and max(slices) <= 2000
     n = m.obs_alive.n
