@@ -1154,6 +1154,48 @@ def test_global_bundle_adjustments_during_growth_optimise_a_bounded_subset(monke
     assert max(held) >= 12  # the held images grow with the model, the optimised ones do not
 
 
+def test_a_large_bundle_adjustment_eliminates_its_poses_in_a_narrow_band_to_the_same_poses(tmp_path, monkeypatch):
+    """From ORDERED_POSES optimised poses a BA eliminates them in a bandwidth-reducing order: a ring of 40 images
+    numbered out of ring order (each point seen by 3 neighbours) has images 2 apart on the ring within 5 places
+    of each other, where image order puts them up to 39 apart; below ORDERED_POSES, image order. The order
+    changes the work, not the result: a BA of 20 disturbed poses ends at the same poses either way."""
+    ring = 40
+    image_at = (7 * np.arange(ring)) % ring  # the image at each place on the ring
+    views = np.arange(ring)[:, None] + np.arange(3)[None, :]  # point p: ring places p, p+1, p+2
+    obs_img = image_at[views.ravel() % ring]
+    obs_pt = np.repeat(np.arange(ring), 3)
+    window = bundle._Window(np.ones(ring, bool), np.arange(len(obs_pt)), obs_img, obs_pt, np.zeros_like(obs_pt))
+
+    def band(order):
+        place = np.empty(ring, np.int64)
+        place[np.asarray(order)] = np.arange(ring)
+        return int(np.abs(place[obs_img.reshape(-1, 3)][:, :, None] - place[obs_img.reshape(-1, 3)][:, None, :]).max())
+
+    monkeypatch.setattr(bundle, "ORDERED_POSES", ring + 1)
+    assert bundle._pose_order(window) == list(range(ring)) and band(range(ring)) >= 30
+    monkeypatch.setattr(bundle, "ORDERED_POSES", ring)
+    order = bundle._pose_order(window)
+    assert sorted(order) == list(range(ring)) and band(order) <= 5
+
+    path = tmp_path / "database.db"
+    synthetic_database(path, num_images=20, num_points=600)
+    built = incremental.IncrementalMapper(database.read_correspondences(path), MapperConfig(seed=3)).run().models[0]
+    images = built.registered_images()
+    assert len(images) == 20
+    rng = np.random.default_rng(1)
+    for i in images.tolist():
+        built.R[i] = Rotation.from_rotvec(np.deg2rad(0.3) * rng.normal(size=3) / np.sqrt(3)).as_matrix() @ built.R[i]
+    adjusted = []
+    for least in (1000, 2):
+        monkeypatch.setattr(bundle, "ORDERED_POSES", least)
+        adjusted.append(m := copy.deepcopy(built))
+        bundle.bundle_adjust(m, images, MapperConfig(), refine_intrinsics=True)
+    turned = [np.degrees(Rotation.from_matrix(adjusted[0].R[i] @ adjusted[1].R[i].T).magnitude()) for i in images]
+    assert max(turned) < 1e-6
+    assert np.allclose(adjusted[0].centers()[images], adjusted[1].centers()[images], atol=1e-6)
+    assert np.degrees(max(Rotation.from_matrix(adjusted[0].R[i] @ built.R[i].T).magnitude() for i in images)) > 0.05
+
+
 def test_a_bundle_adjustment_over_its_memory_budget_splits_long_tracks_to_the_same_poses(tmp_path):
     """Past ba_memory_mb, a BA shares each long track's views out to sub-points of at least MIN_SUB_VIEWS / 2
     views, within the budget's blocks, and every two images that see a point still share a variable (shared out
