@@ -9,13 +9,15 @@ registered
    iterations, initial and final cost.
 
 3. with --final RUN: the final BA of the run's model (every image and point, intrinsics refined; read from
-   RUN/snapshots/mapper.pkl and RUN/database.db) under each linear solver, each in a process of its own: wall
-   time, LM iterations, cost, and the process's peak memory above what it held before the BA.
+   RUN/snapshots/mapper.pkl and RUN/database.db) under each linear solver, and with today's solver eliminating
+   the poses in image order instead of `bundle._pose_order`'s, each in a process of its own: wall time, LM
+   iterations, cost, and the process's peak memory above what it held before the BA.
 
 Usage:
   python tools/bench_ba.py --database out/database.db
   python tools/bench_ba.py --synthetic 20
   python tools/bench_ba.py --final out/run
+  python tools/bench_ba.py --final out/run --solvers sequential,image-order
 """
 
 import argparse
@@ -68,9 +70,10 @@ def perturbed(model: Reconstruction, mapper: IncrementalMapper, seed: int = 0) -
     return m
 
 
-# the final BA's linear solvers: today's (LM, sequential Cholesky, points first), GTSAM's multifrontal one with
-# the same ordering, GTSAM's Sfm optimizer (Schur), and conjugate gradients with a block-Jacobi preconditioner
-SOLVERS = ("sequential", "multifrontal", "sfm", "pcg")
+# the final BA's linear solvers: today's (LM, sequential Cholesky, points first), the same with the poses in image
+# order, GTSAM's multifrontal one with today's ordering, GTSAM's Sfm optimizer (Schur), and conjugate gradients
+# with a block-Jacobi preconditioner
+SOLVERS = ("sequential", "image-order", "multifrontal", "sfm", "pcg")
 
 
 def _lm_with(solver: str):
@@ -104,6 +107,8 @@ def final_ba(run: Path, solver: str) -> dict:
     m = Reconstruction.from_state((state["finished"] or [state["current"]])[0], mapper.keypoints)
     if solver in ("multifrontal", "pcg"):
         bundle._optimize = _lm_with(solver)
+    if solver == "image-order":
+        bundle.ORDERED_POSES = sys.maxsize
     before = rss_mb([os.getpid()])
     out = bundle_adjust(m, m.registered_images(), MapperConfig(optimizer="sfm" if solver == "sfm" else "lm"),
                         point_ids=m.alive_points(), refine_intrinsics=True)
@@ -113,11 +118,11 @@ def final_ba(run: Path, solver: str) -> dict:
             "reprojection_px": m.stats()["mean_reprojection_error_px"]}
 
 
-def compare_final_ba(run: Path) -> int:
+def compare_final_ba(run: Path, solvers: tuple[str, ...] = SOLVERS) -> int:
     """Each solver's final BA of `run`, each in a fresh process so that its peak memory is its own."""
     print(f"{'solver':13s} {'seconds':>8s} {'iterations':>11s} {'final cost':>11s} {'reproj px':>10s} "
           f"{'peak MB above':>14s}")
-    for solver in SOLVERS:
+    for solver in solvers:
         done = subprocess.run([sys.executable, __file__, "--final", str(run), "--solver", solver],
                               capture_output=True, text=True)
         if done.returncode:
@@ -138,13 +143,19 @@ def main(argv=None) -> int:
     ap.add_argument("--synthetic", type=int, default=15, help="images of the synthetic scene (no --database)")
     ap.add_argument("--final", type=Path, default=None,
                     help="a finished run's folder: its final BA under each linear solver (see above)")
+    ap.add_argument("--solvers", default=",".join(SOLVERS),
+                    help=f"with --final: these of {', '.join(SOLVERS)}, comma-separated (default: all)")
     ap.add_argument("--solver", choices=SOLVERS, default=None, help=argparse.SUPPRESS)  # one, in this process
     args = ap.parse_args(argv)
     if args.final and args.solver:
         print(json.dumps(final_ba(args.final, args.solver)))
         return 0
     if args.final:
-        return compare_final_ba(args.final)
+        solvers = tuple(args.solvers.split(","))
+        unknown = sorted(set(solvers) - set(SOLVERS))
+        if unknown:
+            ap.error(f"--solvers: unknown {', '.join(unknown)} (choose from {', '.join(SOLVERS)})")
+        return compare_final_ba(args.final, solvers)
     db = Path(args.database) if args.database else Path(tempfile.mkdtemp()) / "database.db"
     if not args.database:
         synthetic_database(db, args.synthetic)
