@@ -3,8 +3,9 @@
 Variables: X(i) = world_from_camera Pose3 of each optimised image, L(p) = Point3, K(c) = calibration of
 camera c (COLMAP model -> GTSAM: SIMPLE_PINHOLE/SIMPLE_RADIAL/RADIAL -> Cal3Bundler, PINHOLE -> Cal3_S2, OPENCV ->
 Cal3DS2, OPENCV_FISHEYE -> Cal3Fisheye, the same equidistant lens with k1..k4 as its distortion). A view of an
-optimised image is a GeneralSFMFactor2 (pose, point, calibration); a view of a constant image (outside a local
-window) is a TriangulationFactor on the point alone, so constant cameras add no variables. Calibration entries
+optimised image is a GeneralSFMFactor2 (pose, point, calibration); the views of a point in constant images
+(outside a local window) are one Gaussian prior on the point alone, so constant cameras add no variables and
+their views no factor each (`_held_view_priors`). Calibration entries
 COLMAP keeps fixed (principal point, skew, the k2 of SIMPLE_RADIAL) or that are not refined (the distortion, k1..k4
 of OPENCV and OPENCV_FISHEYE, in the focal-only stages) are pinned by a tight prior on the calibration.
 
@@ -61,7 +62,6 @@ class BundleResult:
 
 
 _FOCAL_ENTRIES = {"Cal3Bundler": [0], "Cal3_S2": [0, 1], "Cal3DS2": [0, 1], "Cal3Fisheye": [0, 1]}
-_KINDS = tuple(_FOCAL_ENTRIES)
 
 
 def _calibration_layout(model: str, params):
@@ -103,7 +103,12 @@ def _params_from_calibration(model: str, cal) -> np.ndarray:
 
 def _keys(char: str, indices) -> list[int]:
     """GTSAM symbol keys (as `gtsam.symbol(char, j)`) of many indices at once: the character in the top byte."""
-    return ((ord(char) << 56) | np.asarray(indices, dtype=np.int64).astype(np.uint64)).tolist()
+    return _key_array(char, indices).tolist()
+
+
+def _key_array(char: str, indices) -> np.ndarray:
+    """`_keys` as a uint64 array."""
+    return np.uint64(ord(char) << 56) | np.asarray(indices, dtype=np.int64).astype(np.uint64)
 
 
 def _pose3(gtsam, R, t):
@@ -146,7 +151,7 @@ def bundle_adjust(model: Reconstruction, variable_images: np.ndarray | list[int]
     cal_kind = _add_calibrations(gtsam, graph, values, model, var_cams, refined_cams, refine_distortion)
     for i in optimised:
         values.insert(gtsam.symbol("x", i), _pose3(gtsam, model.R[i], model.t[i]))
-    fixed_cams = _constant_cameras(gtsam, model, window)
+    held_images = len(np.unique(window.obs_img[~window.variable[window.obs_img]]))
     points = np.unique(window.obs_pt)
     point_keys, xyz = _keys("l", points), model.xyz.data
     for k, p in zip(point_keys, points.tolist()):
@@ -155,9 +160,9 @@ def bundle_adjust(model: Reconstruction, variable_images: np.ndarray | list[int]
     sub_keys = _keys("s", range(len(sub_points)))
     for k, p in zip(sub_keys, sub_points.tolist()):
         values.insertPoint3(k, xyz[p])
-    _add_views(gtsam, graph, model, window, config.huber_px, cal_kind, fixed_cams)
+    _add_views(gtsam, graph, model, window, config.huber_px, cal_kind)
     if not _add_center_priors(gtsam, graph, model, window.variable):
-        _fix_gauge(gtsam, graph, model, window.variable, len(fixed_cams))
+        _fix_gauge(gtsam, graph, model, window.variable, held_images)
 
     iterations = max_iterations or config.global_ba_iterations
     # points first (the Schur complement, and no COLAMD run per call), then poses (`_pose_order`),
@@ -174,7 +179,7 @@ def bundle_adjust(model: Reconstruction, variable_images: np.ndarray | list[int]
     out = BundleResult(float(initial), float(final), used, time.perf_counter() - start, len(window.obs),
                        len(sub_points))
     log.debug("BA %d images (%d constant), %d points (%d sub-points), %d observations: cost %.4g -> %.4g in %d "
-              "iterations, %.3f s%s", len(optimised), len(fixed_cams), len(points), len(sub_points),
+              "iterations, %.3f s%s", len(optimised), held_images, len(points), len(sub_points),
               len(window.obs), out.initial_error,
               out.final_error, used, out.seconds, "".join(f"; {f}" for f in focals))
     return out
@@ -293,45 +298,75 @@ def _add_calibrations(gtsam, graph, values, model, cameras, refined_cams, refine
     return cal_kind
 
 
-def _constant_cameras(gtsam, model, window: _Window) -> dict:
-    """Image -> (calibration class name, fixed GTSAM camera) of each constant image the window observes."""
-    fixed_cams = {}
-    for i in np.unique(window.obs_img[~window.variable[window.obs_img]]):
-        cam = model.camera(i)
-        kind, vec, _ = _calibration_layout(cam.model, cam.params)
-        fixed_cams[int(i)] = (kind, getattr(gtsam, f"PinholeCamera{kind}")(
-            _pose3(gtsam, model.R[i], model.t[i]), _make_calibration(gtsam, kind, vec)))
-    return fixed_cams
-
-
-def _add_views(gtsam, graph, model, window: _Window, huber_px: float, cal_kind: dict,
-               fixed_cams: dict) -> None:
-    """One factor per observation, in observation order: a view of a variable image from the model's cache
-    (building them was ~10% of a BA's time), one of a constant image on the point alone; list operations
-    rather than one Python loop doing it all, as a mapping adds ~100,000 factors."""
+def _add_views(gtsam, graph, model, window: _Window, huber_px: float, cal_kind: dict) -> None:
+    """A factor per view of a variable image, in observation order, from the model's cache (building them was
+    ~10% of a BA's time); list operations rather than one Python loop doing it all, as a mapping adds ~100,000
+    factors. The views in held images become one prior per point (`_held_view_priors`)."""
     obs, obs_img, obs_pt = window.obs, window.obs_img, window.obs_pt
     noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(huber_px),
                                            gtsam.noiseModel.Isotropic.Sigma(2, 1.0))
     uv = model.keypoints_at(obs_img, window.obs_kp)
+    variable = window.variable[obs_img]
+    _held_view_priors(gtsam, graph, model, window, np.flatnonzero(~variable), uv[~variable], huber_px)
     cache = model.ba_factor_cache(huber_px)
-    factors = [cache.get(o) for o in obs.tolist()]
-    var_obs = window.variable[obs_img].tolist()
+    rows = np.flatnonzero(variable).tolist()
+    factors = [cache.get(o) for o in obs[rows].tolist()]
     sub = [-1] * len(obs) if window.split is None else window.split.tolist()
     make = {c: getattr(gtsam, f"GeneralSFMFactor2{kind}") for c, kind in cal_kind.items()}
-    tri = {kind: getattr(gtsam, f"TriangulationFactor{kind}") for kind in _KINDS}
-    for row in [k for k, (f, var, s) in enumerate(zip(factors, var_obs, sub)) if f is None or not var or s >= 0]:
+    for k in [k for k, (f, row) in enumerate(zip(factors, rows)) if f is None or sub[row] >= 0]:
+        row = rows[k]
         i, p, s = int(obs_img[row]), int(obs_pt[row]), sub[row]
         key = gtsam.symbol("l", p) if s < 0 else gtsam.symbol("s", s)  # a sub-point's view is not cached
-        if var_obs[row]:
-            c = int(model.camera_of[i])
-            factors[row] = make[c](uv[row], noise, gtsam.symbol("x", i), key, gtsam.symbol("k", c))
-            if s < 0:
-                cache[int(obs[row])] = factors[row]
-        else:
-            kind, camera = fixed_cams[i]
-            factors[row] = tri[kind](camera, uv[row], noise, key)
+        c = int(model.camera_of[i])
+        factors[k] = make[c](uv[row], noise, gtsam.symbol("x", i), key, gtsam.symbol("k", c))
+        if s < 0:
+            cache[int(obs[row])] = factors[k]
     for f in factors:
         graph.add(f)
+
+
+def _held_view_priors(gtsam, graph, model, window: _Window, rows: np.ndarray, uv: np.ndarray,
+                      huber_px: float) -> None:
+    """The views `rows` of the window, all in held images, as one Gaussian prior per point (or sub-point): the
+    quadratic model of their robust reprojection cost at the point's position, H = sum w J^T J and gradient
+    g = sum w J^T r (J the projection's Jacobian by central differences, w Huber's weight of the residual r),
+    centred at x - H^-1 g. A held camera does not move, so its views bind only the point; as one prior each
+    point costs the solver one factor however many held images see it, where a factor per view made a local
+    BA's cost grow with the model's track lengths (docs/scale.md, "Held views"). A single held view constrains
+    two directions; a millionth of H's trace on each axis keeps the prior proper without pulling the point."""
+    if len(rows) == 0:
+        return
+    img, pt = window.obs_img[rows], window.obs_pt[rows]
+    split = np.full(len(rows), -1) if window.split is None else window.split[rows]
+    var = np.where(split < 0, _key_array("l", pt), _key_array("s", np.maximum(split, 0)))
+    at = model.xyz.data[pt]
+    projected, depth = model.project(img, at)
+    step = 1e-4 * np.maximum(np.abs(depth), 1e-9)
+    J = np.empty((len(rows), 2, 3))
+    for axis in range(3):
+        offset = np.zeros(3)
+        offset[axis] = 1.0
+        ahead = model.project(img, at + step[:, None] * offset)[0]
+        behind = model.project(img, at - step[:, None] * offset)[0]
+        J[:, :, axis] = (ahead - behind) / (2 * step[:, None])
+    r = projected - uv
+    norm = np.linalg.norm(r, axis=1)
+    w = np.where(norm <= huber_px, 1.0, huber_px / np.maximum(norm, 1e-12))
+    valid = (depth > 0) & np.isfinite(r).all(axis=1) & np.isfinite(J).all(axis=(1, 2))
+    w, J, r = np.where(valid, w, 0.0), np.where(valid[:, None, None], J, 0.0), np.where(valid[:, None], r, 0.0)
+    keys, owner = np.unique(var, return_inverse=True)
+    H = np.zeros((len(keys), 3, 3))
+    np.add.at(H, owner, np.einsum("n,nia,nib->nab", w, J, J))
+    g = np.zeros((len(keys), 3))
+    np.add.at(g, owner, np.einsum("n,nia,ni->na", w, J, r))
+    trace = np.trace(H, axis1=1, axis2=2)
+    H += 1e-6 * trace[:, None, None] * np.eye(3)
+    first = np.zeros(len(keys), np.int64)
+    first[owner[::-1]] = np.arange(len(rows))[::-1]  # a row of each key: its position
+    proper = trace > 0
+    centre = at[first] - np.linalg.solve(np.where(proper[:, None, None], H, np.eye(3)), g[:, :, None])[:, :, 0]
+    for key, c, information in zip(keys[proper].tolist(), centre[proper], H[proper]):
+        graph.add(gtsam.PriorFactorPoint3(key, c, gtsam.noiseModel.Gaussian.Information(information)))
 
 
 def _write_back(gtsam, model, result, optimised: list[int], points, window: _Window, sub_points,
