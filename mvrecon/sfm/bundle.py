@@ -205,9 +205,9 @@ def _pose_order(window: _Window) -> list[int]:
     """The order in which a BA eliminates its poses, after the points: from ORDERED_POSES poses on, the reverse
     Cuthill-McKee order of the images that share a point, else image order. Eliminating the points joins every
     two images that see one; eliminating a pose then joins all its neighbours still to come, and an order that
-    keeps each image's neighbours close keeps that fill, and the factorisation's work, small. Image order is
-    such an order for a sequence, not for two rings of views: the 1,000-view dense orbit's final BA took half
-    the time in this order, at the same memory, to the same result (docs/scale.md, "Pose order")."""
+    keeps each image's neighbours close keeps that fill, and the factorisation's work, small, at the same
+    result. Image order is such an order for a sequence, not for two rings of views numbered one after the
+    other (docs/scale.md, "Pose order")."""
     optimised = np.asarray(window.optimised, dtype=np.int64)
     if len(optimised) < ORDERED_POSES:
         return optimised.tolist()
@@ -338,7 +338,7 @@ def _held_view_priors(gtsam, graph, model, window: _Window, rows: np.ndarray, uv
         return
     img, pt = window.obs_img[rows], window.obs_pt[rows]
     split = np.full(len(rows), -1) if window.split is None else window.split[rows]
-    var = np.where(split < 0, _key_array("l", pt), _key_array("s", np.maximum(split, 0)))
+    variable_key = np.where(split < 0, _key_array("l", pt), _key_array("s", np.maximum(split, 0)))
     at = model.xyz.data[pt]
     projected, depth = model.project(img, at)
     step = 1e-4 * np.maximum(np.abs(depth), 1e-9)
@@ -354,7 +354,7 @@ def _held_view_priors(gtsam, graph, model, window: _Window, rows: np.ndarray, uv
     w = np.where(norm <= huber_px, 1.0, huber_px / np.maximum(norm, 1e-12))
     valid = (depth > 0) & np.isfinite(r).all(axis=1) & np.isfinite(J).all(axis=(1, 2))
     w, J, r = np.where(valid, w, 0.0), np.where(valid[:, None, None], J, 0.0), np.where(valid[:, None], r, 0.0)
-    keys, owner = np.unique(var, return_inverse=True)
+    keys, owner = np.unique(variable_key, return_inverse=True)
     H = np.zeros((len(keys), 3, 3))
     np.add.at(H, owner, np.einsum("n,nia,nib->nab", w, J, J))
     g = np.zeros((len(keys), 3))
@@ -362,7 +362,7 @@ def _held_view_priors(gtsam, graph, model, window: _Window, rows: np.ndarray, uv
     trace = np.trace(H, axis1=1, axis2=2)
     H += 1e-6 * trace[:, None, None] * np.eye(3)
     first = np.zeros(len(keys), np.int64)
-    first[owner[::-1]] = np.arange(len(rows))[::-1]  # a row of each key: its position
+    first[owner[::-1]] = np.arange(len(rows))[::-1]  # a row of each key, where its point's position is read
     proper = trace > 0
     centre = at[first] - np.linalg.solve(np.where(proper[:, None, None], H, np.eye(3)), g[:, :, None])[:, :, 0]
     for key, c, information in zip(keys[proper].tolist(), centre[proper], H[proper]):
