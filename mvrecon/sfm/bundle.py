@@ -40,7 +40,7 @@ from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from .config import MapperConfig
 from .georef import spread_enough
-from .model import Reconstruction
+from .model import Reconstruction, sum_rows
 
 log = logging.getLogger("mvrecon.sfm")
 _TIGHT = 1e-6
@@ -208,7 +208,7 @@ def _pose_order(window: _Window) -> list[int]:
     keeps each image's neighbours close keeps that fill, and the factorisation's work, small, at the same
     result. Image order is such an order for a sequence, not for two rings of views numbered one after the
     other (docs/scale.md, "Pose order")."""
-    optimised = np.asarray(window.optimised, dtype=np.int64)
+    optimised = np.flatnonzero(window.variable)
     if len(optimised) < ORDERED_POSES:
         return optimised.tolist()
     column = np.full(len(window.variable), -1, np.int64)
@@ -354,15 +354,11 @@ def _held_view_priors(gtsam, graph, model, window: _Window, rows: np.ndarray, uv
     w = np.where(norm <= huber_px, 1.0, huber_px / np.maximum(norm, 1e-12))
     valid = (depth > 0) & np.isfinite(r).all(axis=1) & np.isfinite(J).all(axis=(1, 2))
     w, J, r = np.where(valid, w, 0.0), np.where(valid[:, None, None], J, 0.0), np.where(valid[:, None], r, 0.0)
-    keys, owner = np.unique(variable_key, return_inverse=True)
-    H = np.zeros((len(keys), 3, 3))
-    np.add.at(H, owner, np.einsum("n,nia,nib->nab", w, J, J))
-    g = np.zeros((len(keys), 3))
-    np.add.at(g, owner, np.einsum("n,nia,ni->na", w, J, r))
+    keys, first, owner = np.unique(variable_key, return_index=True, return_inverse=True)
+    H = sum_rows(owner, np.einsum("n,nia,nib->nab", w, J, J), len(keys))
+    g = sum_rows(owner, np.einsum("n,nia,ni->na", w, J, r), len(keys))
     trace = np.trace(H, axis1=1, axis2=2)
     H += 1e-6 * trace[:, None, None] * np.eye(3)
-    first = np.zeros(len(keys), np.int64)
-    first[owner[::-1]] = np.arange(len(rows))[::-1]  # a row of each key, where its point's position is read
     proper = trace > 0
     centre = at[first] - np.linalg.solve(np.where(proper[:, None, None], H, np.eye(3)), g[:, :, None])[:, :, 0]
     for key, c, information in zip(keys[proper].tolist(), centre[proper], H[proper]):

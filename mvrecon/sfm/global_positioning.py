@@ -23,7 +23,7 @@ from numba import njit
 from scipy.sparse import bsr_matrix
 from scipy.sparse.linalg import splu
 
-from .model import Reconstruction
+from .model import Reconstruction, sum_rows
 from .tracks import Tracks
 
 _TRACKS_PER_IMAGE = 200  # tracks are taken longest first while one of their images holds fewer than this
@@ -165,8 +165,8 @@ def _start(cam, point, v, initial, fallback, num_points):
     spread = np.sqrt(np.mean(np.sum((initial[known] - c0) ** 2, axis=1))) or 1.0
     C[known] = (initial[known] - c0) / spread
     P = np.eye(3)[None] - v[:, :, None] * v[:, None, :]  # projections off each ray
-    A = _sum(point, P, num_points) + 1e-9 * np.eye(3)
-    b = _sum(point, (P @ C[cam][:, :, None])[:, :, 0], num_points)
+    A = sum_rows(point, P, num_points) + 1e-9 * np.eye(3)
+    b = sum_rows(point, (P @ C[cam][:, :, None])[:, :, 0], num_points)
     X = np.linalg.solve(A, b[:, :, None])[:, :, 0]
     e = X[point] - C[cam]
     s = np.maximum(np.einsum("ki,ki->k", e, v) / np.maximum(np.einsum("ki,ki->k", e, e), 1e-300), _MIN_SCALE)
@@ -215,20 +215,20 @@ def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout):
             r = v - s[:, None] * e
             # gradient of half the cost, g = J^T W r, with J_C = s I, J_X = -s I, J_s = -e; Gauss-Newton blocks
             ws = w * s
-            g_C = _sum(cam, ws[:, None] * r, num_cams)
-            g_X = _sum(point, -ws[:, None] * r, num_points)
+            g_C = sum_rows(cam, ws[:, None] * r, num_cams)
+            g_X = sum_rows(point, -ws[:, None] * r, num_points)
             g_s = -w * np.einsum("ki,ki->k", e, r)
             d = w * s * s
             h_s = w * np.einsum("ki,ki->k", e, e) * (1 + lam) + 1e-12
             # the scales eliminated: each couples (C, X) by b = w s [-e; e]
             c = (ws ** 2 / h_s)[:, None, None] * (e[:, :, None] * e[:, None, :])
             block = d[:, None, None] * eye - c
-            H_CC = _sum(cam, block, num_cams)
-            H_XX = _sum(point, block, num_points)
+            H_CC = sum_rows(cam, block, num_cams)
+            H_XX = sum_rows(point, block, num_points)
             Q = -block  # the (C, X) block of each observation
             shift = (ws * g_s / h_s)[:, None] * e
-            rhs_C = -_sum(cam, shift, num_cams) - g_C
-            rhs_X = _sum(point, shift, num_points) - g_X
+            rhs_C = -sum_rows(cam, shift, num_cams) - g_C
+            rhs_X = sum_rows(point, shift, num_points) - g_X
             H_CC[:, [0, 1, 2], [0, 1, 2]] *= 1 + lam
             H_XX[:, [0, 1, 2], [0, 1, 2]] = H_XX[:, [0, 1, 2], [0, 1, 2]] * (1 + lam) + 1e-12
             Xinv = np.linalg.inv(H_XX)
@@ -239,7 +239,7 @@ def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout):
             _subtract_products(QX, Q, order, bounds, layout.slot_of_pair, blocks)
             blocks[gauge] = 0.0
             blocks[slot_of_cam[0]] = eye
-            rhs_C -= _sum(cam, (QX @ rhs_X[point][:, :, None])[:, :, 0], num_cams)
+            rhs_C -= sum_rows(cam, (QX @ rhs_X[point][:, :, None])[:, :, 0], num_cams)
             rhs_C[0] = 0.0
             S = bsr_matrix((blocks, layout.block_col, layout.indptr), shape=(3 * num_cams, 3 * num_cams))
             try:
@@ -250,7 +250,7 @@ def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout):
                 lam *= 10
                 continue
             dC = dC.reshape(num_cams, 3)
-            dX = (Xinv @ (rhs_X - _sum(point, (Q.transpose(0, 2, 1) @ dC[cam][:, :, None])[:, :, 0],
+            dX = (Xinv @ (rhs_X - sum_rows(point, (Q.transpose(0, 2, 1) @ dC[cam][:, :, None])[:, :, 0],
                                         num_points))[:, :, None])[:, :, 0]
             ds = (-g_s - ws * np.einsum("ki,ki->k", e, dX[point] - dC[cam])) / h_s
             C_new, X_new = C + dC, X + dX
@@ -268,13 +268,6 @@ def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout):
                 if lam > 1e8:
                     break
     return C, X, cost
-
-
-def _sum(index: np.ndarray, values: np.ndarray, size: int) -> np.ndarray:
-    """Rows of `values` summed by `index` into `size` rows (np.add.at, by np.bincount: many times faster)."""
-    flat = values.reshape(len(values), -1)
-    out = np.stack([np.bincount(index, flat[:, c], minlength=size) for c in range(flat.shape[1])], axis=1)
-    return out.reshape((size,) + values.shape[1:])
 
 
 @njit(cache=True)

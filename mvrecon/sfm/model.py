@@ -73,6 +73,14 @@ def padded_slices(lengths: np.ndarray) -> Iterator[slice]:
         start = stop
 
 
+def sum_rows(index: np.ndarray, values: np.ndarray, size: int) -> np.ndarray:
+    """Rows of `values` summed by `index` into `size` rows: np.add.at's result, by np.bincount, many times
+    faster."""
+    flat = values.reshape(len(values), -1)
+    out = np.stack([np.bincount(index, flat[:, c], minlength=size) for c in range(flat.shape[1])], axis=1)
+    return out.reshape((size,) + values.shape[1:])
+
+
 def images_and_cameras(corr: Correspondences) -> tuple[np.ndarray, list[str], np.ndarray, dict[int, Camera]]:
     """What both mappers start from: the database's image ids in ascending order (a model's internal index is the
     position in it), their names and camera ids, and a `Camera` per database camera whose prior focal is its
