@@ -3,7 +3,8 @@
 Each was kept because removing it slowed a whole `reconstruct` of templeSparseRing by more than 5% (medians of
 alternated runs before and after, in docs/benchmarks.md; on the larger templeRing less): the feature workers
 and the `mvrecon` process keep the memory they free (`keep_freed_memory`, glibc's mallopt), so that SIFT's
-scale space and matching's blocks are not faulted in again for every image; and the libraries of the later
+scale space and matching's blocks are not faulted in again for every image (nor the mapper's linear systems at
+every iteration of a bundle adjustment: `hand_back_freed_memory` trims between them); and the libraries of the later
 stages load in a thread while the workers extract (`load_later_stages`), rather than on one core between the
 stages. The other start-up measures (skipping the interpreter's teardown, freezing the garbage collector at
 exit, preloading the forkserver) saved less than that and are gone. The matcher's onnxruntime product
@@ -14,7 +15,6 @@ import ctypes
 import importlib
 
 _M_TRIM_THRESHOLD, _M_MMAP_MAX, _M_ARENA_MAX = -1, -4, -8  # glibc's mallopt parameters
-_DEFAULT_TRIM_THRESHOLD, _DEFAULT_MMAP_MAX = 128 * 1024, 65536  # glibc's defaults of the first two
 
 
 def keep_freed_memory(one_arena: bool = False) -> None:
@@ -40,18 +40,18 @@ def keep_freed_memory(one_arena: bool = False) -> None:
 
 
 def hand_back_freed_memory() -> None:
-    """From now on this process hands the memory it frees back to the kernel (undoing `keep_freed_memory`),
-    and it hands back now the free pages its heaps hold (glibc's malloc_trim). For the mapper: each bundle
+    """Hand back to the kernel, now, the free pages this process's heaps hold (glibc's malloc_trim); the process
+    goes on keeping what it frees (`keep_freed_memory`). For the mapper, after each global BA: a bundle
     adjustment allocates and frees a linear system of tens to hundreds of MB, and kept, the freed memory and
     its fragments made most of the process's growth with the model (a 150-view orbit at 80 images: 384 MB
-    resident, 197 MB once trimmed). A no-op where the C library has neither (not glibc)."""
+    resident, 197 MB once trimmed). Within a BA the memory stays kept: GTSAM's Levenberg-Marquardt builds and
+    frees its linear system at every iteration, and handed back as it was freed, each iteration faulted it in
+    again, the kernel's work a third of the mapping's time on a 1,000-view orbit (docs/benchmarks.md, "Freed
+    memory kept through a bundle adjustment"). A no-op where the C library has no malloc_trim (not glibc)."""
     try:
-        libc = ctypes.CDLL(None)
-        mallopt, malloc_trim = libc.mallopt, libc.malloc_trim
+        malloc_trim = ctypes.CDLL(None).malloc_trim
     except (OSError, AttributeError):
         return
-    mallopt(_M_MMAP_MAX, _DEFAULT_MMAP_MAX)
-    mallopt(_M_TRIM_THRESHOLD, _DEFAULT_TRIM_THRESHOLD)
     malloc_trim(0)
 
 
