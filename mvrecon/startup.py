@@ -3,12 +3,13 @@
 Each was kept because removing it slowed a whole `reconstruct` of templeSparseRing by more than 5% (medians of
 alternated runs before and after, in docs/benchmarks.md; on the larger templeRing less): the feature workers
 and the `mvrecon` process keep the memory they free (`keep_freed_memory`, glibc's mallopt), so that SIFT's
-scale space and matching's blocks are not faulted in again for every image (nor the mapper's linear systems at
-every iteration of a bundle adjustment: `hand_back_freed_memory` trims between them); and the libraries of the later
-stages load in a thread while the workers extract (`load_later_stages`), rather than on one core between the
-stages. The other start-up measures (skipping the interpreter's teardown, freezing the garbage collector at
-exit, preloading the forkserver) saved less than that and are gone. The matcher's onnxruntime product
-(matching/int_product.py) is no start-up measure: it makes the matching stage itself about a third faster.
+scale space and matching's blocks are not faulted in again for every image, nor the mapper's linear systems at
+every iteration of a bundle adjustment (`hand_back_freed_memory` trims the heaps between them); and the
+libraries of the later stages load in a thread while the workers extract (`load_later_stages`), rather than on
+one core between the stages. The other start-up measures (skipping the interpreter's teardown, freezing the
+garbage collector at exit, preloading the forkserver) saved less than that and are gone. The matcher's
+onnxruntime product (matching/int_product.py) is no start-up measure: it makes the matching stage itself about
+a third faster.
 """
 
 import ctypes
@@ -41,13 +42,12 @@ def keep_freed_memory(one_arena: bool = False) -> None:
 
 def hand_back_freed_memory() -> None:
     """Hand back to the kernel, now, the free pages this process's heaps hold (glibc's malloc_trim); the process
-    goes on keeping what it frees (`keep_freed_memory`). For the mapper, after each global BA: a bundle
-    adjustment allocates and frees a linear system of tens to hundreds of MB, and kept, the freed memory and
-    its fragments made most of the process's growth with the model (a 150-view orbit at 80 images: 384 MB
-    resident, 197 MB once trimmed). Within a BA the memory stays kept: GTSAM's Levenberg-Marquardt builds and
-    frees its linear system at every iteration, and handed back as it was freed, each iteration faulted it in
-    again, the kernel's work a third of the mapping's time on a 1,000-view orbit (docs/benchmarks.md, "Freed
-    memory kept through a bundle adjustment"). A no-op where the C library has no malloc_trim (not glibc)."""
+    goes on keeping what it frees (`keep_freed_memory`). The mapper calls it after each global BA: kept for the
+    whole run, the freed linear systems and their fragments made most of the process's growth with the model;
+    handed back as they were freed, each iteration of GTSAM's Levenberg-Marquardt, which builds and frees its
+    linear system, faulted it in anew, the kernel's work growing faster than the model (docs/benchmarks.md,
+    "Freed memory kept through a bundle adjustment"). A no-op where the C library has no malloc_trim (not
+    glibc)."""
     try:
         malloc_trim = ctypes.CDLL(None).malloc_trim
     except (OSError, AttributeError):
