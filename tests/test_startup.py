@@ -18,7 +18,7 @@ del blocks
 kept = rss_mb([os.getpid()])
 hand_back_freed_memory()
 handed_back = rss_mb([os.getpid()])
-blocks = [np.ones(50_000) for _ in range(1000)]
+blocks = [np.ones(3_200_000) for _ in range(16)]  # 25.6 MB each, larger than any free run of the heap
 del blocks
 print(kept, handed_back, rss_mb([os.getpid()]))
 """
@@ -27,8 +27,9 @@ print(kept, handed_back, rss_mb([os.getpid()]))
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc options (Linux)")
 def test_freed_memory_is_kept_until_handed_back_and_kept_again_after():
     """400 MB freed in blocks stays resident; once handed back, what is resident is what is still held (8 MB of
-    the blocks, and the interpreter); 400 MB allocated and freed after that stays resident again, ready for the
-    next bundle adjustment instead of faulted in anew."""
+    the blocks, and the interpreter); 400 MB allocated after that in blocks larger than any free run of the heap
+    (as a bundle adjustment's linear system), and freed, stays resident again, ready for the next one instead of
+    faulted in anew."""
     out = subprocess.run([sys.executable, "-c", SCRIPT], capture_output=True, text=True, check=True).stdout
     kept, handed_back, kept_again = map(float, out.split())
     assert kept > 400
