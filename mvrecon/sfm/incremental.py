@@ -597,18 +597,18 @@ class IncrementalMapper:
         return np.array([i, *best], dtype=np.int64)
 
     def _global_refine(self, m: Reconstruction, rounds: int = 1, growing: bool = False,
-                       min_change: float = 0.0, relative_tolerance=None) -> None:
+                       min_change: float = 0.0, relative_tolerance=None, keep=()) -> None:
         """Up to `rounds` of global BA (while `growing`: on a point subset, and of `_growth_images` once the
         model is large; LM to `relative_tolerance` when given), retriangulation and filtering (of the
         optimised images' tracks and points); stops early once a round adds and removes fewer than `min_change`
         of the observations (COLMAP's iterative global refinement). A large model's refinement of every image
-        optimises a point subset too (`_final_subset`)."""
+        optimises a point subset too (`_final_subset`), plus the points `keep`."""
         cfg = self.config
         images = self._growth_images(m) if growing else None
         subset = growing or self._final_subset(m)
         for _ in range(rounds):
             alive_before, n_before = m.obs_alive.data.copy(), m.obs_alive.n
-            self._global_bundle(m, subset, relative_tolerance=relative_tolerance, images=images)
+            self._global_bundle(m, subset, keep, relative_tolerance=relative_tolerance, images=images)
             retriangulate(m, self.tracks, cfg, cfg.seed, images=images)
             self._filter(m, None if images is None else self._points_of(m, images))
             changed = (m.obs_alive.n - n_before) + int((alive_before & ~m.obs_alive.data[:n_before]).sum())
@@ -679,24 +679,31 @@ class IncrementalMapper:
 
         georeference(m, cfg.seed)  # into the priors' frame once they allow it (no-op without priors)
         filtering.plausible_bundle(m, intrinsics, distortion, adjust)
-        hand_back_freed_memory()  # else the next global BA (loops closed, then the final one) stacks on its fragments
+        hand_back_freed_memory()  # else the next global BA stacks on its fragments
 
-    def _close_loops(self, m: Reconstruction) -> None:
+    def _close_loops(self, m: Reconstruction) -> np.ndarray:
         """Views of existing points that the drift of growth left past the 4 px gate rejoin through the loose
         angular gate, when their point can be re-fitted to them or their image sees them displaced together
-        (`triangulate.continue_points`), and a global BA pulls the loop together; the filters then drop the
-        views it could not bring within 4 px. That BA optimises the points that gained views plus the usual
-        well-spread subset: where there is no loop the new views are a few, and a BA of every point cost
-        several times the final one to settle them. Not neutral everywhere it fires (docs/benchmarks.md, "Mapper
-        rules"): AUC@5 up to +0.026 (imc_reichstag, templeSparseRing, blurred temple), down to -0.014 (noisy and
-        blurred temples). A loop left open at a hinge, past both gates, is closed first (`_close_open_loop`)."""
+        (`triangulate.continue_points`), and a BA pulls the loop together; the filters then drop the views it
+        could not bring within 4 px. From final_ba_subset_min_images images (`_final_subset`) that BA is the final
+        refinement's, the points that gained views (returned) added to its subset: the loops' own BA was the
+        costliest of all on large models; smaller models keep a BA of their own before the final one
+        (docs/benchmarks.md, "Loops settled by the final BA"). Not neutral everywhere it fires
+        (docs/benchmarks.md, "Mapper rules"): AUC@5 up to +0.026 (imc_reichstag, templeSparseRing, blurred
+        temple), down to -0.014 (noisy and blurred temples). A loop left open at a hinge, past both gates, is
+        closed first (`_close_open_loop`)."""
         cfg = self.config
         self._close_open_loop(m)
         first = m.obs_point.n
+        none = np.zeros(0, np.int64)
         if continue_points(m, self.tracks, cfg, loose=True, seed=cfg.seed) == 0:
-            return
-        self._global_bundle(m, True, keep=np.unique(m.obs_point.data[first:m.obs_point.n]))
+            return none
+        joined = np.unique(m.obs_point.data[first:m.obs_point.n])
+        if self._final_subset(m):
+            return joined
+        self._global_bundle(m, True, keep=joined)
         self._filter(m)
+        return none
 
     def _close_open_loop(self, m: Reconstruction) -> None:
         """Where images see the other end of an open loop (sfm/loop_closure.py), spread the gap over the loop
@@ -725,14 +732,14 @@ class IncrementalMapper:
 
     def _finish_model(self, m: Reconstruction) -> None:
         # loops closed, then global BA with every point (those during growth used a subset; so does a large
-        # model's, `_final_subset`),
-        # retriangulation and filtering, a second round only when the first still changed final_min_change
-        # of the observations; LM run further for a four-term lens (config.py)
-        self._close_loops(m)
+        # model's, `_final_subset`, which adds the points that loop closing gave views), retriangulation and
+        # filtering, a second round only when the first still changed final_min_change of the observations;
+        # LM run further for a four-term lens (config.py)
+        joined = self._close_loops(m)
         cfg = self.config
         four_terms = any(num_distortion_terms(m.cameras[c].model) == 4 for c in set(m.camera_of[m.registered].tolist()))
         self._global_refine(m, rounds=2, min_change=cfg.final_min_change,
-                            relative_tolerance=cfg.four_term_final_tolerance if four_terms else None)
+                            relative_tolerance=cfg.four_term_final_tolerance if four_terms else None, keep=joined)
         self._drop_non_square_cameras(m)
         n, least = int(m.registered.sum()), self.min_model_size()
         if n >= least:
