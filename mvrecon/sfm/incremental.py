@@ -684,26 +684,15 @@ class IncrementalMapper:
     def _close_loops(self, m: Reconstruction) -> np.ndarray:
         """Views of existing points that the drift of growth left past the 4 px gate rejoin through the loose
         angular gate, when their point can be re-fitted to them or their image sees them displaced together
-        (`triangulate.continue_points`), and a BA pulls the loop together; the filters then drop the views it
-        could not bring within 4 px. From final_ba_subset_min_images images (`_final_subset`) that BA is the final
-        refinement's, the points that gained views (returned) added to its subset: the loops' own BA was the
-        costliest of all on large models; smaller models keep a BA of their own before the final one
-        (docs/benchmarks.md, "Loops settled by the final BA"). Not neutral everywhere it fires
-        (docs/benchmarks.md, "Mapper rules"): AUC@5 up to +0.026 (imc_reichstag, templeSparseRing, blurred
-        temple), down to -0.014 (noisy and blurred temples). A loop left open at a hinge, past both gates, is
-        closed first (`_close_open_loop`)."""
-        cfg = self.config
+        (`triangulate.continue_points`); returns the ids of the points that gained views, for the BA that pulls
+        the loop together (`_finish_model`), whose filters then drop the views it could not bring within 4 px.
+        Not neutral everywhere it fires (docs/benchmarks.md, "Mapper rules"): AUC@5 up to +0.026 (imc_reichstag,
+        templeSparseRing, blurred temple), down to -0.014 (noisy and blurred temples). A loop left open at a
+        hinge, past both gates, is closed first (`_close_open_loop`)."""
         self._close_open_loop(m)
         first = m.obs_point.n
-        none = np.zeros(0, np.int64)
-        if continue_points(m, self.tracks, cfg, loose=True, seed=cfg.seed) == 0:
-            return none
-        joined = np.unique(m.obs_point.data[first:m.obs_point.n])
-        if self._final_subset(m):
-            return joined
-        self._global_bundle(m, True, keep=joined)
-        self._filter(m)
-        return none
+        continue_points(m, self.tracks, self.config, loose=True, seed=self.config.seed)
+        return np.unique(m.obs_point.data[first:m.obs_point.n])
 
     def _close_open_loop(self, m: Reconstruction) -> None:
         """Where images see the other end of an open loop (sfm/loop_closure.py), spread the gap over the loop
@@ -734,8 +723,13 @@ class IncrementalMapper:
         # loops closed, then global BA with every point (those during growth used a subset; so does a large
         # model's, `_final_subset`, which adds the points that loop closing gave views), retriangulation and
         # filtering, a second round only when the first still changed final_min_change of the observations;
-        # LM run further for a four-term lens (config.py)
+        # LM run further for a four-term lens (config.py). On a large model that BA also settles the loops: a
+        # BA of their own was the costliest of all there; a smaller model gets one, with its filters, before
+        # the final one, which its AUC needs (docs/benchmarks.md, "Loops settled by the final BA")
         joined = self._close_loops(m)
+        if len(joined) and not self._final_subset(m):
+            self._global_bundle(m, True, keep=joined)
+            self._filter(m)
         cfg = self.config
         four_terms = any(num_distortion_terms(m.cameras[c].model) == 4 for c in set(m.camera_of[m.registered].tolist()))
         self._global_refine(m, rounds=2, min_change=cfg.final_min_change,
