@@ -43,6 +43,7 @@ class MapSummary:
     model_stats: list  # per model: registered, points, mean_track_length, mean_reprojection_error_px, cameras
     seconds: float = 0.0
     georef: dict | None = None  # with position priors: sfm.georef.georeference_models' report entry
+    mapper: str = "incremental"  # the mapper whose models these are ("global" also where the incremental one fell short)
 
     def text(self) -> str:
         n = sum(1 for s in self.status.values() if s["status"] == "registered")
@@ -96,11 +97,11 @@ def map_workspace(config: MapperConfig, workspace: Workspace | Path | str, *,
         resume = False
     ws.begin_stage("mapping", record, overwrite)
     if config.partition_size and len(corr.images) > config.partition_size:
-        result = map_in_parts(corr, config, ws, resume, cluster=cluster)
+        result, mapper = map_in_parts(corr, config, ws, resume, cluster=cluster), config.mapper
     else:
         features = (stages.get("features") or {}).get("config")
         choose = config.choose_camera_model and recorded_model_left_open(features)
-        result = _run_mapper(corr, config, snapshot, resume, choose_lens=choose)
+        result, mapper = _run_mapper(corr, config, snapshot, resume, choose_lens=choose)
     georef = georeference_models(result.models, CenterPriors.of(corr.priors), frame=config.frame,
                                  max_sigmas=config.prior_max_sigmas, seed=config.seed)
     _write_models(ws, result.models, image_dir, text, keypoint_colors)
@@ -111,7 +112,7 @@ def map_workspace(config: MapperConfig, workspace: Workspace | Path | str, *,
         stats.append({**{k: s[k] for k in ("registered", "points", "mean_track_length",
                                            "mean_reprojection_error_px")}, "cameras": camera_entries(m)})
     return MapSummary(models=result.models, status=result.status, model_stats=stats,
-                      seconds=time.perf_counter() - start, georef=georef)
+                      seconds=time.perf_counter() - start, georef=georef, mapper=mapper)
 
 
 GEOREF = "georef.json"  # in the workspace: the frame of the models and its origin, with position priors
@@ -128,18 +129,42 @@ def _write_georef(ws: Workspace, georef: dict | None) -> None:
 
 
 def _run_mapper(corr, config, snapshot: Path, resume: bool, choose_lens: bool = False):
-    """The models of the correspondences `corr` (database.Correspondences), with each image's status: the
-    incremental mapper (sfm/incremental.py; with `choose_lens`, each camera's model chosen from the data,
-    sfm/lens.py) or, with `mapper = "global"`, the global one (sfm/global_mapper.py, which maps in one go and
-    has no snapshot to resume from; it chooses the models with `choose_lens` too). Their modules load only
-    when mapping runs (GTSAM is heavy for the commands that never map)."""
-    if config.mapper == "global":
-        from ..sfm.global_mapper import map_correspondences_globally  # noqa: PLC0415 - GTSAM, after the workers fork
+    """(result, mapper): the models of the correspondences `corr` (database.Correspondences) with each image's
+    status, and the name of the mapper that made them. The incremental mapper (sfm/incremental.py; with
+    `choose_lens`, each camera's model chosen from the data, sfm/lens.py) or, with `mapper = "global"`, the
+    global one (sfm/global_mapper.py, which maps in one go and has no snapshot to resume from; it chooses the
+    models with `choose_lens` too). Their modules load only when mapping runs (GTSAM is heavy for the commands
+    that never map).
 
-        return map_correspondences_globally(corr, config, default_workers(), choose_lens=choose_lens)
+    With `global_fallback`, an incremental mapping whose largest model holds under half the images is followed
+    by a global one, whose models replace it when their largest holds more images: the two mappers fail on
+    different view graphs (a graph of pairs with few matches each, whose tracks rarely reach a third view,
+    starts no incremental model but gives every rotation and position to the global mapper). Both mapping
+    nothing costs the global mapper's time, a panorama a few seconds."""
+    from ..sfm.global_mapper import map_correspondences_globally  # noqa: PLC0415 - GTSAM, after the workers fork
+
+    if config.mapper == "global":
+        return map_correspondences_globally(corr, config, default_workers(), choose_lens=choose_lens), "global"
     from ..sfm.incremental import map_correspondences  # noqa: PLC0415 - GTSAM, after the workers fork
 
-    return map_correspondences(corr, config, snapshot_path=snapshot, resume=resume, choose_lens=choose_lens)
+    result = map_correspondences(corr, config, snapshot_path=snapshot, resume=resume, choose_lens=choose_lens)
+    if not config.global_fallback or 2 * _largest(result) >= len(corr.images):
+        return result, "incremental"
+    log.info("the incremental mapper's largest model holds %d of %d images: mapping them with the global mapper "
+             "too", _largest(result), len(corr.images))
+    other = map_correspondences_globally(corr, config, default_workers(), choose_lens=choose_lens)
+    if _largest(other) <= _largest(result):
+        log.info("the global mapper's largest model holds %d images: the incremental models are kept",
+                 _largest(other))
+        return result, "incremental"
+    log.warning("the incremental mapper's largest model held %d of %d images, the global mapper's holds %d: its "
+                "models are written (`--mapper global`)", _largest(result), len(corr.images), _largest(other))
+    return other, "global"
+
+
+def _largest(result) -> int:
+    """Images registered in the result's largest model (0 without a model)."""
+    return max((int(m.registered.sum()) for m in result.models), default=0)
 
 
 def _write_models(ws: Workspace, models: list, image_dir, text: bool, keypoint_colors) -> None:

@@ -25,7 +25,7 @@ def write_report(out_dir: Path | str, *, config_hash: str, seed: int, summary: M
     report = {"engine": "mvrecon", "version": __version__, "config_hash": config_hash, "seed": seed,
               "images": dict(sorted(images.items())),
               "models": [{"index": k, **s} for k, s in enumerate(summary.model_stats)],
-              "stages": stages, "total": total, "counts": counts,
+              "mapper": summary.mapper, "stages": stages, "total": total, "counts": counts,
               "database": database or {"made_by": "mvrecon"}}
     if pairs is not None:
         report["pairs"] = pairs

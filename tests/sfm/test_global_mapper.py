@@ -202,6 +202,31 @@ def test_map_command_runs_the_global_mapper_and_refuses_an_unknown_one(tmp_path,
     assert f"{bad}: mapper must be one of incremental, global, not 'spiral'" in capsys.readouterr().err
 
 
+def test_images_the_incremental_mapper_cannot_chain_are_mapped_by_the_global_mapper(tmp_path, caplog):
+    """Pairs of 35-70 matches whose tracks rarely reach a third view (COLMAP's synthetic images) start no
+    incremental model that can grow; the global mapper then maps them all, and its model is written, said in the
+    log and in report.json. With `global_fallback = false` the incremental mapper's answer stands."""
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    gt = synthetic_database(ws / "database.db", num_images=12, num_points=3000, short_tracks=True)
+    corr = database.read_correspondences(ws / "database.db")
+    assert all(35 <= len(p.inliers) <= 75 for p in corr.pairs) and len(corr.pairs) == 66
+    off = tmp_path / "off.toml"
+    off.write_text("[mapper]\nglobal_fallback = false\n")
+    assert main(["-q", "map", "-w", str(ws), "--config", str(off)]) == 1
+    report = json.loads((ws / "report.json").read_text())
+    assert report["mapper"] == "incremental" and not report["models"]
+    assert "too few 2D-3D matches" in json.dumps(report["images"])
+    caplog.clear()
+    assert main(["-q", "map", "-w", str(ws), "--overwrite"]) == 0
+    assert "the incremental mapper's largest model held 0 of 12 images, the global mapper's holds 12" in caplog.text
+    (model,) = sparse_models(ws / "sparse")
+    summary = accuracy_summary([poses_of(model)], gt)
+    assert summary["registered"] == 12 and summary["auc@5"] >= 0.95
+    report = json.loads((ws / "report.json").read_text())
+    assert report["mapper"] == "global" and all(s["status"] == "registered" for s in report["images"].values())
+
+
 @pytest.mark.parametrize("final_subset", [False, True])
 def test_a_large_model_ends_with_a_brief_or_no_bundle_adjustment_of_every_point(tmp_path, monkeypatch, final_subset):
     """From `_LARGE_MODEL` images (lowered here to 8) the first round optimises the early point quota, every round

@@ -23,9 +23,10 @@ from mvrecon.sfm.triangulate import continue_points, retriangulate
 from tests.helpers import DATA
 
 
-def synthetic_database(path, num_images=8, num_points=600, noise_px=0.5, seed=0, num_rigs=1):
+def synthetic_database(path, num_images=8, num_points=600, noise_px=0.5, seed=0, num_rigs=1, short_tracks=False):
     """A pycolmap synthetic scene (SIMPLE_RADIAL, focal guessed 10% off) with keypoint noise, as a
-    database."""
+    database. With `short_tracks` each point keeps its matches between two of the images that see it (three for
+    a tenth of the points), as in a scene whose patches rarely match in a third view."""
     pycolmap.set_random_seed(seed)
     opts = pycolmap.SyntheticDatasetOptions(num_rigs=num_rigs, num_cameras_per_rig=1,
                                             num_frames_per_rig=num_images // num_rigs,
@@ -39,7 +40,32 @@ def synthetic_database(path, num_images=8, num_points=600, noise_px=0.5, seed=0,
         for cam in db.read_all_cameras():  # the mapper must find the focal length itself
             cam.params = [660.0, 320.0, 240.0, 0.0]
             db.update_camera(cam)
+    if short_tracks:
+        _keep_short_tracks(path, gt, np.random.default_rng(seed))
     return poses(gt)
+
+
+def _keep_short_tracks(path, gt, rng) -> None:
+    """Each verified pair of the database keeps the matches of the points drawn for it: each point of `gt` is
+    drawn for the pairs among two of its images, or three for a tenth of the points."""
+    seen = {}
+    for iid, im in gt.images.items():  # the synthetic database's keypoints are the images' points2D, in order
+        for k, p2 in enumerate(im.points2D):
+            if p2.has_point3D():
+                seen.setdefault(p2.point3D_id, []).append((iid, k))
+    kept = {}
+    for obs in seen.values():
+        size = min(len(obs), 3 if rng.random() < 0.1 else 2)
+        chosen = sorted(obs[i] for i in rng.choice(len(obs), size, replace=False))
+        for n, (a, ka) in enumerate(chosen):
+            for b, kb in chosen[n + 1:]:
+                kept.setdefault(database.pair_id(a, b), []).append((ka, kb))
+    with database.open_database(path) as db:
+        for pair, config, F, E, H in db.execute("SELECT pair_id, config, F, E, H FROM two_view_geometries").fetchall():
+            matches = np.asarray(kept.get(pair, []), np.uint32).reshape(-1, 2)
+            db.execute("UPDATE two_view_geometries SET rows = ?, data = ? WHERE pair_id = ?",
+                       (len(matches), matches.tobytes(), pair))
+        db.commit()
 
 
 def estimated_poses(result):
