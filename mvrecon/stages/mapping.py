@@ -43,7 +43,7 @@ class MapSummary:
     model_stats: list  # per model: registered, points, mean_track_length, mean_reprojection_error_px, cameras
     seconds: float = 0.0
     georef: dict | None = None  # with position priors: sfm.georef.georeference_models' report entry
-    mapper: str = "incremental"  # the mapper whose models these are ("global" also where the incremental one fell short)
+    mapper: str = "incremental"  # the mapper whose models these are ("global" where the incremental one fell short)
 
     def text(self) -> str:
         n = sum(1 for s in self.status.values() if s["status"] == "registered")
