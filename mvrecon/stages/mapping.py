@@ -141,10 +141,8 @@ def _run_mapper(corr, config, snapshot: Path, resume: bool, choose_lens: bool = 
     different view graphs (a graph of pairs with few matches each, whose tracks rarely reach a third view,
     starts no incremental model but gives every rotation and position to the global mapper). Both mapping
     nothing costs the global mapper's time, a panorama a few seconds."""
-    from ..sfm.global_mapper import map_correspondences_globally  # noqa: PLC0415 - GTSAM, after the workers fork
-
     if config.mapper == "global":
-        return map_correspondences_globally(corr, config, default_workers(), choose_lens=choose_lens), "global"
+        return _map_globally(corr, config, choose_lens), "global"
     from ..sfm.incremental import map_correspondences  # noqa: PLC0415 - GTSAM, after the workers fork
 
     result = map_correspondences(corr, config, snapshot_path=snapshot, resume=resume, choose_lens=choose_lens)
@@ -152,7 +150,7 @@ def _run_mapper(corr, config, snapshot: Path, resume: bool, choose_lens: bool = 
         return result, "incremental"
     log.info("the incremental mapper's largest model holds %d of %d images: mapping them with the global mapper "
              "too", _largest(result), len(corr.images))
-    other = map_correspondences_globally(corr, config, default_workers(), choose_lens=choose_lens)
+    other = _map_globally(corr, config, choose_lens)
     if _largest(other) <= _largest(result):
         log.info("the global mapper's largest model holds %d images: the incremental models are kept",
                  _largest(other))
@@ -160,6 +158,13 @@ def _run_mapper(corr, config, snapshot: Path, resume: bool, choose_lens: bool = 
     log.warning("the incremental mapper's largest model held %d of %d images, the global mapper's holds %d: its "
                 "models are written (`--mapper global`)", _largest(result), len(corr.images), _largest(other))
     return other, "global"
+
+
+def _map_globally(corr, config, choose_lens: bool):
+    """The global mapper's result; its modules load only here (the incremental mapper's runs do not hold them)."""
+    from ..sfm.global_mapper import map_correspondences_globally  # noqa: PLC0415 - GTSAM, after the workers fork
+
+    return map_correspondences_globally(corr, config, default_workers(), choose_lens=choose_lens)
 
 
 def _largest(result) -> int:

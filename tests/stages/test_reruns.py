@@ -98,11 +98,12 @@ def test_changed_mapper_settings_are_refused_and_a_failed_remap_keeps_the_model(
     assert (ws / "sparse" / "0" / "images.bin").read_bytes() == model
     assert json.loads((ws / "report.json").read_text())["seed"] == 0
     toml = tmp_path / "hi.toml"
-    toml.write_text("[mapper]\ninit_min_inliers = 5000\n")
+    toml.write_text("[mapper]\ninit_min_inliers = 5000\nglobal_fallback = false\n")
     assert main(["-q", "map", "-w", str(ws), "--config", str(toml)]) == 2
     assert capsys.readouterr().err == (f"mvrecon: error: {ws}: made with a different mapping config "
-                                       f"(init_min_inliers: 100 -> 5000); {hint}\n")
-    # with --overwrite the re-map runs and makes no model: the earlier model was deleted before that was known
+                                       f"(global_fallback: True -> False; init_min_inliers: 100 -> 5000); {hint}\n")
+    # with --overwrite the re-map runs and makes no model (the global mapper, which would map these views, is
+    # switched off): the earlier model was deleted before that was known
     assert main(["-q", "map", "-w", str(ws), "--config", str(toml), "--overwrite"]) == 1
     assert (ws / "sparse" / "0" / "images.bin").read_bytes() == model and (ws / "points.ply").is_file()
     assert not (ws / "sparse.new").exists()
