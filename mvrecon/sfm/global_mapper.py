@@ -77,9 +77,6 @@ log = logging.getLogger("mvrecon.sfm")
 # reprojection gate of the first round, before the config's own (4 px), and of the coarse models: with a wider
 # start (16 px, then 8) facade_small ended at AUC@5 0.80 instead of 0.89, facade_bricks_small 0.39 instead of 0.48
 _GATES_PX = (8.0,)
-# Huber width (at least) of the BAs at those gates, which start from the averaging's poses several pixels off: at
-# the config's 0.5 px a 12-view wide orbit kept 8 images, all wrong (docs/benchmarks.md, "Huber width")
-_LOOSE_HUBER_PX = 1.0
 _COARSE_GATE_PX = 16.0
 # views of the points a bundle adjustment optimises (GLOMAP's min_track_length), except in an image with fewer
 # than `_BA_MIN_HOLD` observations of such points, which keeps its two-view points too (`ba_points.long_points`):
@@ -415,7 +412,7 @@ class GlobalMapper:
             else:
                 retriangulate(m, self.tracks, loose, cfg.seed)
             self._note_lost(m)
-            self._bundle(m, intrinsics=True, subset=True, early=large and k == 0, loose=k < len(_GATES_PX))
+            self._bundle(m, intrinsics=True, subset=True, early=large and k == 0)
             self._filter(m, loose)
         dropped = self._drop_unsupported(m)
         added = self._register_left(m, pool)
@@ -475,7 +472,7 @@ class GlobalMapper:
                        filter_max_reproj_error_px=max(gate, cfg.filter_max_reproj_error_px))
 
     def _bundle(self, m: Reconstruction, intrinsics: bool, distortion: bool = True, subset: bool = False,
-                coarse: bool = False, early: bool = False, iterations: int | None = None, loose: bool = False) -> None:
+                coarse: bool = False, early: bool = False, iterations: int | None = None) -> None:
         """Global BA of every registered image; intrinsics as in the incremental mapper's global BA: the focal
         from focal_min_images images on, the distortion (unless not `distortion`) from distortion_min_images on,
         and a BA that leaves a camera implausible undone and repeated with less refined. With `subset`, as the
@@ -487,11 +484,8 @@ class GlobalMapper:
         100-image survey) takes ba_points_per_image_early points per image as well, to convergence.
         `iterations` caps the LM iterations (default the config's global_ba_iterations). Except in the coarse
         models, only the points seen by three images or more are optimised (`ba_points.long_points`), the others
-        re-fitted to the poses after. The coarse models and the `loose` rounds use a Huber width of at least
-        `_LOOSE_HUBER_PX`."""
-        cfg = self.config
-        if coarse or loose:
-            cfg = replace(cfg, huber_px=max(cfg.huber_px, _LOOSE_HUBER_PX))
+        re-fitted to the poses after. Its Huber width is the config's global_huber_px."""
+        cfg = replace(self.config, huber_px=self.config.global_huber_px)
         n = int(m.registered.sum())
         focal = intrinsics and cfg.refine_intrinsics and n >= cfg.focal_min_images
         distortion = distortion and n >= cfg.distortion_min_images

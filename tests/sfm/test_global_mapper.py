@@ -260,24 +260,23 @@ def test_a_large_model_ends_with_a_brief_or_no_bundle_adjustment_of_every_point(
     assert summary["registered"] == 8 and summary["median_rotation_error_deg"] < 0.1
 
 
-def test_the_bundle_adjustments_from_the_averaged_poses_use_a_wider_huber_width(scene, monkeypatch):
-    """The coarse models and the first round at the loose gate start from the averaging's poses, pixels off: their
-    BAs use a Huber width of at least `_LOOSE_HUBER_PX`; the rounds after use the config's."""
+def test_the_global_mappers_bundle_adjustments_use_their_own_huber_width(scene, monkeypatch):
+    """Every BA of the global mapper, the coarse models' included, uses global_huber_px (1 px), not the
+    incremental mapper's narrower huber_px: its poses start from the averaging's, pixels off."""
     _, corr, _ = scene
     widths = []
 
     def spy(model, images, config, **kw):
-        widths.append((kw["max_iterations"] == global_mapper._COARSE_ITERATIONS, config.huber_px))
+        widths.append(config.huber_px)
         return bundle_adjust(model, images, config, **kw)
 
     monkeypatch.setattr(global_mapper, "bundle_adjust", spy)
     result = map_correspondences_globally(corr, GLOBAL)
-    assert result.models and GLOBAL.huber_px < global_mapper._LOOSE_HUBER_PX
-    coarse = [w for c, w in widths if c]
-    rounds = [w for c, w in widths if not c]
-    assert coarse and set(coarse) == {global_mapper._LOOSE_HUBER_PX}
-    assert rounds[0] == global_mapper._LOOSE_HUBER_PX and rounds[-1] == GLOBAL.huber_px
-    assert rounds.count(global_mapper._LOOSE_HUBER_PX) <= 2  # the loose round (and its retry, if implausible)
+    assert result.models and GLOBAL.huber_px == 0.5 and GLOBAL.global_huber_px == 1.0
+    assert len(widths) >= 4 and set(widths) == {1.0}
+    widths.clear()
+    map_correspondences_globally(corr, replace(GLOBAL, global_huber_px=0.7))
+    assert widths and set(widths) == {0.7}
 
 
 def test_the_view_graph_is_made_again_only_for_a_focal_that_moved_far(scene):
