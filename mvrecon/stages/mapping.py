@@ -140,7 +140,7 @@ def _run_mapper(corr, config, snapshot: Path, resume: bool, choose_lens: bool = 
     by a global one, whose models replace it when their largest holds more images: the two mappers fail on
     different view graphs (a graph of pairs with few matches each, whose tracks rarely reach a third view,
     starts no incremental model but gives every rotation and position to the global mapper). Both mapping
-    nothing costs the global mapper's time, a panorama a few seconds."""
+    nothing costs the global mapper's time, a panorama about a second."""
     if config.mapper == "global":
         return _map_globally(corr, config, choose_lens), "global"
     from ..sfm.incremental import map_correspondences  # noqa: PLC0415 - GTSAM, after the workers fork
@@ -155,8 +155,9 @@ def _run_mapper(corr, config, snapshot: Path, resume: bool, choose_lens: bool = 
         log.info("the global mapper's largest model holds %d images: the incremental models are kept",
                  _largest(other))
         return result, "incremental"
-    log.warning("the incremental mapper's largest model held %d of %d images, the global mapper's holds %d: its "
-                "models are written (`--mapper global`)", _largest(result), len(corr.images), _largest(other))
+    log.warning("the incremental mapper's largest model held %d of %d images, the global mapper's holds %d: the "
+                "global models are written, as `--mapper global` makes them", _largest(result), len(corr.images),
+                _largest(other))
     return other, "global"
 
 
