@@ -57,7 +57,7 @@ from .config import MapperConfig
 from .georef import CenterPriors, georeference
 from .global_positioning import global_positions, outlier_cameras
 from .incremental import MappingResult
-from .model import Reconstruction, image_status, images_and_cameras
+from .model import Reconstruction, coverage, image_status, images_and_cameras
 from .register import register_image
 from .rotation_averaging import average_rotations
 from .tracks import build_tracks
@@ -148,9 +148,9 @@ class GlobalMapper:
                     if c in chosen:
                         m.cameras[c].prior_trusted = False  # calibrated here, as the first mapping left it
                         m.lens_trials[c] = chosen[c][2]
-            if _coverage(models) < _coverage(first[0]):
+            if coverage(models) < coverage(first[0]):
                 log.info("mapped again with the lens chosen: %s images against %s; the first models are kept",
-                         _coverage(models), _coverage(first[0]))
+                         coverage(models), coverage(first[0]))
                 models, graph, self.reasons = first
         bar.close()
         models.sort(key=lambda m: -int(m.registered.sum()))
@@ -544,12 +544,6 @@ class GlobalMapper:
     def _status(self, models: list[Reconstruction]) -> dict:
         return image_status(self.names, self.keypoints, self.pairs, models,
                             lambda i: self.reasons.get(i, "not part of any model's consistent view graph"))
-
-
-def _coverage(models: list[Reconstruction]) -> tuple[int, int]:
-    """(images of the largest model, images of all models): which of two mappings of a set registered more."""
-    sizes = [int(m.registered.sum()) for m in models]
-    return max(sizes, default=0), sum(sizes)
 
 
 def map_correspondences_globally(corr: Correspondences, config: MapperConfig = MapperConfig(),

@@ -94,6 +94,12 @@ def images_and_cameras(corr: Correspondences) -> tuple[np.ndarray, list[str], np
             np.array([corr.images[i].camera_id for i in ids], dtype=np.int64), cameras)
 
 
+def coverage(models: Iterable["Reconstruction"]) -> tuple[int, int]:
+    """(images of the largest model, images of all models): which of two mappings of a set registered more."""
+    sizes = [int(m.registered.sum()) for m in models]
+    return max(sizes, default=0), sum(sizes)
+
+
 def image_status(names: Sequence[str], keypoints: Sequence[np.ndarray], pairs: Iterable[tuple[int, int]],
                  models: Sequence["Reconstruction"], reason: Callable[[int], str]) -> dict:
     """Every image's entry of report.json: registered, in the first of `models` holding it, or unregistered with

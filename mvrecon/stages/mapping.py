@@ -26,7 +26,7 @@ from ..io.files import write_json
 from ..matching.overlay import fixed_keypoints, same_view
 from ..sfm.config import MapperConfig
 from ..sfm.georef import CenterPriors, georeference_models
-from ..sfm.model import Reconstruction
+from ..sfm.model import Reconstruction, coverage
 from ..workspace import Workspace
 from .common import as_workspace, holding_workspace
 from .partitioned import map_in_parts
@@ -146,18 +146,18 @@ def _run_mapper(corr, config, snapshot: Path, resume: bool, choose_lens: bool = 
     from ..sfm.incremental import map_correspondences  # noqa: PLC0415 - GTSAM, after the workers fork
 
     result = map_correspondences(corr, config, snapshot_path=snapshot, resume=resume, choose_lens=choose_lens)
-    if not config.global_fallback or 2 * _largest(result) >= len(corr.images):
+    largest, n = coverage(result.models)[0], len(corr.images)
+    if not config.global_fallback or 2 * largest >= n:
         return result, "incremental"
     log.info("the incremental mapper's largest model holds %d of %d images: mapping them with the global mapper "
-             "too", _largest(result), len(corr.images))
+             "too", largest, n)
     other = _map_globally(corr, config, choose_lens)
-    if _largest(other) <= _largest(result):
-        log.info("the global mapper's largest model holds %d images: the incremental models are kept",
-                 _largest(other))
+    other_largest = coverage(other.models)[0]
+    if other_largest <= largest:
+        log.info("the global mapper's largest model holds %d images: the incremental models are kept", other_largest)
         return result, "incremental"
     log.warning("the incremental mapper's largest model held %d of %d images, the global mapper's holds %d: the "
-                "global models are written, as `--mapper global` makes them", _largest(result), len(corr.images),
-                _largest(other))
+                "global models are written, as `--mapper global` makes them", largest, n, other_largest)
     return other, "global"
 
 
@@ -166,11 +166,6 @@ def _map_globally(corr, config, choose_lens: bool):
     from ..sfm.global_mapper import map_correspondences_globally  # noqa: PLC0415 - GTSAM, after the workers fork
 
     return map_correspondences_globally(corr, config, default_workers(), choose_lens=choose_lens)
-
-
-def _largest(result) -> int:
-    """Images registered in the result's largest model (0 without a model)."""
-    return max((int(m.registered.sum()) for m in result.models), default=0)
 
 
 def _write_models(ws: Workspace, models: list, image_dir, text: bool, keypoint_colors) -> None:
