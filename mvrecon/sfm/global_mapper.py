@@ -18,7 +18,8 @@ GLOMAP's pipeline on GTSAM and the incremental mapper's own parts:
    and 0.994, object_orbit_small 0.988 and 0.993.
 4. Tracks (tracks.py) triangulated (triangulate.py) in rounds with the reprojection gate narrowing from 8 px to
    the config's, each round followed by a global bundle adjustment (bundle.py: the incremental mapper's factors,
-   intrinsics refined as there) and the filters (filtering.py). The bundle adjustments optimise the points seen
+   intrinsics refined as there) and the filters (filtering.py), the last rounds repeated until the model stops
+   changing. The bundle adjustments optimise the points seen
    by three images or more, as GLOMAP's (`ba_points.long_points`); the two-view points are re-fitted to their
    poses.
 5. Catastrophic poses: a camera whose rays miss the points of its tracks after global positioning
@@ -85,6 +86,8 @@ _COARSE_GATE_PX = 16.0
 _BA_MIN_VIEWS = 3
 _BA_MIN_HOLD = 6
 _COARSE_ITERATIONS = 15  # LM iterations of a coarse model's BA
+_FINAL_ROUNDS = 5  # final rounds of retriangulation, BA and filtering (`_refine`): COLMAP's iterative global
+_FINAL_MIN_CHANGE = 0.0005  # refinement, until a round adds and removes under this share of the observations
 _FINAL_ITERATIONS = 1  # LM iterations of the BA over every point, from converged subset poses (`_refine`)
 # images from which a model's first round takes the early point quota and its final BA over every point is brief
 # (`_refine`): the savings are at scale, and a 16-image sparse ring's AUC@5 moved by 0.02-0.06 with either
@@ -393,11 +396,15 @@ class GlobalMapper:
         taken out, and the images of `pool` left out (poses lost to the filters, or never placed by the
         averaging) are registered by absolute pose against the points, as the incremental mapper does, in rounds
         while images join (an image next to one just registered needs that one's points: a 12-view wide orbit
-        whose averaging placed 6 ended in models of 9 and 3 with one round); a last round of refinement. Every
-        BA but the last optimises a point subset (`_bundle`), the others re-fitted to its poses: on a 150-view
+        whose averaging placed 6 ended in models of 9 and 3 with one round); then final rounds of
+        retriangulation, BA and filtering until a round changes under `_FINAL_MIN_CHANGE` of the observations
+        (COLMAP's iterative global refinement): on a facade of identical windows one round left the poses short
+        of where the next rounds took them, each filtering the views the sharper poses no longer explain
+        (docs/benchmarks.md, "Global mapper: final rounds until the model settles"). Every BA but the final
+        rounds' optimises a point subset (`_bundle`), the others re-fitted to its poses: on a 150-view
         orbit BA took 1016 s of a 1625 s mapping, and three of its eight BAs were over every point. In a model
-        of `_LARGE_MODEL` images or more the first round takes the early quota and the last round is a subset BA
-        to convergence, then a BA over every point of `_FINAL_ITERATIONS` from there: on a 300-image survey
+        of `_LARGE_MODEL` images or more the first round takes the early quota and each final round is a subset
+        BA to convergence, then a BA over every point of `_FINAL_ITERATIONS` from there: on a 300-image survey
         (555,000 observations) each of its iterations cost as much as 8 of the subset's, and the poses it moves
         were already fixed by the subset's 300 points per image (cost 1.12e4 -> 1.10e4 in its first three). From
         final_ba_subset_min_images images (MapperConfig, shared with the incremental mapper) that BA over every
@@ -429,15 +436,24 @@ class GlobalMapper:
                 self._filter(m, cfg)
             out[dropped] = True
             added = self._register_left(m, pool & ~out) if added else []
-        retriangulate(m, self.tracks, cfg, cfg.seed)
-        m.priors = self.priors  # the final BA holds the centres to their position priors, as the incremental
-        georeference(m, cfg.seed)  # mapper's do once in the priors' frame (georef.py; no-op without priors)
+        m.priors = self.priors  # the final BAs hold the centres to their position priors, as the incremental
         final_subset = 0 < cfg.final_ba_subset_min_images <= int(m.registered.sum())
-        if large or final_subset:
-            self._bundle(m, intrinsics=True, subset=True)
-        if not final_subset:
-            self._bundle(m, intrinsics=True, iterations=_FINAL_ITERATIONS if large else None)
-        self._filter(m, cfg)
+
+        def final_round(first: bool) -> None:
+            retriangulate(m, self.tracks, cfg, cfg.seed)
+            if first:  # mapper's do, once in the priors' frame (georef.py; no-op without priors)
+                georeference(m, cfg.seed)
+            if large or final_subset:
+                self._bundle(m, intrinsics=True, subset=True)
+            if not final_subset:
+                self._bundle(m, intrinsics=True, iterations=_FINAL_ITERATIONS if large else None)
+            self._filter(m, cfg)
+
+        for k in range(_FINAL_ROUNDS):
+            changed, alive = m.observations_changed(lambda: final_round(k == 0))
+            log.debug("global model: final round %d changed %d of %d observations", k + 1, changed, alive)
+            if changed < _FINAL_MIN_CHANGE * max(alive, 1):
+                break
         if self.choose_lens and cfg.refine_intrinsics and lens.choose_models(
                 m, lambda: self._bundle(m, intrinsics=True, subset=True), cfg.filter_max_reproj_error_px):
             retriangulate(m, self.tracks, cfg, cfg.seed)  # the views the old model's filters dropped

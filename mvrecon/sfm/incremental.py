@@ -606,14 +606,15 @@ class IncrementalMapper:
         cfg = self.config
         images = self._growth_images(m) if growing else None
         subset = growing or self._final_subset(m)
-        for _ in range(rounds):
-            alive_before, n_before = m.obs_alive.data.copy(), m.obs_alive.n
+        def one_round() -> None:
             self._global_bundle(m, subset, keep, relative_tolerance=relative_tolerance, images=images)
             retriangulate(m, self.tracks, cfg, cfg.seed, images=images)
             self._filter(m, None if images is None else self._points_of(m, images))
-            changed = (m.obs_alive.n - n_before) + int((alive_before & ~m.obs_alive.data[:n_before]).sum())
-            log.debug("global refinement changed %d of %d observations", changed, int(alive_before.sum()))
-            if changed < min_change * max(int(alive_before.sum()), 1):
+
+        for _ in range(rounds):
+            changed, alive = m.observations_changed(one_round)
+            log.debug("global refinement changed %d of %d observations", changed, alive)
+            if changed < min_change * max(alive, 1):
                 break
         self.since_global = set()
         if images is None:

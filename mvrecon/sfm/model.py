@@ -377,6 +377,14 @@ class Reconstruction:
         self.scanned += self.obs_alive.n
         return np.flatnonzero(self.obs_alive.data)
 
+    def observations_changed(self, refine: Callable[[], None]) -> tuple[int, int]:
+        """(observations `refine()` added or removed, observations alive before it): the measure of a refinement
+        round's change that COLMAP's iterative global refinement stops on."""
+        alive_before, n_before = self.obs_alive.data.copy(), self.obs_alive.n
+        refine()
+        changed = (self.obs_alive.n - n_before) + int((alive_before & ~self.obs_alive.data[:n_before]).sum())
+        return changed, int(alive_before.sum())
+
     def alive_points(self) -> np.ndarray:
         self.scanned += self.point_alive.n
         return np.flatnonzero(self.point_alive.data)

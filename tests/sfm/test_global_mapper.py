@@ -2,6 +2,7 @@
 catalog scene end to end through `mvrecon reconstruct --mapper global`."""
 
 import json
+import logging
 import re
 from dataclasses import replace
 
@@ -13,6 +14,7 @@ from mvrecon.cli import main
 from mvrecon.eval.metrics import accuracy_summary
 from mvrecon.eval.models import poses as poses_of
 from mvrecon.eval.models import sparse_models
+from mvrecon.scenes import make_scene
 from mvrecon.sfm import global_mapper
 from mvrecon.sfm.ba_points import long_points
 from mvrecon.sfm.bundle import bundle_adjust
@@ -183,6 +185,26 @@ def test_catalog_orbit_end_to_end(object_orbit_small, tmp_path):
     assert acc["auc@5"] >= 0.95
     report = json.loads((tmp_path / "run" / "report.json").read_text())
     assert all(s["status"] == "registered" for s in report["images"].values())
+
+
+def test_a_facade_of_identical_windows_is_refined_until_the_model_settles(tmp_path_factory, tmp_path, caplog):
+    """facade_small (24 views of a facade of identical windows) through `mvrecon reconstruct --mapper global`:
+    the final rounds of retriangulation, BA and filtering go on while a round changes `_FINAL_MIN_CHANGE` of
+    the observations or more, and stop at the first that changes less. Every image registered, AUC@5 >= 0.93
+    (0.943 measured; 0.894 after a single final round)."""
+    scene = make_scene("facade_small", tmp_path_factory.mktemp("facade_small"))
+    caplog.set_level(logging.DEBUG, logger="mvrecon.sfm")
+    assert main(["-q", "reconstruct", str(scene / "images"), "-o", str(tmp_path / "run"), "--mapper", "global"]) == 0
+    rounds = [(int(a), int(b)) for a, b in re.findall(r"final round \d+ changed (\d+) of (\d+) observations",
+                                                      caplog.text)]
+    assert len(rounds) >= 2
+    assert all(changed >= global_mapper._FINAL_MIN_CHANGE * alive for changed, alive in rounds[:-1])
+    assert rounds[-1][0] < global_mapper._FINAL_MIN_CHANGE * rounds[-1][1] or \
+        len(rounds) == global_mapper._FINAL_ROUNDS
+    models = sparse_models(tmp_path / "run" / "sparse")
+    acc = _accuracy(models, scene / "gt" / "sparse", scene / "images")
+    assert acc["registered"] == 24 and len(models) == 1
+    assert acc["auc@5"] >= 0.93
 
 
 def test_map_command_runs_the_global_mapper_and_refuses_an_unknown_one(tmp_path, capsys):
