@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
+from scipy.linalg import cho_factor, cho_solve
 from scipy.sparse import bsr_matrix
 from scipy.sparse.linalg import splu
 
@@ -32,7 +33,13 @@ _HUBER = 0.1  # GLOMAP's loss width, on the unit directions
 _CAUCHY = 0.01  # the redescending loss's width that follows (0.6 deg; the shared sets' rays miss by 0.01-0.06)
 _ITERATIONS = 100
 _ROBUST_ITERATIONS = 30
+# a phase stops when a step lowers its cost by less than this share; the Huber phase only brings the Cauchy
+# one near, which its last steps hardly change (docs/benchmarks.md, "Global positioning's solver")
+_HUBER_TOLERANCE = 1e-5
+_CAUCHY_TOLERANCE = 1e-7
 _MIN_SCALE = 1e-5
+_DENSE_SHARE = 0.1  # the reduced system is factorised dense from this share of non-zero entries ...
+_DENSE_MAX_CAMERAS = 2000  # ... up to this many cameras (`_solve_reduced`)
 _OUTLIER_DEG = 0.5  # a camera whose rays miss its points by a median over this (and over _OUTLIER_FACTOR x the
 _OUTLIER_FACTOR = 5.0  # cameras' median) is an outlier pose: the others' are 0.01-0.06 deg on the shared sets
 
@@ -208,7 +215,8 @@ def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout):
     # Huber's loss from the random start, then Cauchy's from there: a redescending loss lets the rays of a wrong
     # rotation go instead of pulling every point (a camera turned 10 deg: its rays' median miss 0.7 deg against
     # the others' 0.15 under Huber's alone)
-    for loss, steps in (("huber", iterations), ("cauchy", _ROBUST_ITERATIONS)):
+    for loss, steps, tolerance in (("huber", iterations, _HUBER_TOLERANCE), ("cauchy", _ROBUST_ITERATIONS,
+                                                                           _CAUCHY_TOLERANCE)):
         lam = 1e-4
         cost, w = _cost(v - s[:, None] * e, loss)
         for _ in range(steps):
@@ -241,11 +249,8 @@ def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout):
             blocks[slot_of_cam[0]] = eye
             rhs_C -= sum_rows(cam, (QX @ rhs_X[point][:, :, None])[:, :, 0], num_cams)
             rhs_C[0] = 0.0
-            S = bsr_matrix((blocks, layout.block_col, layout.indptr), shape=(3 * num_cams, 3 * num_cams))
-            try:
-                dC = splu(S.tocsc()).solve(rhs_C.ravel())
-            except RuntimeError:  # exactly singular
-                dC = np.full(3 * num_cams, np.nan)
+            dC = _solve_reduced(bsr_matrix((blocks, layout.block_col, layout.indptr),
+                                           shape=(3 * num_cams, 3 * num_cams)), rhs_C.ravel())
             if not np.isfinite(dC).all():
                 lam *= 10
                 continue
@@ -258,7 +263,7 @@ def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout):
             e_new = X_new[point] - C_new[cam]
             cost_new, w_new = _cost(v - s_new[:, None] * e_new, loss)
             if cost_new < cost:
-                converged = cost - cost_new < 1e-7 * cost
+                converged = cost - cost_new < tolerance * cost
                 C, X, s, e, w, cost = C_new, X_new, s_new, e_new, w_new, cost_new
                 lam = max(lam / 3, 1e-9)
                 if converged:
@@ -268,6 +273,23 @@ def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout):
                 if lam > 1e8:
                     break
     return C, X, cost
+
+
+def _solve_reduced(S, rhs: np.ndarray) -> np.ndarray:
+    """S^-1 rhs for the reduced camera system S (symmetric positive definite under LM's damping; NaN where it is
+    singular). A system of up to `_DENSE_MAX_CAMERAS` cameras with at least `_DENSE_SHARE` of its entries
+    non-zero is factorised dense by Cholesky (LAPACK, on every core), faster there than scipy's sparse LU
+    (docs/benchmarks.md, "Global positioning's solver"); a sparser or larger one by the sparse LU."""
+    n = S.shape[0]
+    if n <= 3 * _DENSE_MAX_CAMERAS and S.nnz >= _DENSE_SHARE * n * n:
+        try:
+            return cho_solve(cho_factor(S.toarray(), lower=True, check_finite=False), rhs, check_finite=False)
+        except np.linalg.LinAlgError:  # not positive definite after all: the LU decides
+            pass
+    try:
+        return splu(S.tocsc()).solve(rhs)
+    except RuntimeError:  # exactly singular
+        return np.full(n, np.nan)
 
 
 @njit(cache=True)
