@@ -436,12 +436,12 @@ class GlobalMapper:
                 self._filter(m, cfg)
             out[dropped] = True
             added = self._register_left(m, pool & ~out) if added else []
-        m.priors = self.priors  # the final BAs hold the centres to their position priors, as the incremental
+        m.priors = self.priors  # the final BAs hold the centres to their position priors
         final_subset = 0 < cfg.final_ba_subset_min_images <= int(m.registered.sum())
 
         def final_round(first: bool) -> None:
             retriangulate(m, self.tracks, cfg, cfg.seed)
-            if first:  # mapper's do, once in the priors' frame (georef.py; no-op without priors)
+            if first:  # once in the priors' frame, as the incremental mapper's (georef.py; no-op without priors)
                 georeference(m, cfg.seed)
             if large or final_subset:
                 self._bundle(m, intrinsics=True, subset=True)

@@ -606,6 +606,7 @@ class IncrementalMapper:
         cfg = self.config
         images = self._growth_images(m) if growing else None
         subset = growing or self._final_subset(m)
+
         def one_round() -> None:
             self._global_bundle(m, subset, keep, relative_tolerance=relative_tolerance, images=images)
             retriangulate(m, self.tracks, cfg, cfg.seed, images=images)
