@@ -389,7 +389,24 @@ class GlobalMapper:
         self._clock("bundle_adjustment", start)
         log.info("global model: %d images (%d from averaging), %d points", int(m.registered.sum()),
                  int(component.sum()), len(m.alive_points()))
+        held = self._held_images(m)
+        if held < _MIN_VIEWS:
+            for i in m.registered_images().tolist():
+                self.reasons[i] = (f"its model's poses rest on too few points: {held} of its "
+                                   f"{int(m.registered.sum())} images see abs_pose_min_inliers "
+                                   f"({cfg.abs_pose_min_inliers}) or more of them (a camera turning in place, "
+                                   "whose pairs hold no baseline, or too few matches)")
+            log.info("global model of %d images and %d points discarded: %d of its images see %d points or more",
+                     int(m.registered.sum()), len(m.alive_points()), held, cfg.abs_pose_min_inliers)
+            return None, component | m.registered
         return m, component | m.registered
+
+    def _held_images(self, m: Reconstruction) -> int:
+        """The registered images that observe abs_pose_min_inliers of the model's points or more: a model where
+        fewer than `_MIN_VIEWS` do is no model. A panorama's pairs can give a model of many images and a
+        handful of points (a few pairs with a sliver of baseline), every pose held by nothing."""
+        count = np.bincount(m.obs_image.data[m.alive_observations()], minlength=len(m.image_ids))
+        return int(np.count_nonzero(count[m.registered] >= self.config.abs_pose_min_inliers))
 
     def _refine(self, m: Reconstruction, pool) -> None:
         """Triangulation, global BA and filtering rounds at narrowing gates; then the poses too few matches support are

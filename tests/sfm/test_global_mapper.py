@@ -207,6 +207,26 @@ def test_a_facade_of_identical_windows_is_refined_until_the_model_settles(tmp_pa
     assert acc["auc@5"] >= 0.93
 
 
+@pytest.fixture(scope="module")
+def panorama(tmp_path_factory):
+    """The catalog's panorama_small: 10 views from one camera centre turning in place."""
+    return make_scene("panorama_small", tmp_path_factory.mktemp("panorama_small"))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_panorama_gives_no_model_and_says_why(panorama, tmp_path, caplog, seed):
+    """A camera turning in place has no baseline: the incremental mapper starts no model, and the global mapper
+    it falls back on gives none either. Its pairs can still give a global model of many images and a handful of
+    points (8 images, 18 points at seed 1), every pose held by nothing: such a model is discarded and said so."""
+    out = tmp_path / "run"
+    caplog.set_level(logging.INFO, logger="mvrecon")
+    assert main(["reconstruct", str(panorama / "images"), "-o", str(out), "--seed", str(seed)]) != 0
+    report = json.loads((out / "report.json").read_text())
+    assert not report["models"] and all(s["status"] == "unregistered" for s in report["images"].values())
+    assert "a camera turning in place" in json.dumps(report["images"])
+    assert "global mapper's largest model holds 0 images" in caplog.text
+
+
 def test_map_command_runs_the_global_mapper_and_refuses_an_unknown_one(tmp_path, capsys):
     """`mvrecon map -w WS --mapper global` writes the models and a report; `mapper = "global"` in the [mapper]
     table of --config is the same choice; a mapper that does not exist is refused naming the file."""
