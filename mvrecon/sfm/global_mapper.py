@@ -389,8 +389,11 @@ class GlobalMapper:
         self._clock("bundle_adjustment", start)
         log.info("global model: %d images (%d from averaging), %d points", int(m.registered.sum()),
                  int(component.sum()), len(m.alive_points()))
-        held = self._held_images(m)
-        if held < _MIN_VIEWS:
+        held = int(np.count_nonzero(m.image_num_observations()[m.registered] >= cfg.abs_pose_min_inliers))
+        if m.registered.any() and held < _MIN_VIEWS:
+            # a panorama's pairs can give a model of many images and a handful of points (a few pairs with a
+            # sliver of baseline), every pose held by nothing: a model where fewer than `_MIN_VIEWS` images see
+            # abs_pose_min_inliers of its points is no model
             for i in m.registered_images().tolist():
                 self.reasons[i] = (f"its model's poses rest on too few points: {held} of its "
                                    f"{int(m.registered.sum())} images see abs_pose_min_inliers "
@@ -400,13 +403,6 @@ class GlobalMapper:
                      int(m.registered.sum()), len(m.alive_points()), held, cfg.abs_pose_min_inliers)
             return None, component | m.registered
         return m, component | m.registered
-
-    def _held_images(self, m: Reconstruction) -> int:
-        """The registered images that observe abs_pose_min_inliers of the model's points or more: a model where
-        fewer than `_MIN_VIEWS` do is no model. A panorama's pairs can give a model of many images and a
-        handful of points (a few pairs with a sliver of baseline), every pose held by nothing."""
-        count = np.bincount(m.obs_image.data[m.alive_observations()], minlength=len(m.image_ids))
-        return int(np.count_nonzero(count[m.registered] >= self.config.abs_pose_min_inliers))
 
     def _refine(self, m: Reconstruction, pool) -> None:
         """Triangulation, global BA and filtering rounds at narrowing gates; then the poses too few matches support are
@@ -549,8 +545,7 @@ class GlobalMapper:
     def _drop_unsupported(self, m: Reconstruction) -> list[int]:
         """Deregister the images whose pose too few of their matches support (see the module docstring)."""
         cfg = self.config
-        obs = m.alive_observations()
-        count = np.bincount(m.obs_image.data[obs], minlength=len(m.image_ids))
+        count = m.image_num_observations()
         dropped = []
         for i in m.registered_images().tolist():
             t = self.tracks.track_of[i]
