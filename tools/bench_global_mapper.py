@@ -4,6 +4,7 @@
     python tools/bench_global_mapper.py WORK --only object_orbit_small,strecha_herzjesu_P8
     python tools/bench_global_mapper.py WORK --engines mvrecon-global,colmap-global
     python tools/bench_global_mapper.py WORK --engines mvrecon-global,mvrecon-global-pairs   # tracks vs pairs
+    python tools/bench_global_mapper.py WORK --engines mvrecon-global --seed 1                # another seed
 
 WORK is tools/bench_mapper.py's work folder: WORK/<set>/database/database.db (mvrecon's front end, default
 settings), the catalog scenes' ground truth in WORK/scenes/<set>/gt/sparse, the shared sets' in
@@ -14,8 +15,9 @@ database's correspondences (the global one's view graph in one process per core;
 counted; mvrecon-global-pairs is the global mapper with
 the final model's centres from translation averaging of the pairs' directions instead of global positioning
 from the tracks), pycolmap's `global_mapping` and
-`incremental_mapping` on a copy of the database (seed 0). Wall and CPU time (all the process's threads) of
-each; each engine runs once per set: on a shared machine the wall times are noisy, the CPU times less so.
+`incremental_mapping` on a copy of the database, every mapper at `--seed` (default 0). Wall and CPU time (all
+the process's threads) of each; each engine runs once per set: on a shared machine the wall times are noisy, the
+CPU times less so.
 """
 
 import argparse
@@ -50,19 +52,19 @@ def ground_truth(work: Path, name: str):
     return None
 
 
-def run_mvrecon(db: Path, engine: str) -> tuple[list[dict], float, float]:
+def run_mvrecon(db: Path, engine: str, seed: int = 0) -> tuple[list[dict], float, float]:
     corr = database.read_correspondences(db)
     start, cpu = time.perf_counter(), cpu_seconds()
     if engine.startswith("mvrecon-global"):
         global_mapper.POSITIONS = "pairs" if engine == "mvrecon-global-pairs" else "tracks"
-        result = map_correspondences_globally(corr, MapperConfig(mapper="global"), default_workers())
+        result = map_correspondences_globally(corr, MapperConfig(mapper="global", seed=seed), default_workers())
     else:
-        result = map_correspondences(corr, MapperConfig())
+        result = map_correspondences(corr, MapperConfig(seed=seed))
     seconds, cpu = time.perf_counter() - start, cpu_seconds() - cpu
     return [{m.names[i]: (m.R[i], m.t[i]) for i in m.registered_images()} for m in result.models], seconds, cpu
 
 
-def run_colmap(db: Path, engine: str) -> tuple[list[dict], float, float]:
+def run_colmap(db: Path, engine: str, seed: int = 0) -> tuple[list[dict], float, float]:
     import pycolmap
 
     from mvrecon.eval.models import poses
@@ -72,15 +74,15 @@ def run_colmap(db: Path, engine: str) -> tuple[list[dict], float, float]:
         shutil.copyfile(db, copy)
         out = Path(tmp) / "out"
         out.mkdir()
-        pycolmap.set_random_seed(0)
+        pycolmap.set_random_seed(seed)
         start, cpu = time.perf_counter(), time.process_time()
         if engine == "colmap-global":
             opts = pycolmap.GlobalPipelineOptions()
-            opts.random_seed = 0
+            opts.random_seed = seed
             found = pycolmap.global_mapping(copy, tmp, out, opts)
         else:
             opts = pycolmap.IncrementalPipelineOptions()
-            opts.random_seed = 0
+            opts.random_seed = seed
             found = pycolmap.incremental_mapping(copy, tmp, out, opts)
         seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
         models = sorted(found.values(), key=lambda r: r.num_reg_images(), reverse=True)
@@ -93,6 +95,8 @@ def main(argv=None) -> int:
     parser.add_argument("--only", default="", help="comma-separated set names")
     parser.add_argument("--engines", default=",".join(ENGINES),
                         help=f"comma-separated, of {', '.join(ENGINES + OTHER_ENGINES)}")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="the mappers' random seed: a change is judged over several (0, 1, 2)")
     args = parser.parse_args(argv)
     names = [n for n in args.only.split(",") if n] or sorted(
         p.parent.parent.name for p in args.work.glob("*/database/database.db"))
@@ -109,7 +113,8 @@ def main(argv=None) -> int:
         gt = load_ground_truth_for(gt_path, [im.name for im in corr.images.values()])
         for engine in engines:
             try:
-                models, seconds, cpu = (run_mvrecon if engine.startswith("mvrecon") else run_colmap)(db, engine)
+                run = run_mvrecon if engine.startswith("mvrecon") else run_colmap
+                models, seconds, cpu = run(db, engine, args.seed)
             except Exception as exc:  # a failed engine is a row saying so, not the end of the table
                 print(f"| {name} | {engine} | failed: {type(exc).__name__}: {exc} | | | | |", flush=True)
                 continue
