@@ -396,8 +396,10 @@ class Reconstruction:
         return counts
 
     def image_num_observations(self) -> np.ndarray:
-        """Alive observations of every image (0 for one not registered)."""
-        return np.bincount(self.obs_image.data[self.alive_observations()], minlength=len(self.image_ids))
+        """Alive observations of every image, 0 for one not registered (a read-only view of the kept counts)."""
+        counts = self.image_nobs.view()
+        counts.flags.writeable = False
+        return counts
 
     def observations_of_images(self, images: np.ndarray | list[int]) -> np.ndarray:
         """Alive observation ids made in any of `images`, ascending."""
