@@ -61,6 +61,13 @@ class Camera:
         self.params = p
 
 
+def _read_only(array: np.ndarray) -> np.ndarray:
+    """A view of `array` that callers cannot write through: counts the model keeps up to date itself."""
+    view = array.view()
+    view.flags.writeable = False
+    return view
+
+
 def padded_slices(lengths: np.ndarray) -> Iterator[slice]:
     """Consecutive slices of items of these lengths (tracks, points' views), in the given order, each padded to
     its longest item at most PADDED_VIEWS views; an item longer than that makes a slice of its own."""
@@ -391,15 +398,11 @@ class Reconstruction:
 
     def point_num_observations(self) -> np.ndarray:
         """Alive observations of every point (a read-only view of the kept counts)."""
-        counts = self.point_nobs.data.view()
-        counts.flags.writeable = False
-        return counts
+        return _read_only(self.point_nobs.data)
 
     def image_num_observations(self) -> np.ndarray:
         """Alive observations of every image, 0 for one not registered (a read-only view of the kept counts)."""
-        counts = self.image_nobs.view()
-        counts.flags.writeable = False
-        return counts
+        return _read_only(self.image_nobs)
 
     def observations_of_images(self, images: np.ndarray | list[int]) -> np.ndarray:
         """Alive observation ids made in any of `images`, ascending."""
