@@ -9,8 +9,10 @@
 WORK is tools/bench_mapper.py's work folder: WORK/<set>/database/database.db (mvrecon's front end, default
 settings), the catalog scenes' ground truth in WORK/scenes/<set>/gt/sparse, the shared sets' in
 ../shared/data/<set>. Per set and engine it prints the images registered (in all models, and in the largest),
-the relative-pose AUC@1 and AUC@5 against the ground truth (eval.metrics: a pair with an unregistered image or
-split across models counts 180 deg) and the mapping wall time: mvrecon's mappers called in this process on the
+the images of the largest model at a wrong pose (eval.metrics.misplaced_images: its rotations to the model's other
+images off by a median over 5 deg; the target counts the largest model's images less these), the relative-pose
+AUC@1 and AUC@5 against the ground truth (eval.metrics: a pair with an unregistered image or split across models
+counts 180 deg) and the mapping wall time: mvrecon's mappers called in this process on the
 database's correspondences (the global one's view graph in one process per core; reading the database not
 counted; mvrecon-global-pairs is the global mapper with
 the final model's centres from translation averaging of the pairs' directions instead of global positioning
@@ -101,13 +103,13 @@ def main(argv=None) -> int:
     names = [n for n in args.only.split(",") if n] or sorted(
         p.parent.parent.name for p in args.work.glob("*/database/database.db"))
     engines = [e for e in args.engines.split(",") if e]
-    print("| set | engine | registered | largest | AUC@1 | AUC@5 | mapping s | CPU s |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| set | engine | registered | largest | misplaced | AUC@1 | AUC@5 | mapping s | CPU s |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for name in names:
         db = args.work / name / "database" / "database.db"
         gt_path = ground_truth(args.work, name)
         if not db.is_file() or gt_path is None:
-            print(f"| {name} | - | no {'database' if not db.is_file() else 'ground truth'} | | | | |")
+            print(f"| {name} | - | no {'database' if not db.is_file() else 'ground truth'} | | | | | | |")
             continue
         corr = database.read_correspondences(db)
         gt = load_ground_truth_for(gt_path, [im.name for im in corr.images.values()])
@@ -116,11 +118,11 @@ def main(argv=None) -> int:
                 run = run_mvrecon if engine.startswith("mvrecon") else run_colmap
                 models, seconds, cpu = run(db, engine, args.seed)
             except Exception as exc:  # a failed engine is a row saying so, not the end of the table
-                print(f"| {name} | {engine} | failed: {type(exc).__name__}: {exc} | | | | |", flush=True)
+                print(f"| {name} | {engine} | failed: {type(exc).__name__}: {exc} | | | | | | |", flush=True)
                 continue
             acc = accuracy_summary(models, gt)
             largest = len(models[0]) if models else 0
-            print(f"| {name} | {engine} | {acc['registered']}/{len(corr.images)} | {largest} | "
+            print(f"| {name} | {engine} | {acc['registered']}/{len(corr.images)} | {largest} | {acc['misplaced']} | "
                   f"{acc['auc@1']:.3f} | {acc['auc@5']:.3f} | {seconds:.1f} | {cpu:.1f} |", flush=True)
     return 0
 

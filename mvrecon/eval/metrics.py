@@ -65,6 +65,40 @@ def relative_pose_errors(models: list[dict], gt: dict) -> np.ndarray:
     return np.asarray(errors)
 
 
+MISPLACED_DEG = 5.0  # an image whose poses relative to the model's other images are off by more is misplaced
+
+
+def misplaced_images(model: dict, gt: dict, max_deg: float = MISPLACED_DEG) -> list[str]:
+    """The images of one model registered at a wrong pose: those whose relative poses to the model's other images
+    (the error relative_pose_error_deg gives, rotation or direction) are off by a median over `max_deg`. An image
+    counted as registered should be at a right pose, and a right pose is within a degree or so of most others, so
+    one wrong image stands out whatever the model's frame and scale; where most of the model is wrong, every image
+    is. Empty under three shared images."""
+    names = sorted(set(model) & set(gt))
+    if len(names) < 3:
+        return []
+    err = _all_relative_pose_errors_deg([model[n] for n in names], [gt[n] for n in names])
+    np.fill_diagonal(err, np.nan)
+    return [n for n, e in zip(names, np.nanmedian(err, axis=1)) if e > max_deg]
+
+
+def _all_relative_pose_errors_deg(est: list[Pose], ref: list[Pose]) -> np.ndarray:
+    """(n, n) relative_pose_error_deg of every ordered pair (a, b), at once: the rotation error is the angle of
+    D_a D_b^T with D = R_est^T R_ref, the direction error the angle between R_b (C_a - C_b) of the two."""
+    def parts(poses):
+        R = np.stack([np.asarray(p[0], float) for p in poses])
+        C = np.stack([camera_center(*p) for p in poses])
+        return R, np.einsum("bij,abj->bai", R, C[:, None, :] - C[None, :, :])  # [b, a] = R_b (C_a - C_b)
+    (R1, v1), (R2, v2) = parts(est), parts(ref)
+    d = np.einsum("nji,njk->nik", R1, R2)
+    rot = np.degrees(np.arccos(np.clip((np.einsum("aij,bij->ab", d, d) - 1.0) / 2.0, -1.0, 1.0)))
+    n1, n2 = np.linalg.norm(v1, axis=2), np.linalg.norm(v2, axis=2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cos = np.einsum("bai,bai->ba", v1, v2) / (n1 * n2)
+    direction = np.where((n1 < 1e-15) | (n2 < 1e-15), 180.0, np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))).T
+    return np.maximum(rot, direction)
+
+
 @dataclass(kw_only=True)
 class Alignment:
     sim3: Sim3  # maps the estimated world frame into the reference frame
@@ -104,7 +138,7 @@ def accuracy_summary(models: list[dict], gt: dict) -> dict:
     registered = len(set().union(*[set(m) for m in models]) & set(gt)) if models else 0
     summary = {f"auc@{t:g}": auc[t] for t in AUC_THRESHOLDS}
     summary.update({"registered": registered, "registered_pct": 100.0 * registered / max(len(gt), 1),
-                    "components": len(models)})
+                    "components": len(models), "misplaced": len(misplaced_images(largest, gt))})
     alignment = align_and_compare(largest, gt)
     if alignment is not None:
         rot = np.array(list(alignment.rotation_errors_deg.values()))

@@ -24,7 +24,7 @@ GLOMAP's pipeline on GTSAM and the incremental mapper's own parts:
    poses.
 5. Catastrophic poses: a camera whose rays miss the points of its tracks after global positioning
    (`global_positioning.outlier_cameras`), and an image that keeps too few observations fitting within the gate
-   after the rounds (fewer than `_MIN_SUPPORT`, or under abs_pose_min_inlier_ratio of its triangulated
+   after the rounds (fewer than abs_pose_min_inliers, or under abs_pose_min_inlier_ratio of its triangulated
    matches), are taken out of the model with that reason and the model is refined again, rather than written at
    a flipped or far-away pose; each may come back by absolute pose against the points.
 6. While the first models' bundle adjustment moves the calibration the view graph was estimated at by more than
@@ -104,10 +104,6 @@ _REGISTRATION_ROUNDS = 5  # absolute-pose registration rounds of the images a mo
 # 0.9971 either way)
 _RECALIBRATION_FOCAL_CHANGE = 0.05
 _MAX_DIRECTION_ERROR_DEG = 10.0  # a translation direction this far off the solved baseline is dropped
-# observations fitting within the gate an image keeps after the rounds, below which its pose is an outlier
-# (`_drop_unsupported`): as many as a pair's relative pose needs (view_graph), not abs_pose_min_inliers, as a
-# pose the averaging placed is checked, not found from nothing (toy_object_small: 22 of 24 fitting, a right pose)
-_MIN_SUPPORT = 15
 # where the final model's centres come from: "tracks" (global_positioning.py) or "pairs" (translation
 # averaging, which the coarse models that calibrate a guessed focal always use); "pairs" is kept for
 # tools/bench_global_mapper.py's comparison of the two
@@ -547,7 +543,9 @@ class GlobalMapper:
             self.reasons[i] = "lost all its observations to the filters after bundle adjustment"
 
     def _drop_unsupported(self, m: Reconstruction) -> list[int]:
-        """Deregister the images whose pose too few of their matches support (see the module docstring)."""
+        """Deregister the images whose pose too few of their matches support (see the module docstring). The floor
+        is what an image registered by absolute pose needs, also for a pose the averaging placed: a handful of
+        matches can all fit a pose that is wrong, as on a symmetric object seen from one side."""
         cfg = self.config
         count = m.image_num_observations()
         dropped = []
@@ -555,11 +553,11 @@ class GlobalMapper:
             t = self.tracks.track_of[i]
             with_point = int(np.count_nonzero(m.point_of_track[t[t >= 0]] >= 0))
             ratio = count[i] / with_point if with_point else 0.0
-            if count[i] < _MIN_SUPPORT or ratio < cfg.abs_pose_min_inlier_ratio:
+            if count[i] < cfg.abs_pose_min_inliers or ratio < cfg.abs_pose_min_inlier_ratio:
                 dropped.append(i)
                 self.reasons[i] = (f"its global pose was an outlier: {count[i]} of the {with_point} matches to "
                                    f"the model's points fit it within {cfg.filter_max_reproj_error_px:g} px after "
-                                   f"bundle adjustment (< {_MIN_SUPPORT} or under "
+                                   f"bundle adjustment (< abs_pose_min_inliers {cfg.abs_pose_min_inliers} or under "
                                    f"abs_pose_min_inlier_ratio {cfg.abs_pose_min_inlier_ratio:g})")
         if dropped and len(dropped) < int(m.registered.sum()) - 1:
             m.remove_observations(m.observations_of_images(dropped))

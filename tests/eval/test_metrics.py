@@ -61,3 +61,35 @@ def test_alignment_reports_the_perturbed_image(gt):
     assert al.rotation_errors_deg[name] == pytest.approx(2.0, abs=1e-6)
     others = [v for k, v in al.rotation_errors_deg.items() if k != name]
     assert max(others) < 1e-6
+
+
+@pytest.mark.parametrize("turn_deg, misplaced", [(4.0, False), (6.0, True), (90.0, True)])
+def test_an_image_at_a_wrong_pose_is_counted_as_misplaced(gt, turn_deg, misplaced):
+    """One image turned about its centre by more than 5 deg is misplaced, by less it is not; the others never are,
+    whatever the model's frame."""
+    est = similar_copy(gt)
+    name = sorted(gt)[2]
+    R, t = est[name]
+    R2 = angle_axis_to_rotmat([np.radians(turn_deg), 0, 0]) @ R
+    est[name] = (R2, -R2 @ metrics.camera_center(R, t))
+    assert metrics.misplaced_images(est, gt) == ([name] if misplaced else [])
+    assert metrics.accuracy_summary([est], gt)["misplaced"] == int(misplaced)
+
+
+def test_a_model_mostly_at_wrong_poses_is_misplaced_throughout(gt):
+    """Where every image is turned at random, no right majority remains: every image counts as misplaced."""
+    rng = np.random.default_rng(0)
+    est = {n: (angle_axis_to_rotmat(rng.normal(size=3)) @ R, t) for n, (R, t) in gt.items()}
+    assert metrics.misplaced_images(est, gt) == sorted(gt)
+
+
+def test_an_image_at_a_wrong_place_is_counted_as_misplaced(gt):
+    """A camera at a right rotation but thrown far off (a wrong position from translation averaging) is
+    misplaced too: its directions to the other cameras are wrong."""
+    est = similar_copy(gt, scale=1.0, rvec=(0, 0, 0), shift=(0, 0, 0))
+    name = sorted(gt)[4]
+    R, t = est[name]
+    centres = np.array([metrics.camera_center(*p) for p in gt.values()])
+    far = metrics.camera_center(R, t) + 10 * np.ptp(centres, axis=0).max() * np.array([1.0, 0.0, 0.0])
+    est[name] = (R, -R @ far)
+    assert metrics.misplaced_images(est, gt) == [name]
