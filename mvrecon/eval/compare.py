@@ -73,6 +73,7 @@ ROWS = (
     ("auc@1", "relative-pose AUC@1", "", "higher"),
     ("auc@5", "relative-pose AUC@5", "", "higher"),
     ("auc@10", "relative-pose AUC@10", "", "higher"),
+    ("misplaced", "images at a wrong pose (largest model)", "", "lower"),
     ("median_rotation_error_deg", "median rotation error", "deg", "lower"),
     ("max_rotation_error_deg", "max rotation error", "deg", "lower"),
     ("median_center_error", "median centre error", "units", "lower"),
@@ -89,8 +90,8 @@ ROWS = (
     ("time_ratio_vs_colmap", "wall time / COLMAP's", "x", None),
     ("peak_mem_mb", "peak memory", "MB", "lower"),
 )
-ACCURACY_KEYS = ("auc@0.5", "auc@1", "auc@5", "auc@10", "median_rotation_error_deg", "max_rotation_error_deg",
-                 "median_center_error", "median_center_error_pct", "alignment_inliers",
+ACCURACY_KEYS = ("auc@0.5", "auc@1", "auc@5", "auc@10", "misplaced", "median_rotation_error_deg",
+                 "max_rotation_error_deg", "median_center_error", "median_center_error_pct", "alignment_inliers",
                  "alignment_pycolmap_disagreement_pct")
 
 
@@ -327,6 +328,11 @@ def _evaluate_run(run: RunResult, role: str, image_names, ref_poses: dict, confi
         errors = M.relative_pose_errors(models, ref_poses)
         relative = errors.tolist()
         summary.update({f"auc@{t:g}": v for t, v in M.pose_auc(errors).items()})
+        misplaced = M.misplaced_images(models[0], ref_poses) if models else []
+        summary["misplaced"] = len(misplaced)
+        for n in misplaced:
+            if per_image.get(n, {}).get("model") == 0:
+                per_image[n]["misplaced"] = True
         al = M.align_and_compare(models[0] if models else {}, ref_poses, config.inlier_fraction)
         if al is not None:
             rot, cen = np.array(list(al.rotation_errors_deg.values())), np.array(list(al.center_errors.values()))

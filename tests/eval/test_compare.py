@@ -350,7 +350,11 @@ def test_compare_models_against_ground_truth(runs, tmp_path):
     assert bad["per_image"][moved]["alignment_inlier"] is False
     assert bad["per_image"][moved]["center_error_pct"] > 20 * good["per_image"][moved]["center_error_pct"]
     assert bad["summary"]["auc@5"] < good["summary"]["auc@5"]
+    # and the one image at a wrong pose: its directions to the other cameras are off
+    assert good["summary"]["misplaced"] == 0 and bad["summary"]["misplaced"] == 1
+    assert bad["per_image"][moved].get("misplaced") is True and "misplaced" not in good["per_image"][moved]
     rows = {r["metric"]: r for r in m["rows"]}
+    assert rows["misplaced"]["winners"] == ["colmap"]
     assert rows["auc@5"]["winners"] == ["colmap"] and rows["registered"]["winners"] == []  # 8 = 8: a tie
     # every number in the table is in metrics.json and metrics.csv
     page = write_report(cmp, tmp_path / "report")
