@@ -9,8 +9,8 @@
 WORK is tools/bench_mapper.py's work folder: WORK/<set>/database/database.db (mvrecon's front end, default
 settings), the catalog scenes' ground truth in WORK/scenes/<set>/gt/sparse, the shared sets' in
 ../shared/data/<set>. Per set and engine it prints the images registered (in all models, and in the largest),
-the images of the largest model at a wrong pose (eval.metrics.misplaced_images: its rotations to the model's other
-images off by a median over 5 deg; the target counts the largest model's images less these), the relative-pose
+the images of the largest model at a wrong pose (eval.metrics.misplaced_images: its relative poses to the model's
+other images off by a median over 5 deg; the target counts the largest model's images less these), the relative-pose
 AUC@1 and AUC@5 against the ground truth (eval.metrics: a pair with an unregistered image or split across models
 counts 180 deg) and the mapping wall time: mvrecon's mappers called in this process on the
 database's correspondences (the global one's view graph in one process per core; reading the database not
