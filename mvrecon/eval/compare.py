@@ -330,9 +330,8 @@ def _evaluate_run(run: RunResult, role: str, image_names, ref_poses: dict, confi
         summary.update({f"auc@{t:g}": v for t, v in M.pose_auc(errors).items()})
         misplaced = M.misplaced_images(models[0], ref_poses) if models else []
         summary["misplaced"] = len(misplaced)
-        for n in misplaced:
-            if per_image.get(n, {}).get("model") == 0:
-                per_image[n]["misplaced"] = True
+        for n in misplaced:  # images of the largest model: per_image says model 0 for each
+            per_image[n]["misplaced"] = True
         al = M.align_and_compare(models[0] if models else {}, ref_poses, config.inlier_fraction)
         if al is not None:
             rot, cen = np.array(list(al.rotation_errors_deg.values())), np.array(list(al.center_errors.values()))

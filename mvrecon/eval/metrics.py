@@ -6,11 +6,10 @@ Poses are plain dicts `image name -> (R, t)` with R, t the world-to-camera rotat
 
 from collections.abc import Iterable
 from dataclasses import dataclass
-from itertools import combinations
 
 import numpy as np
 
-from ..geometry.rotation import rotation_error_deg, vector_angle_deg
+from ..geometry.rotation import rotation_error_deg
 from ..geometry.sim3 import Sim3, ransac_umeyama
 
 Pose = tuple[np.ndarray, np.ndarray]  # (R, t) world-to-camera
@@ -38,53 +37,11 @@ def pose_auc(errors_deg: Iterable[float], thresholds: Iterable[float] = AUC_THRE
     return out
 
 
-def relative_pose_error_deg(pose_i: Pose, pose_j: Pose, gt_i: Pose, gt_j: Pose) -> float:
-    """max(rotation error, translation-direction error) of the relative pose i->j against ground truth."""
-    def relative(a, b):
-        R = b[0] @ a[0].T
-        return R, b[1] - R @ a[1]
-
-    R_est, t_est = relative(pose_i, pose_j)
-    R_gt, t_gt = relative(gt_i, gt_j)
-    return max(rotation_error_deg(R_est, R_gt), vector_angle_deg(t_est, t_gt))
-
-
-def relative_pose_errors(models: list[dict], gt: dict) -> np.ndarray:
-    """Errors over all pairs of ground-truth images; FAILED_DEG where a pair is not in one estimated model."""
-    model_of = {}
-    for k, model in enumerate(models):
-        for name in model:
-            model_of.setdefault(name, k)  # an image in several models counts in the first (largest) one
-    errors = []
-    for a, b in combinations(sorted(gt), 2):
-        ka, kb = model_of.get(a), model_of.get(b)
-        if ka is None or ka != kb:
-            errors.append(FAILED_DEG)
-        else:
-            errors.append(relative_pose_error_deg(models[ka][a], models[ka][b], gt[a], gt[b]))
-    return np.asarray(errors)
-
-
-MISPLACED_DEG = 5.0  # an image whose poses relative to the model's other images are off by more is misplaced
-
-
-def misplaced_images(model: dict, gt: dict, max_deg: float = MISPLACED_DEG) -> list[str]:
-    """The images of one model registered at a wrong pose: those whose relative poses to the model's other images
-    (the error relative_pose_error_deg gives, rotation or direction) are off by a median over `max_deg`. An image
-    counted as registered should be at a right pose, and a right pose is within a degree or so of most others, so
-    one wrong image stands out whatever the model's frame and scale; where most of the model is wrong, every image
-    is. Empty under three shared images."""
-    names = sorted(set(model) & set(gt))
-    if len(names) < 3:
-        return []
-    err = _all_relative_pose_errors_deg([model[n] for n in names], [gt[n] for n in names])
-    np.fill_diagonal(err, np.nan)
-    return [n for n, e in zip(names, np.nanmedian(err, axis=1)) if e > max_deg]
-
-
-def _all_relative_pose_errors_deg(est: list[Pose], ref: list[Pose]) -> np.ndarray:
-    """(n, n) relative_pose_error_deg of every ordered pair (a, b), at once: the rotation error is the angle of
-    D_a D_b^T with D = R_est^T R_ref, the direction error the angle between R_b (C_a - C_b) of the two."""
+def relative_pose_error_matrix(est: list[Pose], ref: list[Pose]) -> np.ndarray:
+    """(n, n): entry (a, b) is max(rotation error, translation-direction error) in degrees of the relative pose
+    a -> b against the reference's; a direction that is undefined (coincident centres) counts as FAILED_DEG.
+    All pairs at once: the rotation error is the angle of D_a D_b^T with D = R_est^T R_ref, the direction error
+    the angle between R_b (C_a - C_b) of the two."""
     def parts(poses):
         R = np.stack([np.asarray(p[0], float) for p in poses])
         C = np.stack([camera_center(*p) for p in poses])
@@ -95,8 +52,43 @@ def _all_relative_pose_errors_deg(est: list[Pose], ref: list[Pose]) -> np.ndarra
     n1, n2 = np.linalg.norm(v1, axis=2), np.linalg.norm(v2, axis=2)
     with np.errstate(invalid="ignore", divide="ignore"):
         cos = np.einsum("bai,bai->ba", v1, v2) / (n1 * n2)
-    direction = np.where((n1 < 1e-15) | (n2 < 1e-15), 180.0, np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))).T
+    direction = np.where((n1 < 1e-15) | (n2 < 1e-15), FAILED_DEG,
+                         np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))).T
     return np.maximum(rot, direction)
+
+
+def relative_pose_errors(models: list[dict], gt: dict) -> np.ndarray:
+    """Errors over all pairs of ground-truth images, in the order of combinations(sorted(gt), 2); FAILED_DEG
+    where a pair is not in one estimated model."""
+    names = sorted(gt)
+    model_of = {}
+    for k, model in enumerate(models):
+        for name in model:
+            model_of.setdefault(name, k)  # an image in several models counts in the first (largest) one
+    errors = np.full((len(names), len(names)), FAILED_DEG)
+    for k, model in enumerate(models):
+        members = [i for i, n in enumerate(names) if model_of.get(n) == k]
+        if len(members) >= 2:
+            errors[np.ix_(members, members)] = relative_pose_error_matrix([model[names[i]] for i in members],
+                                                                          [gt[names[i]] for i in members])
+    return errors[np.triu_indices(len(names), 1)]
+
+
+MISPLACED_DEG = 5.0  # an image whose poses relative to the model's other images are off by more is misplaced
+
+
+def misplaced_images(model: dict, gt: dict, max_deg: float = MISPLACED_DEG) -> list[str]:
+    """The images of one model registered at a wrong pose: those whose relative poses to the model's other images
+    (relative_pose_error_matrix: rotation or direction) are off by a median over `max_deg`. An image
+    counted as registered should be at a right pose, and a right pose is within a degree or so of most others, so
+    one wrong image stands out whatever the model's frame and scale; where most of the model is wrong, every image
+    is. Empty under three shared images."""
+    names = sorted(set(model) & set(gt))
+    if len(names) < 3:
+        return []
+    err = relative_pose_error_matrix([model[n] for n in names], [gt[n] for n in names])
+    np.fill_diagonal(err, np.nan)
+    return [n for n, e in zip(names, np.nanmedian(err, axis=1)) if e > max_deg]
 
 
 @dataclass(kw_only=True)

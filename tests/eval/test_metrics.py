@@ -32,6 +32,22 @@ def test_auc_values_by_hand():
     assert metrics.pose_auc([180, 180])[10.0] == 0.0
 
 
+def test_relative_pose_errors_by_hand():
+    """Two cameras looking along z, 1 unit apart along x. An estimate that puts the second 1 unit along y instead
+    has the relative pose's direction 90 deg off; one that turns the second by 2 deg about z in place is 2 deg
+    off; a pair split across models fails."""
+    turn = angle_axis_to_rotmat([0, 0, np.radians(2.0)])
+    a, b = (np.eye(3), np.zeros(3)), (np.eye(3), -np.array([1.0, 0, 0]))
+    gt = {"a": a, "b": b}
+    moved = (np.eye(3), -np.array([0, 1.0, 0]))
+    turned = (turn, turn @ b[1])
+    assert metrics.relative_pose_errors([{"a": a, "b": moved}], gt) == pytest.approx([90.0])
+    m = metrics.relative_pose_error_matrix([a, turned], [a, b])
+    assert m[0, 1] == pytest.approx(2.0) and m[1, 0] == pytest.approx(2.0)
+    assert (np.diag(m) == metrics.FAILED_DEG).all()  # an image with itself has no direction
+    assert metrics.relative_pose_errors([{"a": a}, {"b": b}], gt) == pytest.approx([metrics.FAILED_DEG])
+
+
 def test_similar_model_scores_perfectly(gt):
     s = metrics.accuracy_summary([similar_copy(gt)], gt)
     assert s["auc@0.5"] > 0.999 and s["registered"] == len(gt) and s["components"] == 1
