@@ -85,17 +85,19 @@ def non_square_cameras(model: Reconstruction, max_aspect_ratio: float = 1.5) -> 
 
 
 def plausible_bundle(model: Reconstruction, focal: bool, distortion: bool,
-                     adjust: Callable[[bool, bool], None]) -> None:
+                     adjust: Callable[[bool, bool], None], square: bool = False) -> None:
     """`adjust(refine_focal, refine_distortion)`, a bundle adjustment of `model`, undone when it leaves a camera
-    implausible (`degenerate_cameras`) and repeated with the distortion fixed, then with all intrinsics fixed:
-    a guessed focal and the distortion can trade off against each other in a small model, and dropping the
-    images would not repair the camera they share. Poses, points and cameras end as the first plausible
-    adjustment left them, or as they were when none was."""
+    implausible (`degenerate_cameras`, and with `square` also `non_square_cameras`) and repeated with the
+    distortion fixed, then with all intrinsics fixed: a guessed focal and the distortion can trade off against
+    each other in a small model, and dropping the images would not repair the camera they share. Poses, points
+    and cameras end as the first plausible adjustment left them, or as they were when none was. `square` is for
+    a model that holds all its images from the start (the global mapper's), where fx / fy apart is no passing
+    state of a growing model but a fit to wrong poses."""
     saved = (model.R.copy(), model.t.copy(), model.xyz.data.copy(),
              {c: cam.params.copy() for c, cam in model.cameras.items()})
     for intr, dist in dict.fromkeys([(focal, distortion), (focal, False), (False, False)]):
         adjust(intr, dist)
-        bad = degenerate_cameras(model)
+        bad = sorted(set(degenerate_cameras(model)) | set(non_square_cameras(model) if square else ()))
         if not bad:
             return
         log.info("bundle adjustment with %s refined left camera(s) %s implausible (%s); undone",

@@ -534,7 +534,7 @@ class GlobalMapper:
             self.ba_calls += 1
             self.ba_seconds += out.seconds
 
-        filtering.plausible_bundle(m, focal, distortion, adjust)
+        filtering.plausible_bundle(m, focal, distortion, adjust, square=True)
 
     def _filter(self, m: Reconstruction, config: MapperConfig) -> None:
         filtering.filter_observations(m, config)
