@@ -48,6 +48,14 @@ def test_relative_pose_errors_by_hand():
     assert metrics.relative_pose_errors([{"a": a}, {"b": b}], gt) == pytest.approx([metrics.FAILED_DEG])
 
 
+def test_a_model_against_itself_scores_exactly_one(gt):
+    """Equal poses give errors of 0, not the 1e-6 deg an arccos of a cosine rounded below 1 gives: a model scored
+    against itself (the study's clean model) has AUC 1.0 to the last digit."""
+    errors = metrics.relative_pose_errors([gt], gt)
+    assert np.abs(errors).max() < 1e-9
+    assert metrics.accuracy_summary([gt], gt)["auc@1"] == 1.0
+
+
 def test_similar_model_scores_perfectly(gt):
     s = metrics.accuracy_summary([similar_copy(gt)], gt)
     assert s["auc@0.5"] > 0.999 and s["registered"] == len(gt) and s["components"] == 1
