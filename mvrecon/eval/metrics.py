@@ -51,7 +51,10 @@ def relative_pose_error_matrix(est: list[Pose], ref: list[Pose]) -> np.ndarray:
     # the angle of M = D_a D_b^T from its trace (cos) and its skew part (sin), so that equal poses give 0, not
     # the 1e-6 deg an arccos of a cosine rounded below 1 gives
     cos_rot = (np.einsum("aij,bij->ab", d, d) - 1.0) / 2.0
-    row = lambda r, c: np.einsum("aj,bj->ab", d[:, r], d[:, c])  # noqa: E731  (M[r, c] for all pairs)
+
+    def row(r, c):  # M[r, c] for all pairs
+        return np.einsum("aj,bj->ab", d[:, r], d[:, c])
+
     sin_rot = np.sqrt((row(2, 1) - row(1, 2)) ** 2 + (row(0, 2) - row(2, 0)) ** 2 + (row(1, 0) - row(0, 1)) ** 2) / 2
     rot = np.degrees(np.arctan2(sin_rot, cos_rot))
     n1, n2 = np.linalg.norm(v1, axis=2), np.linalg.norm(v2, axis=2)

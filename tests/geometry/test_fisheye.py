@@ -16,6 +16,8 @@ from mvrecon.eval.metrics import accuracy_summary
 from mvrecon.eval.models import model_stats, poses, sparse_models
 from mvrecon.geometry import camera
 from mvrecon.geometry.rotation import angle_axis_to_rotmat
+from mvrecon.sfm.filtering import degenerate_cameras, non_square_cameras, plausible_bundle
+from mvrecon.sfm.model import Camera, Reconstruction
 from mvrecon.workspace import Workspace
 
 FISHEYE = "OPENCV_FISHEYE"
@@ -232,9 +234,6 @@ def test_non_square_cameras_are_implausible():
     """fx / fy beyond 1.5 is no lens (pixels are square): the three-image model fisheye_orbit_small made per
     image had fx / fy 1597 / 461, 603 / 1137 and 499 / 857 (29 deg rotation error). A trusted calibration is
     left alone (it may be anamorphic), and so is a camera no registered image uses."""
-    from mvrecon.sfm.filtering import degenerate_cameras, non_square_cameras
-    from mvrecon.sfm.model import Camera, Reconstruction
-
     fits = {1: [1597.0, 461.0], 2: [603.0, 1137.0], 3: [499.0, 857.0], 4: [286.0, 287.0], 5: [400.0, 590.0],
             6: [200.0, 400.0], 7: [900.0, 300.0]}
     cams = {c: Camera(FISHEYE, 640, 480, np.array([*f, 320.0, 240.0, 0, 0, 0, 0]), prior_trusted=c == 6,
@@ -288,9 +287,6 @@ def test_a_global_bundle_adjustment_that_leaves_a_camera_non_square_is_undone(sq
     distortion fixed: on wide_orbit_small an OPENCV fit ran to fx / fy 328 / 6903, and the view graph made again
     at it (global positioning on 500 tracks an image) put every rotation 43 deg off. A growing model's (the
     incremental mapper's) are not."""
-    from mvrecon.sfm.filtering import plausible_bundle
-    from mvrecon.sfm.model import Camera, Reconstruction
-
     cam = Camera("OPENCV", 640, 480, np.array([768.0, 768.0, 320.0, 240.0, 0, 0, 0, 0]), prior_focal=768.0)
     m = Reconstruction(np.arange(1, 4), ["a.png", "b.png", "c.png"], np.ones(3, int), {1: cam},
                        [np.zeros((0, 2))] * 3, 0)
