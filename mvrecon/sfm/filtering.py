@@ -92,7 +92,8 @@ def plausible_bundle(model: Reconstruction, focal: bool, distortion: bool,
     each other in a small model, and dropping the images would not repair the camera they share. Poses, points
     and cameras end as the first plausible adjustment left them, or as they were when none was. `square` is for
     a model that holds all its images from the start (the global mapper's), where fx / fy apart is no passing
-    state of a growing model but a fit to wrong poses."""
+    state of a growing model but a fit to wrong poses; neutral or better on every suite set where it fires
+    (docs/benchmarks.md, "Global positioning: tracks per image, and a camera's fx / fy")."""
     saved = (model.R.copy(), model.t.copy(), model.xyz.data.copy(),
              {c: cam.params.copy() for c, cam in model.cameras.items()})
     for intr, dist in dict.fromkeys([(focal, distortion), (focal, False), (False, False)]):
