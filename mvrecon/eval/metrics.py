@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry.rotation import rotation_error_deg
+from ..geometry.rotation import rotation_angle_deg, rotation_error_deg, vector_angle_deg
 from ..geometry.sim3 import Sim3, ransac_umeyama
 
 Pose = tuple[np.ndarray, np.ndarray]  # (R, t) world-to-camera
@@ -48,18 +48,8 @@ def relative_pose_error_matrix(est: list[Pose], ref: list[Pose]) -> np.ndarray:
         return R, np.einsum("bij,abj->bai", R, C[:, None, :] - C[None, :, :])  # [b, a] = R_b (C_a - C_b)
     (R1, v1), (R2, v2) = parts(est), parts(ref)
     d = np.einsum("nji,njk->nik", R1, R2)
-    # the angle of M = D_a D_b^T from its trace (cos) and its skew part (sin), so that equal poses give 0, not
-    # the 1e-6 deg an arccos of a cosine rounded below 1 gives
-    cos_rot = (np.einsum("aij,bij->ab", d, d) - 1.0) / 2.0
-
-    def row(r, c):  # M[r, c] for all pairs
-        return np.einsum("aj,bj->ab", d[:, r], d[:, c])
-
-    sin_rot = np.sqrt((row(2, 1) - row(1, 2)) ** 2 + (row(0, 2) - row(2, 0)) ** 2 + (row(1, 0) - row(0, 1)) ** 2) / 2
-    rot = np.degrees(np.arctan2(sin_rot, cos_rot))
-    n1, n2 = np.linalg.norm(v1, axis=2), np.linalg.norm(v2, axis=2)
-    angle = np.arctan2(np.linalg.norm(np.cross(v1, v2), axis=2), np.einsum("bai,bai->ba", v1, v2))
-    direction = np.where((n1 < 1e-15) | (n2 < 1e-15), FAILED_DEG, np.degrees(angle)).T
+    rot = rotation_angle_deg(np.einsum("aij,bkj->abik", d, d))  # [a, b] = D_a D_b^T
+    direction = vector_angle_deg(v1, v2).T  # FAILED_DEG (180) where a direction is undefined
     return np.maximum(rot, direction)
 
 

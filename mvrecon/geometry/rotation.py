@@ -72,13 +72,14 @@ def angle_axis_to_rotmat(rvec: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * K @ K
 
 
-def rotation_angle_deg(R: np.ndarray) -> float:
-    """Angle of a rotation matrix in degrees; atan2 of the skew and trace parts stays exact near zero,
-    where arccos of the trace alone loses everything below about 1e-6 degrees."""
+def rotation_angle_deg(R: np.ndarray) -> float | np.ndarray:
+    """Angle of a rotation matrix in degrees, or of each of a stack (..., 3, 3); atan2 of the skew and trace parts
+    stays exact near zero, where arccos of the trace alone loses everything below about 1e-6 degrees."""
     R = np.asarray(R, dtype=float)
-    s = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    c = (np.trace(R) - 1.0) / 2.0
-    return float(np.degrees(np.arctan2(s, c)))
+    skew = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], axis=-1)
+    c = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
+    angle = np.degrees(np.arctan2(0.5 * np.linalg.norm(skew, axis=-1), c))
+    return float(angle) if angle.ndim == 0 else angle
 
 
 def rotation_error_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
@@ -86,10 +87,11 @@ def rotation_error_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
     return rotation_angle_deg(np.asarray(R_a) @ np.asarray(R_b).T)
 
 
-def vector_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
-    """Angle between two vectors in degrees; 180 when either is zero (an undefined direction counts as failed)."""
+def vector_angle_deg(a: np.ndarray, b: np.ndarray) -> float | np.ndarray:
+    """Angle between two vectors in degrees, or between each pair of two stacks (..., 3); 180 where either is zero
+    (an undefined direction counts as failed). atan2 of the cross and dot products, exact near zero as above."""
     a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
-    na, nb = np.linalg.norm(a), np.linalg.norm(b)
-    if na < 1e-15 or nb < 1e-15:
-        return 180.0
-    return float(np.degrees(np.arccos(np.clip(a @ b / (na * nb), -1.0, 1.0))))
+    undefined = (np.linalg.norm(a, axis=-1) < 1e-15) | (np.linalg.norm(b, axis=-1) < 1e-15)
+    angle = np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, axis=-1)))
+    angle = np.where(undefined, 180.0, angle)
+    return float(angle) if angle.ndim == 0 else angle
