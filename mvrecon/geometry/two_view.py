@@ -1,5 +1,5 @@
 """Relative pose of two calibrated views from normalised correspondences (five-point essential matrix in
-RANSAC).
+RANSAC), and the rotation of a camera turning in place (two-point RANSAC).
 
 OpenCV's estimator is used with the identity camera matrix on normalised coordinates, so its pixel threshold
 is given in normalised units (pixels divided by the focal length).
@@ -15,9 +15,17 @@ def relative_pose(x1: np.ndarray, x2: np.ndarray, threshold: float, seed: int = 
     """(R, t, inlier mask) with x2 ~ R x1 + t and |t| = 1, or None when no essential matrix is found.
 
     x1, x2: (N,2) undistorted normalised coordinates. The returned mask keeps only the inliers in front of
-    both
-    cameras (cheirality check of the chosen decomposition).
+    both cameras (cheirality check of the chosen decomposition).
     """
+    x1, x2 = np.asarray(x1, float).reshape(-1, 2), np.asarray(x2, float).reshape(-1, 2)
+    found = essential_matrix(x1, x2, threshold, seed, confidence)
+    return None if found is None else pose_from_essential(found[0], x1, x2, found[1])
+
+
+def essential_matrix(x1: np.ndarray, x2: np.ndarray, threshold: float, seed: int = 0,
+                     confidence: float = 0.9999) -> tuple[np.ndarray, np.ndarray] | None:
+    """(E, inlier mask) of the five-point RANSAC on normalised coordinates (inliers within `threshold` of their
+    epipolar line, before any cheirality check), or None when none is found."""
     import cv2  # noqa: PLC0415 - loaded after the feature workers fork (executor._get_context)
 
     x1 = np.ascontiguousarray(x1, dtype=np.float64).reshape(-1, 2)
@@ -29,7 +37,7 @@ def relative_pose(x1: np.ndarray, x2: np.ndarray, threshold: float, seed: int = 
                                    maxIters=10000)
     if E is None or E.shape != (3, 3) or mask is None:
         return None
-    return pose_from_essential(E, x1, x2, mask.ravel() > 0)
+    return E, mask.ravel() > 0
 
 
 _FAR = 50.0  # points farther than this many baselines decide nothing about cheirality (OpenCV's choice too)
@@ -95,3 +103,66 @@ def homography_translation(H: np.ndarray, K1: np.ndarray, K2: np.ndarray) -> flo
     s = np.linalg.svd(np.linalg.inv(K2) @ np.asarray(H, float) @ K1, compute_uv=False)
     spread = (s[..., 0] - s[..., 2]) / s[..., 1]
     return float(spread) if np.ndim(spread) == 0 else spread
+
+
+def rotation_between_views(x1: np.ndarray, x2: np.ndarray, threshold: float, seed: int = 0, min_inliers: int = 3,
+                           confidence: float = 0.999,
+                           max_iterations: int = 200) -> tuple[np.ndarray, np.ndarray] | None:
+    """(R, inlier mask) of the rotation about the camera centre that best explains x2 ~ R x1 (normalised
+    coordinates; inliers within `threshold` of their match in view 2), or None with fewer than 3 matches.
+
+    Two-point RANSAC on the viewing rays, then least squares (the rotation nearest the rays' correlation) on the
+    inliers. RANSAC draws the samples that find, at `confidence`, a rotation of `min_inliers` inliers where one
+    exists (fewer as better ones turn up): a caller asking whether a rotation explains most of a pair's matches
+    pays for few samples. A camera turning in place has no essential matrix (any baseline fits its matches), and
+    its homography is fitted with 8 degrees of freedom where 3 suffice; a pair of a few dozen matches is told
+    apart by the rotation's own count."""
+    x1 = np.asarray(x1, float).reshape(-1, 2)
+    x2 = np.asarray(x2, float).reshape(-1, 2)
+    n = len(x1)
+    if n < 3:
+        return None
+    r1 = np.c_[x1, np.ones(n)]
+    r1 /= np.linalg.norm(r1, axis=1, keepdims=True)
+    r2 = np.c_[x2, np.ones(n)]
+    r2 /= np.linalg.norm(r2, axis=1, keepdims=True)
+
+    def within(R):  # (..., N) whether R x1 lands within the threshold of x2, in front of the camera
+        p = r1 @ np.swapaxes(R, -1, -2)
+        z = p[..., 2]
+        d2 = (p[..., 0] - x2[:, 0] * z) ** 2 + (p[..., 1] - x2[:, 1] * z) ** 2
+        return (z > 0) & (d2 < threshold ** 2 * z * z)
+
+    def needed(count):  # samples that find a rotation of `count` inliers at the confidence
+        share = min(count / n, 1.0 - 1e-9) ** 2
+        return np.log(1 - confidence) / np.log1p(-share) if share > 0 else np.inf
+
+    rng = np.random.default_rng(seed)
+    inliers, drawn, chunk = np.zeros(n, bool), 0, 25
+    while drawn < min(max_iterations, needed(max(min_inliers, inliers.sum()))):
+        first = rng.integers(n, size=chunk)
+        samples = np.c_[first, (first + rng.integers(1, n, size=chunk)) % n]  # two distinct matches each
+        found = within(_nearest_rotations(r1[samples], r2[samples]))
+        best = int(np.argmax(found.sum(axis=1)))
+        if found[best].sum() > inliers.sum():
+            inliers = found[best]
+        drawn += chunk
+    R = np.eye(3)
+    for _ in range(3):  # refit on the inliers of the refined rotation
+        if inliers.sum() < 2:
+            break
+        R = _nearest_rotations(r1[inliers], r2[inliers])
+        refit = within(R)
+        if np.array_equal(refit, inliers):
+            break
+        inliers = refit
+    return R, inliers
+
+
+def _nearest_rotations(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The rotation(s) R minimising sum |b - R a|^2 over the rays of a and b, (..., N, 3) each (Kabsch)."""
+    U, _, Vt = np.linalg.svd(np.swapaxes(b, -1, -2) @ a)
+    d = np.sign(np.linalg.det(U @ Vt))
+    U = U.copy()
+    U[..., :, 2] *= d[..., None]
+    return U @ Vt

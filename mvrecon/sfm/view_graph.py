@@ -11,8 +11,9 @@ stays: when the optical axes meet (an orbit around an object) the pairs do
 not observe the focal, and the smallest focal tried wins (object_orbit_small: 384 px for the true 560); the
 global mapper then finds it with coarse models (global_mapper.py). Then `relative_poses` estimates each pair's
 relative pose from its matches in normalised coordinates (five-point RANSAC), with the median triangulation
-angle of its inliers; a pair that a homography of a rotation explains as well (a camera turning in place) gives
-that rotation and no translation direction.
+angle of its inliers; a pair where a rotation about the camera centre explains `_ROTATION_SHARE` as many of its
+matches as its essential matrix does (a camera turning in place; the share is COLMAP's max_H_inlier_ratio, since an
+epipolar distance is one-dimensional and a rotation's two) gives that rotation and no translation direction.
 """
 
 import logging
@@ -28,7 +29,7 @@ from ..executor import WorkerPool
 from ..geometry import camera as cammodel
 from ..geometry.rotation import angle_axis_to_rotmat
 from ..geometry.triangulation import triangulation_angle_deg, two_view_midpoints
-from ..geometry.two_view import homography_translation, relative_pose
+from ..geometry.two_view import essential_matrix, pose_from_essential, rotation_between_views
 from .config import MapperConfig
 from .model import Camera, Reconstruction
 
@@ -41,6 +42,7 @@ _EDGE = 6  # a minimum this close to either end of the range is no estimate
 _SHARPNESS = 0.65  # the minimum's cost must be under this share of the cost at both ends of the range
 _CALIBRATION_SWEEPS = 3
 _MIN_RELATIVE_INLIERS = 15  # a pair's matches fitting its relative pose (COLMAP's min_num_inliers)
+_ROTATION_SHARE = 0.8  # a pair is a rotation where one explains this share of its essential matrix's inliers
 _PARALLEL_PAIRS = 200  # pairs from which `relative_poses` hands them to worker processes
 _CALIBRATION_PAIRS = 300  # a camera's pairs (those with the most matches) its focal is calibrated from
 
@@ -201,14 +203,13 @@ def relative_poses(model: Reconstruction, pairs: dict, config: MapperConfig, sam
         f = 0.5 * (model.camera(a).focal() + model.camera(b).focal())
         keys.append((a, b))
         jobs.append((x1[ok], x2[ok], len(matches), config.two_view_max_error_px / f))
-    settings = (config.min_tri_angle_deg, config.seed)
     if workers > 1 and len(jobs) >= _PARALLEL_PAIRS:
         step = -(-len(jobs) // (4 * workers))  # a few chunks per worker: even loads, little pickling
-        chunks = [(jobs[k:k + step], settings) for k in range(0, len(jobs), step)]
+        chunks = [(jobs[k:k + step], config.seed) for k in range(0, len(jobs), step)]
         with WorkerPool(workers) as pool:
             found = [edge for chunk in pool.map(_pair_poses, chunks) for edge in chunk]
     else:
-        found = _pair_poses((jobs, settings))
+        found = _pair_poses((jobs, config.seed))
     edges, rejected = {}, {}
     for key, edge in zip(keys, found):
         if isinstance(edge, ViewEdge):
@@ -218,19 +219,21 @@ def relative_poses(model: Reconstruction, pairs: dict, config: MapperConfig, sam
     return ViewGraph(edges, rejected)
 
 
-def _pair_poses(chunk: tuple[list, tuple]) -> list:
-    """A ViewEdge, or the reason there is none, for each (x1, x2, matches, threshold) of the chunk."""
-    jobs, (min_tri_angle_deg, seed) = chunk
-    return [_pair_pose(x1, x2, count, threshold, min_tri_angle_deg, seed) for x1, x2, count, threshold in jobs]
+def _pair_poses(chunk: tuple[list, int]) -> list:
+    """A ViewEdge, or the reason there is none, for each (x1, x2, matches, threshold) of the chunk (jobs, seed)."""
+    jobs, seed = chunk
+    return [_pair_pose(x1, x2, count, threshold, seed) for x1, x2, count, threshold in jobs]
 
 
-def _pair_pose(x1: np.ndarray, x2: np.ndarray, count: int, threshold: float, min_tri_angle_deg: float,
-               seed: int) -> "ViewEdge | str":
-    est = relative_pose(x1, x2, threshold, seed=seed)
+def _pair_pose(x1: np.ndarray, x2: np.ndarray, count: int, threshold: float, seed: int) -> "ViewEdge | str":
+    essential = essential_matrix(x1, x2, threshold, seed)
+    fit = 0 if essential is None else int(essential[1].sum())  # before cheirality, which a turn leaves to chance
+    enough = max(_MIN_RELATIVE_INLIERS, int(np.ceil(_ROTATION_SHARE * fit)))
+    turn = rotation_between_views(x1, x2, threshold, seed, min_inliers=enough)
+    if turn is not None and turn[1].sum() >= enough:
+        return ViewEdge(turn[0], np.zeros(3), int(turn[1].sum()), 0.0)  # a rotation about the camera centre
+    est = None if essential is None else pose_from_essential(essential[0], x1, x2, essential[1])
     found = 0 if est is None else int(est[2].sum())
-    turn = _rotation_fit(x1, x2, threshold)
-    if turn is not None and turn[1] >= found and turn[2] < np.radians(min_tri_angle_deg):
-        return ViewEdge(turn[0], np.zeros(3), turn[1], 0.0)  # a rotation about the camera centre
     if found < _MIN_RELATIVE_INLIERS:
         return (f"{found} of its {count} matches fit a relative pose in front of both views, "
                 f"< {_MIN_RELATIVE_INLIERS}")
@@ -267,18 +270,3 @@ def refine_relative_pose(R: np.ndarray, t: np.ndarray, x1: np.ndarray, x2: np.nd
 
     fit = least_squares(sampson, np.zeros(5), method="lm", max_nfev=iterations * 6)
     return pose(fit.x) if fit.cost <= 0.5 * float(np.sum(sampson(np.zeros(5)) ** 2)) else (R, t)
-
-
-def _rotation_fit(x1, x2, threshold: float):
-    """(nearest rotation, inliers, |t|/d) of the pair's normalised homography (x2 ~ H x1), or None when none
-    fits: |t|/d near 0 (the spread of its singular values, `homography_translation`) is a camera turning in
-    place, whose essential matrix is degenerate and whose rotation is the homography's."""
-    if len(x1) < 4:
-        return None
-    H, mask = cv2.findHomography(x1, x2, cv2.RANSAC, threshold)
-    if H is None or mask is None or mask.sum() < _MIN_RELATIVE_INLIERS:
-        return None
-    H = H if np.linalg.det(H) > 0 else -H  # H is known up to a scale of either sign
-    U, _, Vt = np.linalg.svd(H)
-    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    return R, int(mask.sum()), homography_translation(H, np.eye(3), np.eye(3))
