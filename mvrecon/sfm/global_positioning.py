@@ -27,7 +27,7 @@ from scipy.sparse.linalg import splu
 from .model import Reconstruction, sum_rows
 from .tracks import Tracks
 
-_TRACKS_PER_IMAGE = 200  # tracks are taken longest first while one of their images holds fewer than this
+_TRACKS_PER_IMAGE = 500  # tracks are taken longest first while one of their images holds fewer than this
 _MIN_OBSERVATIONS = 6  # a camera with fewer selected observations is left out of the problem
 _HUBER = 0.1  # GLOMAP's loss width, on the unit directions
 _CAUCHY = 0.01  # the redescending loss's width that follows (0.6 deg; the shared sets' rays miss by 0.01-0.06)
@@ -55,7 +55,10 @@ class PositioningResult:
 
 def select_tracks(tracks: Tracks, usable: np.ndarray, per_image: int = _TRACKS_PER_IMAGE) -> np.ndarray:
     """Track ids with >= 2 elements in `usable` images, longest first, each taken while one of its usable images
-    holds fewer than `per_image` taken tracks: every camera gets tracks, the longest constrain most."""
+    holds fewer than `per_image` taken tracks: every camera gets tracks, the longest constrain most. The quota is
+    large enough that an image is not held by its longest tracks alone: past repeated structure (a facade of
+    identical windows) wrong matches across the repeats join the longest tracks, and the images at the ends of a
+    walk were placed by those (docs/benchmarks.md, "Global positioning: tracks per image")."""
     inside = usable[tracks.image]
     length = np.add.reduceat(inside.astype(np.int64), tracks.ptr[:-1]) if len(tracks) else np.zeros(0, np.int64)
     length[np.diff(tracks.ptr) == 0] = 0
