@@ -228,10 +228,14 @@ def _pair_poses(chunk: tuple[list, int]) -> list:
 def _pair_pose(x1: np.ndarray, x2: np.ndarray, count: int, threshold: float, seed: int) -> "ViewEdge | str":
     essential = essential_matrix(x1, x2, threshold, seed)
     fit = 0 if essential is None else int(essential[1].sum())  # before cheirality, which a turn leaves to chance
-    enough = max(_MIN_RELATIVE_INLIERS, int(np.ceil(_ROTATION_SHARE * fit)))
-    turn = rotation_between_views(x1, x2, threshold, seed, min_inliers=enough)
-    if turn is not None and turn[1].sum() >= enough:
-        return ViewEdge(turn[0], np.zeros(3), int(turn[1].sum()), 0.0)  # a rotation about the camera centre
+    share = int(np.ceil(_ROTATION_SHARE * fit))
+    turn = rotation_between_views(x1, x2, threshold, seed, min_inliers=max(3, min(share, _MIN_RELATIVE_INLIERS)))
+    turned = 0 if turn is None else int(turn[1].sum())
+    if turned >= max(share, _MIN_RELATIVE_INLIERS):
+        return ViewEdge(turn[0], np.zeros(3), turned, 0.0)  # a rotation about the camera centre
+    if fit >= _MIN_RELATIVE_INLIERS and turned >= share:
+        return (f"no baseline: a rotation about the camera centre explains {turned} of its {count} matches, "
+                f"{_ROTATION_SHARE:.0%} or more of its essential matrix's {fit}, and < {_MIN_RELATIVE_INLIERS}")
     est = None if essential is None else pose_from_essential(essential[0], x1, x2, essential[1])
     found = 0 if est is None else int(est[2].sum())
     if found < _MIN_RELATIVE_INLIERS:
