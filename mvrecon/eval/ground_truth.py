@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..geometry.rotation import quat_to_rotmat
+from ..geometry.rotation import nearest_rotation, quat_to_rotmat
 from .models import load_reconstruction, poses
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".JPG", ".JPEG", ".PNG", ".TIF", ".TIFF")
@@ -126,7 +126,7 @@ def load_strecha_cameras(folder: Path | str) -> GroundTruth:
         if v.size < 24:
             raise InputError(f"{f}: not a Strecha camera file (expected at least 24 numbers, got {v.size})")
         name = f.name[: -len(".camera")]
-        R = _nearest_rotation(R_wc.T)  # the files round R to 6 decimals
+        R = nearest_rotation(R_wc.T)  # the files round R to 6 decimals
         out[name], intrinsics[name] = (R, -R @ C), K
     return GroundTruth(out, intrinsics=intrinsics, source=folder, kind="strecha")
 
@@ -148,11 +148,6 @@ def load_imc_calibration(folder: Path | str) -> GroundTruth:
             raise InputError(f"{f}: R and q disagree")
         out[name], intrinsics[name] = (R, data["T"].ravel().astype(float)), data["K"].reshape(3, 3)
     return GroundTruth(out, intrinsics=intrinsics, source=folder, kind="imc")
-
-
-def _nearest_rotation(M) -> np.ndarray:
-    U, _, Vt = np.linalg.svd(M)
-    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
 
 
 # --- a reader for small HDF5 files: superblock v0/v1, one root group of contiguous or compact numeric datasets ---

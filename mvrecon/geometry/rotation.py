@@ -72,6 +72,15 @@ def angle_axis_to_rotmat(rvec: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * K @ K
 
 
+def nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation nearest M in the Frobenius norm, or of each of a stack (..., 3, 3): U diag(1, 1, det(U V^T)) V^T
+    of M's SVD. For M = sum b a^T over pairs of vectors it is the rotation R minimising sum |b - R a|^2 (Kabsch)."""
+    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=float))
+    U = U.copy()
+    U[..., :, 2] *= np.sign(np.linalg.det(U @ Vt))[..., None]
+    return U @ Vt
+
+
 def rotation_angle_deg(R: np.ndarray) -> float | np.ndarray:
     """Angle of a rotation matrix in degrees, or of each of a stack (..., 3, 3); atan2 of the skew and trace parts
     stays exact near zero, where arccos of the trace alone loses everything below about 1e-6 degrees."""

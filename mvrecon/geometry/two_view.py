@@ -7,6 +7,7 @@ is given in normalised units (pixels divided by the focal length).
 
 import numpy as np
 
+from .rotation import nearest_rotation
 from .triangulation import two_view_midpoints
 
 
@@ -111,12 +112,12 @@ def rotation_between_views(x1: np.ndarray, x2: np.ndarray, threshold: float, see
     """(R, inlier mask) of the rotation about the camera centre that best explains x2 ~ R x1 (normalised
     coordinates; inliers within `threshold` of their match in view 2), or None with fewer than 3 matches.
 
-    Two-point RANSAC on the viewing rays, then least squares (the rotation nearest the rays' correlation) on the
-    inliers. RANSAC draws the samples that find, at `confidence`, a rotation of `min_inliers` inliers where one
-    exists (fewer as better ones turn up): a caller asking whether a rotation explains most of a pair's matches
-    pays for few samples. A camera turning in place has no essential matrix (any baseline fits its matches), and
-    its homography is fitted with 8 degrees of freedom where 3 suffice; a pair of a few dozen matches is told
-    apart by the rotation's own count."""
+    Two-point RANSAC on the viewing rays, then least squares (`rotation.nearest_rotation` of the rays' correlation)
+    on the inliers. RANSAC draws the samples that find, at `confidence`, a rotation of `min_inliers` inliers where
+    one exists (fewer as better ones turn up): a caller asking whether a rotation explains most of a pair's matches
+    pays for few samples. A camera turning in place has no essential matrix (any baseline fits its matches), and its
+    homography is fitted with 8 degrees of freedom where 3 suffice; a pair of a few dozen matches is told apart by
+    the rotation's own count."""
     x1 = np.asarray(x1, float).reshape(-1, 2)
     x2 = np.asarray(x2, float).reshape(-1, 2)
     n = len(x1)
@@ -142,7 +143,7 @@ def rotation_between_views(x1: np.ndarray, x2: np.ndarray, threshold: float, see
     while drawn < min(max_iterations, needed(max(min_inliers, inliers.sum()))):
         first = rng.integers(n, size=chunk)
         samples = np.c_[first, (first + rng.integers(1, n, size=chunk)) % n]  # two distinct matches each
-        found = within(_nearest_rotations(r1[samples], r2[samples]))
+        found = within(nearest_rotation(np.swapaxes(r2[samples], -1, -2) @ r1[samples]))
         best = int(np.argmax(found.sum(axis=1)))
         if found[best].sum() > inliers.sum():
             inliers = found[best]
@@ -151,18 +152,10 @@ def rotation_between_views(x1: np.ndarray, x2: np.ndarray, threshold: float, see
     for _ in range(3):  # refit on the inliers of the refined rotation
         if inliers.sum() < 2:
             break
-        R = _nearest_rotations(r1[inliers], r2[inliers])
+        R = nearest_rotation(r2[inliers].T @ r1[inliers])
         refit = within(R)
         if np.array_equal(refit, inliers):
             break
         inliers = refit
     return R, inliers
 
-
-def _nearest_rotations(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The rotation(s) R minimising sum |b - R a|^2 over the rays of a and b, (..., N, 3) each (Kabsch)."""
-    U, _, Vt = np.linalg.svd(np.swapaxes(b, -1, -2) @ a)
-    d = np.sign(np.linalg.det(U @ Vt))
-    U = U.copy()
-    U[..., :, 2] *= d[..., None]
-    return U @ Vt

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ..geometry.rotation import nearest_rotation
 from .parallax import tilt_rotation
 
 
@@ -114,9 +115,7 @@ def metric_upgrade(M: np.ndarray) -> np.ndarray:
 
 
 def _closest_rotation(rows2) -> np.ndarray:
-    R = np.vstack([rows2, np.cross(rows2[0], rows2[1])])
-    U, _, Vt = np.linalg.svd(R)
-    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    return nearest_rotation(np.vstack([rows2, np.cross(rows2[0], rows2[1])]))
 
 
 def tilts_from_factorization(W: np.ndarray, reference: int,
