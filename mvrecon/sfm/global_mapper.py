@@ -357,7 +357,7 @@ class GlobalMapper:
                                            f"cameras from {_MIN_VIEWS} or more images linked by pairs, and one pair "
                                            "is only a two-view model; map it with --mapper incremental")
             return None, component
-        # translation averaging: the coarse models' centres, and global positioning's second start
+        # translation averaging: the coarse models' centres, and one of global positioning's starts
         tij = np.array(with_baseline, dtype=np.int64)
         d = -np.einsum("mji,mj->mi", rot.R[tij[:, 1]], np.array([graph.edges[k].t for k in with_baseline]))
         pos = average_translations(n, tij, d, _MAX_DIRECTION_ERROR_DEG, cfg.seed)

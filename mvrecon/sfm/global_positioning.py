@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 from scipy.linalg import cho_factor, cho_solve
-from scipy.sparse import bsr_matrix
+from scipy.sparse import bsr_matrix, coo_matrix, triu
 from scipy.sparse.linalg import splu
 
 from .model import Reconstruction, sum_rows
@@ -40,6 +40,15 @@ _CAUCHY_TOLERANCE = 1e-7
 _MIN_SCALE = 1e-5
 _DENSE_SHARE = 0.1  # the reduced system is factorised dense from this share of non-zero entries ...
 _DENSE_MAX_CAMERAS = 2000  # ... up to this many cameras (`_solve_reduced`)
+# centres placed in turn (`centres_in_turn`): a point is triangulated once two of its rays from placed cameras meet
+# at this angle; the placed cameras are adjusted together each time their number has grown by the factor, in
+# this many LM steps under Huber's loss
+_TURN_MIN_ANGLE_DEG = 2.0
+_TURN_GROWTH = 1.5
+_TURN_STEPS = 15
+_TURN_MAX_MISS_DEG = 1.0  # a triangulated point's rays miss it by at most this (wrong matches go)
+_TURN_MIN_POINTS = 6  # a camera is placed from at least this many triangulated points, the first pair from as many
+_NEAR_SHARE = 0.02  # a start with every centre this near a solution (of their spread) is in its basin
 _OUTLIER_DEG = 0.5  # a camera whose rays miss its points by a median over this (and over _OUTLIER_FACTOR x the
 _OUTLIER_FACTOR = 5.0  # cameras' median) is an outlier pose: the others' are 0.01-0.06 deg on the shared sets
 
@@ -79,10 +88,11 @@ def global_positions(model: Reconstruction, R: np.ndarray, solved: np.ndarray, t
                      seed: int = 0, initial: np.ndarray | None = None) -> PositioningResult:
     """Camera centres of the `solved` images (rotations R, cam_from_world) from their tracks (see the module
     docstring), the model's current calibration turning keypoints into rays. Images with too few observations
-    are left out; the centres are up to a similarity. With `initial` centres (n,3), NaN where unknown, the
-    problem is solved from them as well as from the random start, and the solution of lower cost is kept: from
-    random centres a street of cameras moving straight ahead can stop in a wrong minimum (street_long_small:
-    centres 85% of the scene off), which centres from the pairs' directions start clear of."""
+    are left out; the centres are up to a similarity. The problem is solved from a random start, from centres
+    placed in turn, and from the `initial` centres (n,3; NaN where unknown) when given, and the solution of
+    lowest cost is kept (`solve_positions`): from random centres a street of cameras moving straight ahead can
+    stop in a wrong minimum, which centres from the pairs' directions start clear of (a street seen far ahead)
+    and centres placed in turn too (a walk round a block, whose streets the pairs' directions leave short)."""
     n = len(R)
     centers = np.full((n, 3), np.nan)
     chosen = select_tracks(tracks, solved)
@@ -148,21 +158,36 @@ def solve_positions(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams:
     """(centres (num_cams,3), points (num_points,3)) minimising sum rho(|v_k - s_k (X_point[k] - C_cam[k])|)
     from a random start (uniform in [-1, 1]^3, scales 1), rho Huber's loss and then Cauchy's; camera 0 is held
     (the gauge), and the result is moved and scaled to centres of zero mean and unit RMS distance from it.
-    With `initial` centres (num_cams,3; NaN where unknown) it is solved from them too (`_start`), and the
-    solution of the lower final cost is returned."""
+    It is solved from the centres placed in turn (`centres_in_turn`) too, and from the `initial` centres
+    (num_cams,3; NaN where unknown) when given (`_start`), and the solution of the lowest final cost is
+    returned; a start already near the best solution (`_near`) is not solved from: it would end there."""
     rng = np.random.default_rng(seed)
     C = rng.uniform(-1, 1, (num_cams, 3))
     X = rng.uniform(-1, 1, (num_points, 3))
     layout = _ReducedLayout.of(cam, point, num_cams, num_points)
     best = _minimise(cam, point, v, C, X, np.ones(len(v)), iterations, layout)
-    if initial is not None and np.isfinite(initial).all(axis=1).sum() >= 2:
-        other = _minimise(cam, point, v, *_start(cam, point, v, initial, C, num_points), iterations, layout)
+    for start in (centres_in_turn(cam, point, v, num_cams, num_points), initial):
+        if start is None or np.isfinite(start).all(axis=1).sum() < 2 or _near(start, best[0]):
+            continue
+        other = _minimise(cam, point, v, *_start(cam, point, v, start, C, num_points), iterations, layout)
         if other[2] < best[2]:
             best = other
     C, X, _ = best
     C0 = C.mean(axis=0)
     scale = np.sqrt(np.mean(np.sum((C - C0) ** 2, axis=1))) or 1.0
     return (C - C0) / scale, (X - C0) / scale
+
+
+def _near(start: np.ndarray, centres: np.ndarray) -> bool:
+    """Whether every camera of `start` (all known) lies within `_NEAR_SHARE` of the centres' RMS spread of
+    `centres` once scaled and moved onto them (the rotations fix the frame): a start that close lies in the
+    solution's basin, and solving from it again would only repeat the solution."""
+    if not np.isfinite(start).all():
+        return False
+    a, b = start - start.mean(axis=0), centres - centres.mean(axis=0)
+    spread = np.sqrt(np.mean(np.sum(b ** 2, axis=1)))
+    scale = np.sum(a * b) / max(np.sum(a * a), 1e-300)
+    return spread > 0 and bool(np.linalg.norm(scale * a - b, axis=1).max() <= _NEAR_SHARE * spread)
 
 
 def _start(cam, point, v, initial, fallback, num_points):
@@ -181,6 +206,180 @@ def _start(cam, point, v, initial, fallback, num_points):
     e = X[point] - C[cam]
     s = np.maximum(np.einsum("ki,ki->k", e, v) / np.maximum(np.einsum("ki,ki->k", e, e), 1e-300), _MIN_SCALE)
     return C, X, s
+
+
+def centres_in_turn(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams: int,
+                    num_points: int) -> np.ndarray | None:
+    """Centres (num_cams,3; NaN for a camera never placed) placed as an incremental mapper grows a model, the
+    rotations known, for `solve_positions` to start from; None when no pair of cameras shares `_TURN_MIN_POINTS`
+    points seen at `_TURN_MIN_ANGLE_DEG` or more. The pair among the 50 sharing most points that sees most of
+    them at that angle comes first, its baseline the direction normal to their rays' planes; then the camera
+    seeing most triangulated points is placed where its rays pass nearest them (least squares in angle, Cauchy
+    weights), its points are triangulated, and every time the placed cameras have grown by `_TURN_GROWTH` they
+    and their points are adjusted together (`_minimise`, Huber's loss, `_TURN_STEPS` steps). Why: a camera
+    walking round a block looks ahead along four straight streets; from random centres each street is solved
+    on its own and the corners come apart, and the pairs' directions (collinear motion) fix no street's length,
+    while each camera placed next to those it shares points with keeps the loop whole (docs/benchmarks.md,
+    "Global positioning: cameras placed in turn")."""
+    by_cam = np.argsort(cam, kind="stable")
+    cam_bounds = np.r_[0, np.cumsum(np.bincount(cam, minlength=num_cams))]
+    by_point = np.argsort(point, kind="stable")
+    bounds = np.r_[0, np.cumsum(np.bincount(point, minlength=num_points))]
+    first = _first_pair(cam, point, v, by_cam, cam_bounds, num_cams, num_points)
+    if first is None:
+        return None
+    a, b, baseline = first
+    C = np.full((num_cams, 3), np.nan)
+    X = np.full((num_points, 3), np.nan)
+    placed = np.zeros(num_cams, bool)
+    C[a], C[b] = 0.0, baseline
+    placed[[a, b]] = True
+    cos_max = np.cos(np.radians(_TURN_MIN_ANGLE_DEG))
+    everything = np.arange(num_points)
+    _triangulate(everything, by_point, bounds, cam, v, placed, C, X, cos_max)
+    adjusted = 2
+    tried = placed.copy()
+    while True:
+        seen = np.isfinite(X[point, 0])
+        counts = np.bincount(cam[seen], minlength=num_cams)
+        counts[tried] = -1
+        c = int(np.argmax(counts))
+        if counts[c] < _TURN_MIN_POINTS:
+            break
+        tried[c] = True
+        mine = by_cam[cam_bounds[c]:cam_bounds[c + 1]]
+        mine = mine[seen[mine]]
+        C[c] = _centre_from_points(v[mine], X[point[mine]])
+        if not np.isfinite(C[c]).all():
+            continue
+        placed[c] = True
+        if placed.sum() >= _TURN_GROWTH * adjusted:
+            adjusted = int(placed.sum())
+            _adjust_placed(cam, point, v, placed, C, num_points)
+            X[:] = np.nan
+            _triangulate(everything, by_point, bounds, cam, v, placed, C, X, cos_max)
+        else:
+            ours = by_cam[cam_bounds[c]:cam_bounds[c + 1]]
+            _triangulate(point[ours], by_point, bounds, cam, v, placed, C, X, cos_max)
+    return C
+
+
+def _first_pair(cam, point, v, by_cam, cam_bounds, num_cams, num_points):
+    """(a, b, baseline C_b - C_a of unit length) for `centres_in_turn`, or None."""
+    shared = coo_matrix((np.ones(len(cam)), (point, cam)), shape=(num_points, num_cams)).tocsc()
+    shared = triu(shared.T @ shared, k=1).tocoo()
+    best = None
+    for k in np.argsort(-shared.data, kind="stable")[:50].tolist():
+        a, b = int(shared.row[k]), int(shared.col[k])
+        oa, ob = by_cam[cam_bounds[a]:cam_bounds[a + 1]], by_cam[cam_bounds[b]:cam_bounds[b + 1]]
+        _, ia, ib = np.intersect1d(point[oa], point[ob], return_indices=True)
+        va, vb = v[oa[ia]], v[ob[ib]]
+        wide = np.einsum("ki,ki->k", va, vb) <= np.cos(np.radians(_TURN_MIN_ANGLE_DEG))
+        if wide.sum() >= _TURN_MIN_POINTS and (best is None or wide.sum() > best[0]):
+            best = (int(wide.sum()), a, b, va[wide], vb[wide])
+    if best is None:
+        return None
+    _, a, b, va, vb = best
+    # C_b - C_a lies in the plane of each pair of rays: normal to their cross products (of unit length, in
+    # rounds of Cauchy weights on the sine of its angle off each plane, so that a wrong match goes)
+    normal = np.cross(va, vb)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    w = np.ones(len(normal))
+    for _ in range(5):
+        baseline = np.linalg.svd(normal * w[:, None], full_matrices=False)[2][-1]
+        off = np.abs(normal @ baseline)
+        w = 1 / np.sqrt(1 + (off / max(3 * float(np.median(off)), 1e-4)) ** 2)
+    # the sign that puts the points ahead of both cameras: X = C_a + l_a v_a = C_b + l_b v_b
+    M = np.stack([va, -vb], axis=2)
+    depth = np.linalg.solve(np.einsum("kia,kib->kab", M, M), np.einsum("kia,i->ka", M, baseline)[:, :, None])
+    return a, b, baseline if np.median(depth[:, :, 0]) > 0 else -baseline
+
+
+def _centre_from_points(v: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """The centre whose rays `v` pass nearest the points `X` in angle: least squares of the distances off the
+    rays, each weighted by 1 / its distance squared, in 5 rounds of Cauchy weights (a wrong track goes); a point
+    behind the camera counts as missed by a radian."""
+    off = np.eye(3)[None] - v[:, :, None] * v[:, None, :]  # projections off each ray
+    w = np.ones(len(v))
+    for _ in range(5):
+        try:
+            C = np.linalg.solve(np.einsum("k,kij->ij", w, off), np.einsum("k,kij,kj->i", w, off, X))
+        except np.linalg.LinAlgError:  # every ray parallel
+            return np.full(3, np.nan)
+        d = X - C
+        dist = np.maximum(np.linalg.norm(d, axis=1), 1e-12)
+        miss = np.linalg.norm(np.cross(d / dist[:, None], v), axis=1)
+        miss[np.einsum("ki,ki->k", d, v) < 0] = 1.0
+        width = max(3 * float(np.median(miss)), 1e-3)
+        w = 1 / (1 + (miss / width) ** 2) / dist ** 2
+    return C
+
+
+def _adjust_placed(cam, point, v, placed, C, num_points) -> None:
+    """The placed cameras' centres (in C) adjusted with the points two of them see (`_minimise`)."""
+    keep = placed[cam]
+    c, p, rays = cam[keep], point[keep], v[keep]
+    keep = np.bincount(p, minlength=num_points)[p] >= 2
+    c, p, rays = c[keep], p[keep], rays[keep]
+    cams = np.flatnonzero(placed)
+    local = np.full(len(placed), -1)
+    local[cams] = np.arange(len(cams))
+    pts, p = np.unique(p, return_inverse=True)
+    layout = _ReducedLayout.of(local[c], p, len(cams), len(pts))
+    start = _start(local[c], p, rays, C[cams], C[cams], len(pts))
+    C[cams] = _minimise(local[c], p, rays, *start, _TURN_STEPS, layout, robust_iterations=0)[0]
+
+
+@njit(cache=True)
+def _triangulate(points, by_point, bounds, cam, v, placed, C, X, cos_max):  # pragma: no cover - compiled
+    """X[p] for each of `points` not yet triangulated whose rays from placed cameras include two at an angle
+    whose cosine is at most `cos_max`: the point nearest those rays (least squares), the ray it misses most left
+    out while it misses one by over `_TURN_MAX_MISS_DEG` and three rays or more remain; left untriangulated if
+    it still misses one by that much, or lies behind a camera."""
+    sin_miss = np.sin(np.radians(_TURN_MAX_MISS_DEG))
+    for p in points:
+        if np.isfinite(X[p, 0]):
+            continue
+        rays = np.empty(bounds[p + 1] - bounds[p], np.int64)
+        n = 0
+        lowest = 1.0
+        for a in range(bounds[p], bounds[p + 1]):
+            k = by_point[a]
+            if placed[cam[k]]:
+                for b in range(n):
+                    kk = rays[b]
+                    lowest = min(lowest, v[k, 0] * v[kk, 0] + v[k, 1] * v[kk, 1] + v[k, 2] * v[kk, 2])
+                rays[n] = k
+                n += 1
+        if n < 2 or lowest > cos_max:
+            continue
+        while True:
+            A = np.zeros((3, 3))
+            rhs = np.zeros(3)
+            for b in range(n):
+                k = rays[b]
+                for r in range(3):
+                    for q in range(3):
+                        off = (1.0 if r == q else 0.0) - v[k, r] * v[k, q]
+                        A[r, q] += off
+                        rhs[r] += off * C[cam[k], q]
+            x = np.linalg.solve(A, rhs)
+            worst, miss, behind = -1, 0.0, False
+            for b in range(n):
+                k = rays[b]
+                d = x - C[cam[k]]
+                dist = np.sqrt(d[0] ** 2 + d[1] ** 2 + d[2] ** 2)
+                along = d[0] * v[k, 0] + d[1] * v[k, 1] + d[2] * v[k, 2]
+                behind |= along <= 0
+                off = np.sqrt(max(dist ** 2 - along ** 2, 0.0)) / max(dist, 1e-300)
+                if off > miss:
+                    worst, miss = b, off
+            if miss <= sin_miss or n <= 2:
+                break
+            rays[worst] = rays[n - 1]
+            n -= 1
+        if miss <= sin_miss and not behind:
+            X[p] = x
 
 
 @dataclass
@@ -209,7 +408,7 @@ class _ReducedLayout:
                    np.flatnonzero(block_row == block_col), (block_row == 0) | (block_col == 0))
 
 
-def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout):
+def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout, robust_iterations: int = _ROBUST_ITERATIONS):
     """(centres, points, final cost) of the Levenberg-Marquardt described in `solve_positions`, from C, X, s."""
     num_cams, num_points = len(C), len(X)
     e = X[point] - C[cam]
@@ -218,7 +417,7 @@ def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout):
     # Huber's loss from the random start, then Cauchy's from there: a redescending loss lets the rays of a wrong
     # rotation go instead of pulling every point (a camera turned 10 deg: its rays' median miss 0.7 deg against
     # the others' 0.15 under Huber's alone)
-    for loss, steps, tolerance in (("huber", iterations, _HUBER_TOLERANCE), ("cauchy", _ROBUST_ITERATIONS,
+    for loss, steps, tolerance in (("huber", iterations, _HUBER_TOLERANCE), ("cauchy", robust_iterations,
                                                                            _CAUCHY_TOLERANCE)):
         lam = 1e-4
         cost, w = _cost(v - s[:, None] * e, loss)
