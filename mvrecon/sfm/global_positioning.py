@@ -335,8 +335,9 @@ def _triangulate(points, by_point, bounds, cam, v, placed, C, X, cos_max):  # pr
     """X[p] for each of `points` not yet triangulated whose rays from placed cameras include two at an angle
     whose cosine is at most `cos_max`: the point nearest those rays (least squares), the ray it misses most left
     out while it misses one by over `_TURN_MAX_MISS_DEG` and three rays or more remain; left untriangulated if
-    it still misses one by that much, or lies behind a camera."""
+    it still misses one by that much, lies behind a camera, or the rays left are parallel."""
     sin_miss = np.sin(np.radians(_TURN_MAX_MISS_DEG))
+    x = np.zeros(3)
     for p in points:
         if np.isfinite(X[p, 0]):
             continue
@@ -363,6 +364,9 @@ def _triangulate(points, by_point, bounds, cam, v, placed, C, X, cos_max):  # pr
                         off = (1.0 if r == q else 0.0) - v[k, r] * v[k, q]
                         A[r, q] += off
                         rhs[r] += off * C[cam[k], q]
+            if np.linalg.det(A) <= 1e-12:  # the rays left are parallel: no point
+                miss = np.inf
+                break
             x = np.linalg.solve(A, rhs)
             worst, miss, behind = -1, 0.0, False
             for b in range(n):
