@@ -142,7 +142,7 @@ def block_walk(rng, n=80, half=(20.0, 12.0), street=5.0, reach=15.0, fov_deg=35.
 
 def test_a_walk_round_a_block_is_placed_from_cameras_placed_in_turn():
     """80 cameras walking round a block, looking ahead, rays 0.1 deg noisy: from random centres the solver stops
-    in a wrong minimum (the streets placed apart); from the centres placed in turn it finds the loop."""
+    in a wrong minimum; from the centres placed in turn it finds the loop."""
     rng = np.random.default_rng(0)
     C, X, cam, point = block_walk(rng)
     v = rays(C, X, cam, point) + rng.normal(scale=np.radians(0.1), size=(len(cam), 3))
