@@ -190,6 +190,12 @@ def _near(start: np.ndarray, centres: np.ndarray) -> bool:
     return spread > 0 and bool(np.linalg.norm(scale * a - b, axis=1).max() <= _NEAR_SHARE * spread)
 
 
+def _off_rays(v: np.ndarray) -> np.ndarray:
+    """(k,3,3) the projections off each unit ray of `v` (k,3): I - v v^T, which takes a point's offset from the
+    ray's origin to its distance vector off the ray."""
+    return np.eye(3)[None] - v[:, :, None] * v[:, None, :]
+
+
 def _start(cam, point, v, initial, fallback, num_points):
     """(centres, points, scales) to start from: the known `initial` centres (scaled to unit RMS distance from
     their mean; the others from `fallback`), each point where its rays from them pass closest, each scale the
@@ -199,7 +205,7 @@ def _start(cam, point, v, initial, fallback, num_points):
     c0 = initial[known].mean(axis=0)
     spread = np.sqrt(np.mean(np.sum((initial[known] - c0) ** 2, axis=1))) or 1.0
     C[known] = (initial[known] - c0) / spread
-    P = np.eye(3)[None] - v[:, :, None] * v[:, None, :]  # projections off each ray
+    P = _off_rays(v)
     A = sum_rows(point, P, num_points) + 1e-9 * np.eye(3)
     b = sum_rows(point, (P @ C[cam][:, :, None])[:, :, 0], num_points)
     X = np.linalg.solve(A, b[:, :, None])[:, :, 0]
@@ -299,7 +305,7 @@ def _centre_from_points(v: np.ndarray, X: np.ndarray) -> np.ndarray:
     """The centre whose rays `v` pass nearest the points `X` in angle: least squares of the distances off the
     rays, each weighted by 1 / its distance squared, in 5 rounds of Cauchy weights (a wrong track goes); a point
     behind the camera counts as missed by a radian."""
-    off = np.eye(3)[None] - v[:, :, None] * v[:, None, :]  # projections off each ray
+    off = _off_rays(v)
     w = np.ones(len(v))
     for _ in range(5):
         try:
