@@ -140,18 +140,6 @@ def global_positions(model: Reconstruction, R: np.ndarray, solved: np.ndarray, t
     return PositioningResult(centers, placed, len(pts), len(v), residual)
 
 
-def _cost(r: np.ndarray, loss: str = "huber") -> tuple[float, np.ndarray]:
-    """Robust cost of the residual norms (Huber's, or Cauchy's) and the IRLS weights."""
-    sq = np.einsum("ki,ki->k", r, r)
-    if loss == "cauchy":
-        return float(_CAUCHY ** 2 * np.log1p(sq / _CAUCHY ** 2).sum()), 1.0 / (1.0 + sq / _CAUCHY ** 2)
-    norm = np.sqrt(sq)
-    big = norm > _HUBER
-    cost = np.where(big, 2 * _HUBER * norm - _HUBER ** 2, sq)
-    w = np.where(big, _HUBER / np.maximum(norm, 1e-300), 1.0)
-    return float(cost.sum()), w
-
-
 def solve_positions(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams: int, num_points: int,
                     seed: int = 0, iterations: int = _ITERATIONS,
                     initial: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -419,47 +407,29 @@ class _ReducedLayout:
 
 
 def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout, robust_iterations: int = _ROBUST_ITERATIONS):
-    """(centres, points, final cost) of the Levenberg-Marquardt described in `solve_positions`, from C, X, s."""
+    """(centres, points, final cost) of the Levenberg-Marquardt described in `solve_positions`, from C, X, s.
+    Each step's per-observation terms are summed in compiled passes (`_normal_terms`, `_reduce_points`,
+    `_point_steps`, `_robust_cost`) that keep no 3x3 block per observation: the work grows with the rays alone."""
     num_cams, num_points = len(C), len(X)
-    e = X[point] - C[cam]
     eye = np.eye(3)
     order, bounds, slot_of_cam, gauge = layout.order, layout.bounds, layout.slot_of_cam, layout.gauge
     # Huber's loss from the random start, then Cauchy's from there: a redescending loss lets the rays of a wrong
     # rotation go instead of pulling every point (a camera turned 10 deg: its rays' median miss 0.7 deg against
     # the others' 0.15 under Huber's alone)
-    for loss, steps, tolerance in (("huber", iterations, _HUBER_TOLERANCE), ("cauchy", robust_iterations,
-                                                                           _CAUCHY_TOLERANCE)):
+    for cauchy, steps, tolerance in ((False, iterations, _HUBER_TOLERANCE), (True, robust_iterations,
+                                                                          _CAUCHY_TOLERANCE)):
         lam = 1e-4
-        cost, w = _cost(v - s[:, None] * e, loss)
+        w = np.empty(len(v))
+        cost = _robust_cost(cam, point, v, C, X, s, cauchy, w)
         for _ in range(steps):
-            r = v - s[:, None] * e
-            # gradient of half the cost, g = J^T W r, with J_C = s I, J_X = -s I, J_s = -e; Gauss-Newton blocks
-            ws = w * s
-            g_C = sum_rows(cam, ws[:, None] * r, num_cams)
-            g_X = sum_rows(point, -ws[:, None] * r, num_points)
-            g_s = -w * np.einsum("ki,ki->k", e, r)
-            d = w * s * s
-            h_s = w * np.einsum("ki,ki->k", e, e) * (1 + lam) + 1e-12
-            # the scales eliminated: each couples (C, X) by b = w s [-e; e]
-            c = (ws ** 2 / h_s)[:, None, None] * (e[:, :, None] * e[:, None, :])
-            block = d[:, None, None] * eye - c
-            H_CC = sum_rows(cam, block, num_cams)
-            H_XX = sum_rows(point, block, num_points)
-            Q = -block  # the (C, X) block of each observation
-            shift = (ws * g_s / h_s)[:, None] * e
-            rhs_C = -sum_rows(cam, shift, num_cams) - g_C
-            rhs_X = sum_rows(point, shift, num_points) - g_X
-            H_CC[:, [0, 1, 2], [0, 1, 2]] *= 1 + lam
-            H_XX[:, [0, 1, 2], [0, 1, 2]] = H_XX[:, [0, 1, 2], [0, 1, 2]] * (1 + lam) + 1e-12
+            e, g_s, h_s, d, coef, H_CC, H_XX, rhs_C, rhs_X = _normal_terms(cam, point, v, C, X, s, w, lam,
+                                                                         num_cams, num_points)
             Xinv = np.linalg.inv(H_XX)
-            # the points eliminated: S = H_CC - sum over a point's observation pairs of Q_k Xinv Q_l^T
-            QX = Q @ Xinv[point]
             blocks = np.zeros((len(layout.block_col), 3, 3))
             blocks[slot_of_cam] = H_CC
-            _subtract_products(QX, Q, order, bounds, layout.slot_of_pair, blocks)
+            _reduce_points(cam, order, bounds, layout.slot_of_pair, e, d, coef, Xinv, rhs_X, blocks, rhs_C)
             blocks[gauge] = 0.0
             blocks[slot_of_cam[0]] = eye
-            rhs_C -= sum_rows(cam, (QX @ rhs_X[point][:, :, None])[:, :, 0], num_cams)
             rhs_C[0] = 0.0
             dC = _solve_reduced(bsr_matrix((blocks, layout.block_col, layout.indptr),
                                            shape=(3 * num_cams, 3 * num_cams)), rhs_C.ravel())
@@ -467,16 +437,14 @@ def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout, robust
                 lam *= 10
                 continue
             dC = dC.reshape(num_cams, 3)
-            dX = (Xinv @ (rhs_X - sum_rows(point, (Q.transpose(0, 2, 1) @ dC[cam][:, :, None])[:, :, 0],
-                                        num_points))[:, :, None])[:, :, 0]
-            ds = (-g_s - ws * np.einsum("ki,ki->k", e, dX[point] - dC[cam])) / h_s
+            dX, ds = _point_steps(cam, order, bounds, e, d, coef, Xinv, rhs_X, dC, g_s, h_s, w * s)
             C_new, X_new = C + dC, X + dX
             s_new = np.maximum(s + ds, _MIN_SCALE)
-            e_new = X_new[point] - C_new[cam]
-            cost_new, w_new = _cost(v - s_new[:, None] * e_new, loss)
+            w_new = np.empty(len(v))
+            cost_new = _robust_cost(cam, point, v, C_new, X_new, s_new, cauchy, w_new)
             if cost_new < cost:
                 converged = cost - cost_new < tolerance * cost
-                C, X, s, e, w, cost = C_new, X_new, s_new, e_new, w_new, cost_new
+                C, X, s, w, cost = C_new, X_new, s_new, w_new, cost_new
                 lam = max(lam / 3, 1e-9)
                 if converged:
                     break
@@ -556,20 +524,142 @@ def _pair_slots(cam, order, bounds, indptr, cols):  # pragma: no cover - compile
 
 
 @njit(cache=True)
-def _subtract_products(QX, Q, order, bounds, slot, blocks):  # pragma: no cover - compiled
-    """blocks[slot] -= QX[k] @ Q[l].T for every ordered pair (k, l) of observations of one point, in
-    `_pair_slots`'s order: the points' share of the reduced camera system, in one pass over the pairs."""
+def _robust_cost(cam, point, v, C, X, s, cauchy, w):  # pragma: no cover - compiled
+    """The robust cost of the residuals r_k = v_k - s_k (X_point - C_cam), Huber's or Cauchy's loss on |r_k|, and
+    each observation's IRLS weight written to `w`."""
+    cost = 0.0
+    for k in range(len(v)):
+        sq = 0.0
+        for i in range(3):
+            r = v[k, i] - s[k] * (X[point[k], i] - C[cam[k], i])
+            sq += r * r
+        if cauchy:
+            cost += _CAUCHY ** 2 * np.log1p(sq / _CAUCHY ** 2)
+            w[k] = 1.0 / (1.0 + sq / _CAUCHY ** 2)
+        else:
+            norm = np.sqrt(sq)
+            if norm > _HUBER:
+                cost += 2 * _HUBER * norm - _HUBER ** 2
+                w[k] = _HUBER / norm
+            else:
+                cost += sq
+                w[k] = 1.0
+    return cost
+
+
+@njit(cache=True)
+def _normal_terms(cam, point, v, C, X, s, w, lam, num_cams, num_points):  # pragma: no cover - compiled
+    """One LM step's weighted normal equations with each observation's scale eliminated, in one pass over the
+    observations. With e = X - C and r = v - s e, half the cost's gradient is g = J^T W r (J_C = s I, J_X = -s I,
+    J_s = -e); eliminating s (its damped Gauss-Newton term h_s) couples C and X by the block d I - coef e e^T,
+    d = w s^2, coef = (w s)^2 / h_s, which adds to both diagonal blocks and, negated, is their (C, X) block Q.
+    Returns e, g_s, h_s, d, coef per observation, the damped diagonal blocks H_CC and H_XX and the right-hand
+    sides rhs_C and rhs_X."""
+    k_all = len(v)
+    e = np.empty((k_all, 3))
+    g_s, h_s, d, coef = np.empty(k_all), np.empty(k_all), np.empty(k_all), np.empty(k_all)
+    H_CC, H_XX = np.zeros((num_cams, 3, 3)), np.zeros((num_points, 3, 3))
+    rhs_C, rhs_X = np.zeros((num_cams, 3)), np.zeros((num_points, 3))
+    r = np.empty(3)
+    for k in range(k_all):
+        a, p = cam[k], point[k]
+        ee = er = 0.0
+        for i in range(3):
+            e[k, i] = X[p, i] - C[a, i]
+            r[i] = v[k, i] - s[k] * e[k, i]
+            ee += e[k, i] * e[k, i]
+            er += e[k, i] * r[i]
+        ws = w[k] * s[k]
+        g_s[k] = -w[k] * er
+        d[k] = ws * s[k]
+        h_s[k] = w[k] * ee * (1 + lam) + 1e-12
+        coef[k] = ws * ws / h_s[k]
+        shift = ws * g_s[k] / h_s[k]
+        for i in range(3):
+            # rhs = -g with the scale's share moved over: -g_C - shift e, -g_X + shift e
+            rhs_C[a, i] -= ws * r[i] + shift * e[k, i]
+            rhs_X[p, i] += ws * r[i] + shift * e[k, i]
+            for j in range(3):
+                b = -coef[k] * e[k, i] * e[k, j]
+                if i == j:
+                    b += d[k]
+                H_CC[a, i, j] += b
+                H_XX[p, i, j] += b
+    for a in range(num_cams):
+        for i in range(3):
+            H_CC[a, i, i] *= 1 + lam
+    for p in range(num_points):
+        for i in range(3):
+            H_XX[p, i, i] = H_XX[p, i, i] * (1 + lam) + 1e-12
+    return e, g_s, h_s, d, coef, H_CC, H_XX, rhs_C, rhs_X
+
+
+@njit(cache=True)
+def _q_block(e, d, coef, k, out):  # pragma: no cover - compiled
+    """out = Q_k, observation k's (C, X) block coef e e^T - d I (symmetric)."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = coef[k] * e[k, i] * e[k, j]
+        out[i, i] -= d[k]
+
+
+@njit(cache=True)
+def _reduce_points(cam, order, bounds, slot, e, d, coef, Xinv, rhs_X, blocks, rhs_C):  # pragma: no cover - compiled
+    """The points eliminated from the normal equations: blocks[slot] -= Q_k Xinv_p Q_l for every ordered pair
+    (k, l) of observations of one point p, in `_pair_slots`'s order, and rhs_C[cam_k] -= Q_k Xinv_p rhs_X[p];
+    in one pass over the points, each point's products formed once."""
     q = 0
+    Q = np.empty((3, 3))
+    longest = 0
     for p in range(len(bounds) - 1):
+        longest = max(longest, bounds[p + 1] - bounds[p])
+    QX = np.empty((longest, 3, 3))
+    Qs = np.empty((longest, 3, 3))
+    for p in range(len(bounds) - 1):
+        n = bounds[p + 1] - bounds[p]
+        for a in range(n):
+            k = order[bounds[p] + a]
+            _q_block(e, d, coef, k, Q)
+            for i in range(3):
+                for j in range(3):
+                    Qs[a, i, j] = Q[i, j]
+                    QX[a, i, j] = Q[i, 0] * Xinv[p, 0, j] + Q[i, 1] * Xinv[p, 1, j] + Q[i, 2] * Xinv[p, 2, j]
+            for i in range(3):
+                rhs_C[cam[k], i] -= QX[a, i, 0] * rhs_X[p, 0] + QX[a, i, 1] * rhs_X[p, 1] + QX[a, i, 2] * rhs_X[p, 2]
+        for a in range(n):
+            for b in range(n):
+                t = slot[q]
+                q += 1
+                for i in range(3):
+                    for j in range(3):
+                        blocks[t, i, j] -= (QX[a, i, 0] * Qs[b, 0, j] + QX[a, i, 1] * Qs[b, 1, j]
+                                            + QX[a, i, 2] * Qs[b, 2, j])
+
+
+@njit(cache=True)
+def _point_steps(cam, order, bounds, e, d, coef, Xinv, rhs_X, dC, g_s, h_s, ws):  # pragma: no cover - compiled
+    """The points' and the scales' steps once the centres' step dC is known: dX_p = Xinv_p (rhs_X[p] - sum over
+    its observations of Q_k dC[cam_k]), ds_k = (-g_s - w s e . (dX - dC)) / h_s."""
+    dX = np.zeros((len(bounds) - 1, 3))
+    ds = np.empty(len(e))
+    Q = np.empty((3, 3))
+    b = np.empty(3)
+    for p in range(len(bounds) - 1):
+        b[:] = rhs_X[p]
         for a in range(bounds[p], bounds[p + 1]):
             k = order[a]
-            for bb in range(bounds[p], bounds[p + 1]):
-                ll, b = order[bb], slot[q]
-                q += 1
-                for r in range(3):
-                    for c in range(3):
-                        blocks[b, r, c] -= (QX[k, r, 0] * Q[ll, c, 0] + QX[k, r, 1] * Q[ll, c, 1]
-                                            + QX[k, r, 2] * Q[ll, c, 2])
+            _q_block(e, d, coef, k, Q)
+            for i in range(3):
+                b[i] -= Q[i, 0] * dC[cam[k], 0] + Q[i, 1] * dC[cam[k], 1] + Q[i, 2] * dC[cam[k], 2]
+        for i in range(3):
+            dX[p, i] = Xinv[p, i, 0] * b[0] + Xinv[p, i, 1] * b[1] + Xinv[p, i, 2] * b[2]
+        for a in range(bounds[p], bounds[p + 1]):
+            k = order[a]
+            step = 0.0
+            for i in range(3):
+                step += e[k, i] * (dX[p, i] - dC[cam[k], i])
+            ds[k] = (-g_s[k] - ws[k] * step) / h_s[k]
+    return dX, ds
 
 
 def outlier_cameras(result: PositioningResult) -> dict[int, str]:
