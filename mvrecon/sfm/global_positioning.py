@@ -89,10 +89,11 @@ def global_positions(model: Reconstruction, R: np.ndarray, solved: np.ndarray, t
     """Camera centres of the `solved` images (rotations R, cam_from_world) from their tracks (see the module
     docstring), the model's current calibration turning keypoints into rays. Images with too few observations
     are left out; the centres are up to a similarity. The problem is solved from a random start, from centres
-    placed in turn, and from the `initial` centres (n,3; NaN where unknown) when given, and the solution of
-    lowest cost is kept (`solve_positions`): from random centres a street of cameras moving straight ahead can
-    stop in a wrong minimum, which centres from the pairs' directions start clear of (a street seen far ahead)
-    and centres placed in turn too (a walk round a block, whose streets the pairs' directions leave short)."""
+    placed in turn, and, where those leave a camera unplaced, from the `initial` centres (n,3; NaN where
+    unknown) when given, and the solution of lowest cost is kept (`solve_positions`): from random centres a
+    street of cameras moving straight ahead can stop in a wrong minimum, which centres placed in turn start
+    clear of (a walk round a block, whose streets the pairs' directions leave short) and, where those stop
+    short, centres from the pairs' directions (a street seen far ahead)."""
     n = len(R)
     centers = np.full((n, 3), np.nan)
     chosen = select_tracks(tracks, solved)
@@ -146,15 +147,19 @@ def solve_positions(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams:
     """(centres (num_cams,3), points (num_points,3)) minimising sum rho(|v_k - s_k (X_point[k] - C_cam[k])|)
     from a random start (uniform in [-1, 1]^3, scales 1), rho Huber's loss and then Cauchy's; camera 0 is held
     (the gauge), and the result is moved and scaled to centres of zero mean and unit RMS distance from it.
-    It is solved from the centres placed in turn (`centres_in_turn`) too, and from the `initial` centres
-    (num_cams,3; NaN where unknown) when given (`_start`), and the solution of the lowest final cost is
-    returned; a start already near the best solution (`_near`) is not solved from: it would end there."""
+    It is solved from the centres placed in turn (`centres_in_turn`) too and, where those leave a camera
+    unplaced, from the `initial` centres (num_cams,3; NaN where unknown) when given (`_start`); the solution of
+    the lowest final cost is returned. A start already near the best solution (`_near`) is not solved from: it
+    would end there. Why the `initial` start only then: where every camera was placed in turn it picks a
+    worse solution or the same at the cost of one more solve (docs/benchmarks.md, "Global positioning: the
+    pairs' start only where cameras are left unplaced")."""
     rng = np.random.default_rng(seed)
     C = rng.uniform(-1, 1, (num_cams, 3))
     X = rng.uniform(-1, 1, (num_points, 3))
     layout = _ReducedLayout.of(cam, point, num_cams, num_points)
     best = _minimise(cam, point, v, C, X, np.ones(len(v)), iterations, layout)
-    for start in (centres_in_turn(cam, point, v, num_cams, num_points), initial):
+    in_turn = centres_in_turn(cam, point, v, num_cams, num_points)
+    for start in (in_turn, None if np.isfinite(in_turn).all() else initial):
         if start is None or np.isfinite(start).all(axis=1).sum() < 2 or _near(start, best[0]):
             continue
         other = _minimise(cam, point, v, *_start(cam, point, v, start, C, num_points), iterations, layout)

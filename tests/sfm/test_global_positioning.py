@@ -1,6 +1,6 @@
 """Global positioning on exact synthetic tracks: centres up to a similarity, collinear cameras that pair
-directions cannot place, a walk round a block that random centres cannot start, and a flipped camera found by
-its rays."""
+directions cannot place, a walk round a block that random centres cannot start, the starts solved from, and a
+flipped camera found by its rays."""
 
 import numpy as np
 import pytest
@@ -156,6 +156,24 @@ def test_a_walk_round_a_block_is_placed_from_cameras_placed_in_turn():
     found, _ = solve_positions(cam, point, v, n, m)
     assert similarity_error(random_start, C) > 0.1
     assert np.isfinite(in_turn).all() and similarity_error(in_turn, C) < 0.05
+    assert similarity_error(found, C) < 0.01
+
+
+def test_the_pairs_start_is_solved_from_only_where_placing_in_turn_leaves_a_camera_out(monkeypatch):
+    """Round the block every camera is placed in turn, so the `initial` centres (here a wrong start far from any
+    solution) are not solved from: two solves, random and in turn, and the same centres as without them."""
+    rng = np.random.default_rng(0)
+    C, X, cam, point = block_walk(rng)
+    v = rays(C, X, cam, point) + rng.normal(scale=np.radians(0.1), size=(len(cam), 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    n, m = len(C), len(X)
+    solves = []  # the whole problem's solves (placing in turn adjusts its placed cameras without Cauchy's loss)
+    minimise = global_positioning._minimise
+    monkeypatch.setattr(global_positioning, "_minimise", lambda *a, **k: solves.append(
+        k.get("robust_iterations", global_positioning._ROBUST_ITERATIONS)) or minimise(*a, **k))
+    wrong = np.random.default_rng(5).uniform(-1, 1, (n, 3))
+    found, _ = solve_positions(cam, point, v, n, m, initial=wrong)
+    assert solves.count(global_positioning._ROBUST_ITERATIONS) == 2
     assert similarity_error(found, C) < 0.01
 
 
