@@ -414,7 +414,7 @@ class _ReducedLayout:
 def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout, robust_iterations: int = _ROBUST_ITERATIONS):
     """(centres, points, final cost) of the Levenberg-Marquardt described in `solve_positions`, from C, X, s.
     Each step's per-observation terms are summed in compiled passes (`_normal_terms`, `_reduce_points`,
-    `_point_steps`, `_robust_cost`) that keep no 3x3 block per observation: the work grows with the rays alone."""
+    `_point_steps`, `_robust_cost`), which keep no 3x3 block per observation."""
     num_cams, num_points = len(C), len(X)
     eye = np.eye(3)
     order, bounds, slot_of_cam, gauge = layout.order, layout.bounds, layout.slot_of_cam, layout.gauge

@@ -140,13 +140,18 @@ def block_walk(rng, n=80, half=(20.0, 12.0), street=5.0, reach=15.0, fov_deg=35.
     return C, X[used], cam, point
 
 
-def test_a_walk_round_a_block_is_placed_from_cameras_placed_in_turn():
-    """80 cameras walking round a block, looking ahead, rays 0.1 deg noisy: from random centres the solver stops
-    in a wrong minimum; from the centres placed in turn it finds the loop."""
+def noisy_block_walk():
+    """`block_walk`'s cameras and points (seed 0) with its rays 0.1 deg noisy: (centres, points, cam, point, v)."""
     rng = np.random.default_rng(0)
     C, X, cam, point = block_walk(rng)
     v = rays(C, X, cam, point) + rng.normal(scale=np.radians(0.1), size=(len(cam), 3))
-    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    return C, X, cam, point, v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def test_a_walk_round_a_block_is_placed_from_cameras_placed_in_turn():
+    """80 cameras walking round a block, looking ahead, rays 0.1 deg noisy: from random centres the solver stops
+    in a wrong minimum; from the centres placed in turn it finds the loop."""
+    C, X, cam, point, v = noisy_block_walk()
     n, m = len(C), len(X)
     in_turn = global_positioning.centres_in_turn(cam, point, v, n, m)
     start = np.random.default_rng(0)
@@ -161,11 +166,8 @@ def test_a_walk_round_a_block_is_placed_from_cameras_placed_in_turn():
 
 def test_the_pairs_start_is_solved_from_only_where_placing_in_turn_leaves_a_camera_out(monkeypatch):
     """Round the block every camera is placed in turn, so the `initial` centres (here a wrong start far from any
-    solution) are not solved from: two solves, random and in turn, and the same centres as without them."""
-    rng = np.random.default_rng(0)
-    C, X, cam, point = block_walk(rng)
-    v = rays(C, X, cam, point) + rng.normal(scale=np.radians(0.1), size=(len(cam), 3))
-    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    solution) are not solved from: two solves, random and in turn, and the centres within 1% of the truth."""
+    C, X, cam, point, v = noisy_block_walk()
     n, m = len(C), len(X)
     solves = []  # the whole problem's solves (placing in turn adjusts its placed cameras without Cauchy's loss)
     minimise = global_positioning._minimise
