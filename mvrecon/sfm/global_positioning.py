@@ -424,8 +424,7 @@ def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout, robust
     for cauchy, steps, tolerance in ((False, iterations, _HUBER_TOLERANCE), (True, robust_iterations,
                                                                           _CAUCHY_TOLERANCE)):
         lam = 1e-4
-        w = np.empty(len(v))
-        cost = _robust_cost(cam, point, v, C, X, s, cauchy, w)
+        cost, w = _robust_cost(cam, point, v, C, X, s, cauchy)
         for _ in range(steps):
             e, g_s, h_s, d, coef, H_CC, H_XX, rhs_C, rhs_X = _normal_terms(cam, point, v, C, X, s, w, lam,
                                                                          num_cams, num_points)
@@ -445,8 +444,7 @@ def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout, robust
             dX, ds = _point_steps(cam, order, bounds, e, d, coef, Xinv, rhs_X, dC, g_s, h_s, w * s)
             C_new, X_new = C + dC, X + dX
             s_new = np.maximum(s + ds, _MIN_SCALE)
-            w_new = np.empty(len(v))
-            cost_new = _robust_cost(cam, point, v, C_new, X_new, s_new, cauchy, w_new)
+            cost_new, w_new = _robust_cost(cam, point, v, C_new, X_new, s_new, cauchy)
             if cost_new < cost:
                 converged = cost - cost_new < tolerance * cost
                 C, X, s, w, cost = C_new, X_new, s_new, w_new, cost_new
@@ -529,10 +527,11 @@ def _pair_slots(cam, order, bounds, indptr, cols):  # pragma: no cover - compile
 
 
 @njit(cache=True)
-def _robust_cost(cam, point, v, C, X, s, cauchy, w):  # pragma: no cover - compiled
-    """The robust cost of the residuals r_k = v_k - s_k (X_point - C_cam), Huber's or Cauchy's loss on |r_k|, and
-    each observation's IRLS weight written to `w`."""
+def _robust_cost(cam, point, v, C, X, s, cauchy):  # pragma: no cover - compiled
+    """(cost, weights): the robust cost of the residuals r_k = v_k - s_k (X_point - C_cam), Huber's or Cauchy's
+    loss on |r_k|, and each observation's IRLS weight."""
     cost = 0.0
+    w = np.empty(len(v))
     for k in range(len(v)):
         sq = 0.0
         for i in range(3):
@@ -549,7 +548,7 @@ def _robust_cost(cam, point, v, C, X, s, cauchy, w):  # pragma: no cover - compi
             else:
                 cost += sq
                 w[k] = 1.0
-    return cost
+    return cost, w
 
 
 @njit(cache=True)
@@ -614,7 +613,6 @@ def _reduce_points(cam, order, bounds, slot, e, d, coef, Xinv, rhs_X, blocks, rh
     (k, l) of observations of one point p, in `_pair_slots`'s order, and rhs_C[cam_k] -= Q_k Xinv_p rhs_X[p];
     in one pass over the points, each point's products formed once."""
     q = 0
-    Q = np.empty((3, 3))
     longest = 0
     for p in range(len(bounds) - 1):
         longest = max(longest, bounds[p + 1] - bounds[p])
@@ -624,11 +622,11 @@ def _reduce_points(cam, order, bounds, slot, e, d, coef, Xinv, rhs_X, blocks, rh
         n = bounds[p + 1] - bounds[p]
         for a in range(n):
             k = order[bounds[p] + a]
-            _q_block(e, d, coef, k, Q)
+            _q_block(e, d, coef, k, Qs[a])
             for i in range(3):
                 for j in range(3):
-                    Qs[a, i, j] = Q[i, j]
-                    QX[a, i, j] = Q[i, 0] * Xinv[p, 0, j] + Q[i, 1] * Xinv[p, 1, j] + Q[i, 2] * Xinv[p, 2, j]
+                    QX[a, i, j] = (Qs[a, i, 0] * Xinv[p, 0, j] + Qs[a, i, 1] * Xinv[p, 1, j]
+                                   + Qs[a, i, 2] * Xinv[p, 2, j])
             for i in range(3):
                 rhs_C[cam[k], i] -= QX[a, i, 0] * rhs_X[p, 0] + QX[a, i, 1] * rhs_X[p, 1] + QX[a, i, 2] * rhs_X[p, 2]
         for a in range(n):
