@@ -8,8 +8,9 @@ GLOMAP's pipeline on GTSAM and the incremental mapper's own parts:
    pairs whose rotation disagrees by more than 5 degrees are outliers; the largest consistent component is a
    model.
 3. Camera centres: global positioning (global_positioning.py, GLOMAP's): centres and points at once from the
-   tracks' rays turned into the world frame, from a random start and from translation averaging's centres, the
-   solution of lower cost kept. The coarse models that calibrate a guessed focal take theirs from
+   tracks' rays turned into the world frame, from a random start, from centres placed in turn and, where those
+   leave a camera out, from translation averaging's centres (only then computed), the solution of lowest cost
+   kept. The coarse models that calibrate a guessed focal take theirs from
    translation averaging (translation_averaging.py: the pairs' directions, `gtsam.MFAS`,
    `gtsam.TranslationRecovery`) instead: tracks fit a focal far off as well as the right one (on templeSparseRing,
    768 px for the true 1520, a coarse model from tracks moved the focal by 1%, one from pairs to 1100). Measured
@@ -357,18 +358,30 @@ class GlobalMapper:
                                            f"cameras from {_MIN_VIEWS} or more images linked by pairs, and one pair "
                                            "is only a two-view model; map it with --mapper incremental")
             return None, component
-        # translation averaging: the coarse models' centres, and one of global positioning's starts
         tij = np.array(with_baseline, dtype=np.int64)
         d = -np.einsum("mji,mj->mi", rot.R[tij[:, 1]], np.array([graph.edges[k].t for k in with_baseline]))
-        pos = average_translations(n, tij, d, _MAX_DIRECTION_ERROR_DEG, cfg.seed)
-        start = self._clock("translation_averaging", start)
+
+        def pairs_centres():
+            """Translation averaging: the coarse models' centres, and global positioning's start where placing
+            in turn leaves a camera out (only then computed)."""
+            begin = time.perf_counter()
+            out = average_translations(n, tij, d, _MAX_DIRECTION_ERROR_DEG, cfg.seed)
+            self._clock("translation_averaging", begin)
+            return out
+
         if not coarse and POSITIONS == "tracks":
+            averaged = self.seconds.get("translation_averaging", 0.0)
             pos = global_positions(self._new_model(cameras), rot.R, component, self.tracks, cfg.seed,
-                                   initial=pos.centers)
-            start = self._clock("global_positioning", start)
+                                   initial=lambda: pairs_centres().centers)
+            # less the translation averaging it asked for, which is on its own clock
+            start = self._clock("global_positioning",
+                                start + self.seconds.get("translation_averaging", 0.0) - averaged)
             for i, why in outlier_cameras(pos).items():
                 pos.solved[i] = False
                 self.reasons[i] = why
+        else:
+            pos = pairs_centres()
+            start = time.perf_counter()
         unplaced = ("its pairs with a baseline do not link it to the model's other cameras (too few, too short, or "
                     "their translation directions are outliers)" if coarse or POSITIONS == "pairs" else
                     "too few observations of tracks it shares with the model's other cameras")

@@ -16,6 +16,7 @@ templeSparseRing (16 views, 24 deg field of view): AUC@5 0.156 from pair directi
 (docs/global-mapper.md).
 """
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -85,12 +86,12 @@ def select_tracks(tracks: Tracks, usable: np.ndarray, per_image: int = _TRACKS_P
 
 
 def global_positions(model: Reconstruction, R: np.ndarray, solved: np.ndarray, tracks: Tracks,
-                     seed: int = 0, initial: np.ndarray | None = None) -> PositioningResult:
+                     seed: int = 0, initial: Callable[[], np.ndarray] | None = None) -> PositioningResult:
     """Camera centres of the `solved` images (rotations R, cam_from_world) from their tracks (see the module
     docstring), the model's current calibration turning keypoints into rays. Images with too few observations
     are left out; the centres are up to a similarity. The problem is solved from a random start, from centres
-    placed in turn, and, where those leave a camera unplaced, from the `initial` centres (n,3; NaN where
-    unknown) when given, and the solution of lowest cost is kept (`solve_positions`): from random centres a
+    placed in turn, and, where those leave a camera unplaced, from the centres `initial()` gives (n,3; NaN
+    where unknown) when given, and the solution of lowest cost is kept (`solve_positions`): from random centres a
     street of cameras moving straight ahead can stop in a wrong minimum, which centres placed in turn start
     clear of (a walk round a block, whose streets the pairs' directions leave short) and, where those stop
     short, centres from the pairs' directions (a street seen far ahead)."""
@@ -127,7 +128,7 @@ def global_positions(model: Reconstruction, R: np.ndarray, solved: np.ndarray, t
     rays = np.c_[x, np.ones(len(x))]
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
     v = np.einsum("kji,kj->ki", R[image], rays)  # world frame: R^T ray
-    start = None if initial is None else initial[cams]
+    start = None if initial is None else lambda: initial()[cams]
     C, X = solve_positions(local[image], point, v, len(cams), len(pts), seed, initial=start)
     centers[cams] = C
     ray = X[point] - C[local[image]]
@@ -143,13 +144,14 @@ def global_positions(model: Reconstruction, R: np.ndarray, solved: np.ndarray, t
 
 def solve_positions(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams: int, num_points: int,
                     seed: int = 0, iterations: int = _ITERATIONS,
-                    initial: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    initial: Callable[[], np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(centres (num_cams,3), points (num_points,3)) minimising sum rho(|v_k - s_k (X_point[k] - C_cam[k])|)
     from a random start (uniform in [-1, 1]^3, scales 1), rho Huber's loss and then Cauchy's; camera 0 is held
     (the gauge), and the result is moved and scaled to centres of zero mean and unit RMS distance from it.
     It is solved from the centres placed in turn (`centres_in_turn`) too and, where those leave a camera
-    unplaced, from the `initial` centres (num_cams,3; NaN where unknown) when given (`_start`); the solution of
-    the lowest final cost is returned. A start already near the best solution (`_near`) is not solved from: it
+    unplaced, from the centres `initial()` gives (num_cams,3; NaN where unknown) when given (`_start`), asked
+    for only then (the mapper's come from translation averaging); the solution of the lowest final cost is
+    returned. A start already near the best solution (`_near`) is not solved from: it
     would end there. Why the `initial` start only then: where every camera is placed in turn, the mapper
     suite's models are better without it on the whole over three seeds, and a solve is saved (docs/benchmarks.md,
     "Global positioning: compiled steps, and the pairs' start only where cameras are left unplaced")."""
@@ -159,7 +161,7 @@ def solve_positions(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams:
     layout = _ReducedLayout.of(cam, point, num_cams, num_points)
     best = _minimise(cam, point, v, C, X, np.ones(len(v)), iterations, layout)
     in_turn = centres_in_turn(cam, point, v, num_cams, num_points)
-    for start in (in_turn, None if np.isfinite(in_turn).all() else initial):
+    for start in (in_turn, None if np.isfinite(in_turn).all() or initial is None else initial()):
         if start is None or np.isfinite(start).all(axis=1).sum() < 2 or _near(start, best[0]):
             continue
         other = _minimise(cam, point, v, *_start(cam, point, v, start, C, num_points), iterations, layout)
