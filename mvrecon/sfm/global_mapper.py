@@ -435,9 +435,16 @@ class GlobalMapper:
         were already fixed by the subset's 300 points per image (cost 1.12e4 -> 1.10e4 in its first three). From
         final_ba_subset_min_images images (MapperConfig, shared with the incremental mapper) that BA over every
         point is left out: the subset BA to convergence is the last, its points re-fitted, as at the incremental
-        mapper's end; a BA over every point holds a dense block per point over the cameras that see it."""
+        mapper's end; a BA over every point holds a dense block per point over the cameras that see it.
+        With position priors, the first BA and the final rounds' hold the centres to them (georef.py). The first
+        takes out the bend of the whole block that the view graph's pairs, estimated without the lens's
+        distortion, leave: in a survey of parallel views it trades off against the shared focal and distortion,
+        and the images alone take out a little of it per LM iteration. The BAs between go by the images alone:
+        the priors' noise held throughout costs accuracy (docs/benchmarks.md, "Global mapper: position priors in
+        the first bundle adjustment")."""
         cfg = self.config
         large = int(m.registered.sum()) >= _LARGE_MODEL
+        m.priors = self.priors  # the first BA and the final rounds' hold the centres to them (`_bundle`)
         for k, gate in enumerate([*_GATES_PX, cfg.max_reproj_error_px]):
             loose = self._gated(gate)
             if k == 0:
@@ -446,6 +453,7 @@ class GlobalMapper:
                 retriangulate(m, self.tracks, loose, cfg.seed)
             self._note_lost(m)
             self._bundle(m, intrinsics=True, subset=True, early=large and k == 0)
+            m.priors = None
             self._filter(m, loose)
         dropped = self._drop_unsupported(m)
         added = self._register_left(m, pool)
@@ -462,13 +470,11 @@ class GlobalMapper:
                 self._filter(m, cfg)
             out[dropped] = True
             added = self._register_left(m, pool & ~out) if added else []
-        m.priors = self.priors  # the final BAs hold the centres to their position priors
+        m.priors = self.priors
         final_subset = 0 < cfg.final_ba_subset_min_images <= int(m.registered.sum())
 
-        def final_round(first: bool) -> None:
+        def final_round() -> None:
             retriangulate(m, self.tracks, cfg, cfg.seed)
-            if first:  # once in the priors' frame, as the incremental mapper's (georef.py; no-op without priors)
-                georeference(m, cfg.seed)
             if large or final_subset:
                 self._bundle(m, intrinsics=True, subset=True)
             if not final_subset:
@@ -476,7 +482,7 @@ class GlobalMapper:
             self._filter(m, cfg)
 
         for k in range(_FINAL_ROUNDS):
-            changed, alive = m.observations_changed(lambda: final_round(k == 0))
+            changed, alive = m.observations_changed(final_round)
             log.debug("global model: final round %d changed %d of %d observations", k + 1, changed, alive)
             if changed < _FINAL_MIN_CHANGE * max(alive, 1):
                 break
@@ -526,8 +532,11 @@ class GlobalMapper:
         100-image survey) takes ba_points_per_image_early points per image as well, to convergence.
         `iterations` caps the LM iterations (default the config's global_ba_iterations). Except in the coarse
         models, only the points seen by three images or more are optimised (`ba_points.long_points`), the others
-        re-fitted to the poses after. Its Huber width is the config's global_huber_px."""
+        re-fitted to the poses after. Its Huber width is the config's global_huber_px. A model whose
+        `priors` are set is moved into their frame first, once they allow it (georef.py), and the BA holds each
+        centre to its prior: `_refine` sets them for its first BA and its final rounds'."""
         cfg = replace(self.config, huber_px=self.config.global_huber_px)
+        georeference(m, cfg.seed)  # into the priors' frame once they allow it (georef.py; no-op without priors)
         n = int(m.registered.sum())
         focal = intrinsics and cfg.refine_intrinsics and n >= cfg.focal_min_images
         distortion = distortion and n >= cfg.distortion_min_images
