@@ -453,7 +453,7 @@ class GlobalMapper:
                 retriangulate(m, self.tracks, loose, cfg.seed)
             self._note_lost(m)
             self._bundle(m, intrinsics=True, subset=True, early=large and k == 0)
-            m.priors = None
+            m.priors = None  # the next BAs go by the images alone
             self._filter(m, loose)
         dropped = self._drop_unsupported(m)
         added = self._register_left(m, pool)
@@ -470,7 +470,7 @@ class GlobalMapper:
                 self._filter(m, cfg)
             out[dropped] = True
             added = self._register_left(m, pool & ~out) if added else []
-        m.priors = self.priors
+        m.priors = self.priors  # held again from the final rounds on
         final_subset = 0 < cfg.final_ba_subset_min_images <= int(m.registered.sum())
 
         def final_round() -> None:
