@@ -440,7 +440,7 @@ class GlobalMapper:
         takes out the bend of the whole block that the view graph's pairs, estimated without the lens's
         distortion, leave: in a survey of parallel views it trades off against the shared focal and distortion,
         and the images alone take out a little of it per LM iteration. The BAs between go by the images alone:
-        the priors' noise held throughout costs accuracy (docs/benchmarks.md, "Global mapper: position priors in
+        the priors held throughout cost accuracy (docs/benchmarks.md, "Global mapper: position priors in
         the first bundle adjustment")."""
         cfg = self.config
         large = int(m.registered.sum()) >= _LARGE_MODEL
