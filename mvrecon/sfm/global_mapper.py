@@ -363,25 +363,23 @@ class GlobalMapper:
 
         def pairs_centres():
             """Translation averaging: the coarse models' centres, and global positioning's start where placing
-            in turn leaves a camera out (only then computed)."""
+            in turn leaves a camera out (only then computed). Its time is on its own clock, not on the step's
+            that asked for it."""
+            nonlocal start
             begin = time.perf_counter()
             out = average_translations(n, tij, d, _MAX_DIRECTION_ERROR_DEG, cfg.seed)
-            self._clock("translation_averaging", begin)
+            start += self._clock("translation_averaging", begin) - begin
             return out
 
         if not coarse and POSITIONS == "tracks":
-            averaged = self.seconds.get("translation_averaging", 0.0)
             pos = global_positions(self._new_model(cameras), rot.R, component, self.tracks, cfg.seed,
                                    initial=lambda: pairs_centres().centers)
-            # less the translation averaging it asked for, which is on its own clock
-            start = self._clock("global_positioning",
-                                start + self.seconds.get("translation_averaging", 0.0) - averaged)
+            start = self._clock("global_positioning", start)
             for i, why in outlier_cameras(pos).items():
                 pos.solved[i] = False
                 self.reasons[i] = why
         else:
             pos = pairs_centres()
-            start = time.perf_counter()
         unplaced = ("its pairs with a baseline do not link it to the model's other cameras (too few, too short, or "
                     "their translation directions are outliers)" if coarse or POSITIONS == "pairs" else
                     "too few observations of tracks it shares with the model's other cameras")
