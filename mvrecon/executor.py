@@ -25,11 +25,13 @@ from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from multiprocessing import forkserver
+from typing import TypeVar
 
 from .memory import PeakSampler, available_mb, main_peak_mb
 from .startup import keep_freed_memory
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 _SINGLE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 _set_here: set[str] = set()  # the variables one_blas_thread added to this process's environment
@@ -105,6 +107,30 @@ def one_blas_thread() -> None:
     if "OPENBLAS_NUM_THREADS" not in os.environ:
         os.environ["OPENBLAS_NUM_THREADS"] = "1"
         _set_here.add("OPENBLAS_NUM_THREADS")
+
+
+def in_background(func: Callable[[], T]) -> Callable[[], T]:
+    """`func()` started now in a thread of its own; the returned callable waits for its result, or raises what it
+    raised. The thread is a daemon, so that Ctrl-C ends the process without waiting for it. Worth it where `func`
+    spends its time in code that lets go of the GIL (compiled loops, LAPACK) while the caller works beside it."""
+    out: list = []
+
+    def run() -> None:
+        try:
+            out.append((True, func()))
+        except BaseException as exc:  # handed to the caller, who decides
+            out.append((False, exc))
+
+    thread = threading.Thread(target=run, name=getattr(func, "__name__", "background"), daemon=True)
+    thread.start()
+
+    def result() -> T:
+        thread.join()
+        ok, value = out[0]
+        if not ok:
+            raise value
+        return value
+    return result
 
 
 def user_environment() -> dict[str, str]:

@@ -116,7 +116,7 @@ class GlobalMapper:
                  choose_lens: bool = False):
         self.config = config
         self.choose_lens = choose_lens  # the cameras' models were left open: sfm/lens.py may change them
-        self.workers = workers  # processes of the view graph's relative poses (view_graph.relative_poses)
+        self.workers = workers  # processes of the view graph's relative poses, threads of global positioning's starts
         self.image_ids, self.names, self.camera_of, self.cameras = images_and_cameras(corr)
         ids = self.image_ids.tolist()
         self.keypoints = [np.asarray(corr.keypoints.get(i, np.zeros((0, 2))), float) for i in ids]
@@ -373,7 +373,7 @@ class GlobalMapper:
 
         if not coarse and POSITIONS == "tracks":
             pos = global_positions(self._new_model(cameras), rot.R, component, self.tracks, cfg.seed,
-                                   initial=lambda: pairs_centres().centers)
+                                   initial=lambda: pairs_centres().centers, workers=self.workers)
             start = self._clock("global_positioning", start)
             for i, why in outlier_cameras(pos).items():
                 pos.solved[i] = False

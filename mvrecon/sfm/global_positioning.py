@@ -18,6 +18,7 @@ templeSparseRing (16 views, 24 deg field of view): AUC@5 0.156 from pair directi
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 from numba import njit
@@ -25,6 +26,7 @@ from scipy.linalg import cho_factor, cho_solve
 from scipy.sparse import bsr_matrix, coo_matrix, triu
 from scipy.sparse.linalg import splu
 
+from ..executor import in_background
 from .model import Reconstruction, sum_rows
 from .tracks import Tracks
 
@@ -86,7 +88,8 @@ def select_tracks(tracks: Tracks, usable: np.ndarray, per_image: int = _TRACKS_P
 
 
 def global_positions(model: Reconstruction, R: np.ndarray, solved: np.ndarray, tracks: Tracks,
-                     seed: int = 0, initial: Callable[[], np.ndarray] | None = None) -> PositioningResult:
+                     seed: int = 0, initial: Callable[[], np.ndarray] | None = None,
+                     workers: int = 1) -> PositioningResult:
     """Camera centres of the `solved` images (rotations R, cam_from_world) from their tracks (see the module
     docstring), the model's current calibration turning keypoints into rays. Images with too few observations
     are left out; the centres are up to a similarity. The problem is solved from a random start, from centres
@@ -94,7 +97,8 @@ def global_positions(model: Reconstruction, R: np.ndarray, solved: np.ndarray, t
     where unknown) when given, and the solution of lowest cost is kept (`solve_positions`): from random centres a
     street of cameras moving straight ahead can stop in a wrong minimum, which centres placed in turn start
     clear of (a walk round a block, whose streets the pairs' directions leave short) and, where those stop
-    short, centres from the pairs' directions (a street seen far ahead)."""
+    short, centres from the pairs' directions (a street seen far ahead). With `workers` > 1 two starts are
+    solved at once (`solve_positions`)."""
     n = len(R)
     centers = np.full((n, 3), np.nan)
     chosen = select_tracks(tracks, solved)
@@ -129,7 +133,7 @@ def global_positions(model: Reconstruction, R: np.ndarray, solved: np.ndarray, t
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
     v = np.einsum("kji,kj->ki", R[image], rays)  # world frame: R^T ray
     start = None if initial is None else lambda: initial()[cams]
-    C, X = solve_positions(local[image], point, v, len(cams), len(pts), seed, initial=start)
+    C, X = solve_positions(local[image], point, v, len(cams), len(pts), seed, initial=start, workers=workers)
     centers[cams] = C
     ray = X[point] - C[local[image]]
     cos = np.einsum("ki,ki->k", ray, v) / np.maximum(np.linalg.norm(ray, axis=1), 1e-300)
@@ -144,7 +148,8 @@ def global_positions(model: Reconstruction, R: np.ndarray, solved: np.ndarray, t
 
 def solve_positions(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams: int, num_points: int,
                     seed: int = 0, iterations: int = _ITERATIONS,
-                    initial: Callable[[], np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    initial: Callable[[], np.ndarray] | None = None,
+                    workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """(centres (num_cams,3), points (num_points,3)) minimising sum rho(|v_k - s_k (X_point[k] - C_cam[k])|)
     from a random start (uniform in [-1, 1]^3, scales 1), rho Huber's loss and then Cauchy's; camera 0 is held
     (the gauge), and the result is moved and scaled to centres of zero mean and unit RMS distance from it.
@@ -154,17 +159,31 @@ def solve_positions(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams:
     returned. A start already near the best solution (`_near`) is not solved from: it
     would end there. Why the `initial` start only then: where every camera is placed in turn, the mapper
     suite's models are better without it on the whole over three seeds, and a solve is saved (docs/benchmarks.md,
-    "Global positioning: compiled steps, and the pairs' start only where cameras are left unplaced")."""
+    "Global positioning: compiled steps, and the pairs' start only where cameras are left unplaced").
+    With `workers` > 1 the random start is solved in a second thread while the cameras are placed in turn and
+    solved from there (the compiled steps and LAPACK run without the GIL), and that solution is dropped where the
+    start proves near the random one's: the same result as one after the other, in about the time of the longer
+    of the two (docs/benchmarks.md, "Global positioning: two starts at once")."""
     rng = np.random.default_rng(seed)
     C = rng.uniform(-1, 1, (num_cams, 3))
     X = rng.uniform(-1, 1, (num_points, 3))
     layout = _ReducedLayout.of(cam, point, num_cams, num_points)
-    best = _minimise(cam, point, v, C, X, np.ones(len(v)), iterations, layout)
+
+    def solve_from(start):
+        return _minimise(cam, point, v, *_start(cam, point, v, start, C, num_points), iterations, layout)
+
+    def usable(start):
+        return start is not None and np.isfinite(start).all(axis=1).sum() >= 2
+
+    solve_random = partial(_minimise, cam, point, v, C, X, np.ones(len(v)), iterations, layout)
+    random = in_background(solve_random) if workers > 1 else None
     in_turn = centres_in_turn(cam, point, v, num_cams, num_points)
-    for start in (in_turn, None if np.isfinite(in_turn).all() or initial is None else initial()):
-        if start is None or np.isfinite(start).all(axis=1).sum() < 2 or _near(start, best[0]):
+    from_turn = solve_from(in_turn) if random is not None and usable(in_turn) else None
+    best = solve_random() if random is None else random()
+    for start in (in_turn, None if usable(in_turn) and np.isfinite(in_turn).all() or initial is None else initial()):
+        if not usable(start) or _near(start, best[0]):
             continue
-        other = _minimise(cam, point, v, *_start(cam, point, v, start, C, num_points), iterations, layout)
+        other = from_turn if start is in_turn and from_turn is not None else solve_from(start)
         if other[2] < best[2]:
             best = other
     C, X, _ = best
@@ -331,7 +350,7 @@ def _adjust_placed(cam, point, v, placed, C, num_points) -> None:
     C[cams] = _minimise(local[c], p, rays, *start, _TURN_STEPS, layout, robust_iterations=0)[0]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _triangulate(points, by_point, bounds, cam, v, placed, C, X, cos_max):  # pragma: no cover - compiled
     """X[p] for each of `points` not yet triangulated whose rays from placed cameras include two at an angle
     whose cosine is at most `cos_max`: the point nearest those rays (least squares), the ray it misses most left
@@ -528,7 +547,7 @@ def _pair_slots(cam, order, bounds, indptr, cols):  # pragma: no cover - compile
     return slots
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _robust_cost(cam, point, v, C, X, s, cauchy):  # pragma: no cover - compiled
     """(cost, weights): the robust cost of the residuals r_k = v_k - s_k (X_point - C_cam), Huber's or Cauchy's
     loss on |r_k|, and each observation's IRLS weight."""
@@ -553,7 +572,7 @@ def _robust_cost(cam, point, v, C, X, s, cauchy):  # pragma: no cover - compiled
     return cost, w
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _normal_terms(cam, point, v, C, X, s, w, lam, num_cams, num_points):  # pragma: no cover - compiled
     """One LM step's weighted normal equations with each observation's scale eliminated, in one pass over the
     observations. With e = X - C and r = v - s e, half the cost's gradient is g = J^T W r (J_C = s I, J_X = -s I,
@@ -600,7 +619,7 @@ def _normal_terms(cam, point, v, C, X, s, w, lam, num_cams, num_points):  # prag
     return e, g_s, h_s, d, coef, H_CC, H_XX, rhs_C, rhs_X
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _q_block(e, d, coef, k, out):  # pragma: no cover - compiled
     """out = Q_k, observation k's (C, X) block coef e e^T - d I (symmetric)."""
     for i in range(3):
@@ -609,7 +628,7 @@ def _q_block(e, d, coef, k, out):  # pragma: no cover - compiled
         out[i, i] -= d[k]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _reduce_points(cam, order, bounds, slot, e, d, coef, Xinv, rhs_X, blocks, rhs_C):  # pragma: no cover - compiled
     """The points eliminated from the normal equations: blocks[slot] -= Q_k Xinv_p Q_l for every ordered pair
     (k, l) of observations of one point p, in `_pair_slots`'s order, and rhs_C[cam_k] -= Q_k Xinv_p rhs_X[p];
@@ -641,7 +660,7 @@ def _reduce_points(cam, order, bounds, slot, e, d, coef, Xinv, rhs_X, blocks, rh
                                             + QX[a, i, 2] * Qs[b, 2, j])
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _point_steps(cam, order, bounds, e, d, coef, Xinv, rhs_X, dC, g_s, h_s, ws):  # pragma: no cover - compiled
     """The points' and the scales' steps once the centres' step dC is known: dX_p = Xinv_p (rhs_X[p] - sum over
     its observations of Q_k dC[cam_k]), ds_k = (-g_s - w s e . (dX - dC)) / h_s."""
