@@ -22,6 +22,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future
 from contextlib import contextmanager
 from dataclasses import dataclass
 from multiprocessing import forkserver
@@ -109,28 +110,21 @@ def one_blas_thread() -> None:
         _set_here.add("OPENBLAS_NUM_THREADS")
 
 
-def in_background(func: Callable[[], T]) -> Callable[[], T]:
-    """`func()` started now in a thread of its own; the returned callable waits for its result, or raises what it
-    raised. The thread is a daemon, so that Ctrl-C ends the process without waiting for it. Worth it where `func`
-    spends its time in code that lets go of the GIL (compiled loops, LAPACK) while the caller works beside it."""
-    out: list = []
+def in_background(func: Callable[[], T]) -> "Future[T]":
+    """`func()` started now in a thread of its own, its result (or what it raised) in the returned future. The
+    thread is a daemon, so that Ctrl-C ends the process without waiting for it. Worth it where `func` spends its
+    time in code that lets go of the GIL (compiled loops, LAPACK) while the caller works beside it."""
+    future: Future = Future()
 
     def run() -> None:
+        future.set_running_or_notify_cancel()
         try:
-            out.append((True, func()))
+            future.set_result(func())
         except BaseException as exc:  # handed to the caller, who decides
-            out.append((False, exc))
+            future.set_exception(exc)
 
-    thread = threading.Thread(target=run, name=getattr(func, "__name__", "background"), daemon=True)
-    thread.start()
-
-    def result() -> T:
-        thread.join()
-        ok, value = out[0]
-        if not ok:
-            raise value
-        return value
-    return result
+    threading.Thread(target=run, name=getattr(func, "__name__", "background"), daemon=True).start()
+    return future
 
 
 def user_environment() -> dict[str, str]:

@@ -434,15 +434,15 @@ class GlobalMapper:
         final_ba_subset_min_images images (MapperConfig, shared with the incremental mapper) that BA over every
         point is left out: the subset BA to convergence is the last, its points re-fitted, as at the incremental
         mapper's end; a BA over every point holds a dense block per point over the cameras that see it.
-        With position priors, the first BA holds the centres to them (georef.py). It takes out the bend of the
-        whole block that the view graph's pairs, estimated without the lens's distortion, leave: in a survey of
-        parallel views it trades off against the shared focal and distortion, and the images alone take out a
-        little of it per LM iteration. The later BAs go by the images alone, the model kept in the priors'
-        frame: priors held in later BAs cost accuracy (docs/benchmarks.md, "Global mapper: position priors in
+        With position priors, the first BA and the final rounds' hold the centres to them (georef.py). The first
+        takes out the bend of the whole block that the view graph's pairs, estimated without the lens's
+        distortion, leave: in a survey of parallel views it trades off against the shared focal and distortion,
+        and the images alone take out a little of it per LM iteration. The BAs between go by the images alone:
+        the priors held throughout cost accuracy (docs/benchmarks.md, "Global mapper: position priors in
         the first bundle adjustment")."""
         cfg = self.config
         large = int(m.registered.sum()) >= _LARGE_MODEL
-        m.priors = self.priors  # the first BA holds the centres to them (`_bundle`)
+        m.priors = self.priors  # the first BA and the final rounds' hold the centres to them (`_bundle`)
         for k, gate in enumerate([*_GATES_PX, cfg.max_reproj_error_px]):
             loose = self._gated(gate)
             if k == 0:
@@ -451,7 +451,7 @@ class GlobalMapper:
                 retriangulate(m, self.tracks, loose, cfg.seed)
             self._note_lost(m)
             self._bundle(m, intrinsics=True, subset=True, early=large and k == 0)
-            m.priors = None  # the next BAs go by the images alone, the model kept in the priors' frame
+            m.priors = None  # the next BAs go by the images alone
             self._filter(m, loose)
         dropped = self._drop_unsupported(m)
         added = self._register_left(m, pool)
@@ -468,6 +468,7 @@ class GlobalMapper:
                 self._filter(m, cfg)
             out[dropped] = True
             added = self._register_left(m, pool & ~out) if added else []
+        m.priors = self.priors  # held again from the final rounds on
         final_subset = 0 < cfg.final_ba_subset_min_images <= int(m.registered.sum())
 
         def final_round() -> None:

@@ -161,16 +161,13 @@ def solve_positions(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams:
     suite's models are better without it on the whole over three seeds, and a solve is saved (docs/benchmarks.md,
     "Global positioning: compiled steps, and the pairs' start only where cameras are left unplaced").
     With `workers` > 1 the random start is solved in a second thread while the cameras are placed in turn and
-    solved from there (the compiled steps and LAPACK run without the GIL), and that solution is dropped where the
-    start proves near the random one's: the same result as one after the other, in about the time of the longer
-    of the two (docs/benchmarks.md, "Global positioning: two starts at once")."""
+    solved from there (the compiled steps and LAPACK run without the GIL); that solve stops, and its solution is
+    dropped, once the start proves near the random one's solution: the same result as one after the other, in
+    about the time of the longer of the two (docs/benchmarks.md, "Global positioning: two starts at once")."""
     rng = np.random.default_rng(seed)
     C = rng.uniform(-1, 1, (num_cams, 3))
     X = rng.uniform(-1, 1, (num_points, 3))
     layout = _ReducedLayout.of(cam, point, num_cams, num_points)
-
-    def solve_from(start):
-        return _minimise(cam, point, v, *_start(cam, point, v, start, C, num_points), iterations, layout)
 
     def usable(start):
         return start is not None and np.isfinite(start).all(axis=1).sum() >= 2
@@ -178,12 +175,19 @@ def solve_positions(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams:
     solve_random = partial(_minimise, cam, point, v, C, X, np.ones(len(v)), iterations, layout)
     random = in_background(solve_random) if workers > 1 else None
     in_turn = centres_in_turn(cam, point, v, num_cams, num_points)
-    from_turn = solve_from(in_turn) if random is not None and usable(in_turn) else None
-    best = solve_random() if random is None else random()
+    from_turn = None
+    if random is not None and usable(in_turn):
+        def moot() -> bool:  # the random start's solution is known, and this start lies near it
+            return random.done() and random.exception() is None and _near(in_turn, random.result()[0])
+
+        from_turn = _minimise(cam, point, v, *_start(cam, point, v, in_turn, C, num_points), iterations, layout,
+                              stop=moot)
+    best = solve_random() if random is None else random.result()
     for start in (in_turn, None if usable(in_turn) and np.isfinite(in_turn).all() or initial is None else initial()):
         if not usable(start) or _near(start, best[0]):
             continue
-        other = from_turn if start is in_turn and from_turn is not None else solve_from(start)
+        other = from_turn if start is in_turn and from_turn is not None else _minimise(
+            cam, point, v, *_start(cam, point, v, start, C, num_points), iterations, layout)
         if other[2] < best[2]:
             best = other
     C, X, _ = best
@@ -432,10 +436,12 @@ class _ReducedLayout:
                    np.flatnonzero(block_row == block_col), (block_row == 0) | (block_col == 0))
 
 
-def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout, robust_iterations: int = _ROBUST_ITERATIONS):
+def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout, robust_iterations: int = _ROBUST_ITERATIONS,
+              stop: Callable[[], bool] | None = None):
     """(centres, points, final cost) of the Levenberg-Marquardt described in `solve_positions`, from C, X, s.
     Each step's per-observation terms are summed in compiled passes (`_normal_terms`, `_reduce_points`,
-    `_point_steps`, `_robust_cost`), which keep no 3x3 block per observation."""
+    `_point_steps`, `_robust_cost`), which keep no 3x3 block per observation. Once `stop()` says the solution is
+    no longer wanted, it ends at the next step with an infinite cost."""
     num_cams, num_points = len(C), len(X)
     eye = np.eye(3)
     order, bounds, slot_of_cam, gauge = layout.order, layout.bounds, layout.slot_of_cam, layout.gauge
@@ -447,6 +453,8 @@ def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout, robust
         lam = 1e-4
         cost, w = _robust_cost(cam, point, v, C, X, s, cauchy)
         for _ in range(steps):
+            if stop is not None and stop():
+                return C, X, np.inf
             e, g_s, h_s, d, coef, H_CC, H_XX, rhs_C, rhs_X = _normal_terms(cam, point, v, C, X, s, w, lam,
                                                                          num_cams, num_points)
             Xinv = np.linalg.inv(H_XX)

@@ -185,7 +185,8 @@ def test_two_starts_solved_at_once_give_the_centres_of_one_after_the_other():
     """With a second worker the random start is solved in a thread beside the start placed in turn. The result is
     the same to the bit as one after the other: round the block, where the start placed in turn wins, and over a
     6 x 8 grid of cameras above the ground (noisy rays), where that start lies near the random start's solution
-    and its own solution, a hair's breadth away at a cost lower by 1e-13, is dropped."""
+    and its own solution, a hair's breadth away at a cost lower by 1e-13, is dropped (its solve stopped once the
+    random start's solution is known)."""
     rng = np.random.default_rng(3)
     rows, cols, m = 6, 8, 1500
     C = np.c_[np.repeat(np.arange(rows), cols), np.tile(np.arange(cols), rows), np.full(rows * cols, 5.0)]
