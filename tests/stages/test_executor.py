@@ -9,6 +9,7 @@ import os
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 
 import numpy as np
@@ -16,7 +17,7 @@ import psutil
 import pytest
 from PIL import Image
 
-from mvrecon.executor import WorkerPool
+from mvrecon.executor import WorkerPool, in_background
 from tests import helpers
 from tests.helpers import textured_views
 
@@ -333,3 +334,22 @@ def test_a_pool_made_in_a_daemon_process_runs_its_items_there():
     workers, pids, results, pid = queue.get(timeout=120)
     process.join(30)
     assert (workers, pids, results) == (1, [], [1, 2, 3]) and pid == process.pid and process.exitcode == 0
+
+
+def test_work_in_background_runs_beside_the_caller_and_hands_back_its_result_or_its_error():
+    """`in_background` runs a function in a thread of its own while the caller goes on: the caller sees the
+    thread start and finish, gets its result, or the exception it raised."""
+    started, go = threading.Event(), threading.Event()
+
+    def work():
+        started.set()
+        assert go.wait(10)
+        return 42
+
+    future = in_background(work)
+    assert started.wait(10) and not future.done()  # it runs while the caller waits for nothing
+    go.set()
+    assert future.result(timeout=10) == 42
+    failing = in_background(lambda: 1 / 0)
+    with pytest.raises(ZeroDivisionError):
+        failing.result(timeout=10)
