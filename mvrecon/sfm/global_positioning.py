@@ -172,22 +172,22 @@ def solve_positions(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams:
     def usable(start):
         return start is not None and np.isfinite(start).all(axis=1).sum() >= 2
 
+    def solve_from(start, stop=None):
+        return _minimise(cam, point, v, *_start(cam, point, v, start, C, num_points), iterations, layout, stop=stop)
+
     solve_random = partial(_minimise, cam, point, v, C, X, np.ones(len(v)), iterations, layout)
     random = in_background(solve_random) if workers > 1 else None
     in_turn = centres_in_turn(cam, point, v, num_cams, num_points)
     from_turn = None
     if random is not None and usable(in_turn):
-        def moot() -> bool:  # the random start's solution is known, and this start lies near it
-            return random.done() and random.exception() is None and _near(in_turn, random.result()[0])
-
-        from_turn = _minimise(cam, point, v, *_start(cam, point, v, in_turn, C, num_points), iterations, layout,
-                              stop=moot)
+        from_turn = solve_from(in_turn, stop=lambda: random.done() and random.exception() is None
+                               and _near(in_turn, random.result()[0]))  # moot once near the random solution
     best = solve_random() if random is None else random.result()
-    for start in (in_turn, None if usable(in_turn) and np.isfinite(in_turn).all() or initial is None else initial()):
+    complete = in_turn is not None and np.isfinite(in_turn).all()
+    for start in (in_turn, None if complete or initial is None else initial()):
         if not usable(start) or _near(start, best[0]):
             continue
-        other = from_turn if start is in_turn and from_turn is not None else _minimise(
-            cam, point, v, *_start(cam, point, v, start, C, num_points), iterations, layout)
+        other = from_turn if start is in_turn and from_turn is not None else solve_from(start)
         if other[2] < best[2]:
             best = other
     C, X, _ = best
