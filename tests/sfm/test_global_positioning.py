@@ -15,6 +15,7 @@ from mvrecon.sfm.global_mapper import GlobalMapper
 from mvrecon.sfm.global_positioning import (
     _camera_blocks,
     _pair_slots,
+    _reduce_points,
     _solve_reduced,
     global_positions,
     outlier_cameras,
@@ -87,6 +88,41 @@ def test_the_reduced_systems_blocks_are_the_camera_pairs_that_share_a_point():
              for b in cam[order[bounds[p]:bounds[p + 1]]].tolist()]
     assert len(slots) == len(pairs)
     assert list(zip(rows[slots].tolist(), cols[slots].tolist())) == pairs
+
+
+def test_the_points_are_eliminated_into_the_schur_complement():
+    """The reduced system's blocks and right-hand side, as `_reduce_points` sums them point by point, equal the
+    Schur complement - H_CX H_XX^-1 H_XC and - H_CX H_XX^-1 rhs_X formed densely."""
+    rng = np.random.default_rng(7)
+    num_cams, num_points = 6, 40
+    views = [rng.choice(num_cams, rng.integers(2, 6), replace=False) for _ in range(num_points)]
+    cam = np.concatenate(views)
+    point = np.repeat(np.arange(num_points), [len(v) for v in views])
+    e, d, coef = rng.normal(size=(len(cam), 3)), rng.uniform(1, 2, len(cam)), rng.uniform(0, 0.5, len(cam))
+    Q = np.array([c * np.outer(x, x) - w * np.eye(3) for x, w, c in zip(e, d, coef)])  # (C, X) blocks
+    H_XX = np.zeros((num_points, 3, 3))
+    np.add.at(H_XX, point, -Q)
+    H_XX += 0.1 * np.eye(3)
+    Xinv = np.linalg.inv(H_XX)
+    rhs_X = rng.normal(size=(num_points, 3))
+    order = np.argsort(point, kind="stable")
+    bounds = np.r_[0, np.cumsum(np.bincount(point, minlength=num_points))]
+    by_cam = np.argsort(cam, kind="stable")
+    cam_bounds = np.r_[0, np.cumsum(np.bincount(cam, minlength=num_cams))]
+    indptr, cols = _camera_blocks(cam, point, order, bounds, by_cam, cam_bounds)
+    blocks, rhs_C = np.zeros((len(cols), 3, 3)), np.zeros((num_cams, 3))
+    _reduce_points(cam, order, bounds, _pair_slots(cam, order, bounds, indptr, cols), e, d, coef, Xinv, rhs_X,
+                   blocks, rhs_C)
+    H_CX = np.zeros((3 * num_cams, 3 * num_points))
+    for k, (a, p) in enumerate(zip(cam.tolist(), point.tolist())):
+        H_CX[3 * a:3 * a + 3, 3 * p:3 * p + 3] += Q[k]
+    dense_XX = np.zeros((3 * num_points, 3 * num_points))
+    for p in range(num_points):
+        dense_XX[3 * p:3 * p + 3, 3 * p:3 * p + 3] = H_XX[p]
+    dense_inv = np.linalg.inv(dense_XX)
+    reduced = bsr_matrix((blocks, cols, indptr), shape=(3 * num_cams, 3 * num_cams)).toarray()
+    assert np.allclose(reduced, -H_CX @ dense_inv @ H_CX.T, rtol=1e-12, atol=1e-12)
+    assert np.allclose(rhs_C.ravel(), -H_CX @ dense_inv @ rhs_X.ravel(), rtol=1e-12, atol=1e-12)
 
 
 def test_collinear_cameras_are_placed_where_pair_directions_cannot_place_them():
