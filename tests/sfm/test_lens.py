@@ -120,3 +120,17 @@ def test_the_global_mapper_chooses_the_wide_lens_too(wide_480, tmp_path):
     assert errors["OPENCV"] < 0.8 * errors["SIMPLE_RADIAL"], errors
     assert abs(camera["params"][4] + 0.22) < 0.02, camera  # the lens's k1
     assert auc["registered"] == 12 and auc["auc@5"] > 0.7, auc
+
+
+@pytest.mark.slow
+def test_the_global_mapper_takes_a_fisheye_fit_that_folds_only_beyond_its_observations(fisheye_orbit_small, tmp_path):
+    """fisheye_orbit_small, `--mapper global`, default camera settings: the SIMPLE_RADIAL start holds
+    observations out to about 300 px only, and the OPENCV_FISHEYE fit to them folds beyond that but inside the
+    400 px corners. Judged out to the observations, the fit is taken and its adjustment ends at the lens's own
+    parameters, every image registered at AUC@5 0.99 measured; judged out to the corners, it was refused and
+    the camera went OPENCV with fx / fy 296 / 338 at AUC@5 0.16."""
+    camera, auc = _run(fisheye_orbit_small, tmp_path / "out", "--mapper", "global")
+    assert camera["model"] == "OPENCV_FISHEYE", camera
+    fx, fy = camera["params"][:2]
+    assert abs(fx - 285.0) < 3.0 and abs(fy - 285.0) < 3.0, camera  # the lens's focal, square pixels
+    assert auc["registered"] == 12 and auc["auc@5"] > 0.95, auc
