@@ -24,7 +24,7 @@ import numpy as np
 from numba import njit
 from scipy.linalg import cho_factor, cho_solve
 from scipy.sparse import bsr_matrix, coo_matrix, triu
-from scipy.sparse.linalg import splu
+from scipy.sparse.linalg import LinearOperator, cg, splu
 
 from ..executor import in_background
 from .model import Reconstruction, sum_rows
@@ -43,6 +43,9 @@ _CAUCHY_TOLERANCE = 1e-7
 _MIN_SCALE = 1e-5
 _DENSE_SHARE = 0.1  # the reduced system is factorised dense from this share of non-zero entries ...
 _DENSE_MAX_CAMERAS = 2000  # ... up to this many cameras (`_solve_reduced`)
+_ITERATIVE_MIN_CAMERAS = 500  # from this many cameras the reduced system is solved by conjugate gradients first
+_CG_TOLERANCE = 1e-10  # their residual's norm, relative to the right-hand side's: the direct solvers' steps to 1e-9
+_CG_MAX_ITERATIONS = 1000  # a system not solved within this many is left to the direct solvers
 # centres placed in turn (`centres_in_turn`): a point is triangulated once two of its rays from placed cameras meet
 # at this angle; the placed cameras are adjusted together each time their number has grown by the factor, in
 # this many LM steps under Huber's loss
@@ -489,10 +492,17 @@ def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout, robust
 
 def _solve_reduced(S, rhs: np.ndarray) -> np.ndarray:
     """S^-1 rhs for the reduced camera system S (symmetric positive definite under LM's damping; NaN where it is
-    singular). A system of up to `_DENSE_MAX_CAMERAS` cameras with at least `_DENSE_SHARE` of its entries
-    non-zero is factorised dense by Cholesky (LAPACK), faster there than scipy's sparse LU
-    (docs/benchmarks.md, "Global positioning's solver"); a sparser or larger one by the sparse LU."""
+    singular). From `_ITERATIVE_MIN_CAMERAS` cameras, a system in 3x3 blocks is solved by preconditioned
+    conjugate gradients where they converge: each iteration costs one product with the sparse S, while a
+    factorisation's cost grows with the cube of the cameras (docs/benchmarks.md, "Global positioning: conjugate
+    gradients"). Otherwise, and where they fail, a system of up to `_DENSE_MAX_CAMERAS` cameras with at least
+    `_DENSE_SHARE` of its entries non-zero is factorised dense by Cholesky (LAPACK), faster there than scipy's
+    sparse LU (docs/benchmarks.md, "Global positioning's solver"); a sparser or larger one by the sparse LU."""
     n = S.shape[0]
+    if n >= 3 * _ITERATIVE_MIN_CAMERAS and getattr(S, "blocksize", None) == (3, 3):
+        x = _conjugate_gradients(S, rhs)
+        if x is not None:
+            return x
     if n <= 3 * _DENSE_MAX_CAMERAS and S.nnz >= _DENSE_SHARE * n * n:
         try:
             return cho_solve(cho_factor(S.toarray(), lower=True, check_finite=False), rhs, check_finite=False)
@@ -502,6 +512,29 @@ def _solve_reduced(S, rhs: np.ndarray) -> np.ndarray:
         return splu(S.tocsc()).solve(rhs)
     except RuntimeError:  # exactly singular
         return np.full(n, np.nan)
+
+
+def _conjugate_gradients(S: bsr_matrix, rhs: np.ndarray) -> np.ndarray | None:
+    """S^-1 rhs by conjugate gradients preconditioned by the inverses of S's 3x3 diagonal blocks (one per camera:
+    they hold most of its weight, so the iterations needed stay few), to a residual of `_CG_TOLERANCE` of the
+    right-hand side's norm; None where a diagonal block is missing or not positive definite, or where
+    `_CG_MAX_ITERATIONS` do not converge, for the direct solvers to decide."""
+    num_cams = S.shape[0] // 3
+    rows = np.repeat(np.arange(num_cams), np.diff(S.indptr))
+    diagonal = np.flatnonzero(S.indices == rows)
+    if len(diagonal) != num_cams:
+        return None
+    blocks = S.data[diagonal]
+    if not (np.isfinite(blocks).all() and (np.linalg.eigvalsh(blocks) > 0).all()):
+        return None
+    inverses = np.linalg.inv(blocks)
+
+    def precondition(x):
+        return np.einsum("nij,nj->ni", inverses, x.reshape(num_cams, 3)).ravel()
+
+    M = LinearOperator(S.shape, matvec=precondition, dtype=float)
+    x, info = cg(S, rhs, rtol=_CG_TOLERANCE, atol=0.0, maxiter=_CG_MAX_ITERATIONS, M=M)
+    return x if info == 0 and np.isfinite(x).all() else None
 
 
 @njit(cache=True)

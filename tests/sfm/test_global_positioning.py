@@ -44,21 +44,53 @@ def test_centres_are_recovered_up_to_a_similarity():
     assert np.mean(off < 1e-2) > 0.95
 
 
-def test_centres_are_the_same_whether_the_reduced_system_is_factorised_dense_or_sparse(monkeypatch):
-    """The dense Cholesky and the sparse LU solve the same reduced systems: the same centres to 1e-9 of their
-    spread, from noisy rays (so that the loss's weights matter)."""
+def test_centres_are_the_same_whether_the_reduced_system_is_factorised_dense_or_sparse_or_solved_iteratively(
+        monkeypatch):
+    """The dense Cholesky, the sparse LU and the conjugate gradients solve the same reduced systems: the same
+    centres to 1e-9 of their spread, from noisy rays (so that the loss's weights matter)."""
     rng = np.random.default_rng(2)
     C, X = rng.normal(size=(20, 3)) * 2, rng.normal(size=(400, 3))
     views = [rng.choice(20, rng.integers(2, 6), replace=False) for _ in range(400)]
     cam = np.concatenate(views)
     point = np.repeat(np.arange(400), [len(v) for v in views])
     v = rays(C, X, cam, point) + rng.normal(scale=0.003, size=(len(cam), 3))
+    iterative = global_positioning._conjugate_gradients
+    solved_iteratively = []
+
+    def spy(S, rhs):
+        x = iterative(S, rhs)
+        solved_iteratively.append(x is not None)
+        return x
+
+    monkeypatch.setattr(global_positioning, "_conjugate_gradients", spy)
     found = {}
-    for share in (0.0, 2.0):  # every system dense; none
+    for solver, share, min_cameras in (("dense", 0.0, 10**6), ("lu", 2.0, 10**6), ("cg", 2.0, 1)):
         monkeypatch.setattr(global_positioning, "_DENSE_SHARE", share)
-        found[share], _ = solve_positions(cam, point, v, 20, 400)
-    assert np.abs(found[0.0] - found[2.0]).max() < 1e-9
-    assert similarity_error(found[0.0], C) < 0.02
+        monkeypatch.setattr(global_positioning, "_ITERATIVE_MIN_CAMERAS", min_cameras)
+        found[solver], _ = solve_positions(cam, point, v, 20, 400)
+    assert solved_iteratively and all(solved_iteratively)  # every step of the last run, and only of it
+    assert np.abs(found["dense"] - found["lu"]).max() < 1e-9
+    assert np.abs(found["cg"] - found["lu"]).max() < 1e-9
+    assert similarity_error(found["dense"], C) < 0.02
+
+
+def test_conjugate_gradients_solve_a_block_sparse_system_and_leave_an_indefinite_one_to_the_lu():
+    """A chain of 600 cameras, each coupled to the next: solved to 1e-9 of the exact solution. With one camera's
+    diagonal block indefinite (so the system is not positive definite), they give None, and `_solve_reduced`
+    solves it by the LU."""
+    rng = np.random.default_rng(3)
+    num = 600
+    block = np.arange(3 * num) // 3
+    dense = rng.normal(size=(3 * num, 3 * num)) * 0.1 * (np.abs(np.subtract.outer(block, block)) <= 1)
+    dense = dense @ dense.T + np.eye(3 * num)  # block pentadiagonal, positive definite
+    rhs = rng.normal(size=3 * num)
+    x = global_positioning._conjugate_gradients(bsr_matrix(dense, blocksize=(3, 3)), rhs)
+    exact = np.linalg.solve(dense, rhs)
+    assert np.abs(x - exact).max() < 1e-9 * np.abs(exact).max()
+    dense[:3, :3] = np.diag([2.0, -3.0, 1.0])
+    S = bsr_matrix(dense, blocksize=(3, 3))
+    assert global_positioning._conjugate_gradients(S, rhs) is None
+    assert np.allclose(dense @ _solve_reduced(S, rhs), rhs)
 
 
 def test_a_reduced_system_that_is_not_positive_definite_is_solved_by_lu_and_a_singular_one_gives_nan():
