@@ -138,10 +138,9 @@ def _restore(m: Reconstruction, state: tuple) -> None:
 def _plausible(m: Reconstruction, c: int, obs: np.ndarray) -> bool:
     """Not a bogus camera (`degenerate_cameras`), and a lens that does not fold over out to the farthest of the
     camera's observations `obs`. Past them the fit is unconstrained: keypoints a SIMPLE_RADIAL start could not
-    undistort (its fold) are not in the model yet, and the mapping with the lens chosen refines it there
-    (fisheye_orbit_small: an OPENCV_FISHEYE fit of observations out to 300 px folded at 369 px, inside its
-    400 px corners; refused, the camera went OPENCV at fx / fy 296 / 338 and AUC@5 0.16; taken, it ended at the
-    lens's own parameters and AUC@5 0.99)."""
+    undistort (its fold) are not in the model yet, and the mapping with the lens chosen refines it there. Judged
+    out to the image's corners, a fisheye lens's right fit was refused (docs/benchmarks.md, "A fit that folds
+    only beyond the observations")."""
     cam = m.cameras[c]
     if c in degenerate_cameras(m):
         return False
