@@ -490,17 +490,17 @@ def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout, robust
     return C, X, cost
 
 
-def _solve_reduced(S, rhs: np.ndarray) -> np.ndarray:
-    """S^-1 rhs for the reduced camera system S (symmetric positive definite under LM's damping; NaN where it is
-    singular). From `_ITERATIVE_MIN_CAMERAS` cameras, a system in 3x3 blocks is solved by preconditioned
-    conjugate gradients where they converge: each iteration costs one product with the sparse S, while a
-    factorisation's cost grows with the cube of the cameras (docs/benchmarks.md, "Global positioning: conjugate
+def _solve_reduced(S: bsr_matrix, rhs: np.ndarray) -> np.ndarray:
+    """S^-1 rhs for the reduced camera system S (3x3 blocks, a row of them per camera; symmetric positive
+    definite under LM's damping; NaN where it is singular). From `_ITERATIVE_MIN_CAMERAS` cameras it is solved by
+    preconditioned conjugate gradients where they converge: each iteration costs one product with the sparse S,
+    while a factorisation's cost grows with the cube of the cameras (docs/benchmarks.md, "Global positioning: conjugate
     gradients from 500 cameras"). Otherwise, and where they fail, a system of up to `_DENSE_MAX_CAMERAS`
     cameras with at least `_DENSE_SHARE` of its entries non-zero is factorised dense by Cholesky (LAPACK),
     faster there than scipy's sparse LU (docs/benchmarks.md, "Global positioning's solver"); a sparser or larger
     one by the sparse LU."""
     n = S.shape[0]
-    if n >= 3 * _ITERATIVE_MIN_CAMERAS and getattr(S, "blocksize", None) == (3, 3):
+    if n >= 3 * _ITERATIVE_MIN_CAMERAS:
         x = _conjugate_gradients(S, rhs)
         if x is not None:
             return x
