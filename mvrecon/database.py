@@ -148,6 +148,7 @@ class Correspondences:
     cameras: dict[int, CameraInfo] = field(default_factory=dict)
     images: dict[int, ImageInfo] = field(default_factory=dict)
     keypoints: dict[int, np.ndarray] = field(default_factory=dict)  # image_id -> (N,2) pixels, COLMAP convention
+    keypoint_scales: dict[int, np.ndarray] = field(default_factory=dict)  # image_id -> (N,) detection scale, px
     pairs: list[PairGeometry] = field(default_factory=list)
     priors: dict[int, PosePrior] = field(default_factory=dict)  # image_id -> camera position prior
 
@@ -341,7 +342,9 @@ def read_correspondences(path: Path | str, min_inliers: int = 0, *, mapped: bool
             out.images = {i: info for i, info in out.images.items() if i in wanted}
         out.priors = {i: p for i, p in read_pose_priors(db).items() if i in out.images}
         for image_id in out.images:
-            out.keypoints[image_id] = read_keypoints(db, image_id)[:, :2].copy()
+            kp = read_keypoints(db, image_id)
+            out.keypoints[image_id] = kp[:, :2].copy()
+            out.keypoint_scales[image_id] = keypoint_scales(kp)
         for pair, rows, cols, data, config, F, E, H in db.execute(
                 "SELECT pair_id, rows, cols, data, config, F, E, H FROM two_view_geometries ORDER BY pair_id"):
             if rows == 0 or rows < min_inliers:
@@ -441,6 +444,18 @@ def read_keypoints(db: sqlite3.Connection, image_id: int) -> np.ndarray:
     if row is None or not row[0]:
         return np.zeros((0, 4))
     return _array(row[2], row[0], row[1], np.float32).astype(np.float64)
+
+
+def keypoint_scales(keypoints: np.ndarray) -> np.ndarray:
+    """(N,) detection scale (the blob's sigma, pixels) of COLMAP keypoint rows: column 3 of (N,4) rows, the mean
+    length of the affine frame's two columns for (N,6) (COLMAP's own scale); 0 where a (N,2) table says
+    nothing."""
+    if keypoints.shape[1] >= 6:
+        a11, a12, a21, a22 = keypoints[:, 2], keypoints[:, 3], keypoints[:, 4], keypoints[:, 5]
+        return (np.hypot(a11, a21) + np.hypot(a12, a22)) / 2
+    if keypoints.shape[1] >= 3:
+        return np.abs(keypoints[:, 2]).copy()
+    return np.zeros(len(keypoints))
 
 
 def read_descriptors(db: sqlite3.Connection, image_id: int) -> np.ndarray:

@@ -303,12 +303,16 @@ def _add_views(gtsam, graph, model, window: _Window, huber_px: float, cal_kind: 
     ~10% of a BA's time); list operations rather than one Python loop doing it all, as a mapping adds ~100,000
     factors. The views in held images become one prior per point (`_held_view_priors`)."""
     obs, obs_img, obs_pt = window.obs, window.obs_img, window.obs_pt
-    noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(huber_px),
-                                           gtsam.noiseModel.Isotropic.Sigma(2, 1.0))
     uv = model.keypoints_at(obs_img, window.obs_kp)
+    # each view's sigma on a grid of 2^(1/4) steps, so that a BA's views share a few noise models
+    level = np.round(4 * np.log2(model.view_sigmas(obs_img, window.obs_kp))).astype(int)
+    noises = {int(k): gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(huber_px),
+                                                     gtsam.noiseModel.Isotropic.Sigma(2, 2.0 ** (k / 4)))
+              for k in np.unique(level)}
     variable = window.variable[obs_img]
-    _held_view_priors(gtsam, graph, model, window, np.flatnonzero(~variable), uv[~variable], huber_px)
-    cache = model.ba_factor_cache(huber_px)
+    _held_view_priors(gtsam, graph, model, window, np.flatnonzero(~variable), uv[~variable],
+                      2.0 ** (level[~variable] / 4), huber_px)
+    cache = model.ba_factor_cache((huber_px, tuple(model.view_sigma_table)))
     rows = np.flatnonzero(variable).tolist()
     factors = [cache.get(o) for o in obs[rows].tolist()]
     sub = [-1] * len(obs) if window.split is None else window.split.tolist()
@@ -318,7 +322,7 @@ def _add_views(gtsam, graph, model, window: _Window, huber_px: float, cal_kind: 
         i, p, s = int(obs_img[row]), int(obs_pt[row]), sub[row]
         key = gtsam.symbol("l", p) if s < 0 else gtsam.symbol("s", s)  # a sub-point's view is not cached
         c = int(model.camera_of[i])
-        factors[k] = make[c](uv[row], noise, gtsam.symbol("x", i), key, gtsam.symbol("k", c))
+        factors[k] = make[c](uv[row], noises[int(level[row])], gtsam.symbol("x", i), key, gtsam.symbol("k", c))
         if s < 0:
             cache[int(obs[row])] = factors[k]
     for f in factors:
@@ -326,10 +330,11 @@ def _add_views(gtsam, graph, model, window: _Window, huber_px: float, cal_kind: 
 
 
 def _held_view_priors(gtsam, graph, model, window: _Window, rows: np.ndarray, uv: np.ndarray,
-                      huber_px: float) -> None:
+                      sigma: np.ndarray, huber_px: float) -> None:
     """The views `rows` of the window, all in held images, as one Gaussian prior per point (or sub-point): the
     quadratic model of their robust reprojection cost at the point's position, H = sum w J^T J and gradient
-    g = sum w J^T r (J the projection's Jacobian by central differences, w Huber's weight of the residual r),
+    g = sum w J^T r (J the projection's Jacobian by central differences, r the residual, both divided by the
+    view's `sigma`, w Huber's weight of r),
     centred at x - H^-1 g. A held camera does not move, so its views bind only the point; as one prior each
     point costs the solver one factor however many held images see it, where a factor per view made a local
     BA's cost grow with the model's track lengths (docs/scale.md, "Held views"). A single held view constrains
@@ -349,7 +354,8 @@ def _held_view_priors(gtsam, graph, model, window: _Window, rows: np.ndarray, uv
         ahead = model.project(img, at + step[:, None] * offset)[0]
         behind = model.project(img, at - step[:, None] * offset)[0]
         J[:, :, axis] = (ahead - behind) / (2 * step[:, None])
-    r = projected - uv
+    r = (projected - uv) / sigma[:, None]
+    J = J / sigma[:, None, None]
     norm = np.linalg.norm(r, axis=1)
     w = np.where(norm <= huber_px, 1.0, huber_px / np.maximum(norm, 1e-12))
     valid = (depth > 0) & np.isfinite(r).all(axis=1) & np.isfinite(J).all(axis=(1, 2))

@@ -84,6 +84,10 @@ class MapperConfig:
     # the same for the global mapper's BAs, whose poses start pixels off (the averaging's): at 0.5 px a 12-view wide
     # orbit kept 8 wrong images, and a panorama, refused at 1 px, became a model of 10 (docs/benchmarks.md, same)
     global_huber_px: float = bounded(1.0, 0.0, low_open=True)
+    # the final refinement weighs each view by its keypoint scale's error, measured on the model's residuals
+    # (Reconstruction.refresh_view_sigmas); off by default: on the mapper suite it raised AUC@1 on some sets
+    # and lowered it on others (docs/benchmarks.md, "Views weighted by keypoint scale")
+    view_sigmas_by_scale: bool = False
     # focal and distortion refined in global BA (COLMAP: ba_refine_focal_length, ba_refine_extra_params)
     refine_intrinsics: bool = True
     # below this many images intrinsics stay fixed: the initial pair cannot observe the focal length

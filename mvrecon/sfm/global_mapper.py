@@ -59,7 +59,7 @@ from .config import MapperConfig
 from .georef import CenterPriors, georeference
 from .global_positioning import global_positions, outlier_cameras
 from .incremental import MappingResult
-from .model import Reconstruction, coverage, image_status, images_and_cameras
+from .model import KeypointSet, Reconstruction, coverage, image_status, images_and_cameras
 from .register import register_image
 from .rotation_averaging import average_rotations
 from .tracks import build_tracks
@@ -119,7 +119,8 @@ class GlobalMapper:
         self.workers = workers  # processes of the view graph's relative poses, threads of global positioning's starts
         self.image_ids, self.names, self.camera_of, self.cameras = images_and_cameras(corr)
         ids = self.image_ids.tolist()
-        self.keypoints = [np.asarray(corr.keypoints.get(i, np.zeros((0, 2))), float) for i in ids]
+        self.keypoints = KeypointSet([np.asarray(corr.keypoints.get(i, np.zeros((0, 2))), float) for i in ids],
+                                     [corr.keypoint_scales.get(i, np.zeros(0)) for i in ids])
         self.pairs = oriented_pairs(self.image_ids, corr.pairs)
         self.tracks = build_tracks(self.image_ids, [len(k) for k in self.keypoints], corr.pairs)
         self.reasons: dict[int, str] = {}
@@ -469,6 +470,8 @@ class GlobalMapper:
             out[dropped] = True
             added = self._register_left(m, pool & ~out) if added else []
         m.priors = self.priors  # held again from the final rounds on
+        if cfg.view_sigmas_by_scale:
+            m.refresh_view_sigmas(cfg.global_huber_px)
         final_subset = 0 < cfg.final_ba_subset_min_images <= int(m.registered.sum())
 
         def final_round() -> None:

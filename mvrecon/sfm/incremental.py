@@ -124,7 +124,8 @@ class IncrementalMapper:
         self.choose_lens = choose_lens  # the cameras' models were left open: sfm/lens.py may change them
         self.image_ids, self.names, self.camera_of, self.cameras = images_and_cameras(corr)
         ids = self.image_ids.tolist()
-        self.keypoints = KeypointSet([corr.keypoints.get(i, np.zeros((0, 2))) for i in ids])
+        self.keypoints = KeypointSet([corr.keypoints.get(i, np.zeros((0, 2))) for i in ids],
+                                     [corr.keypoint_scales.get(i, np.zeros(0)) for i in ids])
         index_of = {int(i): k for k, i in enumerate(ids)}
         self.pairs = {}
         for p in corr.pairs:
@@ -733,6 +734,8 @@ class IncrementalMapper:
             self._global_bundle(m, True, keep=joined)
             self._filter(m)
         cfg = self.config
+        if cfg.view_sigmas_by_scale:
+            m.refresh_view_sigmas(cfg.huber_px)
         four_terms = any(num_distortion_terms(m.cameras[c].model) == 4 for c in set(m.camera_of[m.registered].tolist()))
         self._global_refine(m, rounds=2, min_change=cfg.final_min_change,
                             relative_tolerance=cfg.four_term_final_tolerance if four_terms else None, keep=joined)

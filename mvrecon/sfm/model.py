@@ -171,14 +171,30 @@ def _count(counts: np.ndarray, ids, sign: int) -> None:
     counts[u] += sign * c
 
 
+# keypoint scale bins of half an octave from 1 px (finer in the first, coarser than 2^4.5 px in the last), and the
+# views a bin needs for its median error to count
+_SCALE_BINS = 10
+_MIN_BIN_VIEWS = 100
+
+
+def scale_bins(scales: np.ndarray) -> np.ndarray:
+    """Bin (0 .. _SCALE_BINS - 1) of each keypoint detection scale, half an octave wide from 1 px."""
+    return np.clip(np.floor(2 * np.log2(np.maximum(scales, 1.0))), 0, _SCALE_BINS - 1).astype(np.int64)
+
+
 class KeypointSet(list):
     """Per image (K_i, 2) pixels, COLMAP convention: views into one array (`flat`, image i's rows from
     `offset[i]`), so that keypoints of many images are gathered in one step. The mapper's models share one."""
 
-    def __init__(self, keypoints: Sequence[np.ndarray]):
+    def __init__(self, keypoints: Sequence[np.ndarray], scales: Sequence[np.ndarray] | None = None):
         arrays = [np.asarray(k, dtype=float).reshape(-1, 2) for k in keypoints]
         self.offset = np.r_[0, np.cumsum([len(k) for k in arrays])].astype(np.int64)
         self.flat = np.concatenate(arrays) if arrays else np.zeros((0, 2))
+        self.scale_flat = np.zeros(len(self.flat))
+        if scales is not None:
+            for a, b, s in zip(self.offset[:-1], self.offset[1:], scales):
+                if len(s) == b - a:
+                    self.scale_flat[a:b] = s
         super().__init__(self.flat[a:b] for a, b in zip(self.offset[:-1], self.offset[1:]))
 
 
@@ -227,6 +243,7 @@ class Reconstruction:
         self.priors = None  # georef.CenterPriors of the images, or None
         self.georeferenced = False  # moved into the priors' frame: the BAs hold the centres to them (georef.py)
         self.lens_trials: dict = {}  # camera -> its last lens trial's record (sfm/lens.py), for report.json
+        self.view_sigma_table = np.ones(_SCALE_BINS)  # a view's sigma (px) by keypoint scale bin (`scale_bins`)
 
     # ----- images -----
     def register(self, i: int, R: np.ndarray, t: np.ndarray) -> None:
@@ -290,6 +307,44 @@ class Reconstruction:
     def keypoints_at(self, images: np.ndarray, kps: np.ndarray) -> np.ndarray:
         """Pixels (n, 2) of keypoints `kps` of `images` (arrays of one shape, any number of images at once)."""
         return self.keypoints.flat[self.kp_offset[images] + kps]
+
+    def view_sigmas(self, images: np.ndarray, kps: np.ndarray) -> np.ndarray:
+        """(n,) standard deviation, in pixels, of keypoints `kps` of `images` in a bundle adjustment: their scale
+        bin's entry of `view_sigma_table` (1 for every view until `refresh_view_sigmas` finds otherwise)."""
+        bins = scale_bins(self.keypoints.scale_flat[self.kp_offset[images] + kps])
+        return self.view_sigma_table[bins]
+
+    def refresh_view_sigmas(self, fit_px: float) -> None:
+        """Set `view_sigma_table` from the model's residuals: each scale bin's median reprojection error over
+        the smallest bin median, at least 1, never falling from a bin to the next coarser one, on a grid of
+        2^(1/4) steps. Why: a keypoint's position error grows with its detection scale, by a factor that depends
+        on the images (steeply on rendered scenes, mildly on JPEG photos); weighting its view by its own bin's
+        error is the weight the data shows, not a constant chosen on some scenes. Every view weighs alike (a
+        table of ones) while the smallest bin median exceeds `fit_px`: then the residuals measure the model's
+        misfit, not the keypoints. The mappers call it once a model has stopped growing, before its final
+        refinement: weights during growth changed the global mapper's focal calibration from a guess
+        (docs/benchmarks.md, "Views weighted by keypoint scale")."""
+        obs = self.alive_observations()
+        img, pt = self.obs_image.data[obs], self.obs_point.data[obs]
+        kp = self.obs_kp.data[obs]
+        projected, depth = self.project(img, self.xyz.data[pt])
+        error = np.linalg.norm(projected - self.keypoints_at(img, kp), axis=1)
+        bins = scale_bins(self.keypoints.scale_flat[self.kp_offset[img] + kp])
+        ok = np.isfinite(error) & (depth > 0)
+        median = np.full(_SCALE_BINS, np.nan)
+        for b in range(_SCALE_BINS):
+            e = error[ok & (bins == b)]
+            if len(e) >= _MIN_BIN_VIEWS:
+                median[b] = np.median(e)
+        if not np.isfinite(median).any() or not 0 < np.nanmin(median) <= fit_px:
+            self.view_sigma_table = np.ones(_SCALE_BINS)
+            return
+        ratio = median / np.nanmin(median)
+        for b in range(_SCALE_BINS):  # a bin with too few views takes its finer neighbour's value
+            if not np.isfinite(ratio[b]):
+                ratio[b] = ratio[b - 1] if b else 1.0
+        ratio = np.maximum.accumulate(np.maximum(ratio, 1.0))
+        self.view_sigma_table = 2.0 ** (np.round(4 * np.log2(ratio)) / 4)
 
     def normalized_at(self, images: np.ndarray, kps: np.ndarray) -> np.ndarray:
         """`normalized_keypoints` (n, 2) of keypoints `kps` of `images`: grouped by image with one sort, as a mask
@@ -507,6 +562,7 @@ class Reconstruction:
         s["registration_order"] = list(self.registration_order)
         s["priors"], s["georeferenced"] = self.priors, self.georeferenced
         s["lens_trials"] = dict(self.lens_trials)
+        s["view_sigma_table"] = self.view_sigma_table.copy()
         s["cameras"] = {k: (c.model, c.width, c.height, c.params.copy(), c.prior_trusted, c.prior_focal,
                             c.prior_calibrated) for k, c in self.cameras.items()}
         return s
@@ -527,6 +583,7 @@ class Reconstruction:
         m.registration_order = list(s["registration_order"])
         m.priors, m.georeferenced = s.get("priors"), bool(s.get("georeferenced", False))
         m.lens_trials = dict(s.get("lens_trials", {}))
+        m.view_sigma_table = np.array(s.get("view_sigma_table", np.ones(_SCALE_BINS)), float)
         # the indexes of the alive observations (`add_observations` keeps them up to date)
         m.obs_next = _Buffer.of(np.full(m.obs_point.n, -1, np.int64))
         m.point_first_obs = _Buffer.of(np.full(m.xyz.n, -1, np.int64))

@@ -325,3 +325,14 @@ def test_quaternions_are_pycolmaps_to_the_bit():
     theirs = np.array([pycolmap.Rotation3d(m).quat for m in R])[:, [3, 0, 1, 2]]
     assert (np.trace(R, axis1=1, axis2=2) < 0).sum() > 1000  # both of Eigen's branches
     np.testing.assert_array_equal(ours, theirs)
+
+
+def test_keypoint_scales_read_from_both_colmap_layouts():
+    """A keypoint's detection scale: our (N,4) rows carry it in column 3; COLMAP's (N,6) affine rows as the
+    mean length of the frame's columns (a frame scaled by 3 and turned reads 3, a sheared one the mean)."""
+    turned = 3.0 * np.array([[np.cos(0.7), -np.sin(0.7)], [np.sin(0.7), np.cos(0.7)]])
+    six = np.array([[10.0, 20.0, *turned.ravel()], [1.0, 2.0, 2.0, 0.0, 0.0, 4.0]])
+    assert np.allclose(database.keypoint_scales(six), [3.0, 3.0])
+    four = np.array([[10.0, 20.0, 2.5, 0.3], [1.0, 2.0, 7.0, -1.0]])
+    assert np.allclose(database.keypoint_scales(four), [2.5, 7.0])
+    assert np.allclose(database.keypoint_scales(np.zeros((3, 2))), 0.0)
