@@ -304,8 +304,7 @@ def _add_views(gtsam, graph, model, window: _Window, huber_px: float, cal_kind: 
     factors. The views in held images become one prior per point (`_held_view_priors`)."""
     obs, obs_img, obs_pt = window.obs, window.obs_img, window.obs_pt
     uv = model.keypoints_at(obs_img, window.obs_kp)
-    # each view's sigma on a grid of 2^(1/4) steps, so that a BA's views share a few noise models
-    level = np.round(4 * np.log2(model.view_sigmas(obs_img, window.obs_kp))).astype(int)
+    level = model.view_sigma_levels(obs_img, window.obs_kp)  # each view's sigma is 2^(level / 4) px
     noises = {int(k): gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(huber_px),
                                                      gtsam.noiseModel.Isotropic.Sigma(2, 2.0 ** (k / 4)))
               for k in np.unique(level)}

@@ -308,12 +308,6 @@ class Reconstruction:
         """Pixels (n, 2) of keypoints `kps` of `images` (arrays of one shape, any number of images at once)."""
         return self.keypoints.flat[self.kp_offset[images] + kps]
 
-    def view_sigmas(self, images: np.ndarray, kps: np.ndarray) -> np.ndarray:
-        """(n,) standard deviation, in pixels, of keypoints `kps` of `images` in a bundle adjustment: their scale
-        bin's entry of `view_sigma_table` (1 for every view until `refresh_view_sigmas` finds otherwise)."""
-        bins = scale_bins(self.keypoints.scale_flat[self.kp_offset[images] + kps])
-        return self.view_sigma_table[bins]
-
     def refresh_view_sigmas(self, fit_px: float) -> None:
         """Set `view_sigma_table` from the model's residuals: each scale bin's median reprojection error over
         the smallest bin median, at least 1, never falling from a bin to the next coarser one, on a grid of
@@ -325,12 +319,9 @@ class Reconstruction:
         refinement: weights during growth changed the global mapper's focal calibration from a guess
         (docs/benchmarks.md, "Views weighted by keypoint scale")."""
         obs = self.alive_observations()
-        img, pt = self.obs_image.data[obs], self.obs_point.data[obs]
-        kp = self.obs_kp.data[obs]
-        projected, depth = self.project(img, self.xyz.data[pt])
-        error = np.linalg.norm(projected - self.keypoints_at(img, kp), axis=1)
-        bins = scale_bins(self.keypoints.scale_flat[self.kp_offset[img] + kp])
-        ok = np.isfinite(error) & (depth > 0)
+        error, _ = self.reprojection_errors(obs)
+        bins = scale_bins(self.keypoints.scale_flat[self.kp_offset[self.obs_image.data[obs]] + self.obs_kp.data[obs]])
+        ok = np.isfinite(error)
         median = np.full(_SCALE_BINS, np.nan)
         for b in range(_SCALE_BINS):
             e = error[ok & (bins == b)]
@@ -345,6 +336,15 @@ class Reconstruction:
                 ratio[b] = ratio[b - 1] if b else 1.0
         ratio = np.maximum.accumulate(np.maximum(ratio, 1.0))
         self.view_sigma_table = 2.0 ** (np.round(4 * np.log2(ratio)) / 4)
+
+    def view_sigma_levels(self, images: np.ndarray, kps: np.ndarray) -> np.ndarray:
+        """(n,) standard deviation of keypoints `kps` of `images` in a bundle adjustment, their scale bin's entry of
+        `view_sigma_table`, as integer quarter octaves (sigma = 2^(level/4) px, the table's grid) so that a BA's
+        views share a few noise models; zeros, without reading the scales, while the table is all ones."""
+        if (self.view_sigma_table == 1.0).all():
+            return np.zeros(np.shape(images), np.int64)
+        bins = scale_bins(self.keypoints.scale_flat[self.kp_offset[images] + kps])
+        return np.round(4 * np.log2(self.view_sigma_table[bins])).astype(np.int64)
 
     def normalized_at(self, images: np.ndarray, kps: np.ndarray) -> np.ndarray:
         """`normalized_keypoints` (n, 2) of keypoints `kps` of `images`: grouped by image with one sort, as a mask
