@@ -2,8 +2,8 @@
 
 GLOMAP's pipeline on GTSAM and the incremental mapper's own parts:
 1. View graph (view_graph.py): guessed focal lengths calibrated from the pairs' fundamental matrices, then one
-   relative pose per verified pair; a guessed focal the pairs cannot tell is refined by coarse global models
-   first.
+   relative pose per verified pair (pair_poses.py); a guessed focal the pairs cannot tell is refined by coarse
+   global models first.
 2. Rotation averaging (rotation_averaging.py): robust initialisation, L1-IRLS, `gtsam.ShonanAveraging3`;
    pairs whose rotation disagrees by more than 5 degrees are outliers; the largest consistent component is a
    model.
@@ -60,20 +60,13 @@ from .georef import CenterPriors, georeference
 from .global_positioning import global_positions, outlier_cameras
 from .incremental import MappingResult
 from .model import KeypointSet, Reconstruction, coverage, image_status, images_and_cameras
+from .pair_poses import COARSE_SAMPLE, relative_poses
 from .register import register_image
 from .rotation_averaging import average_rotations
 from .tracks import build_tracks
 from .translation_averaging import average_translations
 from .triangulate import refine_existing_points, retriangulate, triangulate_tracks
-from .view_graph import (
-    COARSE_SAMPLE,
-    calibrate_focals,
-    calibration_shift_px,
-    dense_subset,
-    matches_per_image,
-    oriented_pairs,
-    relative_poses,
-)
+from .view_graph import calibrate_focals, calibration_shift_px, dense_subset, matches_per_image, oriented_pairs
 
 log = logging.getLogger("mvrecon.sfm")
 # reprojection gate of the first round, before the config's own (4 px), and of the coarse models: with a wider

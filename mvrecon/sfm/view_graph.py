@@ -1,4 +1,4 @@
-"""The view graph of the global mapper: one relative pose per verified pair, and the focal lengths behind them.
+"""The view graph of the global mapper: its verified pairs, and the focal lengths behind them.
 
 `calibrate_focals` first sets each guessed focal length (not trusted, 1.2 * max(w, h)) from the pairs'
 fundamental matrices, as GLOMAP calibrates its view graph: an essential matrix E = K2^T F K1 has two equal
@@ -9,58 +9,29 @@ herzjesu: 2776 px for the true 2760, from 3686). Where the cost has no clear min
 0.65 of the cost at both ends: a street's or a facade's minimum is at 0.53-0.62, an orbit's at 0.76-1) the guess
 stays: when the optical axes meet (an orbit around an object) the pairs do
 not observe the focal, and the smallest focal tried wins (object_orbit_small: 384 px for the true 560); the
-global mapper then finds it with coarse models (global_mapper.py). Then `relative_poses` estimates each pair's
-relative pose from its matches in normalised coordinates (five-point RANSAC), with the median triangulation
-angle of its inliers; a pair where a rotation about the camera centre explains `_ROTATION_SHARE` as many of its
-matches as its essential matrix does (a camera turning in place; the share is COLMAP's max_H_inlier_ratio, since an
-epipolar distance is one-dimensional and a rotation's two) gives that rotation and no translation direction.
+global mapper then finds it with coarse models (global_mapper.py). pair_poses.py then estimates each pair's
+relative pose at the calibration found.
 """
 
 import logging
 from collections.abc import Iterable
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
 
 from ..database import PairGeometry
-from ..executor import WorkerPool
 from ..geometry import camera as cammodel
-from ..geometry.rotation import angle_axis_to_rotmat
-from ..geometry.triangulation import triangulation_angle_deg, two_view_midpoints
-from ..geometry.two_view import essential_matrix, pose_from_essential, rotation_between_views
-from .config import MapperConfig
 from .model import Camera, Reconstruction
 
 log = logging.getLogger("mvrecon.sfm")
 
-SAMPLE = 1000  # matches a pair's pose and angle are estimated from (as the initial pair's)
-COARSE_SAMPLE = 300  # the same for the coarse models that calibrate a focal
+SAMPLE = 1000  # matches a pair's fundamental matrix or relative pose is estimated from (as the initial pair's)
 _SCALES = np.geomspace(0.25, 3.0, 161)  # of a guessed focal, tried by the calibration (steps of 1.6%)
 _EDGE = 6  # a minimum this close to either end of the range is no estimate
 _SHARPNESS = 0.65  # the minimum's cost must be under this share of the cost at both ends of the range
 _CALIBRATION_SWEEPS = 3
-_MIN_RELATIVE_INLIERS = 15  # a pair's matches fitting its relative pose (COLMAP's min_num_inliers)
-_ROTATION_SHARE = 0.8  # a pair is a rotation where one explains this share of its essential matrix's inliers
-_PARALLEL_PAIRS = 200  # pairs from which `relative_poses` hands them to worker processes
+MIN_RELATIVE_INLIERS = 15  # a pair's matches fitting its relative pose (COLMAP's min_num_inliers)
 _CALIBRATION_PAIRS = 300  # a camera's pairs (those with the most matches) its focal is calibrated from
-
-
-@dataclass
-class ViewEdge:
-    """A pair's relative pose: x2 = R x1 + t in camera coordinates (|t| = 1), from `inliers` matches."""
-
-    R: np.ndarray
-    t: np.ndarray
-    inliers: int
-    angle_deg: float  # median triangulation angle of the inliers (0: a rotation); below the minimum `t` is not used
-
-
-@dataclass
-class ViewGraph:
-    edges: dict  # (a, b) internal image indices, a < b -> ViewEdge
-    rejected: dict  # (a, b) -> why the pair gave no edge
 
 
 def oriented_pairs(image_ids: np.ndarray, pairs: Iterable[PairGeometry]) -> dict:
@@ -75,7 +46,8 @@ def oriented_pairs(image_ids: np.ndarray, pairs: Iterable[PairGeometry]) -> dict
     return out
 
 
-def _sample(matches, seed: int, size: int = SAMPLE) -> np.ndarray:
+def sample_matches(matches, seed: int, size: int = SAMPLE) -> np.ndarray:
+    """At most `size` of `matches` (rows), drawn at `seed` and kept in their order; all of them when fewer."""
     if len(matches) <= size:
         return matches
     return matches[np.sort(np.random.default_rng(seed).choice(len(matches), size, replace=False))]
@@ -106,10 +78,10 @@ def calibrate_focals(model: Reconstruction, pairs: dict, seed: int = 0) -> dict:
     for (a, b), matches in sorted(pairs.items(), key=lambda kv: -len(kv[1])):
         ca, cb = int(model.camera_of[a]), int(model.camera_of[b])
         mine = [c for c in (ca, cb) if c in guessed and used[c] < _CALIBRATION_PAIRS]
-        if mine and len(matches) >= 4 * _MIN_RELATIVE_INLIERS:
+        if mine and len(matches) >= 4 * MIN_RELATIVE_INLIERS:
             for c in set(mine):
                 used[c] += 1
-            F = _fundamental(model, a, b, _sample(matches, seed))
+            F = _fundamental(model, a, b, sample_matches(matches, seed))
             if F is not None:
                 Fs.append((ca, cb, F / np.linalg.norm(F)))
     changed = {}
@@ -188,89 +160,3 @@ def dense_subset(pairs: dict, n: int, size: int, seeds: Iterable[int] = ()) -> n
                 if not inside[other]:
                     score[other] = max(score[other], 0.0) + count
     return inside
-
-
-def relative_poses(model: Reconstruction, pairs: dict, config: MapperConfig, sample: int = SAMPLE,
-                   workers: int = 1) -> ViewGraph:
-    """The relative pose of each pair at the model's current calibration (see the module docstring), from at
-    most `sample` of its matches, in `workers` processes (executor.WorkerPool) when there are enough pairs: a
-    pair costs about 12 ms of CPU, and a 300-image survey has 3,304 of them."""
-    keys, jobs = [], []
-    for (a, b), matches in sorted(pairs.items()):
-        matches = _sample(matches, config.seed, sample)
-        x1, x2 = model.normalized_keypoints(a)[matches[:, 0]], model.normalized_keypoints(b)[matches[:, 1]]
-        ok = np.isfinite(x1).all(axis=1) & np.isfinite(x2).all(axis=1)
-        f = 0.5 * (model.camera(a).focal() + model.camera(b).focal())
-        keys.append((a, b))
-        jobs.append((x1[ok], x2[ok], len(matches), config.two_view_max_error_px / f))
-    if workers > 1 and len(jobs) >= _PARALLEL_PAIRS:
-        step = -(-len(jobs) // (4 * workers))  # a few chunks per worker: even loads, little pickling
-        chunks = [(jobs[k:k + step], config.seed) for k in range(0, len(jobs), step)]
-        with WorkerPool(workers) as pool:
-            found = [edge for chunk in pool.map(_pair_poses, chunks) for edge in chunk]
-    else:
-        found = _pair_poses((jobs, config.seed))
-    edges, rejected = {}, {}
-    for key, edge in zip(keys, found):
-        if isinstance(edge, ViewEdge):
-            edges[key] = edge
-        else:
-            rejected[key] = edge
-    return ViewGraph(edges, rejected)
-
-
-def _pair_poses(chunk: tuple[list, int]) -> list:
-    """A ViewEdge, or the reason there is none, for each (x1, x2, matches, threshold) of the chunk (jobs, seed)."""
-    jobs, seed = chunk
-    return [_pair_pose(x1, x2, count, threshold, seed) for x1, x2, count, threshold in jobs]
-
-
-def _pair_pose(x1: np.ndarray, x2: np.ndarray, count: int, threshold: float, seed: int) -> "ViewEdge | str":
-    essential = essential_matrix(x1, x2, threshold, seed)
-    fit = 0 if essential is None else int(essential[1].sum())  # before cheirality, which a turn leaves to chance
-    share = int(np.ceil(_ROTATION_SHARE * fit))
-    turn = rotation_between_views(x1, x2, threshold, seed, min_inliers=max(3, min(share, _MIN_RELATIVE_INLIERS)))
-    turned = 0 if turn is None else int(turn[1].sum())
-    if turned >= max(share, _MIN_RELATIVE_INLIERS):
-        return ViewEdge(turn[0], np.zeros(3), turned, 0.0)  # a rotation about the camera centre
-    if fit >= _MIN_RELATIVE_INLIERS and turned >= share:
-        return (f"no baseline: a rotation about the camera centre explains {turned} of its {count} matches, "
-                f"{_ROTATION_SHARE:.0%} or more of its essential matrix's {fit}, and < {_MIN_RELATIVE_INLIERS}")
-    est = None if essential is None else pose_from_essential(essential[0], x1, x2, essential[1])
-    found = 0 if est is None else int(est[2].sum())
-    if found < _MIN_RELATIVE_INLIERS:
-        return (f"{found} of its {count} matches fit a relative pose in front of both views, "
-                f"< {_MIN_RELATIVE_INLIERS}")
-    R, t, inl = est
-    R, t = refine_relative_pose(R, t, x1[inl], x2[inl])
-    X = two_view_midpoints(R, t, x1[inl], x2[inl])  # the angle needs no refined points
-    front = np.isfinite(X).all(axis=1)
-    front[front] = (X[front, 2] > 0) & (X[front] @ R[2] + t[2] > 0)
-    angle = float(np.median(triangulation_angle_deg(np.zeros(3), -R.T @ t, X[front]))) if front.any() else 0.0
-    return ViewEdge(R, t, found, angle)
-
-
-def refine_relative_pose(R: np.ndarray, t: np.ndarray, x1: np.ndarray, x2: np.ndarray,
-                         iterations: int = 10) -> tuple[np.ndarray, np.ndarray]:
-    """(R, t) refined by Levenberg-Marquardt on the Sampson distances of the inlier matches (normalised
-    coordinates): the five-point RANSAC's pose comes from a minimal sample, and with a narrow field of view it
-    can be degrees off (templeSparseRing, 24 deg across: pairs of 150-200 matches 10 deg off in rotation)."""
-    if len(x1) < 6:
-        return R, t
-    h1, h2 = np.c_[x1, np.ones(len(x1))], np.c_[x2, np.ones(len(x2))]
-    basis = np.linalg.svd(t.reshape(1, 3))[2][1:]  # two directions orthogonal to t
-
-    def pose(p):
-        Rp = angle_axis_to_rotmat(p[:3]) @ R
-        tp = t + basis.T @ p[3:]
-        return Rp, tp / np.linalg.norm(tp)
-
-    def sampson(p):
-        Rp, tp = pose(p)
-        E = np.array([[0, -tp[2], tp[1]], [tp[2], 0, -tp[0]], [-tp[1], tp[0], 0]]) @ Rp
-        Ex1, Etx2 = h1 @ E.T, h2 @ E
-        num = np.einsum("ni,ni->n", h2, Ex1)
-        return num / np.sqrt(Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2 + 1e-300)
-
-    fit = least_squares(sampson, np.zeros(5), method="lm", max_nfev=iterations * 6)
-    return pose(fit.x) if fit.cost <= 0.5 * float(np.sum(sampson(np.zeros(5)) ** 2)) else (R, t)

@@ -4,11 +4,12 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from mvrecon import database
-from mvrecon.sfm import view_graph
+from mvrecon.sfm import pair_poses
 from mvrecon.sfm.config import MapperConfig
 from mvrecon.sfm.global_mapper import GlobalMapper
 from mvrecon.sfm.model import Camera
-from mvrecon.sfm.view_graph import calibration_shift_px, dense_subset, refine_relative_pose, relative_poses
+from mvrecon.sfm.pair_poses import refine_relative_pose, relative_poses
+from mvrecon.sfm.view_graph import calibration_shift_px, dense_subset
 from tests.sfm.test_global_mapper import rotating_views
 from tests.sfm.test_mapper import synthetic_database
 
@@ -34,6 +35,24 @@ def test_a_relative_pose_degrees_off_is_refined_to_its_matches():
     assert angle_deg(R0 @ R.T) > 2.5
     assert angle_deg(Rr @ R.T) < 0.3  # what the noise allows: yaw and direction trade off in a narrow view
     assert np.degrees(np.arccos(np.clip(tr @ t, -1, 1))) < 1.0
+
+
+def test_a_relative_pose_far_off_in_a_narrow_view_reaches_the_exact_pose():
+    """Exact matches in a 0.2 rad view and a start 10 deg off in rotation and 20 deg in direction, where yaw and
+    direction trade off along a long narrow valley of the cost: the refinement follows it to the true pose."""
+    rng = np.random.default_rng(1)
+    X = np.c_[rng.uniform(-0.1, 0.1, (200, 2)), np.ones(200)] * rng.uniform(4, 6, (200, 1))
+    R = Rotation.from_rotvec([0.02, -0.12, 0.01]).as_matrix()
+    t = np.array([0.7, 0.1, 0.2])
+    t /= np.linalg.norm(t)
+    Y = X @ R.T + t
+    x1, x2 = X[:, :2] / X[:, 2:], Y[:, :2] / Y[:, 2:]
+    R0 = Rotation.from_rotvec(np.radians([4.0, -8.0, 4.0])).as_matrix() @ R
+    t0 = Rotation.from_rotvec(np.radians([0.0, 20.0, 0.0])).as_matrix() @ t
+    Rr, tr = refine_relative_pose(R0, t0, x1, x2)
+    assert angle_deg(R0 @ R.T) > 9.5
+    assert angle_deg(Rr @ R.T) < 1e-4
+    assert np.degrees(np.arccos(np.clip(tr @ t, -1, 1))) < 1e-4
 
 
 def test_a_camera_turning_in_place_gives_rotations_without_directions():
@@ -91,7 +110,7 @@ def test_relative_poses_in_worker_processes_are_those_of_one_process(tmp_path, m
     model = mapper._new_model(mapper.cameras)
     for cam in model.cameras.values():
         cam.params = np.array([600.0, 320.0, 240.0, 0.02])  # the scene's true calibration
-    monkeypatch.setattr(view_graph, "_PARALLEL_PAIRS", 1)
+    monkeypatch.setattr(pair_poses, "_PARALLEL_PAIRS", 1)
     alone = relative_poses(model, mapper.pairs, mapper.config)
     shared = relative_poses(model, mapper.pairs, mapper.config, workers=2)
     assert len(alone.edges) == 28 and sorted(shared.edges) == sorted(alone.edges)
