@@ -46,7 +46,7 @@ def oriented_pairs(image_ids: np.ndarray, pairs: Iterable[PairGeometry]) -> dict
     return out
 
 
-def sample_matches(matches, seed: int, size: int = SAMPLE) -> np.ndarray:
+def sample_matches(matches: np.ndarray, seed: int, size: int = SAMPLE) -> np.ndarray:
     """At most `size` of `matches` (rows), drawn at `seed` and kept in their order; all of them when fewer."""
     if len(matches) <= size:
         return matches
