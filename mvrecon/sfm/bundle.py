@@ -35,8 +35,7 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import reverse_cuthill_mckee
+from scipy.sparse import csr_matrix, triu
 
 from .config import MapperConfig
 from .georef import spread_enough
@@ -165,9 +164,9 @@ def bundle_adjust(model: Reconstruction, variable_images: np.ndarray | list[int]
         _fix_gauge(gtsam, graph, model, window.variable, held_images)
 
     iterations = max_iterations or config.global_ba_iterations
-    # points first (the Schur complement, and no COLAMD run per call), then poses (`_pose_order`),
-    # calibrations last: every reduced factor touches the calibration, so eliminating it before the poses joins
-    # them all at once (an LM iteration of templeRing's final BA: 98 ms median against 114)
+    # points first (the Schur complement, and no COLAMD run over the whole graph per call), then poses
+    # (`_pose_order`), calibrations last: every reduced factor touches the calibration, so eliminating it before
+    # the poses joins them all at once (an LM iteration of templeRing's final BA: 98 ms median against 114)
     ordering = gtsam.Ordering([*point_keys, *sub_keys, *_keys("x", _pose_order(window)),
                                *_keys("k", list(var_cams))])
     lam = config.ba_shared_initial_lambda if model.cameras_shared(optimised) else _CERES_LAMBDA
@@ -202,12 +201,12 @@ def _window(model, variable_images, point_ids) -> _Window | None:
 
 
 def _pose_order(window: _Window) -> list[int]:
-    """The order in which a BA eliminates its poses, after the points: from ORDERED_POSES poses on, the reverse
-    Cuthill-McKee order of the images that share a point, else image order. Eliminating the points joins every
-    two images that see one; eliminating a pose then joins all its neighbours still to come, and an order that
-    keeps each image's neighbours close keeps that fill, and the factorisation's work, small, at the same
-    result. Image order is such an order for a sequence, not for two rings of views numbered one after the
-    other (docs/scale.md, "Pose order")."""
+    """The order in which a BA eliminates its poses, after the points: from ORDERED_POSES poses on, COLAMD's
+    (approximate minimum degree) order of the graph of the images that share a point, else image order.
+    Eliminating the points joins every two images that see one, and eliminating a pose then joins all its
+    neighbours still to come: a fill-reducing order keeps that fill, and the factorisation's work, small, at the
+    same result. Image order is such an order for a sequence, not for two rings of views numbered one after the
+    other, nor for a survey's flight lines (docs/benchmarks.md, "Pose order")."""
     optimised = np.flatnonzero(window.variable)
     if len(optimised) < ORDERED_POSES:
         return optimised.tolist()
@@ -217,7 +216,14 @@ def _pose_order(window: _Window) -> list[int]:
     points = np.unique(window.obs_pt[views], return_inverse=True)[1]
     seen = csr_matrix((np.ones(int(views.sum()), np.float32), (column[window.obs_img[views]], points)),
                       shape=(len(optimised), int(points.max(initial=-1)) + 1))
-    return optimised[reverse_cuthill_mckee((seen @ seen.T).tocsr(), symmetric_mode=True)].tolist()
+    shared = triu(seen @ seen.T, 1).tocoo()
+    graph = gtsam.SymbolicFactorGraph()
+    for a, b in zip(shared.row.tolist(), shared.col.tolist()):
+        graph.push_factor(a, b)
+    for a in range(len(optimised)):  # an image sharing no point is still ordered
+        graph.push_factor(a)
+    order = gtsam.Ordering.ColamdSymbolicFactorGraph(graph)
+    return optimised[[order.at(k) for k in range(order.size())]].tolist()
 
 
 def _split_long_tracks(window: _Window, memory_mb: float) -> tuple[np.ndarray | None, np.ndarray]:
@@ -405,15 +411,17 @@ def _optimize(gtsam, graph, values, kind: str, iterations: int, relative_toleran
     the graph is not evaluated twice more (~7 ms each for 12,500 observations). Ceres-style LM settings
     (diagonal damping, lambda starting at `initial_lambda`, factor 2): with GTSAM's legacy defaults a tiny
     lambda let the first steps of a two-view problem jump points behind the cameras, which the Sfm optimizer
-    reports as an error. Plain LM gets the points-first `ordering` (its COLAMD ordering cost ~0.6 s per call on
-    5000 points); the Sfm optimizer builds its own Schur ordering."""
+    reports as an error. Plain LM gets the points-first `ordering` (a COLAMD ordering of the whole graph cost
+    ~0.6 s per call on 5000 points) and solves by sequential Cholesky: multifrontal Cholesky was faster on a
+    1,000-image survey and took 40-60% more memory on a 300-view orbit at no gain (docs/benchmarks.md, "Pose
+    order: COLAMD's"); the Sfm optimizer builds its own Schur ordering."""
     if kind == "sfm":
         params = gtsam.SfmLevenbergMarquardtParams.ceresDefaults()
         params.setEliminationMode(gtsam.SfmEliminationMode.Schur)
         make = gtsam.SfmLevenbergMarquardtOptimizer
     elif kind == "lm":
         params = gtsam.LevenbergMarquardtParams.CeresDefaults()
-        params.setLinearSolverType("SEQUENTIAL_CHOLESKY")  # measured faster than multifrontal here
+        params.setLinearSolverType("SEQUENTIAL_CHOLESKY")
         params.setOrdering(ordering)
         make = gtsam.LevenbergMarquardtOptimizer
     else:
