@@ -412,9 +412,9 @@ def _optimize(gtsam, graph, values, kind: str, iterations: int, relative_toleran
     (diagonal damping, lambda starting at `initial_lambda`, factor 2): with GTSAM's legacy defaults a tiny
     lambda let the first steps of a two-view problem jump points behind the cameras, which the Sfm optimizer
     reports as an error. Plain LM gets the points-first `ordering` (a COLAMD ordering of the whole graph cost
-    ~0.6 s per call on 5000 points) and solves by sequential Cholesky: multifrontal Cholesky was faster on a
-    1,000-image survey and took 40-60% more memory on a 300-view orbit at no gain (docs/benchmarks.md, "Pose
-    order: COLAMD's"); the Sfm optimizer builds its own Schur ordering."""
+    ~0.6 s per call on 5000 points) and solves by sequential Cholesky: multifrontal Cholesky, faster on a large
+    survey, took far more memory on a dense orbit at no gain there (docs/benchmarks.md, "Pose order: COLAMD's");
+    the Sfm optimizer builds its own Schur ordering."""
     if kind == "sfm":
         params = gtsam.SfmLevenbergMarquardtParams.ceresDefaults()
         params.setEliminationMode(gtsam.SfmEliminationMode.Schur)
