@@ -81,9 +81,10 @@ class MapperConfig:
     # match a pixel or two astray) weigh less; against 1 px it raised AUC@1 on 24 of the suite's 31 sets and cost
     # at most 0.002 on 4 (docs/benchmarks.md, "Huber width")
     huber_px: float = bounded(0.5, 0.0, low_open=True)
-    # the same for the global mapper's BAs, whose poses start pixels off (the averaging's): at 0.5 px a 12-view wide
-    # orbit kept 8 wrong images, and a panorama, refused at 1 px, became a model of 10 (docs/benchmarks.md, same)
-    global_huber_px: float = bounded(1.0, 0.0, low_open=True)
+    # the same for the global mapper's BAs after its first round; the BAs from the averaging's poses, pixels off,
+    # keep 1 px (global_mapper._START_HUBER_PX): 0.5 px there too lost a 12-view wide orbit (docs/benchmarks.md,
+    # "Global mapper: Huber width 0.5 px after the first round")
+    global_huber_px: float = bounded(0.5, 0.0, low_open=True)
     # the final refinement weighs each view by its keypoint scale's error, measured on the model's residuals
     # (Reconstruction.refresh_view_sigmas); off by default: on the mapper suite it raised AUC@1 on some sets
     # and lowered it on others (docs/benchmarks.md, "Views weighted by keypoint scale")

@@ -82,6 +82,7 @@ _BA_MIN_HOLD = 6
 _COARSE_ITERATIONS = 15  # LM iterations of a coarse model's BA
 _FINAL_ROUNDS = 5  # final rounds of retriangulation, BA and filtering (`_refine`): COLMAP's iterative global
 _FINAL_MIN_CHANGE = 0.0005  # refinement, until a round adds and removes under this share of the observations
+_START_HUBER_PX = 1.0  # Huber width of the BAs from the averaging's poses, pixels off (`_bundle`)
 _FINAL_ITERATIONS = 1  # LM iterations of the BA over every point, from converged subset poses (`_refine`)
 # images from which a model's first round takes the early point quota and its final BA over every point is brief
 # (`_refine`): the savings are at scale, and a 16-image sparse ring's AUC@5 moved by 0.02-0.06 with either
@@ -444,7 +445,7 @@ class GlobalMapper:
             else:
                 retriangulate(m, self.tracks, loose, cfg.seed)
             self._note_lost(m)
-            self._bundle(m, intrinsics=True, subset=True, early=large and k == 0)
+            self._bundle(m, intrinsics=True, subset=True, early=large and k == 0, start=k == 0)
             m.priors = None  # the next BAs go by the images alone
             self._filter(m, loose)
         dropped = self._drop_unsupported(m)
@@ -514,7 +515,8 @@ class GlobalMapper:
                        filter_max_reproj_error_px=max(gate, cfg.filter_max_reproj_error_px))
 
     def _bundle(self, m: Reconstruction, intrinsics: bool, distortion: bool = True, subset: bool = False,
-                coarse: bool = False, early: bool = False, iterations: int | None = None) -> None:
+                coarse: bool = False, early: bool = False, iterations: int | None = None,
+                start: bool = False) -> None:
         """Global BA of every registered image; intrinsics as in the incremental mapper's global BA: the focal
         from focal_min_images images on, the distortion (unless not `distortion`) from distortion_min_images on,
         and a BA that leaves a camera implausible undone and repeated with less refined. With `subset`, as the
@@ -526,10 +528,11 @@ class GlobalMapper:
         100-image survey) takes ba_points_per_image_early points per image as well, to convergence.
         `iterations` caps the LM iterations (default the config's global_ba_iterations). Except in the coarse
         models, only the points seen by three images or more are optimised (`ba_points.long_points`), the others
-        re-fitted to the poses after. Its Huber width is the config's global_huber_px. A model whose
+        re-fitted to the poses after. Its Huber width is `_START_HUBER_PX` in the coarse models and with `start` (the
+        first round's BA, from global positioning's poses, pixels off), else the config's global_huber_px. A model whose
         `priors` are set is moved into their frame first, once they allow it (georef.py), and the BA holds each
         centre to its prior: `_refine` sets them for its first BA and its final rounds'."""
-        cfg = replace(self.config, huber_px=self.config.global_huber_px)
+        cfg = replace(self.config, huber_px=_START_HUBER_PX if coarse or start else self.config.global_huber_px)
         georeference(m, cfg.seed)  # into the priors' frame once they allow it (georef.py; no-op without priors)
         n = int(m.registered.sum())
         focal = intrinsics and cfg.refine_intrinsics and n >= cfg.focal_min_images
