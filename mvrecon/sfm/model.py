@@ -20,6 +20,7 @@ import numpy as np
 
 from ..database import Correspondences
 from ..geometry import camera as cammodel
+from .projection import lens_table, project_views
 
 _UNDISTORT_TOLERANCE_PX = 1e-3  # a keypoint whose ray reprojects farther than this has no ray (see below)
 
@@ -239,6 +240,7 @@ class Reconstruction:
         self.changed_tracks: list = []  # track ids whose point was made or deleted, for `CandidateRanking`
         self.scanned = 0  # entries visited by queries (observations, keypoints, track elements): the work count
         self._normalized_cache: dict = {}
+        self._lens_cache: tuple = (None, None, None)  # (cameras' parameters, lens table, row of each image)
         self._ba_factors: tuple = (None, {})  # (loss width, observation -> GTSAM factor), sfm/bundle.py
         self.priors = None  # georef.CenterPriors of the images, or None
         self.georeferenced = False  # moved into the priors' frame: the BAs hold the centres to them (georef.py)
@@ -511,16 +513,15 @@ class Reconstruction:
 
     # ----- errors and statistics -----
     def project(self, images: np.ndarray, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Pixels (n,2) and depths (n,) of points xyz (n,3) in images (n,), with each image's camera model."""
-        images = np.asarray(images, dtype=np.int64)
-        Xc = np.einsum("nij,nj->ni", self.R[images], xyz) + self.t[images]
-        uv = np.full((len(images), 2), np.nan)
-        cams = self.camera_of[images]
-        for cid in np.unique(cams):
-            m = cams == cid
-            cam = self.cameras[int(cid)]
-            uv[m] = cammodel.project(cam.model, cam.params, Xc[m])
-        return uv, Xc[:, 2]
+        """Pixels (n,2) and depths (n,) of points xyz (n,3) in images (n,), with each image's camera model
+        (projection.py: one compiled pass over the views)."""
+        ids = sorted(self.cameras)
+        lenses = [(self.cameras[c].model, self.cameras[c].params) for c in ids]
+        key = tuple((c, model, params.tobytes()) for c, (model, params) in zip(ids, lenses))
+        if self._lens_cache[0] != key:
+            self._lens_cache = (key, lens_table(lenses), np.searchsorted(ids, self.camera_of))
+        _, table, lens_of_image = self._lens_cache
+        return project_views(self.R, self.t, images, xyz, lens_of_image, lenses, table)
 
     def reprojection_errors(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Reprojection error (px; inf behind the camera) and depth of each observation id."""

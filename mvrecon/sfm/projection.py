@@ -1,0 +1,72 @@
+"""Pixels of many views at once, each point seen by one of many posed cameras, in one compiled pass.
+
+The mappers project every observation of a model several times a round (the filters, the bundle adjustments'
+point choice, the triangulation gates): at a thousand images that is millions of views a call, which numpy's
+passes over (n, 3, 3) rotations and per-camera masks took several times as long over (docs/benchmarks.md, "Every
+view projected in one compiled pass, and the BA points chosen by two sorts"). The polynomial lenses (the pinholes,
+SIMPLE_RADIAL, RADIAL and OPENCV: k1, k2, p1, p2) are projected here in one loop, the same arithmetic as
+`geometry.camera.project`; the equidistant fisheye goes through `geometry.camera.project` itself.
+"""
+
+import numpy as np
+from numba import njit
+
+from ..geometry import camera as cammodel
+
+_FISHEYE = "OPENCV_FISHEYE"
+
+
+def lens_table(lenses: list[tuple[str, np.ndarray]]) -> np.ndarray:
+    """(k, 8) rows fx, fy, cx, cy, k1, k2, p1, p2 of each (model, params) of `lenses`; a fisheye's row is NaN."""
+    table = np.full((len(lenses), 8), np.nan)
+    for row, (model, params) in enumerate(lenses):
+        if model != _FISHEYE:
+            fx, fy, cx, cy, d = cammodel.split(model, params)
+            table[row] = fx, fy, cx, cy, d.get("k1", 0.0), d.get("k2", 0.0), d.get("p1", 0.0), d.get("p2", 0.0)
+    return table
+
+
+def project_views(R: np.ndarray, t: np.ndarray, images: np.ndarray, xyz: np.ndarray, lens_of_image: np.ndarray,
+                  lenses: list[tuple[str, np.ndarray]], table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (n,2; NaN behind the camera) and depths (n,) of the points `xyz` (n,3), point k seen by image
+    `images[k]` with pose R[i], t[i] (camera from world) and lens `lenses[lens_of_image[i]]`, whose row of
+    `lens_table(lenses)` is `table`'s."""
+    images = np.ascontiguousarray(images, dtype=np.int64)
+    xyz = np.ascontiguousarray(xyz, dtype=np.float64)
+    uv = np.empty((len(images), 2))
+    depth = np.empty(len(images))
+    lens_of_image = np.ascontiguousarray(lens_of_image, dtype=np.int64)
+    _project(images, xyz, np.ascontiguousarray(R, np.float64), np.ascontiguousarray(t, np.float64), lens_of_image,
+             table, uv, depth)
+    fisheye = np.isnan(table[:, 0])
+    if fisheye.any():
+        lens = lens_of_image[images]
+        for row in np.flatnonzero(fisheye).tolist():
+            mine = np.flatnonzero(lens == row)
+            Xc = np.einsum("nij,nj->ni", R[images[mine]], xyz[mine]) + t[images[mine]]
+            uv[mine] = cammodel.project(*lenses[row], Xc)
+    return uv, depth
+
+
+@njit(cache=True, nogil=True)
+def _project(images, xyz, R, t, lens_of_image, table, uv, depth):
+    for k in range(len(images)):
+        i = images[k]
+        X0, X1, X2 = xyz[k, 0], xyz[k, 1], xyz[k, 2]
+        x = R[i, 0, 0] * X0 + R[i, 0, 1] * X1 + R[i, 0, 2] * X2 + t[i, 0]
+        y = R[i, 1, 0] * X0 + R[i, 1, 1] * X1 + R[i, 1, 2] * X2 + t[i, 1]
+        z = R[i, 2, 0] * X0 + R[i, 2, 1] * X1 + R[i, 2, 2] * X2 + t[i, 2]
+        depth[k] = z
+        p = table[lens_of_image[i]]
+        if not z > 0 or np.isnan(p[0]):  # behind the camera, or a fisheye (`project_views` fills it in)
+            uv[k, 0] = np.nan
+            uv[k, 1] = np.nan
+            continue
+        u = x / z
+        v = y / z
+        r2 = u * u + v * v
+        radial = p[4] * r2 + p[5] * r2 * r2
+        du = u * radial + 2 * p[6] * u * v + p[7] * (r2 + 2 * u * u)
+        dv = v * radial + 2 * p[7] * u * v + p[6] * (r2 + 2 * v * v)
+        uv[k, 0] = p[0] * (u + du) + p[2]
+        uv[k, 1] = p[1] * (v + dv) + p[3]

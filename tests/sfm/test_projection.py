@@ -1,0 +1,43 @@
+"""The compiled projection of a model's views against the camera models' own, lens by lens."""
+
+import numpy as np
+
+from mvrecon.geometry import camera as cammodel
+from mvrecon.geometry.rotation import angle_axis_to_rotmat
+from mvrecon.sfm.projection import lens_table, project_views
+
+LENSES = [
+    ("SIMPLE_PINHOLE", [500.0, 320.0, 240.0]),
+    ("PINHOLE", [510.0, 495.0, 322.0, 238.0]),
+    ("SIMPLE_RADIAL", [600.0, 320.0, 240.0, -0.08]),
+    ("RADIAL", [610.0, 318.0, 241.0, -0.1, 0.03]),
+    ("OPENCV", [620.0, 615.0, 321.0, 239.0, -0.12, 0.04, 0.002, -0.001]),
+    ("OPENCV_FISHEYE", [300.0, 302.0, 320.0, 240.0, 0.05, -0.01, 0.002, 0.0]),
+]
+
+
+def test_every_lens_projects_as_the_camera_model_does():
+    """Views of points through images of six lenses, some points behind their camera: the pixels and depths
+    are the camera models' own to 1e-9 px (1e-12 of themselves far off the image), NaN where the camera models
+    give NaN."""
+    rng = np.random.default_rng(1)
+    n_images, n_views = 24, 5000
+    lenses = [(model, np.array(params)) for model, params in LENSES]
+    lens_of_image = rng.integers(0, len(lenses), n_images)
+    R = np.array([angle_axis_to_rotmat(rng.normal(scale=0.3, size=3)) for _ in range(n_images)])
+    t = rng.normal(scale=0.5, size=(n_images, 3)) + [0.0, 0.0, 4.0]
+    images = rng.integers(0, n_images, n_views)
+    xyz = rng.normal(scale=2.0, size=(n_views, 3))
+    uv, depth = project_views(R, t, images, xyz, lens_of_image, lenses, lens_table(lenses))
+    Xc = np.einsum("nij,nj->ni", R[images], xyz) + t[images]
+    expected = np.full((n_views, 2), np.nan)
+    for row, (model, params) in enumerate(lenses):
+        mine = lens_of_image[images] == row
+        expected[mine] = cammodel.project(model, params, Xc[mine])
+    assert np.allclose(depth, Xc[:, 2], atol=1e-12)
+    behind = Xc[:, 2] <= 0
+    assert 0.01 < behind.mean() < 0.3 and np.isnan(uv[behind]).all()
+    assert np.array_equal(np.isnan(uv), np.isnan(expected))
+    finite = np.isfinite(expected).all(axis=1)
+    assert finite.sum() > 0.6 * n_views
+    assert np.allclose(uv[finite], expected[finite], rtol=1e-12, atol=1e-9)  # relative: far off the image too
