@@ -20,8 +20,8 @@ import numpy as np
 
 from ..database import Correspondences
 from ..geometry import camera as cammodel
-from .projection import lens_table, project_views
 
+COMPILED_MIN_VIEWS = 100_000  # views from which `Reconstruction.project` runs compiled (projection.py)
 _UNDISTORT_TOLERANCE_PX = 1e-3  # a keypoint whose ray reprojects farther than this has no ray (see below)
 
 PADDED_VIEWS = 250_000  # padded views handled at once (`padded_groups`): some 100 MB of arrays
@@ -513,15 +513,30 @@ class Reconstruction:
 
     # ----- errors and statistics -----
     def project(self, images: np.ndarray, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Pixels (n,2) and depths (n,) of points xyz (n,3) in images (n,), with each image's camera model
-        (projection.py: one compiled pass over the views)."""
-        ids = sorted(self.cameras)
-        lenses = [(self.cameras[c].model, self.cameras[c].params) for c in ids]
-        key = tuple((c, model, params.tobytes()) for c, (model, params) in zip(ids, lenses))
-        if self._lens_cache[0] != key:
-            self._lens_cache = (key, lens_table(lenses), np.searchsorted(ids, self.camera_of))
-        _, table, lens_of_image = self._lens_cache
-        return project_views(self.R, self.t, images, xyz, lens_of_image, lenses, table)
+        """Pixels (n,2) and depths (n,) of points xyz (n,3) in images (n,), with each image's camera model. From
+        `COMPILED_MIN_VIEWS` views on, in one compiled pass (projection.py), numba loaded at the first such call:
+        below that the numpy passes cost less than loading numba, which a small set's whole run never needs
+        (docs/benchmarks.md, "Every view projected in one compiled pass, and the BA points chosen by two
+        sorts")."""
+        images = np.asarray(images, dtype=np.int64)
+        if len(images) >= COMPILED_MIN_VIEWS:
+            from .projection import lens_table, project_views  # noqa: PLC0415 - numba, for large models only
+
+            ids = sorted(self.cameras)
+            lenses = [(self.cameras[c].model, self.cameras[c].params) for c in ids]
+            key = tuple((c, model, params.tobytes()) for c, (model, params) in zip(ids, lenses))
+            if self._lens_cache[0] != key:
+                self._lens_cache = (key, lens_table(lenses), np.searchsorted(ids, self.camera_of))
+            _, table, lens_of_image = self._lens_cache
+            return project_views(self.R, self.t, images, xyz, lens_of_image, lenses, table)
+        Xc = np.einsum("nij,nj->ni", self.R[images], xyz) + self.t[images]
+        uv = np.full((len(images), 2), np.nan)
+        cams = self.camera_of[images]
+        for cid in np.unique(cams):
+            m = cams == cid
+            cam = self.cameras[int(cid)]
+            uv[m] = cammodel.project(cam.model, cam.params, Xc[m])
+        return uv, Xc[:, 2]
 
     def reprojection_errors(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Reprojection error (px; inf behind the camera) and depth of each observation id."""

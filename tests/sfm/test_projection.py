@@ -2,9 +2,14 @@
 
 import numpy as np
 
+from mvrecon import database
 from mvrecon.geometry import camera as cammodel
 from mvrecon.geometry.rotation import angle_axis_to_rotmat
+from mvrecon.sfm import model
+from mvrecon.sfm.config import MapperConfig
+from mvrecon.sfm.incremental import map_correspondences
 from mvrecon.sfm.projection import lens_table, project_views
+from tests.sfm.test_mapper import synthetic_database
 
 LENSES = [
     ("SIMPLE_PINHOLE", [500.0, 320.0, 240.0]),
@@ -31,9 +36,9 @@ def test_every_lens_projects_as_the_camera_model_does():
     uv, depth = project_views(R, t, images, xyz, lens_of_image, lenses, lens_table(lenses))
     Xc = np.einsum("nij,nj->ni", R[images], xyz) + t[images]
     expected = np.full((n_views, 2), np.nan)
-    for row, (model, params) in enumerate(lenses):
+    for row, (name, params) in enumerate(lenses):
         mine = lens_of_image[images] == row
-        expected[mine] = cammodel.project(model, params, Xc[mine])
+        expected[mine] = cammodel.project(name, params, Xc[mine])
     assert np.allclose(depth, Xc[:, 2], atol=1e-12)
     behind = Xc[:, 2] <= 0
     assert 0.01 < behind.mean() < 0.3 and np.isnan(uv[behind]).all()
@@ -41,3 +46,17 @@ def test_every_lens_projects_as_the_camera_model_does():
     finite = np.isfinite(expected).all(axis=1)
     assert finite.sum() > 0.6 * n_views
     assert np.allclose(uv[finite], expected[finite], rtol=1e-12, atol=1e-9)  # relative: far off the image too
+
+
+def test_a_model_projects_alike_in_numpy_and_compiled(tmp_path, monkeypatch):
+    """A mapped synthetic scene: its views' reprojection errors and depths below `COMPILED_MIN_VIEWS` (numpy)
+    and with the threshold lowered to one view (compiled) agree to 1e-9 px."""
+    synthetic_database(tmp_path / "database.db")
+    m = map_correspondences(database.read_correspondences(tmp_path / "database.db"), MapperConfig(seed=0)).models[0]
+    obs = m.alive_observations()
+    assert 1000 < len(obs) < model.COMPILED_MIN_VIEWS
+    err, depth = m.reprojection_errors(obs)
+    monkeypatch.setattr(model, "COMPILED_MIN_VIEWS", 1)
+    compiled_err, compiled_depth = m.reprojection_errors(obs)
+    assert np.isfinite(err).all() and np.median(err) < 1.0
+    assert np.allclose(compiled_err, err, rtol=0, atol=1e-9) and np.allclose(compiled_depth, depth, rtol=1e-12)
