@@ -1,11 +1,12 @@
 """Pixels of many views at once, each point seen by one of many posed cameras, in one compiled pass.
 
 The mappers project every observation of a model several times a round (the filters, the bundle adjustments'
-point choice, the triangulation gates): at a thousand images that is millions of views a call, which numpy's
-passes over (n, 3, 3) rotations and per-camera masks took several times as long over (docs/benchmarks.md, "Every
-view projected in one compiled pass, and the BA points chosen by two sorts"). The polynomial lenses (the pinholes,
-SIMPLE_RADIAL, RADIAL and OPENCV: k1, k2, p1, p2) are projected here in one loop, the same arithmetic as
-`geometry.camera.project`; the equidistant fisheye goes through `geometry.camera.project` itself.
+point choice, the triangulation gates): at a thousand images that is millions of views a call.
+`Reconstruction.project` hands a call of `model.COMPILED_MIN_VIEWS` views or more to this module: one loop for the
+polynomial lenses (the pinholes, SIMPLE_RADIAL, RADIAL and OPENCV: k1, k2, p1, p2), the same arithmetic as
+`geometry.camera.project` in a fraction of the time of numpy's passes over (n, 3, 3) rotations and per-camera masks
+(docs/benchmarks.md, "Every view projected in one compiled pass, and the BA points chosen by two sorts"); the
+equidistant fisheye goes through `geometry.camera.project` itself.
 """
 
 import numpy as np
