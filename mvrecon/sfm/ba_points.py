@@ -31,14 +31,15 @@ def select_points(model: Reconstruction, images: np.ndarray | list[int], per_ima
     gy = np.clip((xy[:, 1] * GRID / wh[:, 1]).astype(np.int64), 0, GRID - 1)
     cell = (img * GRID + gy) * GRID + gx
     by_error = np.argsort(model.reprojection_errors(obs)[0], kind="stable")
-    shorter = model.point_num_observations()[pid]
-    shorter = int(shorter.max()) - shorter  # 0 = the longest track
+    length = model.point_num_observations()[pid]
+    shorter = int(length.max()) - length  # 0 = the longest track, below `span`
+    span = int(shorter.max()) + 1
 
     def best_first(key: np.ndarray) -> np.ndarray:
         """The order by `key` (int64), then by shortness, then by error: np.lexsort((err, shorter, key)) in
         two stable sorts, which take less time on a large model's millions of views (docs/benchmarks.md,
         "Every view projected in one compiled pass, and the BA points chosen by two sorts")."""
-        return by_error[np.argsort(key[by_error] * (int(shorter.max()) + 1) + shorter[by_error], kind="stable")]
+        return by_error[np.argsort(key[by_error] * span + shorter[by_error], kind="stable")]
 
     order = best_first(cell)  # by cell, best first
     rank = np.empty(len(obs), np.int64)

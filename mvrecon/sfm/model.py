@@ -240,7 +240,6 @@ class Reconstruction:
         self.changed_tracks: list = []  # track ids whose point was made or deleted, for `CandidateRanking`
         self.scanned = 0  # entries visited by queries (observations, keypoints, track elements): the work count
         self._normalized_cache: dict = {}
-        self._lens_cache: tuple = (None, None, None)  # (cameras' parameters, lens table, row of each image)
         self._ba_factors: tuple = (None, {})  # (loss width, observation -> GTSAM factor), sfm/bundle.py
         self.priors = None  # georef.CenterPriors of the images, or None
         self.georeferenced = False  # moved into the priors' frame: the BAs hold the centres to them (georef.py)
@@ -514,21 +513,18 @@ class Reconstruction:
     # ----- errors and statistics -----
     def project(self, images: np.ndarray, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixels (n,2) and depths (n,) of points xyz (n,3) in images (n,), with each image's camera model. From
-        `COMPILED_MIN_VIEWS` views on, in one compiled pass (projection.py), numba loaded at the first such call:
-        below that the numpy passes cost less than loading numba, which a small set's whole run never needs
-        (docs/benchmarks.md, "Every view projected in one compiled pass, and the BA points chosen by two
-        sorts")."""
+        `COMPILED_MIN_VIEWS` views on, in a model without a fisheye, in one compiled pass (projection.py), numba
+        loaded at the first such call: below that the numpy passes cost less than loading numba, which a small
+        set's whole run never needs (docs/benchmarks.md, "Every view projected in one compiled pass, and the BA
+        points chosen by two sorts")."""
         images = np.asarray(images, dtype=np.int64)
         if len(images) >= COMPILED_MIN_VIEWS:
-            from .projection import lens_table, project_views  # noqa: PLC0415 - numba, for large models only
-
             ids = sorted(self.cameras)
             lenses = [(self.cameras[c].model, self.cameras[c].params) for c in ids]
-            key = tuple((c, model, params.tobytes()) for c, (model, params) in zip(ids, lenses))
-            if self._lens_cache[0] != key:
-                self._lens_cache = (key, lens_table(lenses), np.searchsorted(ids, self.camera_of))
-            _, table, lens_of_image = self._lens_cache
-            return project_views(self.R, self.t, images, xyz, lens_of_image, lenses, table)
+            if all(model != "OPENCV_FISHEYE" for model, _ in lenses):
+                from .projection import project_views  # noqa: PLC0415 - numba, for large models only
+
+                return project_views(self.R, self.t, images, xyz, np.searchsorted(ids, self.camera_of), lenses)
         Xc = np.einsum("nij,nj->ni", self.R[images], xyz) + self.t[images]
         uv = np.full((len(images), 2), np.nan)
         cams = self.camera_of[images]

@@ -2,11 +2,11 @@
 
 The mappers project every observation of a model several times a round (the filters, the bundle adjustments'
 point choice, the triangulation gates): at a thousand images that is millions of views a call.
-`Reconstruction.project` hands a call of `model.COMPILED_MIN_VIEWS` views or more to this module: one loop for the
-polynomial lenses (the pinholes, SIMPLE_RADIAL, RADIAL and OPENCV: k1, k2, p1, p2), the same arithmetic as
+`Reconstruction.project` hands a call of `model.COMPILED_MIN_VIEWS` views or more of a model of polynomial lenses
+(the pinholes, SIMPLE_RADIAL, RADIAL and OPENCV: k1, k2, p1, p2) to this module: one loop, the same arithmetic as
 `geometry.camera.project` in a fraction of the time of numpy's passes over (n, 3, 3) rotations and per-camera masks
-(docs/benchmarks.md, "Every view projected in one compiled pass, and the BA points chosen by two sorts"); the
-equidistant fisheye goes through `geometry.camera.project` itself.
+(docs/benchmarks.md, "Every view projected in one compiled pass, and the BA points chosen by two sorts"). A model
+with an equidistant fisheye stays with `geometry.camera.project`.
 """
 
 import numpy as np
@@ -14,38 +14,20 @@ from numba import njit
 
 from ..geometry import camera as cammodel
 
-_FISHEYE = "OPENCV_FISHEYE"
-
-
-def lens_table(lenses: list[tuple[str, np.ndarray]]) -> np.ndarray:
-    """(k, 8) rows fx, fy, cx, cy, k1, k2, p1, p2 of each (model, params) of `lenses`; a fisheye's row is NaN."""
-    table = np.full((len(lenses), 8), np.nan)
-    for row, (model, params) in enumerate(lenses):
-        if model != _FISHEYE:
-            fx, fy, cx, cy, d = cammodel.split(model, params)
-            table[row] = fx, fy, cx, cy, d.get("k1", 0.0), d.get("k2", 0.0), d.get("p1", 0.0), d.get("p2", 0.0)
-    return table
-
 
 def project_views(R: np.ndarray, t: np.ndarray, images: np.ndarray, xyz: np.ndarray, lens_of_image: np.ndarray,
-                  lenses: list[tuple[str, np.ndarray]], table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                  lenses: list[tuple[str, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
     """Pixels (n,2; NaN behind the camera) and depths (n,) of the points `xyz` (n,3), point k seen by image
-    `images[k]` with pose R[i], t[i] (camera from world) and lens `lenses[lens_of_image[i]]`, whose row of
-    `lens_table(lenses)` is `table`'s."""
-    images = np.ascontiguousarray(images, dtype=np.int64)
-    xyz = np.ascontiguousarray(xyz, dtype=np.float64)
+    `images[k]` with pose R[i], t[i] (camera from world) and lens `lenses[lens_of_image[i]]`, a (model, params)
+    of a polynomial lens (not OPENCV_FISHEYE)."""
+    # a row per lens: fx, fy, cx, cy, k1, k2, p1, p2
+    table = np.array([[*cammodel.split(model, params)[:4], *cammodel.distortion_coefficients(model, params)]
+                      for model, params in lenses], dtype=np.float64).reshape(-1, 8)
     uv = np.empty((len(images), 2))
     depth = np.empty(len(images))
-    lens_of_image = np.ascontiguousarray(lens_of_image, dtype=np.int64)
-    _project(images, xyz, np.ascontiguousarray(R, np.float64), np.ascontiguousarray(t, np.float64), lens_of_image,
-             table, uv, depth)
-    fisheye = np.isnan(table[:, 0])
-    if fisheye.any():
-        lens = lens_of_image[images]
-        for row in np.flatnonzero(fisheye).tolist():
-            mine = np.flatnonzero(lens == row)
-            Xc = np.einsum("nij,nj->ni", R[images[mine]], xyz[mine]) + t[images[mine]]
-            uv[mine] = cammodel.project(*lenses[row], Xc)
+    _project(np.ascontiguousarray(images, dtype=np.int64), np.ascontiguousarray(xyz, dtype=np.float64),
+             np.ascontiguousarray(R, np.float64), np.ascontiguousarray(t, np.float64),
+             np.ascontiguousarray(lens_of_image, dtype=np.int64), table, uv, depth)
     return uv, depth
 
 
@@ -58,11 +40,11 @@ def _project(images, xyz, R, t, lens_of_image, table, uv, depth):
         y = R[i, 1, 0] * X0 + R[i, 1, 1] * X1 + R[i, 1, 2] * X2 + t[i, 1]
         z = R[i, 2, 0] * X0 + R[i, 2, 1] * X1 + R[i, 2, 2] * X2 + t[i, 2]
         depth[k] = z
-        p = table[lens_of_image[i]]
-        if not z > 0 or np.isnan(p[0]):  # behind the camera, or a fisheye (`project_views` fills it in)
+        if not z > 0:  # behind the camera
             uv[k, 0] = np.nan
             uv[k, 1] = np.nan
             continue
+        p = table[lens_of_image[i]]
         u = x / z
         v = y / z
         r2 = u * u + v * v
