@@ -87,6 +87,9 @@ def add_camera_options(parser: argparse.ArgumentParser) -> None:
 def add_feature_options(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("SIFT features")
     g.add_argument("--max-features", type=int, default=None, help="keypoints per image (default 8192)")
+    g.add_argument("--min-features", type=int, default=None,
+                   help="an image with fewer keypoints is detected again at half the peak threshold and keeps "
+                        "its strongest up to this many (default 2000; 0: off)")
     g.add_argument("--max-image-size", type=int, default=None,
                    help="shrink images to this long side before detection (default 3200)")
     g.add_argument("--peak-threshold", type=float, default=None,
@@ -182,6 +185,7 @@ _FLAG_FIELDS = {  # argparse dest -> (config section, field)
     "camera_model": ("camera", "model"),
     "camera_mode": ("camera", "mode"),
     "max_features": ("sift", "max_num_features"),
+    "min_features": ("sift", "min_num_features"),
     "max_image_size": ("sift", "max_image_size"),
     "peak_threshold": ("sift", "peak_threshold"),
     "upright": ("sift", "upright"),

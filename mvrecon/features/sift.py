@@ -29,6 +29,10 @@ class SiftConfig:
     # reached, so the front end takes 1.1-6.4x as long; it raises AUC@1 on 14 of 16 sets with ground truth and
     # lowers it on imc_reichstag and fisheye_orbit_small (docs/benchmarks.md, "Peak threshold on every set")
     peak_threshold: float = bounded(0.04 / 3, 0.0, low_open=True)
+    # an image with fewer keypoints than this at peak_threshold is detected again at half of it (COLMAP's), and
+    # keeps its strongest responses up to this many (those of peak_threshold among them): weakly textured images
+    # gain keypoints where matching them costs little; 0 turns it off (docs/benchmarks.md, "Keypoints topped up")
+    min_num_features: int = bounded(2000, 0)
     # reject edge-like responses (ratio of principal curvatures)
     edge_threshold: float = bounded(10.0, 0.0, low_open=True)
     num_octave_layers: int = bounded(3, 1)  # DoG layers per octave
@@ -58,26 +62,14 @@ def extract_sift(image: np.ndarray, config: SiftConfig = SiftConfig(), reduced: 
         size = (max(1, round(w * factor)), max(1, round(h * factor)))
         gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
     sx, sy = w / gray.shape[1], h / gray.shape[0]
-    # OpenCV keeps an extremum whose interpolated |DoG| reaches contrastThreshold / nOctaveLayers (after a
-    # pre-filter at half that), the test VLFeat/COLMAP make with peak_threshold
-    sift = cv2.SIFT_create(nfeatures=0, nOctaveLayers=config.num_octave_layers,
-                           contrastThreshold=config.peak_threshold * config.num_octave_layers,
-                           edgeThreshold=config.edge_threshold, enable_precise_upscale=config.precise_upscale)
-    if config.upright:
-        kps = sift.detect(gray, None)
-        unique = {}
-        for kp in kps:  # OpenCV duplicates a blob for each dominant orientation; upright needs it once
-            unique.setdefault((round(kp.pt[0], 2), round(kp.pt[1], 2), round(kp.size, 2)), kp)
-        kps = [cv2.KeyPoint(k.pt[0], k.pt[1], k.size, 0.0, k.response, k.octave, k.class_id)
-               for k in unique.values()]
-        kps = [kps[i] for i in _capped(kps, config)]
-        kps, desc = sift.compute(gray, kps) if kps else ((), None)
-    else:
-        # describing the keypoints dropped below costs about what detecting first and building a second pyramid
-        # for the kept ones does (docs/frontend.md, "Feature cap")
-        kps, desc = sift.detectAndCompute(gray, None)
-        if len(kps) > config.max_num_features:
-            keep = _capped(kps, config)
+    kps, desc = _detect(cv2, gray, config, config.peak_threshold)
+    wanted = min(config.min_num_features, config.max_num_features)
+    if len(kps) < wanted:
+        # the extrema of the lower threshold include those of the higher, found and refined alike (OpenCV's
+        # response is the refined |DoG| it compares with the threshold), so the strongest `wanted` hold them all
+        kps, desc = _detect(cv2, gray, config, config.peak_threshold / 2)
+        if len(kps) > wanted:
+            keep = np.sort(np.argsort([-k.response for k in kps], kind="stable")[:wanted])
             kps, desc = [kps[i] for i in keep], desc[keep]
     if not kps or desc is None:
         return np.zeros((0, 4), np.float32), np.zeros((0, 128), np.uint8)
@@ -89,6 +81,31 @@ def extract_sift(image: np.ndarray, config: SiftConfig = SiftConfig(), reduced: 
     keypoints[:, 2] *= 0.5 * (sx + sy) / 2
     keypoints[:, 3] = np.radians(keypoints[:, 3])
     return keypoints.astype(np.float32), descriptors_to_uint8(desc, root=config.root_sift)
+
+
+def _detect(cv2, gray: np.ndarray, config: SiftConfig, peak_threshold: float) -> tuple:
+    """OpenCV's keypoints and descriptors of `gray` at `peak_threshold`, capped at max_num_features."""
+    # OpenCV keeps an extremum whose interpolated |DoG| reaches contrastThreshold / nOctaveLayers (after a
+    # pre-filter at half that), the test VLFeat/COLMAP make with peak_threshold
+    sift = cv2.SIFT_create(nfeatures=0, nOctaveLayers=config.num_octave_layers,
+                           contrastThreshold=peak_threshold * config.num_octave_layers,
+                           edgeThreshold=config.edge_threshold, enable_precise_upscale=config.precise_upscale)
+    if config.upright:
+        kps = sift.detect(gray, None)
+        unique = {}
+        for kp in kps:  # OpenCV duplicates a blob for each dominant orientation; upright needs it once
+            unique.setdefault((round(kp.pt[0], 2), round(kp.pt[1], 2), round(kp.size, 2)), kp)
+        kps = [cv2.KeyPoint(k.pt[0], k.pt[1], k.size, 0.0, k.response, k.octave, k.class_id)
+               for k in unique.values()]
+        kps = [kps[i] for i in _capped(kps, config)]
+        return sift.compute(gray, kps) if kps else ((), None)
+    # describing the keypoints dropped below costs about what detecting first and building a second pyramid
+    # for the kept ones does (docs/frontend.md, "Feature cap")
+    kps, desc = sift.detectAndCompute(gray, None)
+    if len(kps) > config.max_num_features:
+        keep = _capped(kps, config)
+        kps, desc = [kps[i] for i in keep], desc[keep]
+    return kps, desc
 
 
 def extraction_memory_mb(width: int, height: int, config: SiftConfig = SiftConfig(),

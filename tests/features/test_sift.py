@@ -39,10 +39,40 @@ def test_peak_threshold_is_colmaps_test_on_the_interpolated_dog_peak(peak):
     import skimage.data
 
     image = skimage.data.camera()
-    keypoints, _ = extract_sift(image, SiftConfig(peak_threshold=peak))
+    keypoints, _ = extract_sift(image, SiftConfig(peak_threshold=peak, min_num_features=0))
     loose = cv2.SIFT_create(nfeatures=0, contrastThreshold=0.1 * peak * 3).detect(image, None)
     responses = np.array([k.response for k in loose])
     assert len(keypoints) == int((responses >= peak).sum()) > 500
+
+
+def test_an_image_with_few_keypoints_is_topped_up_with_the_strongest_of_half_the_threshold():
+    """skimage's camera man has 791 keypoints at the default threshold and 1,317 at half of it: asked for at
+    least about 1,000, the image keeps its 791 and the next strongest (the strongest responses of the lower
+    threshold); asked for 700 or 0 it keeps the default's; asked for 5,000, all of half the threshold."""
+    import cv2
+    import skimage.data
+
+    image = skimage.data.camera()
+    default, _ = extract_sift(image, SiftConfig(min_num_features=0))
+    half, _ = extract_sift(image, SiftConfig(peak_threshold=0.02 / 3, min_num_features=0))
+    assert len(default) == 791 and len(half) == 1317
+
+    def rows(k):
+        return {tuple(np.round(r, 3)) for r in k}
+
+    loose = cv2.SIFT_create(nfeatures=0, contrastThreshold=0.02).detect(image, None)
+    responses = np.array([k.response for k in loose])
+    assert len(responses) == len(half)  # the same run: OpenCV detects, extract_sift also describes
+    wanted = next(n for n in range(1000, 1100) if np.sort(responses)[::-1][n - 1] > np.sort(responses)[::-1][n])
+    topped, descriptors = extract_sift(image, SiftConfig(min_num_features=wanted))
+    assert len(topped) == len(descriptors) == wanted and rows(default) <= rows(topped) <= rows(half)
+    strongest = np.sort(responses)[::-1][wanted - 1]  # the kept ones are the responses reaching it
+    assert rows(topped) == rows(half[responses >= strongest])
+    for wanted in (0, 700):
+        assert np.array_equal(extract_sift(image, SiftConfig(min_num_features=wanted))[0], default)
+    assert np.array_equal(extract_sift(image, SiftConfig(min_num_features=5000))[0], half)
+    # the feature cap stays the ceiling: asked for 1,000 but capped at 900
+    assert len(extract_sift(image, SiftConfig(min_num_features=1000, max_num_features=900))[0]) == 900
 
 
 @pytest.mark.parametrize("precise", [False, True])
