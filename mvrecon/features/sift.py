@@ -62,15 +62,7 @@ def extract_sift(image: np.ndarray, config: SiftConfig = SiftConfig(), reduced: 
         size = (max(1, round(w * factor)), max(1, round(h * factor)))
         gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
     sx, sy = w / gray.shape[1], h / gray.shape[0]
-    kps, desc = _detect(cv2, gray, config, config.peak_threshold)
-    wanted = min(config.min_num_features, config.max_num_features)
-    if len(kps) < wanted:
-        # the extrema of the lower threshold include those of the higher, found and refined alike (OpenCV's
-        # response is the refined |DoG| it compares with the threshold), so the strongest `wanted` hold them all
-        kps, desc = _detect(cv2, gray, config, config.peak_threshold / 2)
-        if len(kps) > wanted:
-            keep = np.sort(np.argsort([-k.response for k in kps], kind="stable")[:wanted])
-            kps, desc = [kps[i] for i in keep], desc[keep]
+    kps, desc = _detect_topped_up(cv2, gray, config)
     if not kps or desc is None:
         return np.zeros((0, 4), np.float32), np.zeros((0, 128), np.uint8)
     keypoints = np.array([(k.pt[0], k.pt[1], k.size, k.angle) for k in kps], dtype=np.float64)
@@ -83,8 +75,43 @@ def extract_sift(image: np.ndarray, config: SiftConfig = SiftConfig(), reduced: 
     return keypoints.astype(np.float32), descriptors_to_uint8(desc, root=config.root_sift)
 
 
-def _detect(cv2, gray: np.ndarray, config: SiftConfig, peak_threshold: float) -> tuple:
-    """OpenCV's keypoints and descriptors of `gray` at `peak_threshold`, capped at max_num_features."""
+# whether the last image this process extracted was topped up: the next one most likely is too (a set's images
+# are alike), and then one detection at the lower threshold costs less than two
+_last_topped_up = False
+
+
+def _detect_topped_up(cv2, gray: np.ndarray, config: SiftConfig) -> tuple:
+    """OpenCV's keypoints and descriptors at peak_threshold; for fewer than min_num_features, the strongest of
+    half the threshold up to that many, capped at max_num_features.
+
+    A detection at half the threshold holds every keypoint of peak_threshold, found and refined alike, with the same
+    descriptors (OpenCV's response is the refined |DoG| it compares with the threshold), so its keypoints that
+    reach peak_threshold are the detection at peak_threshold. The result is the same whichever detection runs first;
+    `_last_topped_up` only chooses the one likely to be enough."""
+    global _last_topped_up
+    wanted = min(config.min_num_features, config.max_num_features)
+    if not (wanted and _last_topped_up):
+        kps, desc = _detect(cv2, gray, config, config.peak_threshold)
+        _last_topped_up = len(kps) < wanted
+        if not _last_topped_up:
+            return kps, desc
+    kps, desc = _detect(cv2, gray, config, config.peak_threshold / 2, capped=False)
+    responses = np.array([k.response for k in kps], np.float32)
+    # OpenCV's own test, in its precision: |DoG| x layers against contrastThreshold
+    reaching = responses * np.float32(config.num_octave_layers) >= config.peak_threshold * config.num_octave_layers
+    _last_topped_up = int(reaching.sum()) < wanted
+    keep = np.nonzero(reaching)[0] if not _last_topped_up else \
+        np.sort(np.argsort(-responses, kind="stable")[:wanted])
+    kps, desc = [kps[i] for i in keep], (desc[keep] if desc is not None else None)
+    if len(kps) > config.max_num_features:
+        keep = _capped(kps, config)
+        kps, desc = [kps[i] for i in keep], desc[keep]
+    return kps, desc
+
+
+def _detect(cv2, gray: np.ndarray, config: SiftConfig, peak_threshold: float, capped: bool = True) -> tuple:
+    """OpenCV's keypoints and descriptors of `gray` at `peak_threshold`, capped at max_num_features unless
+    `capped` is False."""
     # OpenCV keeps an extremum whose interpolated |DoG| reaches contrastThreshold / nOctaveLayers (after a
     # pre-filter at half that), the test VLFeat/COLMAP make with peak_threshold
     sift = cv2.SIFT_create(nfeatures=0, nOctaveLayers=config.num_octave_layers,
@@ -97,12 +124,12 @@ def _detect(cv2, gray: np.ndarray, config: SiftConfig, peak_threshold: float) ->
             unique.setdefault((round(kp.pt[0], 2), round(kp.pt[1], 2), round(kp.size, 2)), kp)
         kps = [cv2.KeyPoint(k.pt[0], k.pt[1], k.size, 0.0, k.response, k.octave, k.class_id)
                for k in unique.values()]
-        kps = [kps[i] for i in _capped(kps, config)]
+        kps = [kps[i] for i in _capped(kps, config)] if capped else kps
         return sift.compute(gray, kps) if kps else ((), None)
     # describing the keypoints dropped below costs about what detecting first and building a second pyramid
     # for the kept ones does (docs/frontend.md, "Feature cap")
     kps, desc = sift.detectAndCompute(gray, None)
-    if len(kps) > config.max_num_features:
+    if capped and len(kps) > config.max_num_features:
         keep = _capped(kps, config)
         kps, desc = [kps[i] for i in keep], desc[keep]
     return kps, desc

@@ -75,6 +75,25 @@ def test_an_image_with_few_keypoints_is_topped_up_with_the_strongest_of_half_the
     assert len(extract_sift(image, SiftConfig(min_num_features=1000, max_num_features=900))[0]) == 900
 
 
+@pytest.mark.parametrize("wanted", [500, 1000])
+def test_the_same_keypoints_whichever_detection_runs_first(monkeypatch, wanted):
+    """The detection at half the threshold runs first after an image that needed it: an image with enough
+    keypoints (500 wanted of 791) gets exactly the default's, one without (1,000) the same as in the other order,
+    descriptors included."""
+    import skimage.data
+
+    from mvrecon.features import sift
+
+    image = skimage.data.camera()
+    results = []
+    for first_low in (False, True):
+        monkeypatch.setattr(sift, "_last_topped_up", first_low)
+        results.append(extract_sift(image, SiftConfig(min_num_features=wanted)))
+    assert all(np.array_equal(a, b) for a, b in zip(*results))
+    if wanted == 500:
+        assert np.array_equal(results[1][0], extract_sift(image, SiftConfig(min_num_features=0))[0])
+
+
 @pytest.mark.parametrize("precise", [False, True])
 def test_sift_keypoints_sit_on_blob_centres_without_bias(precise):
     """Gaussian blobs at known sub-pixel centres (COLMAP convention), small to large: our keypoints find them
