@@ -88,14 +88,14 @@ def add_feature_options(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("SIFT features")
     g.add_argument("--max-features", type=int, default=None, help="keypoints per image (default 8192)")
     g.add_argument("--min-features", type=int, default=None,
-                   help="an image with fewer keypoints is detected again at half the peak threshold and keeps "
-                        "its strongest up to this many (default 2000; 0: off)")
+                   help="an image with fewer keypoints keeps the strongest of half the peak threshold up to "
+                        "this many (default 2000; 0: off)")
     g.add_argument("--max-image-size", type=int, default=None,
                    help="shrink images to this long side before detection (default 3200)")
     g.add_argument("--peak-threshold", type=float, default=None,
                    help="smallest DoG peak, as COLMAP's peak_threshold (default 0.0133, twice COLMAP's; "
-                        "COLMAP's 0.00667 finds 1.2-3.4x the keypoints: AUC@1 up by 0.01-0.07 on most sets, "
-                        "at 1.1-6.4x the front end's time)")
+                        "COLMAP's 0.00667 finds 1.2-3.4x the keypoints: AUC@1 up on most sets, at 1.1-4.1x "
+                        "the front end's time)")
     g.add_argument("--upright", action="store_true", default=None,
                    help="no orientation (cameras that never roll)")
     g.add_argument("--no-root-sift", dest="root_sift", action="store_false", default=None,

@@ -8,6 +8,9 @@
 - `descriptors`: (N,128) uint8, L2-unit (or RootSIFT) vectors scaled by 512 and clipped at 255, as COLMAP stores
   them, so `descriptors / 512` is (nearly) unit length.
 
+An image with fewer than `min_num_features` keypoints keeps the strongest of half the peak threshold up to that
+many (`_detect_topped_up`), so that weakly textured images are not matched on a few hundred keypoints.
+
 Images larger than `max_image_size` on their long side are shrunk first (SIFT on a 6000 px photo costs a lot and
 finds mostly noise-scale blobs) and the keypoints are mapped back to full-resolution coordinates.
 """
@@ -26,12 +29,12 @@ class SiftConfig:
     max_image_size: int = bounded(3200, 16)  # long side in pixels before detection; keypoints are mapped back
     # smallest |DoG| at the interpolated extremum, on [0,1] intensities: COLMAP's (VLFeat's) peak_threshold.
     # The default is twice COLMAP's 0.02 / 3: COLMAP's finds 1.2-3.4x the keypoints where the 8192 cap is not
-    # reached, so the front end takes 1.1-6.4x as long; it raises AUC@1 on 14 of 16 sets with ground truth and
-    # lowers it on imc_reichstag and fisheye_orbit_small (docs/benchmarks.md, "Peak threshold on every set")
+    # reached, so the front end takes 1.1-4.1x as long; it raises AUC@1 on 18 of 20 sets with ground truth and
+    # lowers it on imc_reichstag and fisheye_orbit_small (docs/benchmarks.md, "Keypoints topped up")
     peak_threshold: float = bounded(0.04 / 3, 0.0, low_open=True)
-    # an image with fewer keypoints than this at peak_threshold is detected again at half of it (COLMAP's), and
-    # keeps its strongest responses up to this many (those of peak_threshold among them): weakly textured images
-    # gain keypoints where matching them costs little; 0 turns it off (docs/benchmarks.md, "Keypoints topped up")
+    # an image with fewer keypoints than this at peak_threshold keeps the strongest of half of it (COLMAP's) up
+    # to this many, those of peak_threshold among them: weakly textured images gain keypoints where matching them
+    # costs little, and the others keep theirs; 0 turns it off (docs/benchmarks.md, "Keypoints topped up")
     min_num_features: int = bounded(2000, 0)
     # reject edge-like responses (ratio of principal curvatures)
     edge_threshold: float = bounded(10.0, 0.0, low_open=True)
