@@ -89,7 +89,7 @@ def add_feature_options(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--max-features", type=int, default=None, help="keypoints per image (default 8192)")
     g.add_argument("--min-features", type=int, default=None,
                    help="an image with fewer keypoints keeps the strongest of half the peak threshold up to "
-                        "this many (default 2000; 0: off)")
+                        "this many, e.g. 2000 for weakly textured images (default 0: off)")
     g.add_argument("--max-image-size", type=int, default=None,
                    help="shrink images to this long side before detection (default 3200)")
     g.add_argument("--peak-threshold", type=float, default=None,

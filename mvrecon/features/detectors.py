@@ -62,7 +62,7 @@ def detect(name: str, image: np.ndarray, max_features: int = 8192) -> Detection:
     gray = _gray(image)
     t0 = time.perf_counter()
     if name == "SIFT":
-        kps, desc = extract_sift(gray, SiftConfig(max_num_features=max_features, min_num_features=0))
+        kps, desc = extract_sift(gray, SiftConfig(max_num_features=max_features))
         kps = np.asarray(kps, dtype=np.float64).copy()
         kps[:, :2] -= 0.5  # COLMAP's pixel convention back to array indices
         impl = "opencv (front end)"

@@ -87,7 +87,7 @@ class SemConfig:
     height_source: str = "dense"
     densify: bool = False
     profile: tuple | None = None
-    sift: SiftConfig = field(default_factory=lambda: SiftConfig(max_num_features=8192, min_num_features=0))
+    sift: SiftConfig = field(default_factory=lambda: SiftConfig(max_num_features=8192))
     matcher: MatcherConfig = field(default_factory=MatcherConfig)
     ransac: AffineRansacConfig = field(default_factory=AffineRansacConfig)
     icp: IcpConfig = field(default_factory=IcpConfig)

@@ -60,7 +60,7 @@ def sift_matches(left: np.ndarray, right: np.ndarray, ratio: float = 0.8,
                  max_features: int = 8192) -> tuple[np.ndarray, np.ndarray]:
     """Front-end SIFT matches (mutual nearest neighbours passing Lowe's ratio) as (x1, x2) pixel arrays with pixel
     centres at integers, the convention of the image arrays (the front end stores COLMAP's +0.5)."""
-    sift = SiftConfig(max_num_features=max_features, min_num_features=0)
+    sift = SiftConfig(max_num_features=max_features)
     k1, d1 = extract_sift(left, sift)
     k2, d2 = extract_sift(right, sift)
     if len(k1) < 2 or len(k2) < 2:

@@ -39,7 +39,7 @@ def test_peak_threshold_is_colmaps_test_on_the_interpolated_dog_peak(peak):
     import skimage.data
 
     image = skimage.data.camera()
-    keypoints, _ = extract_sift(image, SiftConfig(peak_threshold=peak, min_num_features=0))
+    keypoints, _ = extract_sift(image, SiftConfig(peak_threshold=peak))
     loose = cv2.SIFT_create(nfeatures=0, contrastThreshold=0.1 * peak * 3).detect(image, None)
     responses = np.array([k.response for k in loose])
     assert len(keypoints) == int((responses >= peak).sum()) > 500
