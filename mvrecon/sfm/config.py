@@ -102,8 +102,8 @@ class MapperConfig:
     choose_camera_model: bool = True
     # "incremental": image by image (sfm/incremental.py); "global": all poses at once (sfm/global_mapper.py)
     mapper: str = "incremental"
-    # when the incremental mapper's largest model holds under half the images, the global mapper maps them too and
-    # its models are kept if their largest holds more (stages/mapping.py, `_run_mapper`)
+    # when the incremental mapper's largest model holds under half the images, or it made several models, the
+    # global mapper maps them too and its models are kept if their largest holds more (stages/mapping.py)
     global_fallback: bool = True
     # images per part of a partitioned mapping (sfm/partition.py: parts mapped alone, then merged); 0: no parts
     partition_size: int = bounded(0, 0)

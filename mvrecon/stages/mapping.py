@@ -136,21 +136,23 @@ def _run_mapper(corr, config, snapshot: Path, resume: bool, choose_lens: bool = 
     models with `choose_lens` too). Their modules load only when mapping runs (GTSAM is heavy for the commands
     that never map).
 
-    With `global_fallback`, an incremental mapping whose largest model holds under half the images is followed
-    by a global one, whose models replace it when their largest holds more images: the two mappers fail on
-    different view graphs (a graph of pairs with few matches each, whose tracks rarely reach a third view,
-    starts no incremental model but gives every rotation and position to the global mapper). Both mapping
-    nothing costs the global mapper's time, a panorama about a second."""
+    With `global_fallback`, an incremental mapping whose largest model holds under half the images, or that split
+    them into several models, is followed by a global one, whose models replace it when their largest holds more
+    images: the two mappers fail on different view graphs (a graph of pairs with few matches each, whose tracks
+    rarely reach a third view, starts no incremental model but gives every rotation and position to the global
+    mapper; on a facade of repeated windows or bricks, or a sparse ring of views, images the incremental mapper
+    cannot chain to its first model start a second one, while the global mapper places them all at once).
+    Both mapping nothing costs the global mapper's time, a panorama about a second."""
     if config.mapper == "global":
         return _map_globally(corr, config, choose_lens), "global"
     from ..sfm.incremental import map_correspondences  # noqa: PLC0415 - GTSAM, after the workers fork
 
     result = map_correspondences(corr, config, snapshot_path=snapshot, resume=resume, choose_lens=choose_lens)
     largest, n = coverage(result.models)[0], len(corr.images)
-    if not config.global_fallback or 2 * largest >= n:
+    if not config.global_fallback or (2 * largest >= n and len(result.models) < 2):
         return result, "incremental"
-    log.info("the incremental mapper's largest model holds %d of %d images: mapping them with the global mapper "
-             "too", largest, n)
+    log.info("the incremental mapper's largest model holds %d of %d images (%d models): mapping them with the "
+             "global mapper too", largest, n, len(result.models))
     other = _map_globally(corr, config, choose_lens)
     other_largest = coverage(other.models)[0]
     if other_largest <= largest:
