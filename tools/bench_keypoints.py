@@ -17,11 +17,9 @@ quote a speed only from alternated runs (the library's timing entry).
 import argparse
 import json
 import resource
-import sqlite3
 import subprocess
 import sys
 import time
-from contextlib import closing
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -30,6 +28,7 @@ sys.path.insert(1, str(ROOT / "tools"))
 
 from bench_mapper import DEFAULT_MODEL, names_list, plan_sets  # noqa: E402
 
+from mvrecon import database  # noqa: E402
 from mvrecon.eval.ground_truth import load_ground_truth_for  # noqa: E402
 from mvrecon.eval.metrics import accuracy_summary  # noqa: E402
 from mvrecon.eval.runners import RunOptions, run_mvrecon_map  # noqa: E402
@@ -50,9 +49,10 @@ def front_end(images: Path, ws: Path, camera_model: str, features_args: list[str
         subprocess.run([sys.executable, "-m", "mvrecon.cli", stage, "-w", str(ws), "-q", *args], cwd=ROOT,
                        check=True)
         figures[f"{stage}_cpu_s"], figures[f"{stage}_wall_s"] = child_cpu() - cpu, time.perf_counter() - wall
-    with closing(sqlite3.connect(ws / "database.db")) as db:
-        figures["keypoints"] = db.execute("SELECT avg(rows) FROM keypoints").fetchone()[0]
-        figures["verified_pairs"] = db.execute("SELECT count(*) FROM two_view_geometries WHERE rows > 0").fetchone()[0]
+    with database.open_database(ws / "database.db") as db:
+        images = database.read_images(db)
+        figures["keypoints"] = sum(database.num_keypoints(db, i) for i in images) / max(len(images), 1)
+        figures["verified_pairs"] = len(database.read_verified_pairs(db))
     return figures
 
 

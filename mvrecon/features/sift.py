@@ -67,7 +67,7 @@ def extract_sift(image: np.ndarray, config: SiftConfig = SiftConfig(), reduced: 
         size = (max(1, round(w * factor)), max(1, round(h * factor)))
         gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
     sx, sy = w / gray.shape[1], h / gray.shape[0]
-    kps, desc = _detect_topped_up(cv2, gray, config)
+    kps, desc = _detect_topped_up(gray, config)
     if not kps or desc is None:
         return np.zeros((0, 4), np.float32), np.zeros((0, 128), np.uint8)
     keypoints = np.array([(k.pt[0], k.pt[1], k.size, k.angle) for k in kps], dtype=np.float64)
@@ -85,7 +85,7 @@ def extract_sift(image: np.ndarray, config: SiftConfig = SiftConfig(), reduced: 
 _last_topped_up = False
 
 
-def _detect_topped_up(cv2, gray: np.ndarray, config: SiftConfig) -> tuple:
+def _detect_topped_up(gray: np.ndarray, config: SiftConfig) -> tuple:
     """OpenCV's keypoints and descriptors at peak_threshold; for fewer than min_num_features, the strongest of
     half the threshold up to that many, capped at max_num_features.
 
@@ -96,27 +96,26 @@ def _detect_topped_up(cv2, gray: np.ndarray, config: SiftConfig) -> tuple:
     global _last_topped_up
     wanted = min(config.min_num_features, config.max_num_features)
     if not (wanted and _last_topped_up):
-        kps, desc = _detect(cv2, gray, config, config.peak_threshold)
+        kps, desc = _detect(gray, config, config.peak_threshold)
         _last_topped_up = len(kps) < wanted
         if not _last_topped_up:
             return kps, desc
-    kps, desc = _detect(cv2, gray, config, config.peak_threshold / 2, capped=False)
+    kps, desc = _detect(gray, config, config.peak_threshold / 2, capped=False)
     responses = np.array([k.response for k in kps], np.float32)
     # OpenCV's own test, in its precision: |DoG| x layers against contrastThreshold
     reaching = responses * np.float32(config.num_octave_layers) >= config.peak_threshold * config.num_octave_layers
     _last_topped_up = int(reaching.sum()) < wanted
     keep = np.nonzero(reaching)[0] if not _last_topped_up else \
         np.sort(np.argsort(-responses, kind="stable")[:wanted])
-    kps, desc = [kps[i] for i in keep], (desc[keep] if desc is not None else None)
-    if len(kps) > config.max_num_features:
-        keep = _capped(kps, config)
-        kps, desc = [kps[i] for i in keep], desc[keep]
-    return kps, desc
+    kps, desc = _subset(kps, desc, keep)
+    return _subset(kps, desc, _capped(kps, config))
 
 
-def _detect(cv2, gray: np.ndarray, config: SiftConfig, peak_threshold: float, capped: bool = True) -> tuple:
+def _detect(gray: np.ndarray, config: SiftConfig, peak_threshold: float, capped: bool = True) -> tuple:
     """OpenCV's keypoints and descriptors of `gray` at `peak_threshold`, capped at max_num_features unless
     `capped` is False."""
+    import cv2  # noqa: PLC0415 - loaded after the feature workers fork (executor._get_context)
+
     # OpenCV keeps an extremum whose interpolated |DoG| reaches contrastThreshold / nOctaveLayers (after a
     # pre-filter at half that), the test VLFeat/COLMAP make with peak_threshold
     sift = cv2.SIFT_create(nfeatures=0, nOctaveLayers=config.num_octave_layers,
@@ -134,10 +133,14 @@ def _detect(cv2, gray: np.ndarray, config: SiftConfig, peak_threshold: float, ca
     # describing the keypoints dropped below costs about what detecting first and building a second pyramid
     # for the kept ones does (docs/frontend.md, "Feature cap")
     kps, desc = sift.detectAndCompute(gray, None)
-    if capped and len(kps) > config.max_num_features:
-        keep = _capped(kps, config)
-        kps, desc = [kps[i] for i in keep], desc[keep]
-    return kps, desc
+    return _subset(kps, desc, _capped(kps, config)) if capped else (kps, desc)
+
+
+def _subset(kps, desc, keep: np.ndarray) -> tuple:
+    """The keypoints and descriptor rows at the indices `keep`; all of them, as they are, when it keeps all."""
+    if len(keep) == len(kps):
+        return kps, desc
+    return [kps[i] for i in keep], (desc[keep] if desc is not None else None)
 
 
 def extraction_memory_mb(width: int, height: int, config: SiftConfig = SiftConfig(),
