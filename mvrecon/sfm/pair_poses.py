@@ -79,7 +79,11 @@ def _pair_pose(x1: np.ndarray, x2: np.ndarray, count: int, threshold: float, see
     essential = essential_matrix(x1, x2, threshold, seed)
     fit = 0 if essential is None else int(essential[1].sum())  # before cheirality, which a turn leaves to chance
     share = int(np.ceil(_ROTATION_SHARE * fit))
-    turn = rotation_between_views(x1, x2, threshold, seed, min_inliers=max(3, min(share, MIN_RELATIVE_INLIERS)))
+    # the least count that decides anything below: `share` where the pair may be refused as no baseline, else a
+    # rotation edge's MIN_RELATIVE_INLIERS; RANSAC's samples follow it, and a pair with a baseline, whose best
+    # rotation explains few of its matches, needs 25 draws, not 200 (half of a survey's view graph)
+    least = share if fit >= MIN_RELATIVE_INLIERS else MIN_RELATIVE_INLIERS
+    turn = rotation_between_views(x1, x2, threshold, seed, min_inliers=max(3, least))
     turned = 0 if turn is None else int(turn[1].sum())
     if turned >= max(share, MIN_RELATIVE_INLIERS):
         return ViewEdge(turn[0], np.zeros(3), turned, 0.0)  # a rotation about the camera centre
