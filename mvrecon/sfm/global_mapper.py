@@ -87,6 +87,10 @@ _FINAL_ITERATIONS = 1  # LM iterations of the BA over every point, from converge
 # images from which a model's first round takes the early point quota and its final BA over every point is brief
 # (`_refine`): the savings are at scale, and a 16-image sparse ring's AUC@5 moved by 0.02-0.06 with either
 _LARGE_MODEL = 100
+# points per image of a large model's first BA (`_bundle`'s `early`): it takes most of the LM iterations, each costing
+# about in proportion to its points, and only brings the poses near; the next rounds take ba_points_per_image
+# (docs/benchmarks.md, "Global mapper: a large model's first BA on 50 points an image")
+_START_POINTS_PER_IMAGE = 50
 _CALIBRATION_PASSES = 3  # coarse models that refine a guessed focal (`_calibrate_by_bundle`)
 _CALIBRATION_IMAGES = 60  # images of the coarse models (`_calibration_pairs`)
 _MAX_ROTATION_ERROR_DEG = 5.0  # GLOMAP's threshold on a pair's rotation residual
@@ -525,7 +529,7 @@ class GlobalMapper:
         poses and the focal near. `coarse` (the calibration's models) takes ba_points_per_image_early points
         per image and stops after `_COARSE_ITERATIONS`: the next pass goes on from where it stopped. `early`
         (the first round, from global positioning's poses, where most LM iterations are spent: 18 of 25 on a
-        100-image survey) takes ba_points_per_image_early points per image as well, to convergence.
+        100-image survey) takes `_START_POINTS_PER_IMAGE` points per image, to convergence.
         `iterations` caps the LM iterations (default the config's global_ba_iterations). Except in the coarse
         models, only the points seen by three images or more are optimised (`ba_points.long_points`), the others
         re-fitted to the poses after. Its Huber width is `_START_HUBER_PX` in the coarse models and with `start` (the
@@ -540,7 +544,8 @@ class GlobalMapper:
 
         def adjust(intr: bool, dist: bool) -> None:
             points = m.alive_points()
-            quota = cfg.ba_points_per_image_early if coarse or early else cfg.ba_points_per_image
+            quota = (_START_POINTS_PER_IMAGE if early else cfg.ba_points_per_image_early if coarse
+                     else cfg.ba_points_per_image)
             if subset and quota > 0:
                 points = select_points(m, m.registered_images(), quota)
             if not coarse:  # a coarse model at a focal far off holds few three-view tracks: it needs them all
