@@ -84,7 +84,7 @@ _FINAL_ROUNDS = 5  # final rounds of retriangulation, BA and filtering (`_refine
 _FINAL_MIN_CHANGE = 0.0005  # refinement, until a round adds and removes under this share of the observations
 _START_HUBER_PX = 1.0  # Huber width of the BAs from the averaging's poses, pixels off (`_bundle`)
 _FINAL_ITERATIONS = 1  # LM iterations of the BA over every point, from converged subset poses (`_refine`)
-# images from which a model's first round takes the early point quota and its final BA over every point is brief
+# images from which a model's first round takes _START_POINTS_PER_IMAGE and its final BA over every point is brief
 # (`_refine`): the savings are at scale, and a 16-image sparse ring's AUC@5 moved by 0.02-0.06 with either
 _LARGE_MODEL = 100
 # points per image of a large model's first BA (`_bundle`'s `early`): it takes most of the LM iterations, each costing

@@ -80,10 +80,11 @@ def _pair_pose(x1: np.ndarray, x2: np.ndarray, count: int, threshold: float, see
     fit = 0 if essential is None else int(essential[1].sum())  # before cheirality, which a turn leaves to chance
     share = int(np.ceil(_ROTATION_SHARE * fit))
     # the least count that decides anything below: `share` where the pair may be refused as no baseline, else a
-    # rotation edge's MIN_RELATIVE_INLIERS; RANSAC's samples follow it, and a pair with a baseline, whose best
-    # rotation explains few of its matches, needs 25 draws, not 200 (half of a survey's view graph)
+    # rotation edge's MIN_RELATIVE_INLIERS; RANSAC's samples follow it, so a pair with a baseline, whose best
+    # rotation explains few of its matches, takes one chunk of draws, not 200 (docs/benchmarks.md, "The view
+    # graph: a rotation test as long as its decision needs")
     least = share if fit >= MIN_RELATIVE_INLIERS else MIN_RELATIVE_INLIERS
-    turn = rotation_between_views(x1, x2, threshold, seed, min_inliers=max(3, least))
+    turn = rotation_between_views(x1, x2, threshold, seed, min_inliers=least)
     turned = 0 if turn is None else int(turn[1].sum())
     if turned >= max(share, MIN_RELATIVE_INLIERS):
         return ViewEdge(turn[0], np.zeros(3), turned, 0.0)  # a rotation about the camera centre
