@@ -37,9 +37,12 @@ _CAUCHY = 0.01  # the redescending loss's width that follows (0.6 deg; the share
 _ITERATIONS = 100
 _ROBUST_ITERATIONS = 30
 # a phase stops when a step lowers its cost by less than this share; the Huber phase only brings the Cauchy
-# one near, which its last steps hardly change (docs/benchmarks.md, "Global positioning's solver")
+# one near, which its last steps hardly change (docs/benchmarks.md, "Global positioning's solver") ...
 _HUBER_TOLERANCE = 1e-5
 _CAUCHY_TOLERANCE = 1e-7
+# ... or at its first undamped step that moves no centre by this share of the centres' spread (`_settled`)
+_MOVE_TOLERANCE = 1e-5
+_LAMBDA = 1e-4  # Levenberg-Marquardt's damping at the start of a phase; a step at no more is undamped
 _MIN_SCALE = 1e-5
 _DENSE_SHARE = 0.1  # the reduced system is factorised dense from this share of non-zero entries ...
 _DENSE_MAX_CAMERAS = 2000  # ... up to this many cameras (`_solve_reduced`)
@@ -453,7 +456,7 @@ def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout, robust
     # the others' 0.15 under Huber's alone)
     for cauchy, steps, tolerance in ((False, iterations, _HUBER_TOLERANCE), (True, robust_iterations,
                                                                           _CAUCHY_TOLERANCE)):
-        lam = 1e-4
+        lam = _LAMBDA
         cost, w = _robust_cost(cam, point, v, C, X, s, cauchy)
         for _ in range(steps):
             if stop is not None and stop():
@@ -478,7 +481,7 @@ def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout, robust
             s_new = np.maximum(s + ds, _MIN_SCALE)
             cost_new, w_new = _robust_cost(cam, point, v, C_new, X_new, s_new, cauchy)
             if cost_new < cost:
-                converged = cost - cost_new < tolerance * cost
+                converged = cost - cost_new < tolerance * cost or (lam <= _LAMBDA and _settled(dC, C))
                 C, X, s, w, cost = C_new, X_new, s_new, w_new, cost_new
                 lam = max(lam / 3, 1e-9)
                 if converged:
@@ -488,6 +491,18 @@ def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout, robust
                 if lam > 1e8:
                     break
     return C, X, cost
+
+
+def _settled(dC: np.ndarray, C: np.ndarray) -> bool:
+    """Whether the step `dC` moves no centre of `C` by more than `_MOVE_TOLERANCE` of the centres' RMS distance
+    from their mean. The centres are what positioning gives the mapper, and once an undamped step leaves them
+    where they are, the steps that follow move the points and scales: on a 1,000-image survey the Cauchy phase's
+    cost went on falling by more than its tolerance for a dozen steps more, the centres fixed
+    (docs/benchmarks.md, "Global positioning: a phase ends once its centres stay put"). `_minimise` asks this of
+    undamped steps only: a step shortened by a damping raised after refused steps moves little wherever it
+    stands, and a walk whose centres crawl along a valley of the cost moves them more than this at every step."""
+    spread = np.sqrt(np.mean(np.sum((C - C.mean(axis=0)) ** 2, axis=1)))
+    return bool(spread > 0 and np.abs(dC).max() < _MOVE_TOLERANCE * spread)
 
 
 def _solve_reduced(S: bsr_matrix, rhs: np.ndarray) -> np.ndarray:
