@@ -249,21 +249,29 @@ def test_the_pairs_start_is_solved_from_only_where_placing_in_turn_leaves_a_came
     assert similarity_error(found, C) < 0.01
 
 
+def noisy_grid(rng, rows: int, cols: int, m: int, wrong: float = 0.0):
+    """A rows x cols grid of cameras 5 above the ground and m points within 1 of it, each seen by the cameras
+    within 1.6 across, rays 0.003 noisy and the share `wrong` of them in random directions: (centres, cam,
+    point, v)."""
+    C = np.c_[np.repeat(np.arange(rows), cols), np.tile(np.arange(cols), rows), np.full(rows * cols, 5.0)]
+    X = np.c_[rng.uniform(0, rows - 1, m), rng.uniform(0, cols - 1, m), rng.uniform(-1, 1, m)]
+    views = [np.flatnonzero(d < 1.6) for d in np.linalg.norm(X[:, None, :2] - C[None, :, :2], axis=2)]
+    cam = np.concatenate(views)
+    point = np.repeat(np.arange(m), [len(v) for v in views])
+    v = rays(C, X, cam, point) + rng.normal(scale=0.003, size=(len(cam), 3))
+    if wrong:
+        bad = rng.random(len(v)) < wrong
+        v[bad] = rng.normal(size=(int(bad.sum()), 3))
+    return C, cam, point, v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
 def test_two_starts_solved_at_once_give_the_centres_of_one_after_the_other():
     """With a second worker the random start is solved in a thread beside the start placed in turn. The result is
     the same to the bit as one after the other: round the block, where the start placed in turn wins, and over a
     6 x 8 grid of cameras above the ground (noisy rays), where that start lies near the random start's solution
     and its own solution, a hair's breadth away at a cost lower by 1e-13, is dropped (its solve stopped once the
     random start's solution is known)."""
-    rng = np.random.default_rng(3)
-    rows, cols, m = 6, 8, 1500
-    C = np.c_[np.repeat(np.arange(rows), cols), np.tile(np.arange(cols), rows), np.full(rows * cols, 5.0)]
-    X = np.c_[rng.uniform(0, rows - 1, m), rng.uniform(0, cols - 1, m), rng.uniform(-1, 1, m)]
-    views = [np.flatnonzero(d < 1.6) for d in np.linalg.norm(X[:, None, :2] - C[None, :, :2], axis=2)]
-    cam = np.concatenate(views)
-    point = np.repeat(np.arange(m), [len(v) for v in views])
-    v = rays(C.astype(float), X, cam, point) + rng.normal(scale=0.003, size=(len(cam), 3))
-    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    C, cam, point, v = noisy_grid(np.random.default_rng(3), 6, 8, 1500)
     block, _, block_cam, block_point, block_v = noisy_block_walk()
     for truth, cam, point, v in ((block, block_cam, block_point, block_v), (C, cam, point, v)):
         n, m = len(truth), len(np.unique(point))
@@ -340,17 +348,7 @@ def test_a_phase_ends_once_an_undamped_step_no_longer_moves_the_centres(monkeypa
     phase lower the cost a little while the centres stay put: the phases end at the first undamped step that
     moves no centre by `_MOVE_TOLERANCE` of their spread, in fewer steps than the cost's tolerance alone takes,
     at the same centres to 1e-4 of their spread."""
-    rng = np.random.default_rng(4)
-    rows, cols, m = 8, 10, 2500
-    C = np.c_[np.repeat(np.arange(rows), cols), np.tile(np.arange(cols), rows), np.full(rows * cols, 5.0)]
-    X = np.c_[rng.uniform(0, rows - 1, m), rng.uniform(0, cols - 1, m), rng.uniform(-1, 1, m)]
-    views = [np.flatnonzero(d < 1.6) for d in np.linalg.norm(X[:, None, :2] - C[None, :, :2], axis=2)]
-    cam = np.concatenate(views)
-    point = np.repeat(np.arange(m), [len(v) for v in views])
-    v = rays(C.astype(float), X, cam, point) + rng.normal(scale=0.003, size=(len(cam), 3))
-    wrong = rng.random(len(v)) < 0.05
-    v[wrong] = rng.normal(size=(int(wrong.sum()), 3))
-    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    C, cam, point, v = noisy_grid(np.random.default_rng(4), 8, 10, 2500, wrong=0.05)
     n, m = len(C), len(np.unique(point))
     layout = global_positioning._ReducedLayout.of(cam, point, n, m)
     start = np.random.default_rng(0)
