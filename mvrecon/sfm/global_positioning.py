@@ -198,7 +198,7 @@ def solve_positions(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams:
             best = other
     C, X, _ = best
     C0 = C.mean(axis=0)
-    scale = np.sqrt(np.mean(np.sum((C - C0) ** 2, axis=1))) or 1.0
+    scale = _spread(C) or 1.0
     return (C - C0) / scale, (X - C0) / scale
 
 
@@ -209,7 +209,7 @@ def _near(start: np.ndarray, centres: np.ndarray) -> bool:
     if not np.isfinite(start).all():
         return False
     a, b = start - start.mean(axis=0), centres - centres.mean(axis=0)
-    spread = np.sqrt(np.mean(np.sum(b ** 2, axis=1)))
+    spread = _spread(centres)
     scale = np.sum(a * b) / max(np.sum(a * a), 1e-300)
     return spread > 0 and bool(np.linalg.norm(scale * a - b, axis=1).max() <= _NEAR_SHARE * spread)
 
@@ -227,7 +227,7 @@ def _start(cam, point, v, initial, fallback, num_points):
     known = np.isfinite(initial).all(axis=1)
     C = fallback.copy()
     c0 = initial[known].mean(axis=0)
-    spread = np.sqrt(np.mean(np.sum((initial[known] - c0) ** 2, axis=1))) or 1.0
+    spread = _spread(initial[known]) or 1.0
     C[known] = (initial[known] - c0) / spread
     P = _off_rays(v)
     A = sum_rows(point, P, num_points) + 1e-9 * np.eye(3)
@@ -496,13 +496,18 @@ def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout, robust
 def _settled(dC: np.ndarray, C: np.ndarray) -> bool:
     """Whether the step `dC` moves no centre of `C` by more than `_MOVE_TOLERANCE` of the centres' RMS distance
     from their mean. The centres are what positioning gives the mapper, and once an undamped step leaves them
-    where they are, the steps that follow move the points and scales: on a 1,000-image survey the Cauchy phase's
-    cost went on falling by more than its tolerance for a dozen steps more, the centres fixed
-    (docs/benchmarks.md, "Global positioning: a phase ends once its centres stay put"). `_minimise` asks this of
-    undamped steps only: a step shortened by a damping raised after refused steps moves little wherever it
-    stands, and a walk whose centres crawl along a valley of the cost moves them more than this at every step."""
-    spread = np.sqrt(np.mean(np.sum((C - C.mean(axis=0)) ** 2, axis=1)))
+    where they are, the steps that follow move the points and scales, whose cost on a large survey goes on
+    falling by more than the Cauchy phase's tolerance for many steps with the centres fixed (docs/benchmarks.md,
+    "Global positioning: a phase ends once its centres stay put"). `_minimise` asks this of undamped steps only:
+    a step shortened by a damping raised after refused steps moves little wherever it stands, and a walk whose
+    centres crawl along a valley of the cost moves them more than this at every step."""
+    spread = _spread(C)
     return bool(spread > 0 and np.abs(dC).max() < _MOVE_TOLERANCE * spread)
+
+
+def _spread(C: np.ndarray) -> float:
+    """The RMS distance of the centres `C` (n,3) from their mean: the scale of a solution up to a similarity."""
+    return float(np.sqrt(np.mean(np.sum((C - C.mean(axis=0)) ** 2, axis=1))))
 
 
 def _solve_reduced(S: bsr_matrix, rhs: np.ndarray) -> np.ndarray:
