@@ -463,7 +463,7 @@ def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout, robust
                 return C, X, np.inf
             e, g_s, h_s, d, coef, H_CC, H_XX, rhs_C, rhs_X = _normal_terms(cam, point, v, C, X, s, w, lam,
                                                                          num_cams, num_points)
-            Xinv = np.linalg.inv(H_XX)
+            Xinv = _inverses(H_XX)
             blocks = np.zeros((len(layout.block_col), 3, 3))
             blocks[slot_of_cam] = H_CC
             _reduce_points(cam, order, bounds, layout.slot_of_pair, e, d, coef, Xinv, rhs_X, blocks, rhs_C)
@@ -682,6 +682,22 @@ def _normal_terms(cam, point, v, C, X, s, w, lam, num_cams, num_points):  # prag
 
 
 @njit(cache=True, nogil=True)
+def _inverses(H):  # pragma: no cover - compiled
+    """The inverse of each symmetric 3x3 block of H (n,3,3), by its adjugate: one pass, where LAPACK's batched
+    inverse costs about as much as the rest of a positioning step's pass over the points."""
+    out = np.empty_like(H)
+    for p in range(len(H)):
+        a, b, c = H[p, 0, 0], H[p, 0, 1], H[p, 0, 2]
+        d, e, f = H[p, 1, 1], H[p, 1, 2], H[p, 2, 2]
+        A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
+        det = a * A + b * B + c * C
+        out[p, 0, 0], out[p, 0, 1], out[p, 0, 2] = A / det, B / det, C / det
+        out[p, 1, 0], out[p, 1, 1], out[p, 1, 2] = B / det, (a * f - c * c) / det, (b * c - a * e) / det
+        out[p, 2, 0], out[p, 2, 1], out[p, 2, 2] = C / det, (b * c - a * e) / det, (a * d - b * b) / det
+    return out
+
+
+@njit(cache=True, nogil=True)
 def _q_block(e, d, coef, k, out):  # pragma: no cover - compiled
     """out = Q_k, observation k's (C, X) block coef e e^T - d I (symmetric)."""
     for i in range(3):
@@ -712,14 +728,16 @@ def _reduce_points(cam, order, bounds, slot, e, d, coef, Xinv, rhs_X, blocks, rh
                                    + Qs[a, i, 2] * Xinv[p, 2, j])
             for i in range(3):
                 rhs_C[cam[k], i] -= QX[a, i, 0] * rhs_X[p, 0] + QX[a, i, 1] * rhs_X[p, 1] + QX[a, i, 2] * rhs_X[p, 2]
-        for a in range(n):
-            for b in range(n):
-                t = slot[q]
-                q += 1
+        for a in range(n):  # Q_b Xinv Q_a is (Q_a Xinv Q_b)^T: each pair's product once
+            for b in range(a, n):
+                t, u = slot[q + a * n + b], slot[q + b * n + a]
                 for i in range(3):
                     for j in range(3):
-                        blocks[t, i, j] -= (QX[a, i, 0] * Qs[b, 0, j] + QX[a, i, 1] * Qs[b, 1, j]
-                                            + QX[a, i, 2] * Qs[b, 2, j])
+                        m = QX[a, i, 0] * Qs[b, 0, j] + QX[a, i, 1] * Qs[b, 1, j] + QX[a, i, 2] * Qs[b, 2, j]
+                        blocks[t, i, j] -= m
+                        if b != a:
+                            blocks[u, j, i] -= m
+        q += n * n
 
 
 @njit(cache=True, nogil=True)
