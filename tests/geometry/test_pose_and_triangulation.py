@@ -52,6 +52,22 @@ def test_multiview_dlt_and_refinement_recover_points():
     assert np.all(max_triangulation_angle_deg(X, centers, mask) > 1.0)
 
 
+def test_refinement_leaves_a_point_whose_rays_meet_only_at_infinity_where_it_was():
+    """Views from one centre (a camera turning in place) give the point no depth: its normal equations are
+    singular, and the refinement must not throw it along its ray; a point beside it with a baseline converges."""
+    rng = np.random.default_rng(5)
+    Rs, ts = _cameras(4, rng)
+    X = np.array([[0.3, -0.2, 8.0], [0.1, 0.4, 7.0]])
+    R = np.broadcast_to(Rs, (2, 4, 3, 3)).copy()
+    t = np.broadcast_to(ts, (2, 4, 3)).copy()
+    t[0] = 0.0  # the first point's views share the origin as their centre
+    x = np.stack([np.stack([_project(R[n, k], t[n, k], X[n:n + 1])[0] for k in range(4)]) for n in range(2)])
+    start = X + [[0.5, 0.5, 1.0], [0.05, -0.05, 0.2]]
+    out = refine_points(start, R, t, x, np.ones((2, 4), bool))
+    np.testing.assert_array_equal(out[0], start[0])
+    np.testing.assert_allclose(out[1], X[1], atol=1e-9)
+
+
 def test_relative_pose_from_essential_matches_truth():
     rng = np.random.default_rng(1)
     R = angle_axis_to_rotmat([0.05, 0.3, -0.02])
