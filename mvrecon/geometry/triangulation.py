@@ -8,7 +8,6 @@ length for pixels).
 """
 
 import numpy as np
-from numba import njit
 
 
 def triangulate_dlt(R: np.ndarray, t: np.ndarray, x: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -58,69 +57,42 @@ def refine_points(X: np.ndarray, R: np.ndarray, t: np.ndarray, x: np.ndarray, ma
     """Gauss-Newton on the normalised reprojection error of each point, all points at once.
 
     DLT minimises an algebraic error; this step moves each point to the (locally) least-squares reprojection
-    optimum, which is what the reprojection checks and bundle adjustment measure. A point whose normal
-    equations are near singular (rays almost parallel: a point near infinity) is not moved by that step; the
-    angle checks decide it. Compiled, point by point over its views: the mappers re-fit every point their
-    subset bundle adjustments leave out, and batched numpy spent most of its time on (n,k,3)-shaped
-    temporaries.
+    optimum, which is what the reprojection checks and bundle adjustment measure.
     """
-    X = np.array(X, dtype=np.float64).reshape(-1, 3)
-    if len(X) == 0:
-        return X
-    return _gauss_newton(X, np.ascontiguousarray(R, dtype=np.float64), np.ascontiguousarray(t, dtype=np.float64),
-                         np.ascontiguousarray(x, dtype=np.float64), np.ascontiguousarray(mask, dtype=np.bool_),
-                         iterations)
-
-
-@njit(cache=True, nogil=True)
-def _gauss_newton(X, R, t, x, mask, iterations):  # pragma: no cover - compiled
-    """`refine_points`' iterations on X (n,3) in place; returns X."""
-    H, g = np.empty(6), np.empty(3)
-    for p in range(X.shape[0]):
-        for _ in range(iterations):
-            H[:] = 0.0
-            g[:] = 0.0
-            for j in range(mask.shape[1]):
-                if not mask[p, j]:
-                    continue
-                c0 = R[p, j, 0, 0] * X[p, 0] + R[p, j, 0, 1] * X[p, 1] + R[p, j, 0, 2] * X[p, 2] + t[p, j, 0]
-                c1 = R[p, j, 1, 0] * X[p, 0] + R[p, j, 1, 1] * X[p, 1] + R[p, j, 1, 2] * X[p, 2] + t[p, j, 1]
-                c2 = R[p, j, 2, 0] * X[p, 0] + R[p, j, 2, 1] * X[p, 1] + R[p, j, 2, 2] * X[p, 2] + t[p, j, 2]
-                z = 1e-12 if abs(c2) < 1e-12 else c2
-                u, v = c0 / z, c1 / z
-                # d(u)/dX = (R0 - u R2) / z, d(v)/dX = (R1 - v R2) / z
-                a0 = (R[p, j, 0, 0] - u * R[p, j, 2, 0]) / z
-                a1 = (R[p, j, 0, 1] - u * R[p, j, 2, 1]) / z
-                a2 = (R[p, j, 0, 2] - u * R[p, j, 2, 2]) / z
-                b0 = (R[p, j, 1, 0] - v * R[p, j, 2, 0]) / z
-                b1 = (R[p, j, 1, 1] - v * R[p, j, 2, 1]) / z
-                b2 = (R[p, j, 1, 2] - v * R[p, j, 2, 2]) / z
-                ru, rv = u - x[p, j, 0], v - x[p, j, 1]
-                H[0] += a0 * a0 + b0 * b0
-                H[1] += a0 * a1 + b0 * b1
-                H[2] += a0 * a2 + b0 * b2
-                H[3] += a1 * a1 + b1 * b1
-                H[4] += a1 * a2 + b1 * b2
-                H[5] += a2 * a2 + b2 * b2
-                g[0] += a0 * ru + b0 * rv
-                g[1] += a1 * ru + b1 * rv
-                g[2] += a2 * ru + b2 * rv
-            a, b, cc, d, e, f = H[0] + 1e-12, H[1], H[2], H[3] + 1e-12, H[4], H[5] + 1e-12
-            A, B, C = d * f - e * e, cc * e - b * f, b * e - cc * d
-            D, E, F = a * f - cc * cc, b * cc - a * e, a * d - b * b
-            det = a * A + b * B + cc * C
-            tr = a + d + f
-            # points near infinity (rays almost parallel) have a rank-deficient H: leave them to the angle check
-            if not det > 1e-9 * tr ** 3:
-                continue
-            s0 = (A * g[0] + B * g[1] + C * g[2]) / det
-            s1 = (B * g[0] + D * g[1] + E * g[2]) / det
-            s2 = (C * g[0] + E * g[1] + F * g[2]) / det
-            if np.isfinite(s0) and np.isfinite(s1) and np.isfinite(s2):
-                X[p, 0] -= s0
-                X[p, 1] -= s1
-                X[p, 2] -= s2
+    X = np.array(X, dtype=float)
+    w = mask.astype(float)
+    R0, R1, R2 = R[..., 0, :], R[..., 1, :], R[..., 2, :]
+    for _ in range(iterations):
+        Xc = np.einsum("nkij,nj->nki", R, X) + t
+        z = np.where(np.abs(Xc[..., 2]) < 1e-12, 1e-12, Xc[..., 2])
+        u, v = Xc[..., 0] / z, Xc[..., 1] / z
+        # d(u)/dX = (R0 - u R2) / z, d(v)/dX = (R1 - v R2) / z; absent views weigh 0
+        wz = (w / z)[..., None]
+        J = np.concatenate([(R0 - u[..., None] * R2) * wz, (R1 - v[..., None] * R2) * wz], axis=1)  # (n,2k,3)
+        res = np.concatenate([(u - x[..., 0]) * w, (v - x[..., 1]) * w], axis=1)  # (n,2k)
+        Jt = J.transpose(0, 2, 1)  # batched matmul: ~3x faster than the equivalent einsum here
+        H = Jt @ J
+        H[:, (0, 1, 2), (0, 1, 2)] += 1e-12
+        step, det = _solve_sym3(H, (Jt @ res[..., None])[..., 0])
+        # points near infinity (rays almost parallel) have a rank-deficient H: leave them to the angle check
+        tr = np.trace(H, axis1=1, axis2=2)
+        with np.errstate(invalid="ignore"):
+            ok = np.isfinite(step).all(axis=1) & (det > 1e-9 * tr ** 3)
+        X = X - np.where(ok[:, None], step, 0.0)
     return X
+
+
+def _solve_sym3(H, g):
+    """Solutions (n,3) and determinants (n,) of symmetric 3x3 systems H x = g, by cofactors: a tenth of the
+    time of the batched LAPACK solve and determinant for this size."""
+    a, b, c, d, e, f = H[:, 0, 0], H[:, 0, 1], H[:, 0, 2], H[:, 1, 1], H[:, 1, 2], H[:, 2, 2]
+    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
+    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * A + b * B + c * C
+    g0, g1, g2 = g[:, 0], g[:, 1], g[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = np.stack([A * g0 + B * g1 + C * g2, B * g0 + D * g1 + E * g2, C * g0 + E * g1 + F * g2], axis=1)
+        return x / det[:, None], det
 
 
 def _unit_rays(X, centers) -> np.ndarray:

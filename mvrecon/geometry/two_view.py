@@ -6,7 +6,9 @@ is given in normalised units (pixels divided by the focal length).
 """
 
 import numpy as np
-from numba import njit
+
+from .rotation import nearest_rotation
+from .triangulation import two_view_midpoints
 
 
 def relative_pose(x1: np.ndarray, x2: np.ndarray, threshold: float, seed: int = 0,
@@ -52,48 +54,21 @@ def pose_from_essential(E: np.ndarray, x1: np.ndarray, x2: np.ndarray,
 
     R1, R2, t = cv2.decomposeEssentialMat(E)
     t = t.ravel()
-    a = np.ascontiguousarray(x1[candidates], dtype=np.float64)
-    b = np.ascontiguousarray(x2[candidates], dtype=np.float64)
-    best, good = None, np.empty(len(a), bool)
+    a, b = x1[candidates], x2[candidates]
+    best = None
     for R, tt in ((R1, t), (R2, t), (R1, -t), (R2, -t)):
-        R, tt = np.ascontiguousarray(R, dtype=np.float64), np.ascontiguousarray(tt, dtype=np.float64)
-        count = _in_front(R, tt, a, b, _FAR, good)
-        if best is None or count > best[3]:
-            best = (R, tt, good.copy(), count)
-    R, tt, good, count = best
-    if count < 5:
+        X = two_view_midpoints(R, tt, a, b)
+        z1, z2 = X[:, 2], X @ R[2] + tt[2]
+        with np.errstate(invalid="ignore"):
+            good = (z1 > 0) & (z2 > 0) & (z1 < _FAR) & (z2 < _FAR)
+        if best is None or good.sum() > best[2].sum():
+            best = (R, tt, good)
+    R, tt, good = best
+    if good.sum() < 5:
         return None
     inliers = np.zeros(len(x1), bool)
     inliers[np.flatnonzero(candidates)[good]] = True
     return R, tt / np.linalg.norm(tt), inliers
-
-
-@njit(cache=True, nogil=True)
-def _in_front(R, t, x1, x2, far, out):
-    """Fills `out` with whether the midpoint of each match's rays (triangulation.two_view_midpoints, camera [I|0]
-    and [R|t]) lies in front of both cameras and nearer than `far` baselines; returns how many do. Compiled: the
-    view graph tests four decompositions for each of thousands of pairs."""
-    c0 = -(R[0, 0] * t[0] + R[1, 0] * t[1] + R[2, 0] * t[2])  # the second centre, -R^T t
-    c1 = -(R[0, 1] * t[0] + R[1, 1] * t[1] + R[2, 1] * t[2])
-    c2 = -(R[0, 2] * t[0] + R[1, 2] * t[1] + R[2, 2] * t[2])
-    count = 0
-    for n in range(x1.shape[0]):
-        u, v = x1[n, 0], x1[n, 1]  # the first ray (u, v, 1); the second, R^T (x2, 1), in the first frame:
-        e0 = x2[n, 0] * R[0, 0] + x2[n, 1] * R[1, 0] + R[2, 0]
-        e1 = x2[n, 0] * R[0, 1] + x2[n, 1] * R[1, 1] + R[2, 1]
-        e2 = x2[n, 0] * R[0, 2] + x2[n, 1] * R[1, 2] + R[2, 2]
-        a, b, c = u * u + v * v + 1.0, u * e0 + v * e1 + e2, e0 * e0 + e1 * e1 + e2 * e2
-        p, q = u * c0 + v * c1 + c2, e0 * c0 + e1 * c1 + e2 * c2
-        det = b * b - a * c
-        ok = False
-        if abs(det) > 1e-12 * a * c:
-            s1, s2 = (b * q - c * p) / det, (a * q - b * p) / det
-            X0, X1, X2 = 0.5 * (s1 * u + c0 + s2 * e0), 0.5 * (s1 * v + c1 + s2 * e1), 0.5 * (s1 + c2 + s2 * e2)
-            z2 = X0 * R[2, 0] + X1 * R[2, 1] + X2 * R[2, 2] + t[2]
-            ok = 0 < X2 < far and 0 < z2 < far
-        out[n] = ok
-        count += ok
-    return count
 
 
 def focal_from_fundamental(F: np.ndarray, principal_point1: np.ndarray,
@@ -143,96 +118,44 @@ def rotation_between_views(x1: np.ndarray, x2: np.ndarray, threshold: float, see
     pays for few samples. A camera turning in place has no essential matrix (any baseline fits its matches), and its
     homography is fitted with 8 degrees of freedom where 3 suffice; a pair of a few dozen matches is told apart by
     the rotation's own count."""
-    x1 = np.ascontiguousarray(x1, dtype=np.float64).reshape(-1, 2)
-    x2 = np.ascontiguousarray(x2, dtype=np.float64).reshape(-1, 2)
+    x1 = np.asarray(x1, float).reshape(-1, 2)
+    x2 = np.asarray(x2, float).reshape(-1, 2)
     n = len(x1)
     if n < 3:
         return None
-    r1, r2 = _rays(x1), _rays(x2)
-    threshold2 = float(threshold) ** 2
+    r1 = np.c_[x1, np.ones(n)]
+    r1 /= np.linalg.norm(r1, axis=1, keepdims=True)
+    r2 = np.c_[x2, np.ones(n)]
+    r2 /= np.linalg.norm(r2, axis=1, keepdims=True)
+
+    def within(R):  # (..., N) whether R x1 lands within the threshold of x2, in front of the camera
+        p = r1 @ np.swapaxes(R, -1, -2)
+        z = p[..., 2]
+        d2 = (p[..., 0] - x2[:, 0] * z) ** 2 + (p[..., 1] - x2[:, 1] * z) ** 2
+        return (z > 0) & (d2 < threshold ** 2 * z * z)
 
     def needed(count):  # samples that find a rotation of `count` inliers at the confidence
         share = min(count / n, 1.0 - 1e-9) ** 2
         return np.log(1 - confidence) / np.log1p(-share) if share > 0 else np.inf
 
     rng = np.random.default_rng(seed)
-    inliers, found, best, drawn = np.zeros(n, bool), np.empty(n, bool), 0, 0
-    samples = np.empty((_CHUNK, 2), np.int64)
-    while drawn < min(max_iterations, needed(max(min_inliers, best))):
-        samples[:, 0] = rng.integers(n, size=_CHUNK)
-        samples[:, 1] = (samples[:, 0] + rng.integers(1, n, size=_CHUNK)) % n  # two distinct matches each
-        best = _best_sample(r1, r2, x2, threshold2, samples, best, inliers, found)
-        drawn += _CHUNK
-    return _refit(r1, r2, x2, threshold2, inliers, found)
-
-
-_CHUNK = 25  # samples of `rotation_between_views` drawn before its stopping rule is looked at again
-
-
-@njit(cache=True, nogil=True)
-def _rays(x):
-    """Unit viewing rays (n,3) of normalised image points (n,2)."""
-    out = np.empty((x.shape[0], 3))
-    for k in range(x.shape[0]):
-        norm = np.sqrt(x[k, 0] ** 2 + x[k, 1] ** 2 + 1.0)
-        out[k, 0], out[k, 1], out[k, 2] = x[k, 0] / norm, x[k, 1] / norm, 1.0 / norm
-    return out
-
-
-@njit(cache=True, nogil=True)
-def _rotation_inliers(R, r1, x2, threshold2, out):
-    """Fills `out` with whether R turns each ray of r1 to within the threshold of its match x2, in front of the
-    camera; returns how many do."""
-    count = 0
-    for k in range(r1.shape[0]):
-        p0 = R[0, 0] * r1[k, 0] + R[0, 1] * r1[k, 1] + R[0, 2] * r1[k, 2]
-        p1 = R[1, 0] * r1[k, 0] + R[1, 1] * r1[k, 1] + R[1, 2] * r1[k, 2]
-        z = R[2, 0] * r1[k, 0] + R[2, 1] * r1[k, 1] + R[2, 2] * r1[k, 2]
-        d2 = (p0 - x2[k, 0] * z) ** 2 + (p1 - x2[k, 1] * z) ** 2
-        ok = z > 0 and d2 < threshold2 * z * z
-        out[k] = ok
-        count += ok
-    return count
-
-
-@njit(cache=True, nogil=True)
-def _kabsch(M):
-    """rotation.nearest_rotation of one 3x3 matrix."""
-    U, _, Vt = np.linalg.svd(M)
-    if np.linalg.det(U @ Vt) < 0:
-        U[:, 2] = -U[:, 2]
-    return U @ Vt
-
-
-@njit(cache=True, nogil=True)
-def _best_sample(r1, r2, x2, threshold2, samples, best, inliers, found):
-    """The rotation of each sample (a pair of matches) scored by its inliers; where one has more than `best`,
-    `inliers` becomes the first such sample's. Returns the best count. Compiled, as the view graph asks every
-    pair."""
-    for s in range(samples.shape[0]):
-        a, b = samples[s, 0], samples[s, 1]
-        M = np.outer(r2[a], r1[a]) + np.outer(r2[b], r1[b])
-        count = _rotation_inliers(_kabsch(M), r1, x2, threshold2, found)
-        if count > best:
-            best = count
-            inliers[:] = found
-    return best
-
-
-@njit(cache=True, nogil=True)
-def _refit(r1, r2, x2, threshold2, inliers, found):
-    """(R, inliers): the least-squares rotation of the inliers, refitted on its own inliers up to three times."""
+    inliers, drawn, chunk = np.zeros(n, bool), 0, 25
+    while drawn < min(max_iterations, needed(max(min_inliers, inliers.sum()))):
+        first = rng.integers(n, size=chunk)
+        samples = np.c_[first, (first + rng.integers(1, n, size=chunk)) % n]  # two distinct matches each
+        found = within(nearest_rotation(np.swapaxes(r2[samples], -1, -2) @ r1[samples]))
+        best = int(np.argmax(found.sum(axis=1)))
+        if found[best].sum() > inliers.sum():
+            inliers = found[best]
+        drawn += chunk
     R = np.eye(3)
-    for _ in range(3):
+    for _ in range(3):  # refit on the inliers of the refined rotation
         if inliers.sum() < 2:
             break
-        M = np.zeros((3, 3))
-        for k in range(r1.shape[0]):
-            if inliers[k]:
-                M += np.outer(r2[k], r1[k])
-        R = _kabsch(M)
-        _rotation_inliers(R, r1, x2, threshold2, found)
-        if np.array_equal(found, inliers):
+        R = nearest_rotation(r2[inliers].T @ r1[inliers])
+        refit = within(R)
+        if np.array_equal(refit, inliers):
             break
-        inliers[:] = found
+        inliers = refit
     return R, inliers
+
