@@ -689,11 +689,12 @@ def _inverses(H):  # pragma: no cover - compiled
     for p in range(len(H)):
         a, b, c = H[p, 0, 0], H[p, 0, 1], H[p, 0, 2]
         d, e, f = H[p, 1, 1], H[p, 1, 2], H[p, 2, 2]
-        A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
+        A, B, C = d * f - e * e, c * e - b * f, b * e - c * d  # the cofactors, symmetric as H is
+        D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
         det = a * A + b * B + c * C
         out[p, 0, 0], out[p, 0, 1], out[p, 0, 2] = A / det, B / det, C / det
-        out[p, 1, 0], out[p, 1, 1], out[p, 1, 2] = B / det, (a * f - c * c) / det, (b * c - a * e) / det
-        out[p, 2, 0], out[p, 2, 1], out[p, 2, 2] = C / det, (b * c - a * e) / det, (a * d - b * b) / det
+        out[p, 1, 0], out[p, 1, 1], out[p, 1, 2] = B / det, D / det, E / det
+        out[p, 2, 0], out[p, 2, 1], out[p, 2, 2] = C / det, E / det, F / det
     return out
 
 
