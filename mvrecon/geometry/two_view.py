@@ -7,9 +7,6 @@ is given in normalised units (pixels divided by the focal length).
 
 import numpy as np
 
-from .rotation import nearest_rotation
-from .triangulation import two_view_midpoints
-
 
 def relative_pose(x1: np.ndarray, x2: np.ndarray, threshold: float, seed: int = 0,
                   confidence: float = 0.9999) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -48,23 +45,24 @@ def pose_from_essential(E: np.ndarray, x1: np.ndarray, x2: np.ndarray,
                         candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """(R, t, inliers) of the decomposition of E that puts most `candidates` in front of both cameras (and
     nearer than 50 baselines), or None when fewer than 5 are. The four hypotheses are tested on the rays'
-    closed-form midpoints: with OpenCV's recoverPose (a DLT per point and hypothesis) `relative_pose` took
-    2.4 ms per templeRing pair, 1.3 ms with this, for the same poses."""
+    closed-form midpoints (`kernels.in_front`, compiled): OpenCV's recoverPose solves a DLT per point and
+    hypothesis, and the view graph tests four hypotheses for each of thousands of pairs."""
     import cv2  # noqa: PLC0415 - loaded after the feature workers fork (executor._get_context)
+
+    from .kernels import in_front  # noqa: PLC0415 - numba loaded at the first call, not at start-up
 
     R1, R2, t = cv2.decomposeEssentialMat(E)
     t = t.ravel()
-    a, b = x1[candidates], x2[candidates]
-    best = None
+    a = np.ascontiguousarray(x1[candidates], dtype=np.float64)
+    b = np.ascontiguousarray(x2[candidates], dtype=np.float64)
+    best, good = None, np.empty(len(a), bool)
     for R, tt in ((R1, t), (R2, t), (R1, -t), (R2, -t)):
-        X = two_view_midpoints(R, tt, a, b)
-        z1, z2 = X[:, 2], X @ R[2] + tt[2]
-        with np.errstate(invalid="ignore"):
-            good = (z1 > 0) & (z2 > 0) & (z1 < _FAR) & (z2 < _FAR)
-        if best is None or good.sum() > best[2].sum():
-            best = (R, tt, good)
-    R, tt, good = best
-    if good.sum() < 5:
+        R, tt = np.ascontiguousarray(R, dtype=np.float64), np.ascontiguousarray(tt, dtype=np.float64)
+        count = in_front(R, tt, a, b, _FAR, good)
+        if best is None or count > best[3]:
+            best = (R, tt, good.copy(), count)
+    R, tt, good, count = best
+    if count < 5:
         return None
     inliers = np.zeros(len(x1), bool)
     inliers[np.flatnonzero(candidates)[good]] = True
@@ -112,50 +110,35 @@ def rotation_between_views(x1: np.ndarray, x2: np.ndarray, threshold: float, see
     """(R, inlier mask) of the rotation about the camera centre that best explains x2 ~ R x1 (normalised
     coordinates; inliers within `threshold` of their match in view 2), or None with fewer than 3 matches.
 
-    Two-point RANSAC on the viewing rays, then least squares (`rotation.nearest_rotation` of the rays' correlation)
-    on the inliers. RANSAC draws the samples that find, at `confidence`, a rotation of `min_inliers` inliers where
-    one exists (fewer as better ones turn up): a caller asking whether a rotation explains most of a pair's matches
-    pays for few samples. A camera turning in place has no essential matrix (any baseline fits its matches), and its
-    homography is fitted with 8 degrees of freedom where 3 suffice; a pair of a few dozen matches is told apart by
-    the rotation's own count."""
-    x1 = np.asarray(x1, float).reshape(-1, 2)
-    x2 = np.asarray(x2, float).reshape(-1, 2)
+    Two-point RANSAC on the viewing rays, then least squares (the nearest rotation to the rays' correlation) on the
+    inliers, compiled (`kernels`). RANSAC draws the samples that find, at `confidence`, a rotation of `min_inliers`
+    inliers where one exists (fewer as better ones turn up): a caller asking whether a rotation explains most of a
+    pair's matches pays for few samples. A camera turning in place has no essential matrix (any baseline fits its
+    matches), and its homography is fitted with 8 degrees of freedom where 3 suffice; a pair of a few dozen matches
+    is told apart by the rotation's own count."""
+    from .kernels import best_rotation_sample, refit_rotation, unit_rays  # noqa: PLC0415 - as pose_from_essential
+
+    x1 = np.ascontiguousarray(x1, dtype=np.float64).reshape(-1, 2)
+    x2 = np.ascontiguousarray(x2, dtype=np.float64).reshape(-1, 2)
     n = len(x1)
     if n < 3:
         return None
-    r1 = np.c_[x1, np.ones(n)]
-    r1 /= np.linalg.norm(r1, axis=1, keepdims=True)
-    r2 = np.c_[x2, np.ones(n)]
-    r2 /= np.linalg.norm(r2, axis=1, keepdims=True)
-
-    def within(R):  # (..., N) whether R x1 lands within the threshold of x2, in front of the camera
-        p = r1 @ np.swapaxes(R, -1, -2)
-        z = p[..., 2]
-        d2 = (p[..., 0] - x2[:, 0] * z) ** 2 + (p[..., 1] - x2[:, 1] * z) ** 2
-        return (z > 0) & (d2 < threshold ** 2 * z * z)
+    r1, r2 = unit_rays(x1), unit_rays(x2)
+    threshold2 = float(threshold) ** 2
 
     def needed(count):  # samples that find a rotation of `count` inliers at the confidence
         share = min(count / n, 1.0 - 1e-9) ** 2
         return np.log(1 - confidence) / np.log1p(-share) if share > 0 else np.inf
 
     rng = np.random.default_rng(seed)
-    inliers, drawn, chunk = np.zeros(n, bool), 0, 25
-    while drawn < min(max_iterations, needed(max(min_inliers, inliers.sum()))):
-        first = rng.integers(n, size=chunk)
-        samples = np.c_[first, (first + rng.integers(1, n, size=chunk)) % n]  # two distinct matches each
-        found = within(nearest_rotation(np.swapaxes(r2[samples], -1, -2) @ r1[samples]))
-        best = int(np.argmax(found.sum(axis=1)))
-        if found[best].sum() > inliers.sum():
-            inliers = found[best]
-        drawn += chunk
-    R = np.eye(3)
-    for _ in range(3):  # refit on the inliers of the refined rotation
-        if inliers.sum() < 2:
-            break
-        R = nearest_rotation(r2[inliers].T @ r1[inliers])
-        refit = within(R)
-        if np.array_equal(refit, inliers):
-            break
-        inliers = refit
-    return R, inliers
+    inliers, found, best, drawn = np.zeros(n, bool), np.empty(n, bool), 0, 0
+    samples = np.empty((_CHUNK, 2), np.int64)
+    while drawn < min(max_iterations, needed(max(min_inliers, best))):
+        samples[:, 0] = rng.integers(n, size=_CHUNK)
+        samples[:, 1] = (samples[:, 0] + rng.integers(1, n, size=_CHUNK)) % n  # two distinct matches each
+        best = best_rotation_sample(r1, r2, x2, threshold2, samples, best, inliers, found)
+        drawn += _CHUNK
+    return refit_rotation(r1, r2, x2, threshold2, inliers, found)
 
+
+_CHUNK = 25  # samples of `rotation_between_views` drawn before its stopping rule is looked at again

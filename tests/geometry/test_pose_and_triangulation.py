@@ -1,5 +1,8 @@
 """Exact checks of the engine's geometry: triangulation, relative and absolute pose, focal from F."""
 
+import subprocess
+import sys
+
 import numpy as np
 
 from mvrecon.geometry.absolute_pose import pnp_ransac, refine_pose_and_focal, rival_poses
@@ -205,3 +208,13 @@ def test_focal_from_fundamental_bougnoux():
     tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
     F = np.linalg.inv(K2).T @ tx @ R @ np.linalg.inv(K1)
     np.testing.assert_allclose(focal_from_fundamental(F, [320, 240], [300, 250]), (f1, f2), rtol=1e-9)
+
+
+def test_the_geometry_loads_numba_only_when_a_compiled_test_first_runs():
+    """Every command imports the geometry at start-up, and numba (with numpy.random) costs it time and its Ctrl-C
+    handling a window: the compiled two-view tests and refinement load it at their first call."""
+    code = ("import sys; import mvrecon.geometry.two_view as tv, mvrecon.geometry.triangulation; "
+            "print('numba' in sys.modules); import numpy as np; x = np.random.default_rng(0).normal(size=(9, 2)); "
+            "tv.rotation_between_views(x, x, 1e-3); print('numba' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["False", "True"]

@@ -1,0 +1,156 @@
+"""The two-view tests' and the point refinement's inner loops, compiled with numba.
+
+The global mapper's view graph tests every verified pair (thousands at a few hundred images) and the mappers
+re-fit every point their subset bundle adjustments leave out: numpy's batched passes spent most of that time on
+temporaries. `two_view` and `triangulation` import this module inside the functions that call it, at their
+first call: importing the geometry (every command's start-up) does not load numba.
+"""
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def in_front(R, t, x1, x2, far, out):  # pragma: no cover - compiled
+    """Fills `out` with whether the midpoint of each match's rays (triangulation.two_view_midpoints, camera [I|0]
+    and [R|t]) lies in front of both cameras and nearer than `far` baselines; returns how many do."""
+    c0 = -(R[0, 0] * t[0] + R[1, 0] * t[1] + R[2, 0] * t[2])  # the second centre, -R^T t
+    c1 = -(R[0, 1] * t[0] + R[1, 1] * t[1] + R[2, 1] * t[2])
+    c2 = -(R[0, 2] * t[0] + R[1, 2] * t[1] + R[2, 2] * t[2])
+    count = 0
+    for n in range(x1.shape[0]):
+        u, v = x1[n, 0], x1[n, 1]  # the first ray (u, v, 1); the second, R^T (x2, 1), in the first frame:
+        e0 = x2[n, 0] * R[0, 0] + x2[n, 1] * R[1, 0] + R[2, 0]
+        e1 = x2[n, 0] * R[0, 1] + x2[n, 1] * R[1, 1] + R[2, 1]
+        e2 = x2[n, 0] * R[0, 2] + x2[n, 1] * R[1, 2] + R[2, 2]
+        a, b, c = u * u + v * v + 1.0, u * e0 + v * e1 + e2, e0 * e0 + e1 * e1 + e2 * e2
+        p, q = u * c0 + v * c1 + c2, e0 * c0 + e1 * c1 + e2 * c2
+        det = b * b - a * c
+        ok = False
+        if abs(det) > 1e-12 * a * c:
+            s1, s2 = (b * q - c * p) / det, (a * q - b * p) / det
+            X0, X1, X2 = 0.5 * (s1 * u + c0 + s2 * e0), 0.5 * (s1 * v + c1 + s2 * e1), 0.5 * (s1 + c2 + s2 * e2)
+            z2 = X0 * R[2, 0] + X1 * R[2, 1] + X2 * R[2, 2] + t[2]
+            ok = 0 < X2 < far and 0 < z2 < far
+        out[n] = ok
+        count += ok
+    return count
+
+
+@njit(cache=True, nogil=True)
+def unit_rays(x):  # pragma: no cover - compiled
+    """Unit viewing rays (n,3) of normalised image points (n,2)."""
+    out = np.empty((x.shape[0], 3))
+    for k in range(x.shape[0]):
+        norm = np.sqrt(x[k, 0] ** 2 + x[k, 1] ** 2 + 1.0)
+        out[k, 0], out[k, 1], out[k, 2] = x[k, 0] / norm, x[k, 1] / norm, 1.0 / norm
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _rotation_inliers(R, r1, x2, threshold2, out):  # pragma: no cover - compiled
+    """Fills `out` with whether R turns each ray of r1 to within the threshold of its match x2, in front of the
+    camera; returns how many do."""
+    count = 0
+    for k in range(r1.shape[0]):
+        p0 = R[0, 0] * r1[k, 0] + R[0, 1] * r1[k, 1] + R[0, 2] * r1[k, 2]
+        p1 = R[1, 0] * r1[k, 0] + R[1, 1] * r1[k, 1] + R[1, 2] * r1[k, 2]
+        z = R[2, 0] * r1[k, 0] + R[2, 1] * r1[k, 1] + R[2, 2] * r1[k, 2]
+        d2 = (p0 - x2[k, 0] * z) ** 2 + (p1 - x2[k, 1] * z) ** 2
+        ok = z > 0 and d2 < threshold2 * z * z
+        out[k] = ok
+        count += ok
+    return count
+
+
+@njit(cache=True, nogil=True)
+def _kabsch(M):  # pragma: no cover - compiled
+    """rotation.nearest_rotation of one 3x3 matrix."""
+    U, _, Vt = np.linalg.svd(M)
+    if np.linalg.det(U @ Vt) < 0:
+        U[:, 2] = -U[:, 2]
+    return U @ Vt
+
+
+@njit(cache=True, nogil=True)
+def best_rotation_sample(r1, r2, x2, threshold2, samples, best, inliers, found):  # pragma: no cover - compiled
+    """The rotation of each sample (a pair of matches, rows of `samples`) scored by its inliers; where one has
+    more than `best`, `inliers` becomes the first such sample's. Returns the best count."""
+    for s in range(samples.shape[0]):
+        a, b = samples[s, 0], samples[s, 1]
+        M = np.outer(r2[a], r1[a]) + np.outer(r2[b], r1[b])
+        count = _rotation_inliers(_kabsch(M), r1, x2, threshold2, found)
+        if count > best:
+            best = count
+            inliers[:] = found
+    return best
+
+
+@njit(cache=True, nogil=True)
+def refit_rotation(r1, r2, x2, threshold2, inliers, found):  # pragma: no cover - compiled
+    """(R, inliers): the least-squares rotation of the inliers, refitted on its own inliers up to three times."""
+    R = np.eye(3)
+    for _ in range(3):
+        if inliers.sum() < 2:
+            break
+        M = np.zeros((3, 3))
+        for k in range(r1.shape[0]):
+            if inliers[k]:
+                M += np.outer(r2[k], r1[k])
+        R = _kabsch(M)
+        _rotation_inliers(R, r1, x2, threshold2, found)
+        if np.array_equal(found, inliers):
+            break
+        inliers[:] = found
+    return R, inliers
+
+
+@njit(cache=True, nogil=True)
+def gauss_newton_points(X, R, t, x, mask, iterations):  # pragma: no cover - compiled
+    """`triangulation.refine_points`' iterations on X (n,3) in place, point by point over its views; returns X.
+    A step is skipped where the point's normal equations are near singular (rays almost parallel)."""
+    H, g = np.empty(6), np.empty(3)
+    for p in range(X.shape[0]):
+        for _ in range(iterations):
+            H[:] = 0.0
+            g[:] = 0.0
+            for j in range(mask.shape[1]):
+                if not mask[p, j]:
+                    continue
+                c0 = R[p, j, 0, 0] * X[p, 0] + R[p, j, 0, 1] * X[p, 1] + R[p, j, 0, 2] * X[p, 2] + t[p, j, 0]
+                c1 = R[p, j, 1, 0] * X[p, 0] + R[p, j, 1, 1] * X[p, 1] + R[p, j, 1, 2] * X[p, 2] + t[p, j, 1]
+                c2 = R[p, j, 2, 0] * X[p, 0] + R[p, j, 2, 1] * X[p, 1] + R[p, j, 2, 2] * X[p, 2] + t[p, j, 2]
+                z = 1e-12 if abs(c2) < 1e-12 else c2
+                u, v = c0 / z, c1 / z
+                # d(u)/dX = (R0 - u R2) / z, d(v)/dX = (R1 - v R2) / z
+                a0 = (R[p, j, 0, 0] - u * R[p, j, 2, 0]) / z
+                a1 = (R[p, j, 0, 1] - u * R[p, j, 2, 1]) / z
+                a2 = (R[p, j, 0, 2] - u * R[p, j, 2, 2]) / z
+                b0 = (R[p, j, 1, 0] - v * R[p, j, 2, 0]) / z
+                b1 = (R[p, j, 1, 1] - v * R[p, j, 2, 1]) / z
+                b2 = (R[p, j, 1, 2] - v * R[p, j, 2, 2]) / z
+                ru, rv = u - x[p, j, 0], v - x[p, j, 1]
+                H[0] += a0 * a0 + b0 * b0
+                H[1] += a0 * a1 + b0 * b1
+                H[2] += a0 * a2 + b0 * b2
+                H[3] += a1 * a1 + b1 * b1
+                H[4] += a1 * a2 + b1 * b2
+                H[5] += a2 * a2 + b2 * b2
+                g[0] += a0 * ru + b0 * rv
+                g[1] += a1 * ru + b1 * rv
+                g[2] += a2 * ru + b2 * rv
+            a, b, cc, d, e, f = H[0] + 1e-12, H[1], H[2], H[3] + 1e-12, H[4], H[5] + 1e-12
+            A, B, C = d * f - e * e, cc * e - b * f, b * e - cc * d
+            D, E, F = a * f - cc * cc, b * cc - a * e, a * d - b * b
+            det = a * A + b * B + cc * C
+            tr = a + d + f
+            if not det > 1e-9 * tr ** 3:  # a point near infinity: left to the angle checks
+                continue
+            s0 = (A * g[0] + B * g[1] + C * g[2]) / det
+            s1 = (B * g[0] + D * g[1] + E * g[2]) / det
+            s2 = (C * g[0] + E * g[1] + F * g[2]) / det
+            if np.isfinite(s0) and np.isfinite(s1) and np.isfinite(s2):
+                X[p, 0] -= s0
+                X[p, 1] -= s1
+                X[p, 2] -= s2
+    return X
