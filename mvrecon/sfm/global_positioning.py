@@ -24,7 +24,7 @@ import numpy as np
 from numba import njit
 from scipy.linalg import cho_factor, cho_solve
 from scipy.sparse import bsr_matrix, coo_matrix, triu
-from scipy.sparse.linalg import LinearOperator, cg, splu
+from scipy.sparse.linalg import splu
 
 from ..executor import in_background
 from .model import Reconstruction, sum_rows
@@ -167,9 +167,10 @@ def solve_positions(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams:
     suite's models are better without it on the whole over three seeds, and a solve is saved (docs/benchmarks.md,
     "Global positioning: compiled steps, and the pairs' start only where cameras are left unplaced").
     With `workers` > 1 the random start is solved in a second thread while the cameras are placed in turn and
-    solved from there (the compiled steps and LAPACK run without the GIL); that solve stops, and its solution is
-    dropped, once the start proves near the random one's solution: the same result as one after the other, in
-    about the time of the longer of the two (docs/benchmarks.md, "Global positioning: two starts at once")."""
+    solved from there (the compiled steps, the conjugate gradients and LAPACK run without the GIL); that solve
+    stops, and its solution is dropped, once the start proves near the random one's solution: the same result as
+    one after the other, in about the time of the longer of the two (docs/benchmarks.md, "Global positioning: two
+    starts at once")."""
     rng = np.random.default_rng(seed)
     C = rng.uniform(-1, 1, (num_cams, 3))
     X = rng.uniform(-1, 1, (num_points, 3))
@@ -539,7 +540,9 @@ def _conjugate_gradients(S: bsr_matrix, rhs: np.ndarray) -> np.ndarray | None:
     """S^-1 rhs by conjugate gradients preconditioned by the inverses of S's 3x3 diagonal blocks (one per camera:
     they hold most of its weight, so the iterations needed stay few), to a residual of `_CG_TOLERANCE` of the
     right-hand side's norm; None where a diagonal block is missing or not positive definite, or where
-    `_CG_MAX_ITERATIONS` do not converge, for the direct solvers to decide."""
+    `_CG_MAX_ITERATIONS` do not converge, for the direct solvers to decide. The iterations run compiled and
+    without the GIL (`_block_cg`): the two starts that `solve_positions` solves at once spend most of their
+    steps here from `_ITERATIVE_MIN_CAMERAS` cameras, and scipy's iterations held the GIL between its products."""
     num_cams = S.shape[0] // 3
     rows = np.repeat(np.arange(num_cams), np.diff(S.indptr))
     diagonal = np.flatnonzero(S.indices == rows)
@@ -548,14 +551,62 @@ def _conjugate_gradients(S: bsr_matrix, rhs: np.ndarray) -> np.ndarray | None:
     blocks = S.data[diagonal]
     if not (np.isfinite(blocks).all() and (np.linalg.eigvalsh(blocks) > 0).all()):
         return None
-    inverses = np.linalg.inv(blocks)
+    x, converged = _block_cg(np.ascontiguousarray(S.data, dtype=np.float64), S.indices.astype(np.int64),
+                             S.indptr.astype(np.int64), np.linalg.inv(blocks), np.ascontiguousarray(rhs, np.float64),
+                             _CG_TOLERANCE, _CG_MAX_ITERATIONS)
+    return x if converged and np.isfinite(x).all() else None
 
-    def precondition(x):
-        return np.einsum("nij,nj->ni", inverses, x.reshape(num_cams, 3)).ravel()
 
-    M = LinearOperator(S.shape, matvec=precondition, dtype=float)
-    x, info = cg(S, rhs, rtol=_CG_TOLERANCE, atol=0.0, maxiter=_CG_MAX_ITERATIONS, M=M)
-    return x if info == 0 and np.isfinite(x).all() else None
+@njit(cache=True, nogil=True)
+def _block_product(data, indices, indptr, x, out):  # pragma: no cover - compiled
+    """out = S x for S in 3x3-block CSR form (data (blocks,3,3), indices, indptr) and x of 3 entries a block row."""
+    for a in range(len(indptr) - 1):
+        y0 = y1 = y2 = 0.0
+        for k in range(indptr[a], indptr[a + 1]):
+            c = 3 * indices[k]
+            x0, x1, x2 = x[c], x[c + 1], x[c + 2]
+            y0 += data[k, 0, 0] * x0 + data[k, 0, 1] * x1 + data[k, 0, 2] * x2
+            y1 += data[k, 1, 0] * x0 + data[k, 1, 1] * x1 + data[k, 1, 2] * x2
+            y2 += data[k, 2, 0] * x0 + data[k, 2, 1] * x1 + data[k, 2, 2] * x2
+        out[3 * a], out[3 * a + 1], out[3 * a + 2] = y0, y1, y2
+
+
+@njit(cache=True, nogil=True)
+def _block_cg(data, indices, indptr, inverses, rhs, tolerance, max_iterations):  # pragma: no cover - compiled
+    """(x, converged): preconditioned conjugate gradients on the block-CSR system S x = rhs from x = 0, each
+    residual multiplied by the inverse of its camera's diagonal block, until |r| <= tolerance |rhs|."""
+    n = len(rhs)
+    x, r = np.zeros(n), rhs.copy()
+    z, p, Sp = np.empty(n), np.empty(n), np.empty(n)
+    goal = tolerance * np.sqrt(np.dot(rhs, rhs))
+    if np.sqrt(np.dot(r, r)) <= goal:
+        return x, True
+    _precondition(inverses, r, z)
+    p[:] = z
+    rz = np.dot(r, z)
+    for _ in range(max_iterations):
+        _block_product(data, indices, indptr, p, Sp)
+        alpha = rz / np.dot(p, Sp)
+        for i in range(n):
+            x[i] += alpha * p[i]
+            r[i] -= alpha * Sp[i]
+        if np.sqrt(np.dot(r, r)) <= goal:
+            return x, True
+        _precondition(inverses, r, z)
+        rz, previous = np.dot(r, z), rz
+        beta = rz / previous
+        for i in range(n):
+            p[i] = z[i] + beta * p[i]
+    return x, False
+
+
+@njit(cache=True, nogil=True)
+def _precondition(inverses, r, out):  # pragma: no cover - compiled
+    """out = the block-diagonal inverses (cameras,3,3) times r."""
+    for a in range(len(inverses)):
+        r0, r1, r2 = r[3 * a], r[3 * a + 1], r[3 * a + 2]
+        for i in range(3):
+            out[3 * a + i] = inverses[a, i, 0] * r0 + inverses[a, i, 1] * r1 + inverses[a, i, 2] * r2
 
 
 @njit(cache=True)
