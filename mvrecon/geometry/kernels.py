@@ -1,9 +1,10 @@
-"""The two-view tests' and the point refinement's inner loops, compiled with numba.
+"""The rotation test's and the point refinement's inner loops, compiled with numba.
 
-The global mapper's view graph tests every verified pair (thousands at a few hundred images) and the mappers
-re-fit every point their subset bundle adjustments leave out: numpy's batched passes spent most of that time on
-temporaries. `two_view` and `triangulation` import this module inside the functions that call it, at their
-first call: importing the geometry (every command's start-up) does not load numba.
+The global mapper's view graph tests every verified pair for a rotation about the camera centre (thousands at a
+few hundred images), and the mappers re-fit every point their subset bundle adjustments leave out: numpy's
+batched passes spent most of that time on temporaries. `two_view.rotation_between_views` imports this module at
+its first call and `triangulation.refine_points` for large batches only: importing the geometry (every command's
+start-up) does not load numba, nor does a small run.
 """
 
 import numpy as np
@@ -11,34 +12,7 @@ from numba import njit
 
 
 @njit(cache=True, nogil=True)
-def in_front(R, t, x1, x2, far, out):  # pragma: no cover - compiled
-    """Fills `out` with whether the midpoint of each match's rays (triangulation.two_view_midpoints, camera [I|0]
-    and [R|t]) lies in front of both cameras and nearer than `far` baselines; returns how many do."""
-    c0 = -(R[0, 0] * t[0] + R[1, 0] * t[1] + R[2, 0] * t[2])  # the second centre, -R^T t
-    c1 = -(R[0, 1] * t[0] + R[1, 1] * t[1] + R[2, 1] * t[2])
-    c2 = -(R[0, 2] * t[0] + R[1, 2] * t[1] + R[2, 2] * t[2])
-    count = 0
-    for n in range(x1.shape[0]):
-        u, v = x1[n, 0], x1[n, 1]  # the first ray (u, v, 1); the second, R^T (x2, 1), in the first frame:
-        e0 = x2[n, 0] * R[0, 0] + x2[n, 1] * R[1, 0] + R[2, 0]
-        e1 = x2[n, 0] * R[0, 1] + x2[n, 1] * R[1, 1] + R[2, 1]
-        e2 = x2[n, 0] * R[0, 2] + x2[n, 1] * R[1, 2] + R[2, 2]
-        a, b, c = u * u + v * v + 1.0, u * e0 + v * e1 + e2, e0 * e0 + e1 * e1 + e2 * e2
-        p, q = u * c0 + v * c1 + c2, e0 * c0 + e1 * c1 + e2 * c2
-        det = b * b - a * c
-        ok = False
-        if abs(det) > 1e-12 * a * c:
-            s1, s2 = (b * q - c * p) / det, (a * q - b * p) / det
-            X0, X1, X2 = 0.5 * (s1 * u + c0 + s2 * e0), 0.5 * (s1 * v + c1 + s2 * e1), 0.5 * (s1 + c2 + s2 * e2)
-            z2 = X0 * R[2, 0] + X1 * R[2, 1] + X2 * R[2, 2] + t[2]
-            ok = 0 < X2 < far and 0 < z2 < far
-        out[n] = ok
-        count += ok
-    return count
-
-
-@njit(cache=True, nogil=True)
-def unit_rays(x):  # pragma: no cover - compiled
+def unit_rays(x: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
     """Unit viewing rays (n,3) of normalised image points (n,2)."""
     out = np.empty((x.shape[0], 3))
     for k in range(x.shape[0]):
@@ -73,7 +47,8 @@ def _kabsch(M):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def best_rotation_sample(r1, r2, x2, threshold2, samples, best, inliers, found):  # pragma: no cover - compiled
+def best_rotation_sample(r1: np.ndarray, r2: np.ndarray, x2: np.ndarray, threshold2: float, samples: np.ndarray,
+                         best: int, inliers: np.ndarray, found: np.ndarray) -> int:  # pragma: no cover - compiled
     """The rotation of each sample (a pair of matches, rows of `samples`) scored by its inliers; where one has
     more than `best`, `inliers` becomes the first such sample's. Returns the best count."""
     for s in range(samples.shape[0]):
@@ -87,7 +62,8 @@ def best_rotation_sample(r1, r2, x2, threshold2, samples, best, inliers, found):
 
 
 @njit(cache=True, nogil=True)
-def refit_rotation(r1, r2, x2, threshold2, inliers, found):  # pragma: no cover - compiled
+def refit_rotation(r1: np.ndarray, r2: np.ndarray, x2: np.ndarray, threshold2: float, inliers: np.ndarray,
+                   found: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
     """(R, inliers): the least-squares rotation of the inliers, refitted on its own inliers up to three times."""
     R = np.eye(3)
     for _ in range(3):
@@ -106,7 +82,8 @@ def refit_rotation(r1, r2, x2, threshold2, inliers, found):  # pragma: no cover 
 
 
 @njit(cache=True, nogil=True)
-def gauss_newton_points(X, R, t, x, mask, iterations):  # pragma: no cover - compiled
+def gauss_newton_points(X: np.ndarray, R: np.ndarray, t: np.ndarray, x: np.ndarray, mask: np.ndarray,
+                        iterations: int) -> np.ndarray:  # pragma: no cover - compiled
     """`triangulation.refine_points`' iterations on X (n,3) in place, point by point over its views; returns X.
     A step is skipped where the point's normal equations are near singular (rays almost parallel)."""
     H, g = np.empty(6), np.empty(3)

@@ -5,6 +5,7 @@ import sys
 
 import numpy as np
 
+from mvrecon.geometry import triangulation
 from mvrecon.geometry.absolute_pose import pnp_ransac, refine_pose_and_focal, rival_poses
 from mvrecon.geometry.rotation import angle_axis_to_rotmat, rotation_error_deg, vector_angle_deg
 from mvrecon.geometry.triangulation import (
@@ -218,3 +219,26 @@ def test_the_geometry_loads_numba_only_when_a_compiled_test_first_runs():
             "tv.rotation_between_views(x, x, 1e-3); print('numba' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     assert out == ["False", "True"]
+
+
+def test_refinement_gives_the_same_points_compiled_as_in_numpy(monkeypatch):
+    """From COMPILED_MIN_VIEWS views on `refine_points` runs compiled: the same arithmetic, so the same points as
+    numpy's batched passes, including a point near infinity left where it was, and both converge on the truth."""
+    rng = np.random.default_rng(7)
+    n, k = 300, 5
+    R = np.stack([angle_axis_to_rotmat(rng.normal(scale=0.1, size=3)) for _ in range(n * k)]).reshape(n, k, 3, 3)
+    t = rng.normal(size=(n, k, 3))
+    t[0] = 0.0  # one point's views share a centre: no depth
+    X = rng.normal(size=(n, 3)) + [0.0, 0.0, 8.0]
+    x = (np.einsum("nkij,nj->nki", R, X) + t)
+    x = x[..., :2] / x[..., 2:]
+    mask = rng.random((n, k)) < 0.8
+    mask[:, :2] = True
+    start = X + rng.normal(scale=0.05, size=X.shape)
+    monkeypatch.setattr(triangulation, "COMPILED_MIN_VIEWS", 10**9)
+    numpy_points = refine_points(start, R, t, x, mask)
+    monkeypatch.setattr(triangulation, "COMPILED_MIN_VIEWS", 1)
+    compiled_points = refine_points(start, R, t, x, mask)
+    np.testing.assert_allclose(compiled_points, numpy_points, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(compiled_points[0], start[0])
+    np.testing.assert_allclose(compiled_points[1:], X[1:], atol=1e-9)
