@@ -1,14 +1,39 @@
-"""The rotation test's and the point refinement's inner loops, compiled with numba.
+"""The rotation test's and the point refinement's inner loops, and symmetric 3x3 inverses, compiled with numba.
 
 The global mapper's view graph tests every verified pair for a rotation about the camera centre (thousands at a
 few hundred images), and the mappers re-fit every point their subset bundle adjustments leave out: numpy's
 batched passes spent most of that time on temporaries. `two_view.rotation_between_views` imports this module at
 its first call and `triangulation.refine_points` for large batches only: importing the geometry (every command's
-start-up) does not load numba, nor does a small run.
+start-up) does not load numba, nor does a small run. Global positioning (sfm/), compiled itself, inverts its
+points' blocks with `symmetric_inverses`.
 """
 
 import numpy as np
 from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def symmetric_cofactors(a: float, b: float, c: float, d: float, e: float,
+                        f: float) -> tuple[float, float, float, float, float, float, float]:  # pragma: no cover
+    """(A, B, C, D, E, F, det): the cofactors of the symmetric 3x3 matrix [[a, b, c], [b, d, e], [c, e, f]] (its
+    adjugate is [[A, B, C], [B, D, E], [C, E, F]], symmetric as it is) and its determinant."""
+    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
+    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
+    return A, B, C, D, E, F, a * A + b * B + c * C
+
+
+@njit(cache=True, nogil=True)
+def symmetric_inverses(H: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+    """The inverse of each symmetric 3x3 block of H (n,3,3), by its adjugate: one pass, where LAPACK's batched
+    inverse costs about as much as the rest of a global positioning step's pass over the points."""
+    out = np.empty_like(H)
+    for p in range(len(H)):
+        A, B, C, D, E, F, det = symmetric_cofactors(H[p, 0, 0], H[p, 0, 1], H[p, 0, 2], H[p, 1, 1], H[p, 1, 2],
+                                                    H[p, 2, 2])
+        out[p, 0, 0], out[p, 0, 1], out[p, 0, 2] = A / det, B / det, C / det
+        out[p, 1, 0], out[p, 1, 1], out[p, 1, 2] = B / det, D / det, E / det
+        out[p, 2, 0], out[p, 2, 1], out[p, 2, 2] = C / det, E / det, F / det
+    return out
 
 
 @njit(cache=True, nogil=True)
@@ -116,10 +141,8 @@ def gauss_newton_points(X: np.ndarray, R: np.ndarray, t: np.ndarray, x: np.ndarr
                 g[0] += a0 * ru + b0 * rv
                 g[1] += a1 * ru + b1 * rv
                 g[2] += a2 * ru + b2 * rv
-            a, b, cc, d, e, f = H[0] + 1e-12, H[1], H[2], H[3] + 1e-12, H[4], H[5] + 1e-12
-            A, B, C = d * f - e * e, cc * e - b * f, b * e - cc * d
-            D, E, F = a * f - cc * cc, b * cc - a * e, a * d - b * b
-            det = a * A + b * B + cc * C
+            a, d, f = H[0] + 1e-12, H[3] + 1e-12, H[5] + 1e-12
+            A, B, C, D, E, F, det = symmetric_cofactors(a, H[1], H[2], d, H[4], f)
             tr = a + d + f
             if not det > 1e-9 * tr ** 3:  # a point near infinity: left to the angle checks
                 continue

@@ -27,6 +27,7 @@ from scipy.sparse import bsr_matrix, coo_matrix, triu
 from scipy.sparse.linalg import splu
 
 from ..executor import in_background
+from ..geometry.kernels import symmetric_inverses
 from .model import Reconstruction, sum_rows
 from .tracks import Tracks
 
@@ -464,7 +465,7 @@ def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout, robust
                 return C, X, np.inf
             e, g_s, h_s, d, coef, H_CC, H_XX, rhs_C, rhs_X = _normal_terms(cam, point, v, C, X, s, w, lam,
                                                                          num_cams, num_points)
-            Xinv = _inverses(H_XX)
+            Xinv = symmetric_inverses(H_XX)
             blocks = np.zeros((len(layout.block_col), 3, 3))
             blocks[slot_of_cam] = H_CC
             _reduce_points(cam, order, bounds, layout.slot_of_pair, e, d, coef, Xinv, rhs_X, blocks, rhs_C)
@@ -730,23 +731,6 @@ def _normal_terms(cam, point, v, C, X, s, w, lam, num_cams, num_points):  # prag
         for i in range(3):
             H_XX[p, i, i] = H_XX[p, i, i] * (1 + lam) + 1e-12
     return e, g_s, h_s, d, coef, H_CC, H_XX, rhs_C, rhs_X
-
-
-@njit(cache=True, nogil=True)
-def _inverses(H):  # pragma: no cover - compiled
-    """The inverse of each symmetric 3x3 block of H (n,3,3), by its adjugate: one pass, where LAPACK's batched
-    inverse costs about as much as the rest of a positioning step's pass over the points."""
-    out = np.empty_like(H)
-    for p in range(len(H)):
-        a, b, c = H[p, 0, 0], H[p, 0, 1], H[p, 0, 2]
-        d, e, f = H[p, 1, 1], H[p, 1, 2], H[p, 2, 2]
-        A, B, C = d * f - e * e, c * e - b * f, b * e - c * d  # the cofactors, symmetric as H is
-        D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
-        det = a * A + b * B + c * C
-        out[p, 0, 0], out[p, 0, 1], out[p, 0, 2] = A / det, B / det, C / det
-        out[p, 1, 0], out[p, 1, 1], out[p, 1, 2] = B / det, D / det, E / det
-        out[p, 2, 0], out[p, 2, 1], out[p, 2, 2] = C / det, E / det, F / det
-    return out
 
 
 @njit(cache=True, nogil=True)

@@ -213,7 +213,8 @@ def test_focal_from_fundamental_bougnoux():
 
 def test_the_geometry_loads_numba_only_when_a_compiled_test_first_runs():
     """Every command imports the geometry at start-up, and numba (with numpy.random) costs it time and its Ctrl-C
-    handling a window: the compiled two-view tests and refinement load it at their first call."""
+    handling a window: the compiled rotation test loads it at its first call (the refinement for large batches
+    only: `test_refinement_gives_the_same_points_compiled_as_in_numpy`)."""
     code = ("import sys; import mvrecon.geometry.two_view as tv, mvrecon.geometry.triangulation; "
             "print('numba' in sys.modules); import numpy as np; x = np.random.default_rng(0).normal(size=(9, 2)); "
             "tv.rotation_between_views(x, x, 1e-3); print('numba' in sys.modules)")
