@@ -47,6 +47,7 @@ _LOOSE = 1e6
 BYTES_PER_BLOCK = 50  # a BA's memory per pair of variable views of one point (_split_long_tracks)
 MIN_SUB_VIEWS = 8  # the least views per sub-point a split point's views are shared out to
 ORDERED_POSES = 100  # from this many optimised poses a BA eliminates them in `_pose_order`'s order
+_SQUARE_SIGMA_PX = 0.01  # how far apart fx and fy may be held by `_add_square_pixels`, pixels
 _CERES_LAMBDA = 1e-4  # LM's initial damping (CeresDefaults), except in BAs of shared cameras (MapperConfig)
 
 
@@ -134,10 +135,13 @@ class _Window:
 def bundle_adjust(model: Reconstruction, variable_images: np.ndarray | list[int], config: MapperConfig, *,
                   point_ids: np.ndarray | None = None, refine_intrinsics: bool = False,
                   refine_distortion: bool = True, max_iterations: int | None = None,
-                  relative_tolerance: float | None = None, optimizer: str | None = None) -> BundleResult:
+                  relative_tolerance: float | None = None, optimizer: str | None = None,
+                  square_pixels: bool = False) -> BundleResult:
     """Optimise the poses of `variable_images`, the points they see (or `point_ids`) and, when asked, the
     intrinsics of cameras whose registered images are all variable (the focal only, without
-    `refine_distortion`). Other registered images stay constant. `relative_tolerance` overrides the config's."""
+    `refine_distortion`). Other registered images stay constant. `relative_tolerance` overrides the config's.
+    With `square_pixels` the fx and fy of each refined camera whose calibration is not trusted are held equal
+    (`_add_square_pixels`)."""
     start = time.perf_counter()
     window = _window(model, variable_images, point_ids)
     if window is None:
@@ -148,6 +152,8 @@ def bundle_adjust(model: Reconstruction, variable_images: np.ndarray | list[int]
     var_cams = set(np.unique(model.camera_of[window.variable]).tolist())
     refined_cams = _refined_cameras(model, window.variable, var_cams) if refine_intrinsics else set()
     cal_kind = _add_calibrations(gtsam, graph, values, model, var_cams, refined_cams, refine_distortion)
+    if square_pixels:
+        _add_square_pixels(gtsam, graph, model, refined_cams, cal_kind)
     for i in optimised:
         values.insert(gtsam.symbol("x", i), _pose3(gtsam, model.R[i], model.t[i]))
     held_images = len(np.unique(window.obs_img[~window.variable[window.obs_img]]))
@@ -302,6 +308,31 @@ def _add_calibrations(gtsam, graph, values, model, cameras, refined_cams, refine
         graph.add(prior(gtsam.symbol("k", c), _make_calibration(gtsam, kind, vec),
                         gtsam.noiseModel.Diagonal.Sigmas(sig)))
     return cal_kind
+
+
+def _add_square_pixels(gtsam, graph, model, refined_cams, cal_kind: dict) -> None:
+    """A factor holding fx = fy (to `_SQUARE_SIGMA_PX`) on each camera of `refined_cams` with two focal entries
+    whose calibration is not trusted. Such a camera starts from a guess with fx = fy and pixels are square on
+    nearly every camera; left free, the two focals of a guess far off trade off against the poses and the
+    distortion and drift apart (wide_orbit_small, OPENCV from 768 px for the true 269: fx / fy 568 / 851 at the
+    global mapper's end, every pose wrong), where held together they find the focal (docs/benchmarks.md,
+    "Global mapper: a guessed camera's two focals held equal")."""
+    for c in sorted(refined_cams):
+        kind = cal_kind[c]
+        if len(_FOCAL_ENTRIES[kind]) < 2 or model.cameras[c].prior_trusted:
+            continue
+        at = getattr(gtsam.Values, f"at{kind}")
+        row = np.zeros((1, getattr(gtsam, kind)().dim()))
+        row[0, :2] = 1.0, -1.0
+
+        def equal_focals(factor, values, jacobians, at=at, row=row):
+            fx, fy = at(values, factor.keys()[0]).vector()[:2]
+            if jacobians is not None:
+                jacobians[0] = row
+            return np.array([fx - fy])
+
+        graph.add(gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(1, _SQUARE_SIGMA_PX),
+                                     [gtsam.symbol("k", c)], equal_focals))
 
 
 def _add_views(gtsam, graph, model, window: _Window, huber_px: float, cal_kind: dict) -> None:

@@ -481,6 +481,19 @@ def test_wide_angle_lens_with_its_own_camera_model(wide_scene, tmp_path):
     assert abs(params[0] - 269.0) < 0.01 * 269.0 and abs(params[4] + 0.22) < 0.005
 
 
+def test_wide_angle_lens_with_its_own_camera_model_mapped_globally(wide_scene, tmp_path):
+    """The same with --mapper global. From the 768 px guess the two focals of an OPENCV camera left free drift
+    apart in its bundle adjustments (fx / fy 568 / 851 at the end, every pose wrong); held equal, as a guess
+    starts and pixels are, they find the lens."""
+    summary, params = _reconstruct_wide(wide_scene, tmp_path / "run", "--camera-model", "OPENCV", "--mapper",
+                                        "global")
+    assert summary["registered"] == 12 and summary["components"] == 1
+    assert summary["median_rotation_error_deg"] < 0.1
+    assert summary["auc@1"] >= 0.9 and summary["auc@5"] >= 0.95
+    assert abs(params[0] - params[1]) < 0.1
+    assert abs(params[0] - 269.0) < 0.01 * 269.0 and abs(params[4] + 0.22) < 0.005
+
+
 def test_a_panorama_is_refused_not_reconstructed(tmp_path, caplog):
     """panorama_small: a camera turning in place (10 views from one point, 36 deg apart). No baseline, so no
     depth. With the focal guessed (768 px for 400) the essential matrix of a rotation fits a baseline to the

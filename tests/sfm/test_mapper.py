@@ -6,6 +6,7 @@ import pickle
 import re
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pycolmap
@@ -1352,6 +1353,28 @@ def test_a_large_bundle_adjustment_eliminates_its_poses_in_a_fill_reducing_order
     assert max(turned) < 1e-6
     assert np.allclose(adjusted[0].centers()[images], adjusted[1].centers()[images], atol=1e-6)
     assert np.degrees(max(Rotation.from_matrix(adjusted[0].R[i] @ built.R[i].T).magnitude() for i in images)) > 0.05
+
+
+@pytest.mark.parametrize("camera_model", ["PINHOLE", "OPENCV", "OPENCV_FISHEYE"])
+def test_square_pixels_hold_the_two_focals_of_a_guessed_camera_equal(camera_model):
+    """`_add_square_pixels`: a calibration whose own prior puts fx at 500 and fy at 700 (10 px each) ends with
+    both at 600 under the factor, for each kind of calibration with two focals; a trusted camera is left be."""
+    import gtsam
+
+    params = {"PINHOLE": [500.0, 700.0, 320.0, 240.0]}.get(camera_model, [500.0, 700.0, 320.0, 240.0, 0, 0, 0, 0])
+    for trusted in (False, True):
+        cam = model.Camera(camera_model, 640, 480, np.array(params), prior_focal=600.0, prior_trusted=trusted)
+        kind, vec, _ = bundle._calibration_layout(camera_model, cam.params)
+        key = gtsam.symbol("k", 1)
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        values.insert(key, bundle._make_calibration(gtsam, kind, vec))
+        sigmas = np.full(len(vec), 1e-6)
+        sigmas[:2] = 10.0
+        graph.add(getattr(gtsam, f"PriorFactor{kind}")(key, bundle._make_calibration(gtsam, kind, vec),
+                                                        gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
+        bundle._add_square_pixels(gtsam, graph, SimpleNamespace(cameras={1: cam}), {1}, {1: kind})
+        fx, fy = getattr(gtsam.LevenbergMarquardtOptimizer(graph, values).optimize(), f"at{kind}")(key).vector()[:2]
+        assert (fx, fy) == pytest.approx((500.0, 700.0) if trusted else (600.0, 600.0), abs=0.01)
 
 
 def test_a_bundle_adjustment_over_its_memory_budget_splits_long_tracks_to_the_same_poses(tmp_path):
