@@ -105,6 +105,9 @@ def homography_translation(H: np.ndarray, K1: np.ndarray, K2: np.ndarray) -> flo
     return float(spread) if np.ndim(spread) == 0 else spread
 
 
+_CHUNK = 25  # samples of `rotation_between_views` drawn before its stopping rule is looked at again
+
+
 def rotation_between_views(x1: np.ndarray, x2: np.ndarray, threshold: float, seed: int = 0, min_inliers: int = 3,
                            confidence: float = 0.999,
                            max_iterations: int = 200) -> tuple[np.ndarray, np.ndarray] | None:
@@ -140,6 +143,3 @@ def rotation_between_views(x1: np.ndarray, x2: np.ndarray, threshold: float, see
         best = best_rotation_sample(r1, r2, x2, threshold2, samples, best, inliers, found)
         drawn += _CHUNK
     return refit_rotation(r1, r2, x2, threshold2, inliers, found)
-
-
-_CHUNK = 25  # samples of `rotation_between_views` drawn before its stopping rule is looked at again
