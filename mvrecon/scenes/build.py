@@ -66,7 +66,8 @@ OBJECT_REQUIRED = {
     **{name: () for name in layouts.SITES},
 }
 CAMERA_KEYS = {
-    "perspective": {"model", "width", "height", "params", "focal", "distortion", "orthographic"},
+    "perspective": {"model", "width", "height", "params", "focal", "distortion", "orthographic", "zoom",
+                    "size_step"},
     "orthographic": {"width", "height", "pixel_size", "orthographic"},
 }
 GPS_KEYS = {"origin", "sigma_horizontal", "sigma_vertical"}
@@ -126,6 +127,7 @@ def check_entry(entry: dict) -> None:
     for key in ("width", "height"):
         if not _whole(cam[key], 1):
             raise ValueError(f"[camera] {key} = {cam[key]!r}: must be a whole number of pixels, 1 or more")
+    _check_view_cameras(cam, kind)
     traj = _table(entry, "trajectory", kind, {"sem_tilt": 'type = "tilt", angles_deg and distance',
                                               "stereo": 'type = "stereo", center, target and baseline'}
                   .get(kind, f"type ({', '.join(TRAJECTORIES)}) and its keys"))
@@ -328,8 +330,50 @@ def build_poses(entry: dict) -> list:
     return _call(TRAJECTORIES[kind], traj, f"trajectory {kind}")
 
 
+def _check_view_cameras(cam: dict, kind: str) -> None:
+    """Refuse a `zoom` or `size_step` (`view_cameras`) that is malformed, or on a scene kind of one camera."""
+    if ("zoom" in cam or "size_step" in cam) and kind != "perspective":
+        raise ValueError(f"[camera] zoom and size_step: a {kind} scene has one camera; they are for perspective "
+                         "scenes")
+    zoom = cam.get("zoom", [1.0, 1.0])
+    if not (isinstance(zoom, list) and len(zoom) == 2 and all(isinstance(z, int | float) for z in zoom)
+            and 0 < zoom[0] <= zoom[1]):
+        raise ValueError(f"[camera] zoom = {zoom!r}: must be [low, high] with 0 < low <= high")
+    step = cam.get("size_step", [0, 0])
+    if not (isinstance(step, list) and len(step) == 2 and all(_whole(v, 0) for v in step)):
+        raise ValueError(f"[camera] size_step = {step!r}: must be [width, height] steps of 0 or more pixels")
+
+
+def view_cameras(entry: dict, count: int) -> list[PerspectiveCamera]:
+    """The camera of each of `count` views: the entry's [camera] for all of them, or one camera per view with
+    `zoom = [low, high]` (each view's focal times its own seeded factor, log-uniform between the two) and
+    `size_step = [dw, dh]` (view k's image (width + k dw) x (height + k dh), its principal point moved with the
+    image's centre): photos of one place from many cameras, each image its own camera, as in a collection of
+    visitors' photos."""
+    cam = build_camera(entry)
+    spec = entry.get("camera", {})
+    low, high = spec.get("zoom", [1.0, 1.0])
+    dw, dh = spec.get("size_step", [0, 0])
+    if (low, high) == (1.0, 1.0) and (dw, dh) == (0, 0):
+        return [cam] * count
+    rng = np.random.default_rng([int(entry.get("seed", 0)), 0x200D])
+    factors = np.exp(rng.uniform(np.log(low), np.log(high), count))
+    names = PARAM_NAMES[cam.model]
+    out = []
+    for k, factor in enumerate(factors):
+        params = np.array(cam.params, float)
+        for i, name in enumerate(names):
+            if name.startswith("f"):
+                params[i] *= factor
+            elif name in ("cx", "cy"):
+                params[i] += k * (dw if name == "cx" else dh) / 2
+        out.append(PerspectiveCamera(cam.model, cam.width + k * dw, cam.height + k * dh, tuple(params)))
+    return out
+
+
 def build_camera(entry: dict) -> PerspectiveCamera | OrthographicCamera:
-    c = dict(entry.get("camera", {}))
+    """The entry's [camera] (without the per-view variation of `view_cameras`)."""
+    c = {k: v for k, v in entry.get("camera", {}).items() if k not in ("zoom", "size_step")}
     if c.pop("orthographic", False):
         return _call(cameras.OrthographicCamera, c, "camera")
     if "focal" in c:
@@ -350,12 +394,13 @@ def render_settings(entry: dict) -> tuple[RenderSettings, float]:
 
 
 def _render_all(
-    renderer: Renderer, cam, poses, names, out: Path, seed: int, jitter: float, grey: bool = False,
+    renderer: Renderer, cams: list, poses, names, out: Path, seed: int, jitter: float, grey: bool = False,
     exifs: list | None = None,
 ) -> None:
-    """Render each view into images/ and gt/depth/, skipping views whose two files are there: make_scene
-    leaves only those of an interrupted run of the same entry, and both are written whole (seeded per view,
-    so the views rendered now are the bytes an uninterrupted run gives). exifs[k]: view k's EXIF block."""
+    """Render each view k with its camera cams[k] into images/ and gt/depth/, skipping views whose two files are
+    there: make_scene leaves only those of an interrupted run of the same entry, and both are written whole
+    (seeded per view, so the views rendered now are the bytes an uninterrupted run gives). exifs[k]: view k's
+    EXIF block."""
     rng = np.random.default_rng(seed)
     exposures = 1.0 + jitter * rng.uniform(-1.0, 1.0, len(poses))
     (out / "images").mkdir(parents=True, exist_ok=True)
@@ -366,7 +411,7 @@ def _render_all(
         log.info("%s: %d of %d views already rendered, rendering the other %d", out, len(poses) - len(todo),
                  len(poses), len(todo))
     for k in progress(todo, desc="render", unit="image"):
-        image, depth = renderer.render(cam, poses[k], exposure=float(exposures[k]), seed=seed * 7919 + k)
+        image, depth = renderer.render(cams[k], poses[k], exposure=float(exposures[k]), seed=seed * 7919 + k)
         if grey:
             image = np.round(to_gray(image, np.float32))
             image = np.clip(image, 0, 255).astype(np.uint8)
@@ -429,8 +474,9 @@ def perspective(entry: dict, base_dir: Path, out: Path) -> dict:
 
 def _perspective(entry: dict, base_dir: Path, out: Path, names: list[str] | None = None):
     seed = int(entry.get("seed", 0))
-    cam = build_camera(entry)
     poses = build_poses(entry)
+    cams = view_cameras(entry, len(poses))
+    cam = cams[0]
     settings, jitter = render_settings(entry)
     renderer = Renderer(build_mesh(entry, base_dir, poses), settings)
     ext = "jpg" if entry.get("image_format", "png") in ("jpg", "jpeg") else "png"
@@ -441,14 +487,16 @@ def _perspective(entry: dict, base_dir: Path, out: Path, names: list[str] | None
         (out / "gt").mkdir(parents=True, exist_ok=True)
         (out / "gt" / "gps.json").write_text(json.dumps(gps, indent=1))
         exifs = [gps_exif(*gps["images"][n]["noisy_lla"]) for n in names]
-    _render_all(renderer, cam, poses, names, out, seed, jitter, exifs=exifs)
+    _render_all(renderer, cams, poses, names, out, seed, jitter, exifs=exifs)
     pts, normals, colors = surface_points(renderer, int(entry.get("points", 4000)), seed + 1)
-    obs = [observations(renderer, cam, p, pts, normals) for p in poses]
-    write_colmap_model(out / "gt" / "sparse", cam, names, poses, pts, colors, obs)
+    obs = [observations(renderer, c, p, pts, normals) for c, p in zip(cams, poses)]
+    write_colmap_model(out / "gt" / "sparse", cams, names, poses, pts, colors, obs)
     info = {
         "images": len(poses),
         "camera": {"model": cam.model, "width": cam.width, "height": cam.height, "params": list(cam.params)},
     }
+    if len(set(cams)) > 1:
+        info["camera_per_image"] = True  # "camera" is the first image's; gt/sparse has each image's
     return info, renderer, cam, poses
 
 
@@ -534,7 +582,7 @@ def sem_tilt(entry: dict, base_dir: Path, out: Path) -> dict:
     settings, jitter = render_settings(entry)
     renderer = Renderer(build_mesh(entry, base_dir), settings)
     names = [f"tilt_{a:+.1f}.png" for a in angles]
-    _render_all(renderer, cam, poses, names, out, seed, jitter, grey=True)
+    _render_all(renderer, [cam] * len(poses), poses, names, out, seed, jitter, grey=True)
     zero = cameras.tilt_series(
         [0.0], traj["distance"], traj.get("axis", "y"), traj.get("eucentric", (0, 0, 0))
     )[0]

@@ -30,28 +30,33 @@ def write_image(path: Path | str, image: np.ndarray, jpeg_quality: int = 95, exi
 
 def write_colmap_model(
     path: Path | str,
-    cam: PerspectiveCamera,
+    cam: PerspectiveCamera | list[PerspectiveCamera],
     names: list[str],
     poses: list,
     points: np.ndarray,
     colors: np.ndarray,
     observations: list[tuple[np.ndarray, np.ndarray]],
 ) -> None:
-    """A binary COLMAP model: one camera (cam.model, cam.params), one trivial rig/frame per image, the points.
+    """A binary COLMAP model: one camera (cam.model, cam.params) for all images, or with a list `cam`, a camera
+    per image unless they are all equal; one trivial rig/frame per image, the points.
 
     observations[i] = (indices into `points`, pixels (N,2)) for image i; each becomes a Point2D of that image
     in the order given, and the points' tracks link back to them. Points seen in fewer than two images are
     skipped.
     """
     rec = pycolmap.Reconstruction()
-    camera = pycolmap.Camera(
-        model=cam.model, width=cam.width, height=cam.height, params=list(cam.params), camera_id=1
-    )
-    rec.add_camera_with_trivial_rig(camera)
+    cams = cam if isinstance(cam, list) else [cam]
+    if all(c == cams[0] for c in cams):
+        cams = cams[:1]
+    for camera_id, c in enumerate(cams, start=1):
+        rec.add_camera_with_trivial_rig(pycolmap.Camera(
+            model=c.model, width=c.width, height=c.height, params=list(c.params), camera_id=camera_id
+        ))
     tracks: dict[int, list] = {}
     for image_id, (name, (R, t), (idx, uv)) in enumerate(zip(names, poses, observations), start=1):
         image = pycolmap.Image(
-            name=name, keypoints=np.asarray(uv, float).reshape(-1, 2), camera_id=1, image_id=image_id
+            name=name, keypoints=np.asarray(uv, float).reshape(-1, 2),
+            camera_id=image_id if len(cams) > 1 else 1, image_id=image_id
         )
         rec.add_image_with_trivial_frame(
             image, pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(R, float)), np.asarray(t, float))

@@ -170,8 +170,11 @@ class GlobalMapper:
         scratch = self._new_model(cameras)
         found = calibrate_focals(scratch, self.pairs, self.config.seed)
         # a focal the view graph could not calibrate is found by coarse models first, from rougher relative poses
-        # of the pairs of a bounded, well-connected set of images (`_calibration_pairs`)
-        uncalibrated = [c for c, cam in scratch.cameras.items() if not cam.prior_trusted and c not in found]
+        # of the pairs of a bounded, well-connected set of images (`_calibration_pairs`); not a camera of a single
+        # image, which the view graph leaves at its guess and no coarse model refines (`_calibrate_by_bundle`)
+        users = np.bincount(self.camera_of, minlength=max(scratch.cameras, default=0) + 1)
+        uncalibrated = [c for c, cam in scratch.cameras.items()
+                        if not cam.prior_trusted and c not in found and users[c] >= 2]
         if uncalibrated:
             sample = self._calibration_pairs(uncalibrated)
             fit = self._calibrate(scratch, sample)

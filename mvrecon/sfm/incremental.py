@@ -198,13 +198,9 @@ class IncrementalMapper:
         (view_graph.calibrate_focals, as the global mapper does), where they observe it (not in an orbit, whose
         cameras keep the guess and the initial pair's estimate). One pair's estimate can be far off: a
         200-image part of a nadir survey started from 807 px for 500, its BAs drove it to 6,098 px and no pose
-        came out right; the view graph gave 519 px. A camera of a single image is held at its guess: its focal
-        meets only other unknown focals in its pairs (imc_reichstag, a camera per image: AUC@5 0.711 -> 0.635
-        when calibrated so). Neutral or better on every set where it fires (docs/benchmarks.md, "Mapper rules")."""
+        came out right; the view graph gave 519 px. Neutral or better on every set where it fires
+        (docs/benchmarks.md, "Mapper rules")."""
         scratch = Reconstruction(self.image_ids, self.names, self.camera_of, self.cameras, self.keypoints, 0)
-        users = np.bincount(self.camera_of, minlength=max(self.cameras, default=0) + 1)
-        for c, cam in scratch.cameras.items():
-            cam.prior_trusted = cam.prior_trusted or users[c] < 2
         found = calibrate_focals(scratch, {k: p.inliers for k, p in self.pairs.items()}, self.config.seed)
         for c, (_, focal) in found.items():
             cam = self.cameras[c]

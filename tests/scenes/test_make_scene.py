@@ -9,6 +9,7 @@ import sys
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from mvrecon.commands import scene as scene_command
 from mvrecon.errors import InputError
@@ -464,6 +465,10 @@ texture = "noise"
     (TINY, "radius = 3.0\n", "", "[trajectory] (orbit) lacks radius"),
     (TINY, "size = [1.0, 1.0, 1.0]\n", "", "[[objects]] #1 box lacks size"),
     (TINY_TILT, "pixel_size = 1.0\n", "", "[camera] lacks pixel_size"),
+    (TINY, "width = 96\n", "width = 96\nzoom = [2.0, 1.0]\n",
+     "[camera] zoom = [2.0, 1.0]: must be [low, high] with 0 < low <= high"),
+    (TINY, "width = 96\n", "width = 96\nsize_step = [8]\n",
+     "[camera] size_step = [8]: must be [width, height] steps of 0 or more pixels"),
     # a 0-image scene, exit 0
     (TINY, "count = 3", "count = 0", "[trajectory] count = 0: a scene needs a whole number of views, 2 or more"),
     (TINY, "count = 3", "count = 1", "[trajectory] count = 1: a scene needs a whole number of views, 2 or more"),
@@ -481,6 +486,31 @@ def test_scene_entries_lacking_keys_or_views_are_one_line(tmp_path, capsys, base
     assert main(["scene", "make", str(toml), "-o", str(tmp_path / "out" / "scene")]) == 2
     assert capsys.readouterr().err.splitlines() == [f"mvrecon: error: {toml}: {expected}"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["entry.toml"]
+
+
+def test_visitor_photos_give_every_view_its_own_camera(tmp_path):
+    """`zoom` and `size_step` give each view its own size and focal (photos from many cameras), and the
+    ground truth a camera per image that projects its points where the image shows them."""
+    from mvrecon.scenes.build import view_cameras
+
+    entry = load_entry("visitor_photos_small")[0]
+    cams = view_cameras(entry, 14)
+    assert [(c.width, c.height) for c in cams] == [(560 + 8 * k, 420 + 6 * k) for k in range(14)]
+    focals = np.array([c.params[0] for c in cams])
+    assert np.all((focals >= 0.5 * 480) & (focals <= 2.0 * 480)) and focals.max() / focals.min() > 2.5
+    assert all(c.params[1:3] == (c.width / 2, c.height / 2) and c.params[3] == -0.02 for c in cams)
+    orbit = load_entry("object_orbit_small")[0]
+    assert view_cameras(orbit, 3) == [build_camera(orbit)] * 3
+    small = shrunk_entry("visitor_photos_small", tmp_path,
+                         {"count = 14": "count = 3", "supersample = 2": "supersample = 1", "size = 2048": "size = 256"})
+    scene = make_scene(small, tmp_path / "scene")
+    model = load_reconstruction(scene / "gt" / "sparse")
+    assert len(model.cameras) == 3 and json.loads((scene / "scene.json").read_text())["camera_per_image"]
+    for image in model.images.values():
+        camera = model.cameras[image.camera_id]
+        size = Image.open(scene / "images" / image.name).size
+        assert (camera.width, camera.height) == size
+        assert np.allclose(camera.params, cams[int(image.name[:4])].params)
 
 
 def test_a_failed_make_leaves_no_folder_it_made(tmp_path):
