@@ -66,7 +66,14 @@ from .rotation_averaging import average_rotations
 from .tracks import build_tracks
 from .translation_averaging import average_translations
 from .triangulate import refine_existing_points, retriangulate, triangulate_tracks
-from .view_graph import calibrate_focals, calibration_shift_px, dense_subset, matches_per_image, oriented_pairs
+from .view_graph import (
+    calibratable_cameras,
+    calibrate_focals,
+    calibration_shift_px,
+    dense_subset,
+    matches_per_image,
+    oriented_pairs,
+)
 
 log = logging.getLogger("mvrecon.sfm")
 # reprojection gate of the first round, before the config's own (4 px), and of the coarse models: with a wider
@@ -172,9 +179,7 @@ class GlobalMapper:
         # a focal the view graph could not calibrate is found by coarse models first, from rougher relative poses
         # of the pairs of a bounded, well-connected set of images (`_calibration_pairs`); not a camera of a single
         # image, which the view graph leaves at its guess and no coarse model refines (`_calibrate_by_bundle`)
-        users = np.bincount(self.camera_of, minlength=max(scratch.cameras, default=0) + 1)
-        uncalibrated = [c for c, cam in scratch.cameras.items()
-                        if not cam.prior_trusted and c not in found and users[c] >= 2]
+        uncalibrated = sorted(calibratable_cameras(scratch) - set(found))
         if uncalibrated:
             sample = self._calibration_pairs(uncalibrated)
             fit = self._calibrate(scratch, sample)
