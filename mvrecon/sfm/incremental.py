@@ -663,10 +663,11 @@ class IncrementalMapper:
         distortion trade off against each other (templeRing blurred: k1 -1.7 as the focal doubled), and dropping
         the images would not repair the camera they share. Fires only on the degraded temples: a plausible
         camera (blurred: f 1599, k1 0 for the true 1520, 0; without: 1669, -1.26) for poses 0.004-0.024 lower
-        in AUC@5 ("Mapper rules")."""
+        in AUC@5 ("Mapper rules"). The focal is refined from focal_min_images images on, and from the initial
+        pair on where its two images have guessed cameras of their own (`_own_guessed_cameras`)."""
         cfg = self.config
         n = int(m.registered.sum())
-        intrinsics = cfg.refine_intrinsics and n >= cfg.focal_min_images
+        intrinsics = cfg.refine_intrinsics and (n >= cfg.focal_min_images or self._own_guessed_cameras(m))
         distortion = n >= cfg.distortion_min_images
         variable = m.registered_images() if images is None else images
         points = m.alive_points() if images is None else self._points_of(m, images)
@@ -679,6 +680,18 @@ class IncrementalMapper:
         georeference(m, cfg.seed)  # into the priors' frame once they allow it (no-op without priors)
         filtering.plausible_bundle(m, intrinsics, distortion, adjust)
         hand_back_freed_memory()  # else the next global BA stacks on its fragments
+
+    @staticmethod
+    def _own_guessed_cameras(m: Reconstruction) -> bool:
+        """Whether no two registered images share a camera and no camera's focal is trusted: a pair of two
+        cameras each of one image, both focals guesses (1.2 x the image size, up to 2.5x off), as in photos from
+        many cameras. COLMAP refines them from its initial pair's BA; held there until a third image, the first
+        BAs that free them can settle on focals 2-3x off that the later images then fit (visitor_photos_small at
+        a zoom of 0.4-2.5x: 13 of 13 images misplaced; freed: 13 right, AUC@5 0.836). Neutral or better on
+        every set where it fires but at one seed of seven of imc_reichstag (docs/benchmarks.md, "Mapper
+        rules")."""
+        cams = m.camera_of[m.registered]
+        return len(np.unique(cams)) == len(cams) and not any(m.cameras[int(c)].prior_trusted for c in cams)
 
     def _close_loops(self, m: Reconstruction) -> np.ndarray:
         """Views of existing points that the drift of growth left past the 4 px gate rejoin through the loose
