@@ -3,7 +3,9 @@
 GLOMAP's pipeline on GTSAM and the incremental mapper's own parts:
 1. View graph (view_graph.py): guessed focal lengths calibrated from the pairs' fundamental matrices, then one
    relative pose per verified pair (pair_poses.py); a guessed focal the pairs cannot tell is refined by coarse
-   global models first.
+   global models first. A set with cameras of a single image is mapped with their focals at the guess and again
+   with them calibrated too, and the mapping that explains more observations is kept
+   (`_single_cameras_calibrated`).
 2. Rotation averaging (rotation_averaging.py): robust initialisation, L1-IRLS, `gtsam.ShonanAveraging3`;
    pairs whose rotation disagrees by more than 5 degrees are outliers; the largest consistent component is a
    model.
@@ -205,8 +207,8 @@ class GlobalMapper:
         found = calibrate_focals(scratch, self.pairs, self.config.seed, self.calibrate_single)
         # a focal the view graph could not calibrate is found by coarse models first, from rougher relative poses
         # of the pairs of a bounded, well-connected set of images (`_calibration_pairs`); not a camera of a single
-        # image, which the view graph leaves at its guess and no coarse model refines (`_calibrate_by_bundle`)
-        uncalibrated = sorted(calibratable_cameras(scratch) - set(found))  # coarse models refine no single camera
+        # image, which no coarse model refines (`_calibrate_by_bundle`)
+        uncalibrated = sorted(calibratable_cameras(scratch) - set(found))
         if uncalibrated:
             sample = self._calibration_pairs(uncalibrated)
             fit = self._calibrate(scratch, sample)
