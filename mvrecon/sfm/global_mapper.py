@@ -3,9 +3,9 @@
 GLOMAP's pipeline on GTSAM and the incremental mapper's own parts:
 1. View graph (view_graph.py): guessed focal lengths calibrated from the pairs' fundamental matrices, then one
    relative pose per verified pair (pair_poses.py); a guessed focal the pairs cannot tell is refined by coarse
-   global models first. A set with cameras of a single image is mapped with their focals at the guess and again
-   with them calibrated too, and the mapping that explains more observations is kept
-   (`_single_cameras_calibrated`).
+   global models first. A set where half the images or more are each the only image of their camera is mapped
+   with those focals at the guess and again with them calibrated too, and the mapping that explains more
+   observations is kept (`_single_cameras_calibrated`).
 2. Rotation averaging (rotation_averaging.py): robust initialisation, L1-IRLS, `gtsam.ShonanAveraging3`;
    pairs whose rotation disagrees by more than 5 degrees are outliers; the largest consistent component is a
    model.
@@ -144,8 +144,7 @@ class GlobalMapper:
     def run(self) -> MappingResult:
         bar = progress(total=len(self.image_ids), desc="mapping", unit="img")
         models, graph = self._map_all(self.cameras, bar)
-        scratch = self._new_model(self.cameras)
-        if calibratable_cameras(scratch, single=True) - calibratable_cameras(scratch):
+        if self._mostly_single_cameras():
             bar.close()
             bar = progress(total=len(self.image_ids), desc="mapping with one-image cameras calibrated", unit="img")
             models, graph = self._single_cameras_calibrated(models, graph, bar)
@@ -177,6 +176,14 @@ class GlobalMapper:
                               "ba_calls": self.ba_calls, "ba_seconds": self.ba_seconds,
                               "view_graph_edges": len(graph.edges),
                               "seconds": {k: round(v, 3) for k, v in self.seconds.items()}})
+
+    def _mostly_single_cameras(self) -> bool:
+        """Whether half the images or more are each the only image of a camera with a guessed focal (photos from
+        many cameras), where `_single_cameras_calibrated` maps the set again: with fewer such images the choice
+        moves few poses, and a large set with one odd image (a screenshot, a crop) is not mapped twice."""
+        scratch = self._new_model(self.cameras)
+        single = calibratable_cameras(scratch, single=True) - calibratable_cameras(scratch)
+        return len(single) > 0 and 2 * len(single) >= len(self.image_ids)
 
     def _single_cameras_calibrated(self, models: list[Reconstruction], graph, bar) -> tuple[list, object]:
         """The models and view graph of the set mapped again with the view graph calibrating the guessed focals
