@@ -330,16 +330,19 @@ def build_poses(entry: dict) -> list:
     return _call(TRAJECTORIES[kind], traj, f"trajectory {kind}")
 
 
+_NO_ZOOM, _NO_STEP = [1.0, 1.0], [0, 0]  # `view_cameras` without `zoom` or `size_step`: every view the same camera
+
+
 def _check_view_cameras(cam: dict, kind: str) -> None:
     """Refuse a `zoom` or `size_step` (`view_cameras`) that is malformed, or on a scene kind of one camera."""
     if ("zoom" in cam or "size_step" in cam) and kind != "perspective":
         raise ValueError(f"[camera] zoom and size_step: a {kind} scene has one camera; they are for perspective "
                          "scenes")
-    zoom = cam.get("zoom", [1.0, 1.0])
+    zoom = cam.get("zoom", _NO_ZOOM)
     if not (isinstance(zoom, list) and len(zoom) == 2 and all(isinstance(z, int | float) for z in zoom)
             and 0 < zoom[0] <= zoom[1]):
         raise ValueError(f"[camera] zoom = {zoom!r}: must be [low, high] with 0 < low <= high")
-    step = cam.get("size_step", [0, 0])
+    step = cam.get("size_step", _NO_STEP)
     if not (isinstance(step, list) and len(step) == 2 and all(_whole(v, 0) for v in step)):
         raise ValueError(f"[camera] size_step = {step!r}: must be [width, height] steps of 0 or more pixels")
 
@@ -352,10 +355,8 @@ def view_cameras(entry: dict, count: int) -> list[PerspectiveCamera]:
     visitors' photos."""
     cam = build_camera(entry)
     spec = entry.get("camera", {})
-    low, high = spec.get("zoom", [1.0, 1.0])
-    dw, dh = spec.get("size_step", [0, 0])
-    if (low, high) == (1.0, 1.0) and (dw, dh) == (0, 0):
-        return [cam] * count
+    low, high = spec.get("zoom", _NO_ZOOM)
+    dw, dh = spec.get("size_step", _NO_STEP)
     rng = np.random.default_rng([int(entry.get("seed", 0)), 0x200D])
     factors = np.exp(rng.uniform(np.log(low), np.log(high), count))
     names = PARAM_NAMES[cam.model]

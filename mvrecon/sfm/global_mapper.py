@@ -181,8 +181,8 @@ class GlobalMapper:
         """Whether half the images or more are each the only image of a camera with a guessed focal (photos from
         many cameras), where `_single_cameras_calibrated` maps the set again: with fewer such images the choice
         moves few poses, and a large set with one odd image (a screenshot, a crop) is not mapped twice."""
-        scratch = self._new_model(self.cameras)
-        single = calibratable_cameras(scratch, single=True) - calibratable_cameras(scratch)
+        single = calibratable_cameras(self.cameras, self.camera_of, single=True) \
+            - calibratable_cameras(self.cameras, self.camera_of)
         return len(single) > 0 and 2 * len(single) >= len(self.image_ids)
 
     def _single_cameras_calibrated(self, models: list[Reconstruction], graph, bar) -> tuple[list, object]:
@@ -194,17 +194,17 @@ class GlobalMapper:
         zoom of 0.4-2.5x twelve when held (5,587 against 8,550); the model that explains more of the matches
         was the right one on each of the sets and seeds measured (docs/benchmarks.md, "Global mapper: the
         cameras of one image, held and calibrated"). Such a set is mapped twice."""
-        first = (models, graph, self.reasons)
+        reasons = self.reasons
         self.reasons, self.calibrate_single = {}, True
         again, again_graph = self._map_all(self.cameras, bar)
-        fits = [(*coverage(ms), sum(len(m.alive_observations()) for m in ms)) for ms in (again, models)]
+        fit, first_fit = [(*coverage(ms), sum(len(m.alive_observations()) for m in ms)) for ms in (again, models)]
         log.info("mapped again with the cameras of one image calibrated by the view graph: %s images and %d "
-                 "observations against %s and %d; %s", fits[0][:2], fits[0][2], fits[1][:2], fits[1][2],
-                 "kept" if fits[0] > fits[1] else "the first models are kept")
-        if fits[0] > fits[1]:
+                 "observations against %s and %d; %s", fit[:2], fit[2], first_fit[:2], first_fit[2],
+                 "kept" if fit > first_fit else "the first models are kept")
+        if fit > first_fit:
             return again, again_graph
-        self.reasons, self.calibrate_single = first[2], False
-        return first[0], first[1]
+        self.reasons, self.calibrate_single = reasons, False
+        return models, graph
 
     def _map_all(self, cameras: dict, bar) -> tuple[list[Reconstruction], object]:
         """(models, view graph) of every image from the starting `cameras`: the view graph calibrated and
@@ -215,7 +215,7 @@ class GlobalMapper:
         # a focal the view graph could not calibrate is found by coarse models first, from rougher relative poses
         # of the pairs of a bounded, well-connected set of images (`_calibration_pairs`); not a camera of a single
         # image, which no coarse model refines (`_calibrate_by_bundle`)
-        uncalibrated = sorted(calibratable_cameras(scratch) - set(found))
+        uncalibrated = sorted(calibratable_cameras(scratch.cameras, self.camera_of) - set(found))
         if uncalibrated:
             sample = self._calibration_pairs(uncalibrated)
             fit = self._calibrate(scratch, sample)

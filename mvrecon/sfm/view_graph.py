@@ -68,23 +68,24 @@ def _essential_costs(F, K1s, K2s) -> np.ndarray:
     return (s[:, 0] - s[:, 1]) / np.maximum(s[:, 0] + s[:, 1], 1e-300)
 
 
-def calibratable_cameras(model: Reconstruction, single: bool = False) -> set[int]:
-    """The cameras whose focal `calibrate_focals` sets: guessed (not trusted) and shared by two images or more
+def calibratable_cameras(cameras: dict, camera_of: np.ndarray, single: bool = False) -> set[int]:
+    """The cameras (id -> Camera; `camera_of` each image's id) whose focal `calibrate_focals` sets: guessed (not
+    trusted) and shared by two images or more
     (with `single`, also those of a single image). A camera of a single image keeps its guess by default: its
     focal meets only other unknown focals in its pairs, and the bundle adjustments find it from the points
     (imc_reichstag, a camera per photo, incremental AUC@5 0.711 -> 0.635 calibrated so; visitor_photos_small, the
     global mapper 0.702 with two images misplaced -> 0.976); the global mapper also maps such a set with them
     calibrated and keeps the better mapping (global_mapper.py). Neutral or better on every set where it fires
     (docs/benchmarks.md, "Mapper rules")."""
-    users = np.bincount(model.camera_of, minlength=max(model.cameras, default=0) + 1)
-    return {c for c, cam in model.cameras.items() if not cam.prior_trusted and (single or users[c] >= 2)}
+    users = np.bincount(camera_of, minlength=max(cameras, default=0) + 1)
+    return {c for c, cam in cameras.items() if not cam.prior_trusted and (single or users[c] >= 2)}
 
 
 def calibrate_focals(model: Reconstruction, pairs: dict, seed: int = 0, single: bool = False) -> dict:
     """Set the focal of every camera of `calibratable_cameras` (`single` passed on) to the one its pairs'
     fundamental matrices support best (see the module docstring), logged; returns camera id -> (guess,
     calibrated focal) of those it changed."""
-    guessed = calibratable_cameras(model, single)
+    guessed = calibratable_cameras(model.cameras, model.camera_of, single)
     if not guessed:
         return {}
     Fs, used = [], dict.fromkeys(guessed, 0)
