@@ -507,7 +507,7 @@ def test_photos_from_many_cameras_each_find_their_focal(visitor_scene, tmp_path,
     guessed at 1.2x the long side). With the view graph calibrating each one-image camera from pairs whose other
     focal is a guess too, the global mapper misplaced two images (their focals 589 and 2,165 px for 367 and 253;
     AUC@5 0.702); it now also maps the set with the one-image cameras held at their guess, and that mapping,
-    which explains more observations, is kept."""
+    which fits more observations within half a pixel, is kept."""
     out = tmp_path / "run"
     assert main(["-q", "reconstruct", str(visitor_scene / "images"), "-o", str(out), "--mapper", mapper]) == 0
     models = sparse_models(out / "sparse")
@@ -540,8 +540,8 @@ def test_photos_from_many_cameras_at_a_wide_zoom_range(wide_zoom_scene, tmp_path
     adjustments decide which focals the model settles on. Both mappers placed every image wrong (AUC@5 0.000
     and 0.130) where COLMAP's mapper on the same matches gets 0.94. The incremental mapper now frees the two
     focals in its initial pair's BA, as COLMAP does; the global mapper maps such a set with the one-image
-    cameras held at their guess and calibrated by the view graph, and keeps the mapping that explains more
-    observations (here the calibrated one)."""
+    cameras held at their guess and calibrated by the view graph, and keeps the mapping that fits more
+    observations within half a pixel (here the calibrated one)."""
     out = tmp_path / "run"
     with caplog.at_level(logging.INFO, logger="mvrecon.sfm"):
         assert main(["-q", "reconstruct", str(wide_zoom_scene / "images"), "-o", str(out), "--mapper", mapper]) == 0

@@ -11,6 +11,7 @@ import pytest
 
 from mvrecon import database
 from mvrecon.cli import main
+from mvrecon.eval.ground_truth import load_ground_truth_for
 from mvrecon.eval.metrics import accuracy_summary
 from mvrecon.eval.models import poses as poses_of
 from mvrecon.eval.models import sparse_models
@@ -304,6 +305,26 @@ def test_a_set_the_incremental_mapper_splits_is_mapped_by_the_global_mapper_into
     assert json.loads((tmp_path / "run" / "report.json").read_text())["mapper"] == "global"
     assert _accuracy([model], sparse_ring / "templeSR_par.txt", sparse_ring / "images")["auc@5"] > 0.55
 
+def test_reichstag_keeps_the_mapping_that_fits_its_observations_within_half_a_pixel(tmp_path, caplog):
+    """imc_reichstag: ten photos, a camera each, mapped with the one-image cameras held at their guessed focal
+    and calibrated by the view graph (`_single_cameras_calibrated`). At seeds 0 and 1 the calibrated mapping
+    is the better one (AUC@5 0.672 and 0.680 against 0.643 and 0.624; pycolmap's global mapper 0.653, 0.693)
+    but explains about 25 fewer of its 7,000 observations: kept by the count, the held one lost. Kept by the
+    observations within the Huber width, each seed passes here."""
+    reichstag = TEMPLE.parent / "imc_reichstag"
+    if not reichstag.is_dir():
+        pytest.skip(f"imc_reichstag data not found at {reichstag}")
+    with caplog.at_level(logging.INFO, logger="mvrecon.sfm"):
+        assert main(["-q", "reconstruct", str(reichstag / "images"), "-o", str(tmp_path / "run"),
+                     "--mapper", "global"]) == 0
+    assert "mapped again with the cameras of one image calibrated" in caplog.text
+    corr = database.read_correspondences(tmp_path / "run" / "database.db")
+    gt = load_ground_truth_for(reichstag / "calibration", [p.name for p in (reichstag / "images").iterdir()])
+    for seed in (0, 1):
+        acc = accuracy_summary(estimated_poses(map_correspondences_globally(corr, replace(GLOBAL, seed=seed))), gt)
+        assert acc["registered"] == 10 and acc["misplaced"] == 0 and acc["auc@5"] >= 0.65, (seed, acc)
+
+
 
 @pytest.mark.parametrize("final_subset", [False, True])
 def test_a_large_model_ends_with_a_brief_or_no_bundle_adjustment_of_every_point(tmp_path, monkeypatch, final_subset):
@@ -341,9 +362,9 @@ def test_a_large_model_ends_with_a_brief_or_no_bundle_adjustment_of_every_point(
 @pytest.mark.parametrize("own_camera, mapped_twice", [(lambda i: 1 if i > 1 else 2, False), (lambda i: i, True)])
 def test_a_set_of_photos_from_many_cameras_is_mapped_twice(scene, caplog, own_camera, mapped_twice):
     """Where half the images or more each have a camera of their own with a guessed focal, the set is mapped with
-    those focals at their guess and calibrated by the view graph, the mapping that explains more observations
-    kept (global_mapper._single_cameras_calibrated); one odd image in a set does not make it map twice. Either
-    way every image is mapped, at a median rotation error under 0.1 deg."""
+    those focals at their guess and calibrated by the view graph, the mapping that fits more observations
+    within the Huber width kept (global_mapper._single_cameras_calibrated); one odd image in a set does not
+    make it map twice. Either way every image is mapped, at a median rotation error under 0.1 deg."""
     gt, corr, _ = scene
     cam = corr.cameras[1]
     corr = replace(corr, cameras={own_camera(i): replace(cam, camera_id=own_camera(i)) for i in corr.images},
