@@ -169,9 +169,13 @@ class TextureAtlas:
     def lookup(
         self, x: np.ndarray, y: np.ndarray, w: np.ndarray, h: np.ndarray, offsets: np.ndarray
     ) -> np.ndarray:
-        """Bilinear colours at texel coordinates (x, y) = (u * W, v * H) of the textures at `offsets`."""
+        """Bilinear colours at texel coordinates (x, y) = (u * W, v * H) of the textures at `offsets`. A coordinate
+        a hair below a texel centre wraps to W (or H) itself in float32, past the padded last texel: it is taken
+        as 0, where it repeats to."""
         x = np.mod(x - 0.5, w)
         y = np.mod(y - 0.5, h)
+        x = np.where(x >= w, x - w, x)
+        y = np.where(y >= h, y - h, y)
         x0, y0 = np.floor(x), np.floor(y)
         fx = (x - x0)[:, None]
         fy = (y - y0)[:, None]

@@ -20,7 +20,7 @@ from mvrecon.scenes import cameras, list_scenes, make_scene, meshes
 from mvrecon.scenes.build import build_camera, build_mesh
 from mvrecon.scenes.catalog import load_entry
 from mvrecon.scenes.render import Renderer, RenderSettings
-from mvrecon.scenes.textures import TextureSpec
+from mvrecon.scenes.textures import TextureAtlas, TextureSpec
 from tests.helpers import bilinear
 
 
@@ -664,3 +664,18 @@ def test_handheld_frames_follow_the_arc_with_a_hands_sway():
     again = cameras.handheld(40, 0.5, 0.3, target, -90.0, 120.0, jitter=0.02, shake_deg=3.0, pace=0.8, seed=3)
     assert all(np.array_equal(a[0], b[0]) for a, b in zip(again, cameras.handheld(
         40, 0.5, 0.3, target, -90.0, 120.0, jitter=0.02, shake_deg=3.0, pace=0.8, seed=3)))
+
+
+def test_a_texel_coordinate_a_hair_below_the_edge_wraps_round():
+    """np.mod of a float32 a hair below zero returns the period itself: a lookup there read past the atlas
+    (planar with its seed 202 more crashed its render with an IndexError). It wraps to the first texel, as the
+    texture repeats."""
+    tex = np.arange(16 * 8 * 3, dtype=np.float32).reshape(16, 8, 3)
+    atlas = TextureAtlas([tex])
+    hair = np.float32(0.5) - np.float32(3e-8)
+    assert np.mod(hair - np.float32(0.5), np.float32(16)) == 16  # the float32 rounding this guards against
+    x = np.array([hair, 0.5, hair], np.float32)
+    y = np.array([hair, hair, 0.5], np.float32)
+    w, h = np.full(3, 8, np.float32), np.full(3, 16, np.float32)
+    colours = atlas.lookup(x, y, w, h, np.zeros(3, np.int32))
+    assert np.allclose(colours, tex[0, 0], atol=1e-3)
