@@ -194,8 +194,8 @@ class GlobalMapper:
         when held. A focal a fifth off costs an image few observations but shifts its residuals, so half a
         pixel tells the two mappings apart where the count of observations does not: over 27 mappings of
         imc_reichstag and the ring's variants the model kept this way was at most 0.005 AUC@5 below the better
-        one, by the count 0.056 (docs/benchmarks.md, "Global mapper: the cameras of one image, held and
-        calibrated"). Such a set is mapped twice."""
+        one, by the count 0.056 (docs/benchmarks.md, "Global mapper: the mapping kept by its observations
+        within half a pixel"). Such a set is mapped twice."""
         reasons = self.reasons
         self.reasons, self.calibrate_single = {}, True
         again, again_graph = self._map_all(self.cameras, bar)

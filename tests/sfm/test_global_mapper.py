@@ -305,6 +305,7 @@ def test_a_set_the_incremental_mapper_splits_is_mapped_by_the_global_mapper_into
     assert json.loads((tmp_path / "run" / "report.json").read_text())["mapper"] == "global"
     assert _accuracy([model], sparse_ring / "templeSR_par.txt", sparse_ring / "images")["auc@5"] > 0.55
 
+
 def test_reichstag_keeps_the_mapping_that_fits_its_observations_within_half_a_pixel(tmp_path, caplog):
     """imc_reichstag: ten photos, a camera each, mapped with the one-image cameras held at their guessed focal
     and calibrated by the view graph (`_single_cameras_calibrated`). At seeds 0 and 1 the calibrated mapping
@@ -323,7 +324,6 @@ def test_reichstag_keeps_the_mapping_that_fits_its_observations_within_half_a_pi
     for seed in (0, 1):
         acc = accuracy_summary(estimated_poses(map_correspondences_globally(corr, replace(GLOBAL, seed=seed))), gt)
         assert acc["registered"] == 10 and acc["misplaced"] == 0 and acc["auc@5"] >= 0.65, (seed, acc)
-
 
 
 @pytest.mark.parametrize("final_subset", [False, True])
