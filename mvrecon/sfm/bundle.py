@@ -136,12 +136,12 @@ def bundle_adjust(model: Reconstruction, variable_images: np.ndarray | list[int]
                   point_ids: np.ndarray | None = None, refine_intrinsics: bool = False,
                   refine_distortion: bool = True, max_iterations: int | None = None,
                   relative_tolerance: float | None = None, optimizer: str | None = None,
-                  square_pixels: bool = False) -> BundleResult:
+                  square_pixels: bool = True) -> BundleResult:
     """Optimise the poses of `variable_images`, the points they see (or `point_ids`) and, when asked, the
     intrinsics of cameras whose registered images are all variable (the focal only, without
     `refine_distortion`). Other registered images stay constant. `relative_tolerance` overrides the config's.
-    With `square_pixels` the fx and fy of each refined camera whose calibration is not trusted are held equal
-    (`_add_square_pixels`)."""
+    The fx and fy of each refined camera whose calibration is not trusted are held equal (`_add_square_pixels`)
+    unless `square_pixels` is False: the lens trials (sfm/lens.py) fit each model free."""
     start = time.perf_counter()
     window = _window(model, variable_images, point_ids)
     if window is None:

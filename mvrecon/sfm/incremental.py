@@ -164,13 +164,8 @@ class IncrementalMapper:
         self._since = (time.perf_counter(), 0)  # (time, model.scanned) at the end of the last registration
         self.saved_at = time.monotonic()  # when the last snapshot was written
 
-    def _bundle(self, m, images, square_pixels: bool = True, **kwargs):
-        """`bundle.bundle_adjust` of `images`, counted. The fx and fy of a guessed camera with two focals are held
-        equal (`square_pixels`) but in the lens trials, which fit each model free: left free after a switch to
-        OPENCV or OPENCV_FISHEYE they drift apart on an orbit (269.8 / 271.1 px for 269 on a wide lens, AUC@1
-        0.80 against 0.95 held; docs/benchmarks.md, "A guessed camera's two focals held equal in the
-        incremental mapper")."""
-        out = _bundle_adjust(m, images, self.config, square_pixels=square_pixels, **kwargs)
+    def _bundle(self, m, images, **kwargs):
+        out = _bundle_adjust(m, images, self.config, **kwargs)
         self.ba_calls += 1
         self.ba_seconds += out.seconds
         return out

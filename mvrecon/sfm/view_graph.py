@@ -70,13 +70,12 @@ def _essential_costs(F, K1s, K2s) -> np.ndarray:
 
 def calibratable_cameras(cameras: dict, camera_of: np.ndarray, single: bool = False) -> set[int]:
     """The cameras (id -> Camera; `camera_of` each image's id) whose focal `calibrate_focals` sets: guessed (not
-    trusted) and shared by two images or more
-    (with `single`, also those of a single image). A camera of a single image keeps its guess by default: its
-    focal meets only other unknown focals in its pairs, and the bundle adjustments find it from the points
-    (imc_reichstag, a camera per photo, incremental AUC@5 0.711 -> 0.635 calibrated so; visitor_photos_small, the
-    global mapper 0.702 with two images misplaced -> 0.976); the global mapper also maps such a set with them
-    calibrated and keeps the better mapping (global_mapper.py). Neutral or better on every set where it fires
-    (docs/benchmarks.md, "Mapper rules")."""
+    trusted) and shared by two images or more (with `single`, also those of a single image). A camera of a single
+    image keeps its guess by default: its focal meets only other unknown focals in its pairs, and the bundle
+    adjustments find it from the points (imc_reichstag, a camera per photo, incremental AUC@5 0.711 -> 0.635
+    calibrated so; visitor_photos_small, the global mapper 0.702 with two images misplaced -> 0.976); the global
+    mapper also maps such a set with them calibrated and keeps the better mapping (global_mapper.py). Neutral or
+    better on every set where it fires (docs/benchmarks.md, "Mapper rules")."""
     users = np.bincount(camera_of, minlength=max(cameras, default=0) + 1)
     return {c for c, cam in cameras.items() if not cam.prior_trusted and (single or users[c] >= 2)}
 
