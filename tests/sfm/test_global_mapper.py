@@ -306,12 +306,13 @@ def test_a_set_the_incremental_mapper_splits_is_mapped_by_the_global_mapper_into
     assert _accuracy([model], sparse_ring / "templeSR_par.txt", sparse_ring / "images")["auc@5"] > 0.55
 
 
-def test_reichstag_keeps_the_mapping_that_fits_its_observations_within_half_a_pixel(tmp_path, caplog):
+def test_reichstag_keeps_the_calibrated_mapping_unless_the_held_one_fits_clearly_more(tmp_path, caplog):
     """imc_reichstag: ten photos, a camera each, mapped with the one-image cameras held at their guessed focal
     and calibrated by the view graph (`_single_cameras_calibrated`). At seeds 0 and 1 the calibrated mapping
     is the better one (AUC@5 0.672 and 0.680 against 0.643 and 0.624; pycolmap's global mapper 0.653, 0.693)
-    but explains about 25 fewer of its 7,000 observations: kept by the count, the held one lost. Kept by the
-    observations within the Huber width, each seed passes here."""
+    but explains about 25 fewer of its 7,000 observations: kept by the count, the held one lost. At seed 7 it
+    is better still (0.697 against 0.590; pycolmap 0.684) and fits 6 fewer within the Huber width: kept by that
+    count with no margin, the held one lost. At seed 5 the two fit as many (0.677 against 0.658)."""
     reichstag = TEMPLE.parent / "imc_reichstag"
     if not reichstag.is_dir():
         pytest.skip(f"imc_reichstag data not found at {reichstag}")
@@ -321,7 +322,7 @@ def test_reichstag_keeps_the_mapping_that_fits_its_observations_within_half_a_pi
     assert "mapped again with the cameras of one image calibrated" in caplog.text
     corr = database.read_correspondences(tmp_path / "run" / "database.db")
     gt = load_ground_truth_for(reichstag / "calibration", [p.name for p in (reichstag / "images").iterdir()])
-    for seed in (0, 1):
+    for seed in (0, 1, 5, 7):
         acc = accuracy_summary(estimated_poses(map_correspondences_globally(corr, replace(GLOBAL, seed=seed))), gt)
         assert acc["registered"] == 10 and acc["misplaced"] == 0 and acc["auc@5"] >= 0.65, (seed, acc)
 
