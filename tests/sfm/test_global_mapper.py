@@ -143,7 +143,8 @@ def test_a_pose_its_matches_do_not_support_is_taken_out(scene, turn_deg):
     assert m.registered[3] and mapper._drop_unsupported(m) == [3]
     assert not m.registered[3] and m.registered.sum() == 7
     assert re.fullmatch(r"its global pose was an outlier: \d+ of the 600 matches to the model's points fit it "
-                        r"within 4 px after bundle adjustment \(.*\)", mapper.reasons[3])
+                        r"within 4 px after bundle adjustment \(.*\), \d+ of them to points two other images "
+                        r"see \(.*\)", mapper.reasons[3])
 
 
 @pytest.mark.parametrize("kept, stays", [(30, True), (20, False)])
@@ -162,6 +163,34 @@ def test_a_pose_that_few_points_hold_is_taken_out_even_where_they_all_fit(scene,
     if not stays:
         assert mapper.reasons[3].startswith(f"its global pose was an outlier: {kept} of the {kept} matches")
         assert "(< abs_pose_min_inliers 30 or under" in mapper.reasons[3]
+
+
+@pytest.mark.parametrize("shared, stays", [(6, True), (2, False)])
+def test_a_pose_held_by_points_of_one_other_image_is_taken_out(scene, shared, stays):
+    """An image whose matches to the model's points all fit its pose, but of whose points only `shared` are seen
+    by two other images too (the others by one other image each, whose baseline with it leaves the image anywhere
+    along it), stays with `_BA_MIN_HOLD` (6) such points and is taken out with 2, however many others fit."""
+    _, corr, result = scene
+    mapper = GlobalMapper(corr, GLOBAL)
+    m = Reconstruction.from_state(result.models[0].state(), result.models[0].keypoints)
+    points = m.obs_point.data[m.observations_of_images([3])]
+    for k, p in enumerate(points[shared:].tolist()):  # its view and one other's become a point of their own
+        views = m.observations_of_points(np.array([p]))
+        others = views[m.obs_image.data[views] != 3]
+        pair = np.r_[views[m.obs_image.data[views] == 3], others[k % len(others)]]
+        images, kps = m.obs_image.data[pair], m.obs_kp.data[pair]
+        m.remove_observations(pair)
+        m.add_points(m.xyz.data[[p]], m.point_track.data[[p]], np.zeros(2, np.int64), images, kps)
+    mine = m.obs_point.data[m.observations_of_images([3])]
+    assert (m.point_num_observations()[mine] >= 3).sum() == shared
+    assert m.image_num_observations()[3] == len(points) > 400
+    assert mapper._drop_unsupported(m) == ([] if stays else [3])
+    assert m.registered[3] == stays
+    if not stays:
+        assert mapper.reasons[3].startswith(f"its global pose was an outlier: {len(points)} of the {len(points)} "
+                                            f"matches to the model's points fit it within 4 px after bundle ")
+        assert mapper.reasons[3].endswith(f"{shared} of them to points two other images see (< 6: its place along "
+                                          f"its pairs' baselines left free)")
 
 
 def test_bundle_adjustments_optimise_the_points_three_images_see_unless_a_pose_would_lose_its_hold(scene):
