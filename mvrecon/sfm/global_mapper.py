@@ -641,9 +641,8 @@ class GlobalMapper:
         points fit it: a point of this image and one other fits it wherever along their baseline it lies, and
         the BAs' point choice (`ba_points.long_points`) counts such a pose all but free (toy_object rendered
         from another seed: an image held by 45 two-view points and 2 others, 7.7 deg off, which absolute pose
-        then placed right).
-        Held to abs_pose_min_inliers such points, as an image registered by absolute pose is, three right
-        images of a 30-view toy with short tracks went out."""
+        then placed right). Held to abs_pose_min_inliers such points, as an image registered by absolute pose
+        is, three right images of a 30-view toy with short tracks went out."""
         cfg = self.config
         count = m.image_num_observations()
         obs = m.alive_observations()
@@ -654,15 +653,16 @@ class GlobalMapper:
             t = self.tracks.track_of[i]
             with_point = int(np.count_nonzero(m.point_of_track[t[t >= 0]] >= 0))
             ratio = count[i] / with_point if with_point else 0.0
-            if (count[i] < cfg.abs_pose_min_inliers or ratio < cfg.abs_pose_min_inlier_ratio
-                    or shared[i] < _BA_MIN_HOLD):
+            few = count[i] < cfg.abs_pose_min_inliers or ratio < cfg.abs_pose_min_inlier_ratio
+            if few or shared[i] < _BA_MIN_HOLD:
                 dropped.append(i)
                 self.reasons[i] = (f"its global pose was an outlier: {count[i]} of the {with_point} matches to "
                                    f"the model's points fit it within {cfg.filter_max_reproj_error_px:g} px after "
-                                   f"bundle adjustment (< abs_pose_min_inliers {cfg.abs_pose_min_inliers} or under "
-                                   f"abs_pose_min_inlier_ratio {cfg.abs_pose_min_inlier_ratio:g}), {shared[i]} of "
-                                   f"them to points two other images see (< {_BA_MIN_HOLD}: its place along its "
-                                   f"pairs' baselines left free)")
+                                   "bundle adjustment " + (
+                                       f"(< abs_pose_min_inliers {cfg.abs_pose_min_inliers} or under "
+                                       f"abs_pose_min_inlier_ratio {cfg.abs_pose_min_inlier_ratio:g})" if few else
+                                       f"but {shared[i]} of them to points two other images see (< {_BA_MIN_HOLD}: "
+                                       "its place along its pairs' baselines left free)"))
         if dropped and len(dropped) < int(m.registered.sum()) - 1:
             m.remove_observations(m.observations_of_images(dropped))
             for i in dropped:

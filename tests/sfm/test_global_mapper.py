@@ -143,8 +143,7 @@ def test_a_pose_its_matches_do_not_support_is_taken_out(scene, turn_deg):
     assert m.registered[3] and mapper._drop_unsupported(m) == [3]
     assert not m.registered[3] and m.registered.sum() == 7
     assert re.fullmatch(r"its global pose was an outlier: \d+ of the 600 matches to the model's points fit it "
-                        r"within 4 px after bundle adjustment \(.*\), \d+ of them to points two other images "
-                        r"see \(.*\)", mapper.reasons[3])
+                        r"within 4 px after bundle adjustment \(.*\)", mapper.reasons[3])
 
 
 @pytest.mark.parametrize("kept, stays", [(30, True), (20, False)])
@@ -187,10 +186,10 @@ def test_a_pose_held_by_points_of_one_other_image_is_taken_out(scene, shared, st
     assert mapper._drop_unsupported(m) == ([] if stays else [3])
     assert m.registered[3] == stays
     if not stays:
-        assert mapper.reasons[3].startswith(f"its global pose was an outlier: {len(points)} of the {len(points)} "
-                                            f"matches to the model's points fit it within 4 px after bundle ")
-        assert mapper.reasons[3].endswith(f"{shared} of them to points two other images see (< 6: its place along "
-                                          f"its pairs' baselines left free)")
+        assert mapper.reasons[3] == (f"its global pose was an outlier: {len(points)} of the {len(points)} matches "
+                                     f"to the model's points fit it within 4 px after bundle adjustment but {shared} "
+                                     f"of them to points two other images see (< 6: its place along its pairs' "
+                                     f"baselines left free)")
 
 
 def test_bundle_adjustments_optimise_the_points_three_images_see_unless_a_pose_would_lose_its_hold(scene):
