@@ -54,6 +54,13 @@ def _places(runs: np.ndarray) -> np.ndarray:
     return np.arange(len(runs)) - np.repeat(start, np.diff(np.r_[start, len(runs)]))
 
 
+def held_observations(model: Reconstruction, points: np.ndarray, min_views: int) -> np.ndarray:
+    """(images,) each image's observations of those of `points` seen by `min_views` images or more: what holds its
+    pose beyond the baselines of its pairs (a point of the image and one other fits it anywhere along theirs)."""
+    long = points[model.point_num_observations()[points] >= min_views]
+    return np.bincount(model.obs_image.data[model.observations_of_points(long)], minlength=len(model.image_ids))
+
+
 def long_points(model: Reconstruction, points: np.ndarray, min_views: int, enough: int) -> np.ndarray:
     """The ids of `points` seen by `min_views` images or more, and the others of each registered image that has
     fewer than `enough` observations of those (so that no pose loses its hold). A point seen twice is where a
@@ -63,9 +70,7 @@ def long_points(model: Reconstruction, points: np.ndarray, min_views: int, enoug
     long = model.point_num_observations()[points] >= min_views
     if long.all():
         return points
-    obs = model.observations_of_points(points[long])
-    held = np.bincount(model.obs_image.data[obs], minlength=len(model.image_ids))
-    weak = model.registered & (held < enough)
+    weak = model.registered & (held_observations(model, points, min_views) < enough)
     if not weak.any():
         return points[long]
     obs = model.observations_of_points(points[~long])

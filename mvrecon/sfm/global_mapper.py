@@ -56,7 +56,7 @@ import numpy as np
 from ..database import Correspondences
 from ..progress import progress
 from . import filtering, lens
-from .ba_points import long_points, select_points
+from .ba_points import held_observations, long_points, select_points
 from .bundle import bundle_adjust
 from .config import MapperConfig
 from .georef import CenterPriors, georeference
@@ -637,17 +637,15 @@ class GlobalMapper:
         """Deregister the images whose pose too few of their matches support (see the module docstring). The floor
         is what an image registered by absolute pose needs, also for a pose the averaging placed: a handful of
         matches can all fit a pose that is wrong, as on a symmetric object seen from one side. An image that
-        fewer than `_BA_MIN_HOLD` points seen by two other images too hold goes as well, however many two-view
-        points fit it: a point of this image and one other fits it wherever along their baseline it lies, and
-        the BAs' point choice (`ba_points.long_points`) counts such a pose all but free (toy_object rendered
-        from another seed: an image held by 45 two-view points and 2 others, 7.7 deg off, which absolute pose
-        then placed right). Held to abs_pose_min_inliers such points, as an image registered by absolute pose
-        is, three right images of a 30-view toy with short tracks went out."""
+        fewer than `_BA_MIN_HOLD` points seen by two other images too hold (`ba_points.held_observations`) goes
+        as well, however many two-view points fit it: a point of this image and one other fits it wherever along
+        their baseline it lies, and the BAs' point choice (`ba_points.long_points`) counts such a pose all but
+        free (toy_object rendered from another seed: an image held by 45 two-view points and 2 others, 7.7 deg
+        off, which absolute pose then placed right). Held to abs_pose_min_inliers such points, as an image
+        registered by absolute pose is, three right images of a 30-view toy with short tracks went out."""
         cfg = self.config
         count = m.image_num_observations()
-        obs = m.alive_observations()
-        shared = np.bincount(m.obs_image.data[obs], weights=m.point_nobs.data[m.obs_point.data[obs]] >= 3,
-                             minlength=len(count)).astype(np.int64)
+        shared = held_observations(m, m.alive_points(), _BA_MIN_VIEWS)
         dropped = []
         for i in m.registered_images().tolist():
             t = self.tracks.track_of[i]
