@@ -1,6 +1,6 @@
 """Global positioning on exact synthetic tracks: centres up to a similarity, collinear cameras that pair
-directions cannot place, a walk round a block that random centres cannot start, the starts solved from, and a
-flipped camera found by its rays."""
+directions cannot place, a walk round a block that random centres cannot start, a camera that misses its points
+placed last, the starts solved from, and a flipped camera found by its rays."""
 
 import numpy as np
 import pytest
@@ -241,8 +241,8 @@ def test_a_walk_round_a_block_is_placed_from_cameras_placed_in_turn():
 def test_a_camera_whose_rays_miss_the_points_is_placed_once_no_other_can_be():
     """A street of 16 cameras, one of them (its rotation 3 deg off) seeing points that the others triangulated:
     its centre misses them by far more than the others' do, so it waits while the other cameras are placed,
-    which are then exact, and it is placed last rather than left out. Placed when it came (as before), the
-    points it triangulated moved the cameras placed from them by 1e-3 of the street's spread."""
+    which are then exact, and it is placed last rather than left out. Placed as soon as it sees enough points,
+    the points it triangulates move the cameras placed from them by 1e-3 of the street's spread."""
     rng = np.random.default_rng(0)
     n, wrong = 16, 6
     C = np.c_[np.linspace(0, 15, n) + rng.uniform(0, 0.3, n), np.zeros(n), np.zeros(n)]
