@@ -142,9 +142,7 @@ def global_positions(model: Reconstruction, R: np.ndarray, solved: np.ndarray, t
     start = None if initial is None else lambda: initial()[cams]
     C, X = solve_positions(local[image], point, v, len(cams), len(pts), seed, initial=start, workers=workers)
     centers[cams] = C
-    ray = X[point] - C[local[image]]
-    cos = np.einsum("ki,ki->k", ray, v) / np.maximum(np.linalg.norm(ray, axis=1), 1e-300)
-    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    angle = _ray_angles_deg(v, X[point], C[local[image]])
     residual = np.full(n, np.nan)
     order = np.argsort(image, kind="stable")
     bounds = np.r_[0, np.cumsum(np.bincount(image, minlength=n))]
@@ -291,7 +289,6 @@ def centres_in_turn(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams:
             break
         if fallback:  # nothing else to place: of the cameras set aside, the one that fitted best
             c = min(waiting, key=lambda w: waiting[w][1])
-            del waiting[c]
         mine = by_cam[cam_bounds[c]:cam_bounds[c + 1]]
         mine = mine[seen[mine]]
         centre = _centre_from_points(v[mine], X[point[mine]]) if len(mine) >= _TURN_MIN_POINTS else np.full(3, np.nan)
@@ -299,8 +296,8 @@ def centres_in_turn(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams:
             tried[c] = True
             waiting.pop(c, None)
             continue
-        miss = _median_miss_deg(v[mine], X[point[mine]], centre)
-        if not fallback and misses and miss > max(_OUTLIER_DEG, _OUTLIER_FACTOR * float(np.median(misses))):
+        miss = float(np.median(_ray_angles_deg(v[mine], X[point[mine]], centre)))
+        if not fallback and misses and miss > _outlier_limit_deg(float(np.median(misses))):
             waiting[c] = (int(counts[c]), miss)
             continue
         waiting.pop(c, None)
@@ -370,12 +367,19 @@ def _centre_from_points(v: np.ndarray, X: np.ndarray) -> np.ndarray:
     return C
 
 
-def _median_miss_deg(v: np.ndarray, X: np.ndarray, C: np.ndarray) -> float:
-    """The median angle, in degrees, between the rays `v` from the centre `C` and the directions to their points
-    `X`."""
+def _ray_angles_deg(v: np.ndarray, X: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """(k,) the angle, in degrees, between each ray of `v` (k,3) from its centre `C` (k,3, or one (3,)) and the
+    direction to its point of `X` (k,3): how far a camera's rays miss its points."""
     d = X - C
     cos = np.einsum("ki,ki->k", d, v) / np.maximum(np.linalg.norm(d, axis=1), 1e-300)
-    return float(np.degrees(np.arccos(np.clip(np.median(cos), -1.0, 1.0))))
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def _outlier_limit_deg(typical: float) -> float:
+    """The median miss over which a camera's rays disagree with its points, given the cameras' typical one:
+    `_OUTLIER_DEG` and `_OUTLIER_FACTOR` x `typical` (`outlier_cameras`, and the cameras set aside in
+    `centres_in_turn`)."""
+    return max(_OUTLIER_DEG, _OUTLIER_FACTOR * typical)
 
 
 def _adjust_placed(cam, point, v, placed, C, num_points) -> None:
@@ -842,7 +846,7 @@ def outlier_cameras(result: PositioningResult) -> dict[int, str]:
     if r is None or not np.isfinite(r).any():
         return {}
     typical = float(np.nanmedian(r))
-    limit = max(_OUTLIER_DEG, _OUTLIER_FACTOR * typical)
+    limit = _outlier_limit_deg(typical)
     return {int(i): (f"its global pose was an outlier: its rays miss the points of its tracks by {r[i]:.1f} deg "
                      f"(median), the model's cameras by {typical:.2f} deg (a flipped or far-thrown camera)")
             for i in np.flatnonzero(np.isfinite(r) & (r > limit))}
