@@ -16,13 +16,15 @@ from mvrecon.eval.metrics import accuracy_summary
 from mvrecon.eval.models import poses as poses_of
 from mvrecon.eval.models import sparse_models
 from mvrecon.scenes import make_scene
-from mvrecon.sfm import global_mapper
+from mvrecon.sfm import global_mapper, incremental
 from mvrecon.sfm.ba_points import long_points
 from mvrecon.sfm.bundle import bundle_adjust
 from mvrecon.sfm.config import MapperConfig
 from mvrecon.sfm.global_mapper import GlobalMapper, map_correspondences_globally
-from mvrecon.sfm.model import Reconstruction
+from mvrecon.sfm.incremental import MappingResult
+from mvrecon.sfm.model import Camera, Reconstruction
 from mvrecon.sfm.view_graph import calibration_shift_px
+from mvrecon.stages import mapping
 from tests.sfm.test_mapper import TEMPLE, _accuracy, estimated_poses, lined_up_views, synthetic_database
 
 GLOBAL = MapperConfig(mapper="global")
@@ -317,6 +319,40 @@ def test_images_the_incremental_mapper_cannot_chain_are_mapped_by_the_global_map
     assert summary["registered"] == 12 and summary["auc@5"] >= 0.95
     report = json.loads((ws / "report.json").read_text())
     assert report["mapper"] == "global" and all(s["status"] == "registered" for s in report["images"].values())
+
+
+def model_of(names: list[str], held: list[int]) -> Reconstruction:
+    """A model holding the `held` images of `names` (cameras along a line: only the count matters here)."""
+    cam = Camera("SIMPLE_PINHOLE", 640, 480, np.array([500.0, 320.0, 240.0]))
+    m = Reconstruction(np.arange(len(names)) + 1, names, np.ones(len(names), int), {1: cam},
+                       [np.zeros((0, 2))] * len(names), 0)
+    for i in held:
+        m.register(i, np.eye(3), np.array([float(i), 0.0, 0.0]))
+    return m
+
+
+@pytest.mark.parametrize("incremental_held, paired, mapper", [
+    (10, 12, "global"),  # one model, two images of verified pairs left out: the global mapper's 12 are written
+    (11, 11, "incremental"),  # the image left out has no verified pair: the global mapper does not run
+    (12, 12, "incremental"),  # every image registered: the global mapper does not run
+])
+def test_an_image_the_incremental_mapper_leaves_out_brings_in_the_global_mapper(monkeypatch, incremental_held,
+                                                                                paired, mapper):
+    """One incremental model of most of 12 images: where it leaves out an image that has verified pairs, the global
+    mapper runs too, and its model of all 12 is written."""
+    names = [f"{i:04d}.png" for i in range(12)]
+    kept = MappingResult([model_of(names, list(range(incremental_held)))], {})
+    ran = []
+    monkeypatch.setattr(incremental, "map_correspondences", lambda *a, **k: kept)
+    monkeypatch.setattr(mapping, "_map_globally", lambda *a, **k: ran.append(1) or MappingResult(
+        [model_of(names, list(range(12)))], {}))
+    pairs = [database.PairGeometry(image_id1=i + 1, image_id2=(i + 1) % paired + 1, config="CALIBRATED",
+                                   inliers=np.zeros((20, 2), int)) for i in range(paired)]
+    corr = database.Correspondences(images={i + 1: database.ImageInfo(image_id=i + 1, name=n, camera_id=1)
+                                            for i, n in enumerate(names)}, pairs=pairs)
+    result, used = mapping._run_mapper(corr, MapperConfig(), None, False)
+    assert used == mapper and len(ran) == (mapper == "global")
+    assert (result is kept) == (mapper == "incremental")
 
 
 def test_a_set_the_incremental_mapper_splits_is_mapped_by_the_global_mapper_into_one_model(tmp_path, caplog):
