@@ -152,6 +152,10 @@ class Correspondences:
     pairs: list[PairGeometry] = field(default_factory=list)
     priors: dict[int, PosePrior] = field(default_factory=dict)  # image_id -> camera position prior
 
+    def paired_images(self) -> set[int]:
+        """The ids of the images in at least one verified pair: the images a mapper can place."""
+        return {i for p in self.pairs for i in (p.image_id1, p.image_id2)}
+
 
 @contextmanager
 def open_database(path: Path | str) -> Iterator[sqlite3.Connection]:

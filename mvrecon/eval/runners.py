@@ -611,7 +611,7 @@ def _write_outputs(out_dir: Path, engine: str, options: dict, models: list, db: 
         for im in rec.images.values():
             if im.has_pose:
                 model_of.setdefault(im.name, k)
-    paired = {i for p in corr.pairs for i in (p.image_id1, p.image_id2)}
+    paired = corr.paired_images()
     blind = _fisheye_without_focal(corr.cameras)
     images = {}
     for image_id, info in sorted(corr.images.items(), key=lambda kv: kv[1].name):

@@ -151,8 +151,7 @@ def _run_mapper(corr, config, snapshot: Path, resume: bool, choose_lens: bool = 
 
     result = map_correspondences(corr, config, snapshot_path=snapshot, resume=resume, choose_lens=choose_lens)
     largest, n = coverage(result.models)[0], len(corr.images)
-    paired = len({i for p in corr.pairs if len(p.inliers) for i in (p.image_id1, p.image_id2)})
-    if not config.global_fallback or largest >= paired:
+    if not config.global_fallback or largest >= len(corr.paired_images()):
         return result, "incremental"
     log.info("the incremental mapper's largest model holds %d of %d images (%d models): mapping them with the "
              "global mapper too", largest, n, len(result.models))
