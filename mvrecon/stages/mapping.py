@@ -44,11 +44,17 @@ class MapSummary:
     seconds: float = 0.0
     georef: dict | None = None  # with position priors: sfm.georef.georeference_models' report entry
     mapper: str = "incremental"  # the mapper whose models these are ("global" where the incremental one fell short)
+    fallback: dict | None = None  # where the global mapper ran after the incremental one: `_run_mapper`'s record
 
     def text(self) -> str:
         n = sum(1 for s in self.status.values() if s["status"] == "registered")
         parts = [f"Mapping: {n} of {len(self.status)} images registered in {len(self.models)} model(s) "
                  f"in {self.seconds:.1f} s."]
+        if (f := self.fallback) is not None:  # its time is in the mapping's
+            parts.append(f"The incremental mapper's largest model held {f['incremental_largest']} of the "
+                         f"{f['paired_images']} images with verified pairs: the global mapper mapped them too "
+                         f"({f['global_seconds']:.1f} s), its largest model held {f['global_largest']}, and the "
+                         f"{f['kept']} models are written.")
         for k, s in enumerate(self.model_stats):
             parts.append(f"Model {k}: {s['registered']} images, {s['points']} points, mean track length "
                          f"{s['mean_track_length']:.2f}, mean reprojection error "
@@ -97,11 +103,11 @@ def map_workspace(config: MapperConfig, workspace: Workspace | Path | str, *,
         resume = False
     ws.begin_stage("mapping", record, overwrite)
     if config.partition_size and len(corr.images) > config.partition_size:
-        result, mapper = map_in_parts(corr, config, ws, resume, cluster=cluster), config.mapper
+        result, mapper, fallback = map_in_parts(corr, config, ws, resume, cluster=cluster), config.mapper, None
     else:
         features = (stages.get("features") or {}).get("config")
         choose = config.choose_camera_model and recorded_model_left_open(features)
-        result, mapper = _run_mapper(corr, config, snapshot, resume, choose_lens=choose)
+        result, mapper, fallback = _run_mapper(corr, config, snapshot, resume, choose_lens=choose)
     georef = georeference_models(result.models, CenterPriors.of(corr.priors), frame=config.frame,
                                  max_sigmas=config.prior_max_sigmas, seed=config.seed)
     _write_models(ws, result.models, image_dir, text, keypoint_colors)
@@ -112,7 +118,7 @@ def map_workspace(config: MapperConfig, workspace: Workspace | Path | str, *,
         stats.append({**{k: s[k] for k in ("registered", "points", "mean_track_length",
                                            "mean_reprojection_error_px")}, "cameras": camera_entries(m)})
     return MapSummary(models=result.models, status=result.status, model_stats=stats,
-                      seconds=time.perf_counter() - start, georef=georef, mapper=mapper)
+                      seconds=time.perf_counter() - start, georef=georef, mapper=mapper, fallback=fallback)
 
 
 GEOREF = "georef.json"  # in the workspace: the frame of the models and its origin, with position priors
@@ -128,13 +134,15 @@ def _write_georef(ws: Workspace, georef: dict | None) -> None:
                       "models": [{k: v for k, v in m.items() if k != "flagged"} for m in georef["models"]]}, indent=1)
 
 
-def _run_mapper(corr, config, snapshot: Path, resume: bool, choose_lens: bool = False):
-    """(result, mapper): the models of the correspondences `corr` (database.Correspondences) with each image's
-    status, and the name of the mapper that made them. The incremental mapper (sfm/incremental.py; with
-    `choose_lens`, each camera's model chosen from the data, sfm/lens.py) or, with `mapper = "global"`, the
-    global one (sfm/global_mapper.py, which maps in one go and has no snapshot to resume from; it chooses the
-    models with `choose_lens` too). Their modules load only when mapping runs (GTSAM is heavy for the commands
-    that never map).
+def _run_mapper(corr, config, snapshot: Path, resume: bool, choose_lens: bool = False) -> tuple:
+    """(result, mapper, fallback): the models of the correspondences `corr` (database.Correspondences) with each
+    image's status, the name of the mapper that made them, and, where the global mapper ran after the incremental
+    one, what report.json records of that run (else None): each largest model's images, the images with verified
+    pairs, whose models were kept, and the global mapper's seconds (part of the mapping's time, which a user sees
+    grow). The incremental mapper (sfm/incremental.py; with `choose_lens`, each camera's model chosen from the
+    data, sfm/lens.py) or, with `mapper = "global"`, the global one (sfm/global_mapper.py, which maps in one go
+    and has no snapshot to resume from; it chooses the models with `choose_lens` too). Their modules load only
+    when mapping runs (GTSAM is heavy for the commands that never map).
 
     With `global_fallback`, an incremental mapping whose largest model leaves out images of verified pairs (under
     half of them, or split into several models, or short of a few) is followed by a global one, whose models replace
@@ -146,23 +154,27 @@ def _run_mapper(corr, config, snapshot: Path, resume: bool, choose_lens: bool = 
     all 48 right in the global one). Where the incremental mapper leaves an image out, the global mapper's time
     comes on top; both mapping nothing costs a panorama a second."""
     if config.mapper == "global":
-        return _map_globally(corr, config, choose_lens), "global"
+        return _map_globally(corr, config, choose_lens), "global", None
     from ..sfm.incremental import map_correspondences  # noqa: PLC0415 - GTSAM, after the workers fork
 
     result = map_correspondences(corr, config, snapshot_path=snapshot, resume=resume, choose_lens=choose_lens)
-    largest, n = coverage(result.models)[0], len(corr.images)
-    if not config.global_fallback or largest >= len(corr.paired_images()):
-        return result, "incremental"
+    largest, n, paired = coverage(result.models)[0], len(corr.images), len(corr.paired_images())
+    if not config.global_fallback or largest >= paired:
+        return result, "incremental", None
     log.info("the incremental mapper's largest model holds %d of %d images (%d models): mapping them with the "
              "global mapper too", largest, n, len(result.models))
+    start = time.perf_counter()
     other = _map_globally(corr, config, choose_lens)
     other_largest = coverage(other.models)[0]
-    if other_largest <= largest:
+    kept = "global" if other_largest > largest else "incremental"
+    fallback = {"incremental_largest": largest, "paired_images": paired, "global_largest": other_largest,
+                "kept": kept, "global_seconds": round(time.perf_counter() - start, 1)}
+    if kept == "incremental":
         log.info("the global mapper's largest model holds %d images: the incremental models are kept", other_largest)
-        return result, "incremental"
+        return result, "incremental", fallback
     log.warning("the incremental mapper's largest model held %d of %d images, the global mapper's holds %d: the "
                 "global models are written, as `--mapper global` makes them", largest, n, other_largest)
-    return other, "global"
+    return other, "global", fallback
 
 
 def _map_globally(corr, config, choose_lens: bool):

@@ -31,6 +31,8 @@ def write_report(out_dir: Path | str, *, config_hash: str, seed: int, summary: M
         report["pairs"] = pairs
     if summary.georef is not None:
         report["georef"] = summary.georef
+    if summary.fallback is not None:
+        report["global_fallback"] = summary.fallback
     write_json(Path(out_dir) / "report.json", report, indent=1)
     return report
 

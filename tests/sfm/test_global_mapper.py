@@ -350,9 +350,16 @@ def test_an_image_the_incremental_mapper_leaves_out_brings_in_the_global_mapper(
                                    inliers=np.zeros((20, 2), int)) for i in range(paired)]
     corr = database.Correspondences(images={i + 1: database.ImageInfo(image_id=i + 1, name=n, camera_id=1)
                                             for i, n in enumerate(names)}, pairs=pairs)
-    result, used = mapping._run_mapper(corr, MapperConfig(), None, False)
+    result, used, fallback = mapping._run_mapper(corr, MapperConfig(), None, False)
     assert used == mapper and len(ran) == (mapper == "global")
     assert (result is kept) == (mapper == "incremental")
+    if ran:  # what report.json and the summary say of the global mapper's run
+        assert {k: fallback[k] for k in ("incremental_largest", "paired_images", "global_largest", "kept")} == {
+            "incremental_largest": incremental_held, "paired_images": paired, "global_largest": 12, "kept": "global"}
+        summary = mapping.MapSummary(models=result.models, status={}, model_stats=[], fallback=fallback)
+        assert "largest model held 10 of the 12 images with verified pairs: the global mapper" in summary.text()
+    else:
+        assert fallback is None
 
 
 def test_a_set_the_incremental_mapper_splits_is_mapped_by_the_global_mapper_into_one_model(tmp_path, caplog):
@@ -366,7 +373,10 @@ def test_a_set_the_incremental_mapper_splits_is_mapped_by_the_global_mapper_into
     assert "the incremental mapper's largest model held 13 of 16 images, the global mapper's holds 16" in caplog.text
     (model,) = sparse_models(tmp_path / "run" / "sparse")
     assert model.num_reg_images() == 16
-    assert json.loads((tmp_path / "run" / "report.json").read_text())["mapper"] == "global"
+    report = json.loads((tmp_path / "run" / "report.json").read_text())
+    assert report["mapper"] == "global"
+    assert {k: report["global_fallback"][k] for k in ("incremental_largest", "global_largest", "kept")} == {
+        "incremental_largest": 13, "global_largest": 16, "kept": "global"}
     assert _accuracy([model], sparse_ring / "templeSR_par.txt", sparse_ring / "images")["auc@5"] > 0.55
 
 
