@@ -34,6 +34,24 @@ from .partitioned import map_in_parts
 log = logging.getLogger(__name__)
 
 
+@dataclass(frozen=True)
+class GlobalFallback:
+    """The global mapper's run after an incremental mapping that left out images of verified pairs (`_run_mapper`),
+    as report.json's `global_fallback` records it: its time is part of the mapping's, which a user sees grow."""
+
+    incremental_largest: int  # images in the incremental mapper's largest model
+    paired_images: int  # images in at least one verified pair
+    global_largest: int  # images in the global mapper's largest model
+    kept: str  # whose models were written: "global" where its largest held more, else "incremental"
+    global_seconds: float
+
+    def text(self) -> str:
+        return (f"The incremental mapper's largest model held {self.incremental_largest} of the "
+                f"{self.paired_images} images with verified pairs: the global mapper mapped them too "
+                f"({self.global_seconds:.1f} s), its largest model held {self.global_largest}, and the {self.kept} "
+                "models are written.")
+
+
 @dataclass(kw_only=True)
 class MapSummary:
     """What the mapping stage made: the models, each image's status, each model's figures."""
@@ -44,17 +62,14 @@ class MapSummary:
     seconds: float = 0.0
     georef: dict | None = None  # with position priors: sfm.georef.georeference_models' report entry
     mapper: str = "incremental"  # the mapper whose models these are ("global" where the incremental one fell short)
-    fallback: dict | None = None  # where the global mapper ran after the incremental one: `_run_mapper`'s record
+    fallback: GlobalFallback | None = None  # where the global mapper ran after the incremental one
 
     def text(self) -> str:
         n = sum(1 for s in self.status.values() if s["status"] == "registered")
         parts = [f"Mapping: {n} of {len(self.status)} images registered in {len(self.models)} model(s) "
                  f"in {self.seconds:.1f} s."]
-        if (f := self.fallback) is not None:  # its time is in the mapping's
-            parts.append(f"The incremental mapper's largest model held {f['incremental_largest']} of the "
-                         f"{f['paired_images']} images with verified pairs: the global mapper mapped them too "
-                         f"({f['global_seconds']:.1f} s), its largest model held {f['global_largest']}, and the "
-                         f"{f['kept']} models are written.")
+        if self.fallback is not None:
+            parts.append(self.fallback.text())
         for k, s in enumerate(self.model_stats):
             parts.append(f"Model {k}: {s['registered']} images, {s['points']} points, mean track length "
                          f"{s['mean_track_length']:.2f}, mean reprojection error "
@@ -136,13 +151,11 @@ def _write_georef(ws: Workspace, georef: dict | None) -> None:
 
 def _run_mapper(corr, config, snapshot: Path, resume: bool, choose_lens: bool = False) -> tuple:
     """(result, mapper, fallback): the models of the correspondences `corr` (database.Correspondences) with each
-    image's status, the name of the mapper that made them, and, where the global mapper ran after the incremental
-    one, what report.json records of that run (else None): each largest model's images, the images with verified
-    pairs, whose models were kept, and the global mapper's seconds (part of the mapping's time, which a user sees
-    grow). The incremental mapper (sfm/incremental.py; with `choose_lens`, each camera's model chosen from the
-    data, sfm/lens.py) or, with `mapper = "global"`, the global one (sfm/global_mapper.py, which maps in one go
-    and has no snapshot to resume from; it chooses the models with `choose_lens` too). Their modules load only
-    when mapping runs (GTSAM is heavy for the commands that never map).
+    image's status, the name of the mapper that made them, and the GlobalFallback where the global mapper ran after
+    the incremental one (else None). The incremental mapper (sfm/incremental.py; with `choose_lens`, each camera's
+    model chosen from the data, sfm/lens.py) or, with `mapper = "global"`, the global one (sfm/global_mapper.py,
+    which maps in one go and has no snapshot to resume from; it chooses the models with `choose_lens` too). Their
+    modules load only when mapping runs (GTSAM is heavy for the commands that never map).
 
     With `global_fallback`, an incremental mapping whose largest model leaves out images of verified pairs (under
     half of them, or split into several models, or short of a few) is followed by a global one, whose models replace
@@ -166,10 +179,10 @@ def _run_mapper(corr, config, snapshot: Path, resume: bool, choose_lens: bool = 
     start = time.perf_counter()
     other = _map_globally(corr, config, choose_lens)
     other_largest = coverage(other.models)[0]
-    kept = "global" if other_largest > largest else "incremental"
-    fallback = {"incremental_largest": largest, "paired_images": paired, "global_largest": other_largest,
-                "kept": kept, "global_seconds": round(time.perf_counter() - start, 1)}
-    if kept == "incremental":
+    fallback = GlobalFallback(incremental_largest=largest, paired_images=paired, global_largest=other_largest,
+                              kept="global" if other_largest > largest else "incremental",
+                              global_seconds=round(time.perf_counter() - start, 1))
+    if fallback.kept == "incremental":
         log.info("the global mapper's largest model holds %d images: the incremental models are kept", other_largest)
         return result, "incremental", fallback
     log.warning("the incremental mapper's largest model held %d of %d images, the global mapper's holds %d: the "

@@ -1,6 +1,7 @@
 """report.json: the record of a finished `reconstruct` run, written at its end and read by a rerun, which
 returns it instead of redoing a run with the same config and images (`finished_report`)."""
 
+from dataclasses import asdict
 from pathlib import Path
 
 from .. import __version__
@@ -32,7 +33,7 @@ def write_report(out_dir: Path | str, *, config_hash: str, seed: int, summary: M
     if summary.georef is not None:
         report["georef"] = summary.georef
     if summary.fallback is not None:
-        report["global_fallback"] = summary.fallback
+        report["global_fallback"] = asdict(summary.fallback)
     write_json(Path(out_dir) / "report.json", report, indent=1)
     return report
 

@@ -4,7 +4,7 @@ catalog scene end to end through `mvrecon reconstruct --mapper global`."""
 import json
 import logging
 import re
-from dataclasses import replace
+from dataclasses import asdict, replace
 
 import numpy as np
 import pytest
@@ -354,7 +354,7 @@ def test_an_image_the_incremental_mapper_leaves_out_brings_in_the_global_mapper(
     assert used == mapper and len(ran) == (mapper == "global")
     assert (result is kept) == (mapper == "incremental")
     if ran:  # what report.json and the summary say of the global mapper's run
-        assert {k: fallback[k] for k in ("incremental_largest", "paired_images", "global_largest", "kept")} == {
+        assert {k: asdict(fallback)[k] for k in ("incremental_largest", "paired_images", "global_largest", "kept")} == {
             "incremental_largest": incremental_held, "paired_images": paired, "global_largest": 12, "kept": "global"}
         summary = mapping.MapSummary(models=result.models, status={}, model_stats=[], fallback=fallback)
         assert "largest model held 10 of the 12 images with verified pairs: the global mapper" in summary.text()
