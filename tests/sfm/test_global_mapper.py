@@ -354,7 +354,8 @@ def test_an_image_the_incremental_mapper_leaves_out_brings_in_the_global_mapper(
     assert used == mapper and len(ran) == (mapper == "global")
     assert (result is kept) == (mapper == "incremental")
     if ran:  # what report.json and the summary say of the global mapper's run
-        assert {k: asdict(fallback)[k] for k in ("incremental_largest", "paired_images", "global_largest", "kept")} == {
+        record = asdict(fallback)  # report.json's global_fallback
+        assert {k: record[k] for k in ("incremental_largest", "paired_images", "global_largest", "kept")} == {
             "incremental_largest": incremental_held, "paired_images": paired, "global_largest": 12, "kept": "global"}
         summary = mapping.MapSummary(models=result.models, status={}, model_stats=[], fallback=fallback)
         assert "largest model held 10 of the 12 images with verified pairs: the global mapper" in summary.text()
