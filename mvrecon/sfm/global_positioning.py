@@ -54,10 +54,12 @@ _CG_MAX_ITERATIONS = 1000  # a system not solved within this many is left to the
 # at this angle; the placed cameras are adjusted together each time their number has grown by the factor, in
 # this many LM steps under Huber's loss
 _TURN_MIN_ANGLE_DEG = 2.0
+_TURN_NARROW_ANGLE_DEG = 1.0  # where that angle leaves a camera unplaced, the cameras are placed again at this one
 _TURN_GROWTH = 1.5
 _TURN_STEPS = 15
 _TURN_MAX_MISS_DEG = 1.0  # a triangulated point's rays miss it by at most this (wrong matches go)
 _TURN_MIN_POINTS = 6  # a camera is placed from at least this many triangulated points, the first pair from as many
+_TURN_READY_POINTS = 30  # then cameras seeing this many points are placed in the order they came to see them
 _NEAR_SHARE = 0.02  # a start with every centre this near a solution (of their spread) is in its basin
 _OUTLIER_DEG = 0.5  # a camera whose rays miss its points by a median over this (and over _OUTLIER_FACTOR x the
 _OUTLIER_FACTOR = 5.0  # cameras' median) is an outlier pose: the others' are 0.01-0.06 deg on the shared sets
@@ -98,14 +100,14 @@ def global_positions(model: Reconstruction, R: np.ndarray, solved: np.ndarray, t
                      seed: int = 0, initial: Callable[[], np.ndarray] | None = None,
                      workers: int = 1) -> PositioningResult:
     """Camera centres of the `solved` images (rotations R, cam_from_world) from their tracks (see the module
-    docstring), the model's current calibration turning keypoints into rays. Images with too few observations
-    are left out; the centres are up to a similarity. The problem is solved from a random start, from centres
-    placed in turn, and, where those leave a camera unplaced, from the centres `initial()` gives (n,3; NaN
-    where unknown) when given, and the solution of lowest cost is kept (`solve_positions`): from random centres a
-    street of cameras moving straight ahead can stop in a wrong minimum, which centres placed in turn start
-    clear of (a walk round a block, whose streets the pairs' directions leave short) and, where those stop
-    short, centres from the pairs' directions (a street seen far ahead). With `workers` > 1 two starts are
-    solved at once (`solve_positions`)."""
+    docstring), the model's current calibration turning keypoints into rays. Images with too few observations are
+    left out; the centres are up to a similarity. The problem is solved from a random start, from centres placed in
+    turn, and, where those leave a camera unplaced, from centres placed in turn again from points seen at a narrower
+    angle and from the centres `initial()` gives (n,3; NaN where unknown) when given, and the solution of lowest
+    cost is kept (`solve_positions`): from random centres a street of cameras moving straight ahead can stop in a
+    wrong minimum, which centres placed in turn start clear of (a walk round a block, whose streets the pairs'
+    directions leave short) and, where those stop short, centres from the pairs' directions (a street seen far
+    ahead). With `workers` > 1 two starts are solved at once (`solve_positions`)."""
     n = len(R)
     centers = np.full((n, 3), np.nan)
     chosen = select_tracks(tracks, solved)
@@ -155,21 +157,26 @@ def solve_positions(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams:
                     seed: int = 0, iterations: int = _ITERATIONS,
                     initial: Callable[[], np.ndarray] | None = None,
                     workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """(centres (num_cams,3), points (num_points,3)) minimising sum rho(|v_k - s_k (X_point[k] - C_cam[k])|)
-    from a random start (uniform in [-1, 1]^3, scales 1), rho Huber's loss and then Cauchy's; camera 0 is held
-    (the gauge), and the result is moved and scaled to centres of zero mean and unit RMS distance from it.
-    It is solved from the centres placed in turn (`centres_in_turn`) too and, where those leave a camera
-    unplaced, from the centres `initial()` gives (num_cams,3; NaN where unknown) when given (`_start`), asked
-    for only then (the mapper's come from translation averaging); the solution of the lowest final cost is
-    returned. A start already near the best solution (`_near`) is not solved from: it
-    would end there. Why the `initial` start only then: where every camera is placed in turn, the mapper
-    suite's models are better without it on the whole over three seeds, and a solve is saved (docs/benchmarks.md,
-    "Global positioning: compiled steps, and the pairs' start only where cameras are left unplaced").
-    With `workers` > 1 the random start is solved in a second thread while the cameras are placed in turn and
-    solved from there (the compiled steps, the conjugate gradients and LAPACK run without the GIL); that solve
-    stops, and its solution is dropped, once the start proves near the random one's solution: the same result as
-    one after the other, in about the time of the longer of the two (docs/benchmarks.md, "Global positioning: two
-    starts at once")."""
+    """(centres (num_cams,3), points (num_points,3)) minimising sum rho(|v_k - s_k (X_point[k] - C_cam[k])|) from a
+    random start (uniform in [-1, 1]^3, scales 1), rho Huber's loss and then Cauchy's; camera 0 is held (the gauge), and
+    the result is moved and scaled to centres of zero mean and unit RMS distance from it. It is solved from the centres
+    placed in turn (`centres_in_turn`) too and, where those leave a camera unplaced, from the centres placed in turn
+    again from points seen at `_TURN_NARROW_ANGLE_DEG` (the cameras ready longest first, `_TURN_READY_POINTS`) and from
+    the centres `initial()` gives (num_cams,3; NaN where unknown) when given (`_start`), asked for only then (the
+    mapper's come from translation averaging); the solution of the lowest final cost is returned. Why the second
+    placing: through a narrow lens (640 px wide at 768 px focal) a camera that has turned a corner of a street shares
+    with the placed cameras few points seen at 2 deg or more, so placing stops there while the cameras behind the first
+    pair are placed the long way round a loop; on such a 300-frame walk round a block every frame ended misplaced (AUC@5
+    0.26), and with the second placing none at two mapper seeds of three (AUC@5 0.76 and 0.65; docs/benchmarks.md,
+    "Global positioning: a second placing at 1 deg where the first stops"); the mapper suite's models are unchanged. A
+    start already near the best solution (`_near`) is not solved from: it would end there. Why the `initial` start only
+    then: where every camera is placed in turn, the mapper suite's models are better without it on the whole over three
+    seeds, and a solve is saved (docs/benchmarks.md, "Global positioning: compiled steps, and the pairs' start only
+    where cameras are left unplaced"). With `workers` > 1 the random start is solved in a second thread while the
+    cameras are placed in turn and solved from there (the compiled steps, the conjugate gradients and LAPACK run without
+    the GIL); that solve stops, and its solution is dropped, once the start proves near the random one's solution: the
+    same result as one after the other, in about the time of the longer of the two (docs/benchmarks.md, "Global
+    positioning: two starts at once")."""
     rng = np.random.default_rng(seed)
     C = rng.uniform(-1, 1, (num_cams, 3))
     X = rng.uniform(-1, 1, (num_points, 3))
@@ -184,13 +191,15 @@ def solve_positions(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams:
     solve_random = partial(_minimise, cam, point, v, C, X, np.ones(len(v)), iterations, layout)
     random = in_background(solve_random) if workers > 1 else None
     in_turn = centres_in_turn(cam, point, v, num_cams, num_points)
+    complete = in_turn is not None and np.isfinite(in_turn).all()
     from_turn = None
     if random is not None and usable(in_turn):
         from_turn = solve_from(in_turn, stop=lambda: random.done() and random.exception() is None
                                and _near(in_turn, random.result()[0]))  # moot once near the random solution
     best = solve_random() if random is None else random.result()
-    complete = in_turn is not None and np.isfinite(in_turn).all()
-    for start in (in_turn, None if complete or initial is None else initial()):
+    narrow = None if complete else centres_in_turn(cam, point, v, num_cams, num_points, _TURN_NARROW_ANGLE_DEG,
+                                                   _TURN_READY_POINTS)
+    for start in (in_turn, narrow, None if complete or initial is None else initial()):
         if not usable(start) or _near(start, best[0]):
             continue
         other = from_turn if start is in_turn and from_turn is not None else solve_from(start)
@@ -238,29 +247,33 @@ def _start(cam, point, v, initial, fallback, num_points):
     return C, X, s
 
 
-def centres_in_turn(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams: int,
-                    num_points: int) -> np.ndarray | None:
-    """Centres (num_cams,3; NaN for a camera never placed) placed as an incremental mapper grows a model, the
-    rotations known, for `solve_positions` to start from; None when no pair of cameras shares `_TURN_MIN_POINTS`
-    points seen at `_TURN_MIN_ANGLE_DEG` or more. The pair among the 50 sharing most points that sees most of
-    them at that angle comes first, its baseline the direction normal to their rays' planes; then the camera
-    seeing most triangulated points is placed where its rays pass nearest them (least squares in angle, Cauchy
-    weights), its points are triangulated, and every time the placed cameras have grown by `_TURN_GROWTH` they
-    and their points are adjusted together (`_minimise`, Huber's loss, `_TURN_STEPS` steps). Why: a camera
-    walking round a block looks ahead along four straight streets; from random centres each street is solved
-    on its own and the corners come apart, and the pairs' directions (collinear motion) fix no street's length,
-    while each camera placed next to those it shares points with keeps the loop whole (docs/benchmarks.md,
-    "Global positioning: cameras placed in turn"). A camera whose centre misses its points by a median over
-    `outlier_cameras`' limit (against the placed cameras' misses) waits until it sees new points, or until no
-    other camera can be placed, when the best-fitting of those waiting is placed: placed at once, a camera put
-    near a corner by far points it missed by 1.6 deg sent the next streets of a walk round a block astray, and
-    65 of its 100 frames ended misplaced (docs/benchmarks.md, "Global positioning: a camera that misses its
-    points waits")."""
+def centres_in_turn(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams: int, num_points: int,
+                    min_angle_deg: float = _TURN_MIN_ANGLE_DEG, ready_points: float = np.inf) -> np.ndarray | None:
+    """Centres (num_cams,3; NaN for a camera never placed) placed as an incremental mapper grows a model, the rotations
+    known, for `solve_positions` to start from; None when no pair of cameras shares `_TURN_MIN_POINTS` points seen at
+    `min_angle_deg` or more. The pair among the 50 sharing most points that sees most of them at that angle comes first,
+    its baseline the direction normal to their rays' planes; then the camera seeing most triangulated points (seen at
+    `min_angle_deg` or more) is placed where its rays pass nearest them (least squares in angle, Cauchy weights), or, of
+    the cameras seeing `ready_points` or more, the one that came to see them first, its points are triangulated, and
+    every time the placed cameras have grown by `_TURN_GROWTH` they and their points are adjusted together (`_minimise`,
+    Huber's loss, `_TURN_STEPS` steps). Why: a camera walking round a block looks ahead along four straight streets;
+    from random centres each street is solved on its own and the corners come apart, and the pairs' directions
+    (collinear motion) fix no street's length, while each camera placed next to those it shares points with keeps the
+    loop whole (docs/benchmarks.md, "Global positioning: cameras placed in turn"). A camera whose centre misses its
+    points by a median over `outlier_cameras`' limit (against the placed cameras' misses) waits until it sees new
+    points, or until no other camera can be placed, when the best-fitting of those waiting is placed: placed at once, a
+    camera put near a corner by far points it missed by 1.6 deg sent the next streets of a walk round a block astray,
+    and 65 of its 100 frames ended misplaced (docs/benchmarks.md, "Global positioning: a camera that misses its points
+    waits"). Why `ready_points` (breadth first from the first pair, rather than the camera seeing most points first): in
+    the second placing of a narrow-lens walk round a block (`solve_positions`) the mapper's AUC@5 was 0.76 and 0.65 at
+    seeds 0 and 1 with it, 0.58 and 0.57 without (docs/benchmarks.md, "Global positioning: a second placing at 1 deg
+    where the first stops")."""
     by_cam = np.argsort(cam, kind="stable")
     cam_bounds = np.r_[0, np.cumsum(np.bincount(cam, minlength=num_cams))]
     by_point = np.argsort(point, kind="stable")
     bounds = np.r_[0, np.cumsum(np.bincount(point, minlength=num_points))]
-    first = _first_pair(cam, point, v, by_cam, cam_bounds, num_cams, num_points)
+    cos_max = np.cos(np.radians(min_angle_deg))
+    first = _first_pair(cam, point, v, by_cam, cam_bounds, num_cams, num_points, cos_max)
     if first is None:
         return None
     a, b, baseline = first
@@ -269,21 +282,29 @@ def centres_in_turn(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams:
     placed = np.zeros(num_cams, bool)
     C[a], C[b] = 0.0, baseline
     placed[[a, b]] = True
-    cos_max = np.cos(np.radians(_TURN_MIN_ANGLE_DEG))
     everything = np.arange(num_points)
     _triangulate(everything, by_point, bounds, cam, v, placed, C, X, cos_max)
     adjusted = 2
     tried = placed.copy()
     misses = []  # the placed cameras' median misses, each at its placing
     waiting: dict[int, tuple[int, float]] = {}  # camera set aside -> (points it saw, its miss) then
+    ready_since = np.full(num_cams, np.inf)  # the step at which each camera came to see `ready_points`
+    step = 0
     while True:
+        step += 1
         seen = np.isfinite(X[point, 0])
         counts = np.bincount(cam[seen], minlength=num_cams)
         counts[tried] = -1
         for w, (count, _) in waiting.items():
             if counts[w] <= count:  # no new point of its since it was set aside
                 counts[w] = -1
-        c = int(np.argmax(counts))
+        ready = counts >= ready_points
+        ready_since[ready & ~np.isfinite(ready_since)] = step
+        if ready.any():  # the camera ready longest, of those the one seeing most
+            ready &= ready_since == ready_since[ready].min()
+            c = int(np.argmax(np.where(ready, counts, -1)))
+        else:
+            c = int(np.argmax(counts))
         fallback = counts[c] < _TURN_MIN_POINTS
         if fallback and not waiting:
             break
@@ -316,7 +337,7 @@ def centres_in_turn(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams:
     return C
 
 
-def _first_pair(cam, point, v, by_cam, cam_bounds, num_cams, num_points):
+def _first_pair(cam, point, v, by_cam, cam_bounds, num_cams, num_points, cos_max):
     """(a, b, baseline C_b - C_a of unit length) for `centres_in_turn`, or None."""
     shared = coo_matrix((np.ones(len(cam)), (point, cam)), shape=(num_points, num_cams)).tocsc()
     shared = triu(shared.T @ shared, k=1).tocoo()
@@ -326,7 +347,7 @@ def _first_pair(cam, point, v, by_cam, cam_bounds, num_cams, num_points):
         oa, ob = by_cam[cam_bounds[a]:cam_bounds[a + 1]], by_cam[cam_bounds[b]:cam_bounds[b + 1]]
         _, ia, ib = np.intersect1d(point[oa], point[ob], return_indices=True)
         va, vb = v[oa[ia]], v[ob[ib]]
-        wide = np.einsum("ki,ki->k", va, vb) <= np.cos(np.radians(_TURN_MIN_ANGLE_DEG))
+        wide = np.einsum("ki,ki->k", va, vb) <= cos_max
         if wide.sum() >= _TURN_MIN_POINTS and (best is None or wide.sum() > best[0]):
             best = (int(wide.sum()), a, b, va[wide], vb[wide])
     if best is None:

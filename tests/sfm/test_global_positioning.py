@@ -394,3 +394,22 @@ def test_a_phase_ends_once_an_undamped_step_no_longer_moves_the_centres(monkeypa
     assert settled_steps < converged_steps
     assert similarity_error(settled, converged) < 1e-4
     assert similarity_error(settled, C) < 0.02
+
+
+def test_a_walk_round_a_block_through_a_narrow_lens_is_placed_again_where_placing_stops_at_a_corner():
+    """120 cameras walking round a block, each seeing 19 deg either side of its heading, rays 0.1 deg noisy: past
+    a corner a camera sees few points that the cameras before it see at 2 deg, so placing in turn stops about half
+    way round; placed again from points seen at 1 deg (those seeing 30 points or more in the order they came to see
+    them) every camera is placed, and the solution's error is under 0.35 of the centres' spread (0.58 without the
+    second placing)."""
+    rng = np.random.default_rng(2)
+    C, X, cam, point = block_walk(rng, n=120, fov_deg=19.0, reach=25.0)
+    v = rays(C, X, cam, point) + rng.normal(scale=np.radians(0.1), size=(len(cam), 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    n, m = len(C), len(X)
+    at_two = global_positioning.centres_in_turn(cam, point, v, n, m)
+    at_one = global_positioning.centres_in_turn(cam, point, v, n, m, 1.0, 30)
+    found, _ = solve_positions(cam, point, v, n, m)
+    assert np.isfinite(at_two).all(axis=1).sum() < 0.6 * n
+    assert np.isfinite(at_one).all()
+    assert similarity_error(found, C) < 0.35
