@@ -408,7 +408,8 @@ def test_a_walk_round_a_block_through_a_narrow_lens_is_placed_again_where_placin
     v /= np.linalg.norm(v, axis=1, keepdims=True)
     n, m = len(C), len(X)
     at_two = global_positioning.centres_in_turn(cam, point, v, n, m)
-    at_one = global_positioning.centres_in_turn(cam, point, v, n, m, 1.0, 30)
+    at_one = global_positioning.centres_in_turn(cam, point, v, n, m, global_positioning._TURN_NARROW_ANGLE_DEG,
+                                                global_positioning._TURN_READY_POINTS)
     found, _ = solve_positions(cam, point, v, n, m)
     assert np.isfinite(at_two).all(axis=1).sum() < 0.6 * n
     assert np.isfinite(at_one).all()
