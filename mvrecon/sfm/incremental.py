@@ -33,7 +33,7 @@ from .bundle import bundle_adjust as _bundle_adjust
 from .config import MapperConfig
 from .georef import CenterPriors, georeference
 from .initialize import evaluate_pair, find_initial_pair, initial_pair_rejections, rejected_for_few_inliers
-from .loop_closure import close_loop, find_hinges
+from .loop_closure import close_open_loop
 from .model import KeypointSet, Reconstruction, image_status, images_and_cameras
 from .register import CandidateRanking, correspondences_2d3d, rank_candidates, register_image
 from .tracks import build_tracks
@@ -709,27 +709,17 @@ class IncrementalMapper:
     def _close_open_loop(self, m: Reconstruction) -> None:
         """Where images see the other end of an open loop (sfm/loop_closure.py), spread the gap over the loop
         with the pose graph, let the hinge's views join their points through the 4 px gate, and bundle-adjust
-        them with the usual subset; undone when the model then holds no more views than before, as a closure
-        that bent the model would leave it (a wrong "other end" from repeated structure)."""
+        them with the usual subset; undone when the model then holds no more views than before
+        (`loop_closure.close_open_loop`)."""
         cfg = self.config
-        hinges = find_hinges(m, self.tracks, cfg, cfg.seed)
-        if not hinges:
-            return
-        before, views = m.state(), int(m.obs_alive.data.sum())
         first = m.obs_point.n
-        close_loop(m, hinges)
-        joined = continue_points(m, self.tracks, cfg)
-        self._global_bundle(m, True, keep=np.unique(m.obs_point.data[first:m.obs_point.n]))
-        self._filter(m)
-        after = int(m.obs_alive.data.sum())
-        names = ", ".join(m.names[h.image] for h in hinges[:3]) + (", ..." if len(hinges) > 3 else "")
-        if after <= views:
-            m.restore(before)
-            log.info("an open loop at %d images (%s) left as it was: closed, the model held %d views, not more "
-                     "than %d", len(hinges), names, after, views)
-            return
-        log.info("closed an open loop at %d images (%s): %d views joined, %d views in all (%d before)",
-                 len(hinges), names, joined, after, views)
+
+        def settle() -> None:
+            continue_points(m, self.tracks, cfg)
+            self._global_bundle(m, True, keep=np.unique(m.obs_point.data[first:m.obs_point.n]))
+            self._filter(m)
+
+        close_open_loop(m, self.tracks, cfg, settle)
 
     def _finish_model(self, m: Reconstruction) -> None:
         # loops closed, then global BA with every point (those during growth used a subset; so does a large

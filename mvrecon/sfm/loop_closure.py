@@ -13,13 +13,25 @@ one similarity per image, with an edge between images that share points holding 
 its sigmas going as the inverse square of the points they share (the gap goes where the model is held least), and one
 edge per hinge image to the other end's image that sees most of its points, holding the pose found there (its
 scale left free: nothing measured it). Each point moves with an image that observes it. The caller then lets the
-hinge's views join their points and runs its bundle adjustment.
+hinge's views join their points and settles the model (`close_open_loop`); a closure after which the model holds
+no more views than before is undone.
+
+The global mapper's model can hold an open loop too: its cameras are placed in turn from the first pair both ways
+round a loop, and where the two ends meet their steps have drifted apart in scale (a 1 km street loop: 0.89x the
+true steps on one side, 1.18x on the other, 86 m between two neighbouring frames, 90 camera spacings). Its
+rotations do not drift: rotation averaging solved them over the whole view graph at once. So there the loop is
+closed only at such a gap (`min_gap`), the pose graph holds every image's rotation (`hold_rotations`) and spreads
+the gap over the centres and scales alone (left free, the rotations took it up at the corners: streets turned 4-6
+deg, 201 of the 1,000 frames misplaced).
 """
 
+import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import gtsam
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..geometry.absolute_pose import pnp_ransac
 from .config import MapperConfig
@@ -27,10 +39,13 @@ from .model import Reconstruction
 from .tracks import Tracks
 from .triangulate import unobserved_views
 
+log = logging.getLogger("mvrecon.sfm")
+
 _NEIGHBOURS = 6  # covisibility edges kept per image: its most shared partners
 _LEAST_SHARED = 15  # points two images must share for an edge
 _LONGEST_TRACK = 20  # points seen by more images are left out of the covisibility count (quadratic in length)
 _SIGMA_ROTATION = 0.01  # rad, for an edge of _REFERENCE_SHARED points; sigmas go as 1 / shared points ** 2
+_HELD_SIGMA_ROTATION = 1e-4  # rad, the same with `hold_rotations`
 _SIGMA_TRANSLATION = 0.01  # of the median edge length
 _SIGMA_SCALE = 0.01
 _REFERENCE_SHARED = 100
@@ -79,8 +94,55 @@ def find_hinges(model: Reconstruction, tracks: Tracks, config: MapperConfig, see
     return hinges
 
 
-def close_loop(model: Reconstruction, hinges: list[Hinge]) -> None:
-    """Move every registered image and point by the similarity pose graph's solution (module docstring)."""
+def close_open_loop(model: Reconstruction, tracks: Tracks, config: MapperConfig, settle: Callable[[], None],
+                    hold_rotations: bool = False, min_gap: float = 0.0, settled_baseline: bool = False,
+                    tolerance: float = 0.0) -> list[Hinge]:
+    """Find the hinges of an open loop and, where one of them has its other pose `min_gap` camera spacings or more
+    from its own (`gaps`), close the loop at all of them (`close_loop`), then `settle` the model (the caller lets
+    the hinges' views join their points and adjusts or filters it); undone when the model then holds no more views
+    than before, as a closure that bent the model would leave it (a wrong "other end" from repeated structure).
+    With `settled_baseline`, "before" is the model settled without the closure (a settling that adds views of its
+    own, such as triangulating the tracks again, would otherwise credit the closure with them), and the closure is
+    kept unless it holds under (1 - `tolerance`) of those views. Returns the hinges of a closure kept, else []."""
+    hinges = find_hinges(model, tracks, config, config.seed)
+    if not hinges or gaps(model, hinges).max() < min_gap:
+        return []
+    before = model.state()
+    if settled_baseline:
+        settle()
+    views = int(model.obs_alive.data.sum())
+    if settled_baseline:
+        model.restore(before)
+    close_loop(model, hinges, hold_rotations)
+    settle()
+    after = int(model.obs_alive.data.sum())
+    names = ", ".join(model.names[h.image] for h in hinges[:3]) + (", ..." if len(hinges) > 3 else "")
+    least = (1.0 - tolerance) * views if settled_baseline else views + 1
+    if after < least:
+        model.restore(before)
+        log.info("an open loop at %d images (%s) left as it was: closed, the model held %d views, under %d",
+                 len(hinges), names, after, least)
+        return []
+    log.info("closed an open loop at %d images (%s): %d views in all (%d %s)", len(hinges), names, after, views,
+             "without the closure" if settled_baseline else "before")
+    return hinges
+
+
+def gaps(model: Reconstruction, hinges: list[Hinge]) -> np.ndarray:
+    """How far each hinge's other pose lies from its own: the distance between the two centres over the median
+    distance from a registered camera to its nearest neighbour."""
+    centers = model.centers()
+    placed = centers[model.registered_images()]
+    if len(placed) < 2 or not hinges:
+        return np.zeros(len(hinges))
+    spacing = max(float(np.median(cKDTree(placed).query(placed, k=2)[0][:, 1])), 1e-12)
+    return np.array([np.linalg.norm(-h.R.T @ h.t - centers[h.image]) / spacing for h in hinges])
+
+
+def close_loop(model: Reconstruction, hinges: list[Hinge], hold_rotations: bool = False) -> None:
+    """Move every registered image and point by the similarity pose graph's solution (module docstring); with
+    `hold_rotations` every image keeps its rotation (within `_HELD_SIGMA_ROTATION` an edge)."""
+    sigma_rotation = _HELD_SIGMA_ROTATION if hold_rotations else _SIGMA_ROTATION
     images = model.registered_images()
     a, b, shared = covisibility(model)
     node = {int(i): k for k, i in enumerate(images)}
@@ -89,7 +151,7 @@ def close_loop(model: Reconstruction, hinges: list[Hinge]) -> None:
     lengths = np.linalg.norm(centers[a] - centers[b], axis=1)
     unit = float(np.median(lengths)) if len(lengths) else 1.0
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    loose = _noise(_REFERENCE_SHARED, unit, _SIGMA_SCALE, _LOOSE_PRIOR)
+    loose = _noise(_REFERENCE_SHARED, unit, sigma_rotation, _SIGMA_SCALE, _LOOSE_PRIOR)
     for k, s in enumerate(old):
         values.insert(k, s)
         # a prior far looser than any edge, so that an image without edges stays where it is
@@ -99,7 +161,7 @@ def close_loop(model: Reconstruction, hinges: list[Hinge]) -> None:
     for i, j, n in zip(a.tolist(), b.tolist(), shared.tolist()):
         ki, kj = node[i], node[j]
         graph.add(gtsam.BetweenFactorSimilarity3(ki, kj, old[ki].inverse().compose(old[kj]),
-                                                 _noise(n, unit, _SIGMA_SCALE)))
+                                                 _noise(n, unit, sigma_rotation, _SIGMA_SCALE)))
     for h in hinges:
         seen = model.obs_image.data[model.observations_of_points(h.points)]
         seen = seen[seen != h.image]
@@ -110,7 +172,7 @@ def close_loop(model: Reconstruction, hinges: list[Hinge]) -> None:
         # from j, in whose frame the pose was found: so the unknown scale between the two ends is the
         # measurement's scale alone, and its translation holds whatever that scale turns out to be
         graph.add(gtsam.BetweenFactorSimilarity3(node[j], node[h.image], old[node[j]].inverse().compose(there),
-                                                 _noise(len(h.points), unit, 1.0)))
+                                                 _noise(len(h.points), unit, sigma_rotation, 1.0)))
     solved = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
     new = [solved.atSimilarity3(k) for k in range(len(images))]
     # every point moves with the image of its oldest observation
@@ -165,7 +227,7 @@ def _similarity(R_cam_from_world: np.ndarray, center: np.ndarray) -> "gtsam.Simi
     return gtsam.Similarity3(gtsam.Rot3(np.ascontiguousarray(R_cam_from_world.T)), np.asarray(center, float), 1.0)
 
 
-def _noise(shared: int, unit: float, sigma_scale: float, times: float = 1.0):
+def _noise(shared: int, unit: float, sigma_rotation: float, sigma_scale: float, times: float = 1.0):
     w = times * (_REFERENCE_SHARED / max(shared, 1)) ** 2
-    return gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, _SIGMA_ROTATION * w),
+    return gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, sigma_rotation * w),
                                                   np.full(3, _SIGMA_TRANSLATION * unit * w), sigma_scale * w])

@@ -279,14 +279,15 @@ def test_a_dense_sequence_starts_from_farther_partners_when_its_best_matched_pai
     assert all(j - i == 1 for i, j in first_only)
 
 
-def _hinged(m, images, seed=0):
+def hinged(m, images, seed=0, turn_deg=(3.0, -2.0, 1.0), shift=0.5):
     """The model split at a hinge, as growth leaves an open loop: `images` and a random half of the points move
-    by a similarity (3 deg, 10% in scale, a shift of half the model's size), and each point loses its views on
-    the other side, so that either side sees the other's points displaced together."""
+    by a similarity (a turn of `turn_deg` about x, y, z, 10% in scale, a shift of `shift` times the model's size),
+    and each point loses its views on the other side, so that either side sees the other's points displaced
+    together."""
     rng = np.random.default_rng(seed)
-    turn = Rotation.from_euler("xyz", [3.0, -2.0, 1.0], degrees=True).as_matrix()
+    turn = Rotation.from_euler("xyz", turn_deg, degrees=True).as_matrix()
     centers = m.centers()
-    shift = 0.5 * np.ptp(centers, axis=0)
+    shift = shift * np.ptp(centers, axis=0)
 
     def moved(X):
         return 1.1 * X @ turn.T + shift
@@ -303,7 +304,7 @@ def _hinged(m, images, seed=0):
 
 
 def test_an_open_loop_is_found_at_its_hinge_and_closed_by_the_pose_graph(scene):
-    """A model split at a hinge (`_hinged`) is past both gates: the loose continuation takes back no view. The
+    """A model split at a hinge (`hinged`) is past both gates: the loose continuation takes back no view. The
     images on either side see the other side's points fitted by one other pose, and the model's finish
     (`_close_loops`, then the final refinement) puts the sides back together: the poses as accurate as before
     the split, and the views taken back. The model as mapped has no hinge."""
@@ -313,7 +314,7 @@ def test_an_open_loop_is_found_at_its_hinge_and_closed_by_the_pose_graph(scene):
     assert loop_closure.find_hinges(m, mapper.tracks, mapper.config) == []
     views = int(m.obs_alive.data.sum())
     images = m.registration_order[4:]
-    _hinged(m, images)
+    hinged(m, images)
     assert int(m.obs_alive.data.sum()) < 0.6 * views
     assert continue_points(m, mapper.tracks, mapper.config, loose=True) == 0
     split = accuracy_summary([{m.names[i]: (m.R[i], m.t[i]) for i in m.registered_images()}], gt)
@@ -333,16 +334,16 @@ def test_a_loop_closure_that_leaves_fewer_views_is_undone(scene, monkeypatch):
     _, corr, _ = scene
     mapper = incremental.IncrementalMapper(corr, MapperConfig(seed=3))
     m = mapper.run().models[0]
-    _hinged(m, m.registration_order[4:])
+    hinged(m, m.registration_order[4:])
     before = m.state()
     rng = np.random.default_rng(1)
 
-    def bend(model, hinges):
+    def bend(model, hinges, hold_rotations=False):
         for i in model.registered_images():
             model.R[i] = Rotation.from_rotvec(np.radians(5) * Rotation.random(random_state=rng).as_rotvec()
                                               / np.pi).as_matrix() @ model.R[i]
 
-    monkeypatch.setattr(incremental, "close_loop", bend)
+    monkeypatch.setattr(loop_closure, "close_loop", bend)
     mapper._close_open_loop(m)
     assert np.array_equal(m.R, before["R"]) and np.array_equal(m.xyz.data, before["xyz"])
     assert np.array_equal(m.obs_alive.data, before["obs_alive"])
