@@ -480,13 +480,13 @@ class GlobalMapper:
         return m, component | m.registered
 
     def _refine(self, m: Reconstruction, pool) -> None:
-        """Triangulation, global BA and filtering rounds at narrowing gates, an open loop closed after the first
-        and after the last of them (`_close_open_loop`); then the poses too few matches support are taken out,
-        and the images of `pool` left out (poses lost to the filters, or never placed by the averaging) are
-        registered by absolute pose against the points, as the incremental mapper does, in rounds while images
-        join (an image next to one just registered needs that one's points: a 12-view wide orbit whose averaging
-        placed 6 ended in models of 9 and 3 with one round); then final rounds of
-        retriangulation, BA and filtering until a round changes under `_FINAL_MIN_CHANGE` of the observations
+        """Triangulation, global BA and filtering rounds at narrowing gates, a loop whose ends met apart closed
+        after the first of them and, once closed, after the last (`_close_open_loop`); then the poses too few
+        matches support are taken out, and the images of `pool` left out (poses lost to the filters, or never
+        placed by the averaging) are registered by absolute pose against the points, as the incremental mapper
+        does, in rounds while images join (an image next to one just registered needs that one's points: a
+        12-view wide orbit whose averaging placed 6 ended in models of 9 and 3 with one round); then final rounds
+        of retriangulation, BA and filtering until a round changes under `_FINAL_MIN_CHANGE` of the observations
         (COLMAP's iterative global refinement): on a facade of identical windows one round left the poses short
         of where the next rounds took them, each filtering the views the sharper poses no longer explain
         (docs/benchmarks.md, "Global mapper: final rounds until the model settles"). Every BA but the final

@@ -105,7 +105,7 @@ def close_open_loop(model: Reconstruction, tracks: Tracks, config: MapperConfig,
     own, such as triangulating the tracks again, would otherwise credit the closure with them), and the closure is
     kept unless it holds under (1 - `tolerance`) of those views. Returns the hinges of a closure kept, else []."""
     hinges = find_hinges(model, tracks, config, config.seed)
-    if not hinges or gaps(model, hinges).max() < min_gap:
+    if not hinges or (min_gap > 0 and gaps(model, hinges).max() < min_gap):
         return []
     before = model.state()
     if settled_baseline:
