@@ -102,8 +102,8 @@ def close_open_loop(model: Reconstruction, tracks: Tracks, config: MapperConfig,
     the hinges' views join their points and adjusts or filters it); undone when the model then holds no more views
     than before, as a closure that bent the model would leave it (a wrong "other end" from repeated structure).
     With `settled_baseline`, "before" is the model settled without the closure (a settling that adds views of its
-    own, such as triangulating the tracks again, would otherwise credit the closure with them), and the closure is
-    kept unless it holds under (1 - `tolerance`) of those views. Returns the hinges of a closure kept, else []."""
+    own, such as triangulating the tracks again, would otherwise credit the closure with them). The closure is kept
+    when the model holds more than (1 - `tolerance`) of those views. Returns the hinges of a closure kept, else []."""
     hinges = find_hinges(model, tracks, config, config.seed)
     if not hinges or (min_gap > 0 and gaps(model, hinges).max() < min_gap):
         return []
@@ -117,11 +117,10 @@ def close_open_loop(model: Reconstruction, tracks: Tracks, config: MapperConfig,
     settle()
     after = int(model.obs_alive.data.sum())
     names = ", ".join(model.names[h.image] for h in hinges[:3]) + (", ..." if len(hinges) > 3 else "")
-    least = (1.0 - tolerance) * views if settled_baseline else views + 1
-    if after < least:
+    if after <= (1.0 - tolerance) * views:
         model.restore(before)
-        log.info("an open loop at %d images (%s) left as it was: closed, the model held %d views, under %d",
-                 len(hinges), names, after, least)
+        log.info("an open loop at %d images (%s) left as it was: closed, the model held %d views, not more than "
+                 "%.0f", len(hinges), names, after, (1.0 - tolerance) * views)
         return []
     log.info("closed an open loop at %d images (%s): %d views in all (%d %s)", len(hinges), names, after, views,
              "without the closure" if settled_baseline else "before")

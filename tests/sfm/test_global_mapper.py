@@ -15,6 +15,7 @@ from mvrecon.eval.ground_truth import load_ground_truth_for
 from mvrecon.eval.metrics import accuracy_summary
 from mvrecon.eval.models import poses as poses_of
 from mvrecon.eval.models import sparse_models
+from mvrecon.geometry.rotation import rotation_error_deg
 from mvrecon.scenes import make_scene
 from mvrecon.sfm import global_mapper, incremental
 from mvrecon.sfm.ba_points import long_points
@@ -26,7 +27,15 @@ from mvrecon.sfm.loop_closure import find_hinges
 from mvrecon.sfm.model import Camera, Reconstruction
 from mvrecon.sfm.view_graph import calibration_shift_px
 from mvrecon.stages import mapping
-from tests.sfm.test_mapper import TEMPLE, _accuracy, estimated_poses, hinged, lined_up_views, synthetic_database
+from tests.sfm.test_mapper import (
+    TEMPLE,
+    _accuracy,
+    estimated_poses,
+    hinged,
+    lined_up_views,
+    model_poses,
+    synthetic_database,
+)
 
 GLOBAL = MapperConfig(mapper="global")
 
@@ -210,7 +219,7 @@ def test_a_loop_whose_ends_met_apart_is_closed_after_the_first_round_with_the_ro
     def split(**hinge):
         m = Reconstruction.from_state(result.models[0].state(), result.models[0].keypoints)
         hinged(m, m.registered_images()[4:].tolist(), **hinge)
-        assert accuracy_summary([poses_of_model(m)], gt)["auc@5"] < 0.5
+        assert accuracy_summary([model_poses(m)], gt)["auc@5"] < 0.5
         return m
 
     m = Reconstruction.from_state(result.models[0].state(), result.models[0].keypoints)
@@ -226,18 +235,16 @@ def test_a_loop_whose_ends_met_apart_is_closed_after_the_first_round_with_the_ro
     assert int(m.obs_alive.data.sum()) < 0.6 * views
     R = m.R.copy()
     assert mapper._close_open_loop(m, first_gate, first_round=True)
-    turned = [np.degrees(np.arccos(np.clip((np.trace(R[i].T @ m.R[i]) - 1) / 2, -1, 1)))
-              for i in m.registered_images().tolist()]
-    assert max(turned) < 0.05
+    assert max(rotation_error_deg(m.R[i], R[i]) for i in m.registered_images().tolist()) < 0.05
     assert int(m.obs_alive.data.sum()) > 0.95 * views
     mapper._bundle(m, intrinsics=True)
     mapper._filter(m, GLOBAL)
-    closed = accuracy_summary([poses_of_model(m)], gt)
+    closed = accuracy_summary([model_poses(m)], gt)
     assert closed["registered"] == 8 and closed["auc@1"] >= 0.9
 
     m = split()  # turned 3 deg
     assert mapper._close_open_loop(m, GLOBAL, first_round=False)
-    closed = accuracy_summary([poses_of_model(m)], gt)
+    closed = accuracy_summary([model_poses(m)], gt)
     assert closed["registered"] == 8 and closed["auc@1"] >= 0.9
     assert int(m.obs_alive.data.sum()) > 0.95 * views
 
@@ -246,10 +253,6 @@ def test_a_loop_whose_ends_met_apart_is_closed_after_the_first_round_with_the_ro
         (config.max_reproj_error_px, first_round)))
     assert map_correspondences_globally(corr, GLOBAL).models
     assert calls and set(calls) == {(global_mapper._GATES_PX[0], True)}
-
-
-def poses_of_model(m):
-    return {m.names[i]: (m.R[i], m.t[i]) for i in m.registered_images()}
 
 
 def test_bundle_adjustments_optimise_the_points_three_images_see_unless_a_pose_would_lose_its_hold(scene):

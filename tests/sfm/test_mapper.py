@@ -69,8 +69,13 @@ def _keep_short_tracks(path, gt, rng) -> None:
         db.commit()
 
 
+def model_poses(m):
+    """image name -> (R, t) of a model's registered images, as accuracy_summary takes them."""
+    return {m.names[i]: (m.R[i], m.t[i]) for i in m.registered_images()}
+
+
 def estimated_poses(result):
-    return [{m.names[i]: (m.R[i], m.t[i]) for i in m.registered_images()} for m in result.models]
+    return [model_poses(m) for m in result.models]
 
 
 @pytest.fixture(scope="module")
@@ -317,13 +322,13 @@ def test_an_open_loop_is_found_at_its_hinge_and_closed_by_the_pose_graph(scene):
     hinged(m, images)
     assert int(m.obs_alive.data.sum()) < 0.6 * views
     assert continue_points(m, mapper.tracks, mapper.config, loose=True) == 0
-    split = accuracy_summary([{m.names[i]: (m.R[i], m.t[i]) for i in m.registered_images()}], gt)
+    split = accuracy_summary([model_poses(m)], gt)
     assert split["auc@5"] < 0.5
 
     hinges = loop_closure.find_hinges(m, mapper.tracks, mapper.config)
     assert {h.image for h in hinges} == set(m.registration_order)
     mapper._finish_model(m)
-    closed = accuracy_summary([{m.names[i]: (m.R[i], m.t[i]) for i in m.registered_images()}], gt)
+    closed = accuracy_summary([model_poses(m)], gt)
     assert closed["registered"] == 8 and closed["auc@1"] >= 0.9
     assert int(m.obs_alive.data.sum()) > 0.95 * views
 
