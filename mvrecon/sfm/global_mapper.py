@@ -3,8 +3,10 @@
 GLOMAP's pipeline on GTSAM and the incremental mapper's own parts:
 1. View graph (view_graph.py): guessed focal lengths calibrated from the pairs' fundamental matrices, then one
    relative pose per verified pair (pair_poses.py); a guessed focal the pairs cannot tell is refined by coarse
-   global models first. A set where half the images or more are each the only image of their camera is mapped
-   with those focals at the guess and again with them calibrated too, and the calibrated mapping is kept unless
+   global models first, and in a set of `_SUBSET_LENS_MIN_IMAGES` images or more by a model of a subset of them
+   too, focal and distortion (`_lens_from_subset`). A set where half the images or more are each the only image
+   of their camera is mapped with those focals at the guess and again with them calibrated too, and the
+   calibrated mapping is kept unless
    the other fits clearly more observations within the BAs' Huber width (`_single_cameras_calibrated`).
 2. Rotation averaging (rotation_averaging.py): robust initialisation, L1-IRLS, `gtsam.ShonanAveraging3`;
    pairs whose rotation disagrees by more than 5 degrees are outliers; the largest consistent component is a
@@ -25,7 +27,8 @@ GLOMAP's pipeline on GTSAM and the incremental mapper's own parts:
    changing. The bundle adjustments optimise the points seen
    by three images or more, as GLOMAP's (`ba_points.long_points`); the two-view points are re-fitted to their
    poses. A loop whose two ends met apart (sfm/loop_closure.py) is closed by a similarity pose graph after the
-   first round, the rotations held, and again before the final rounds, the rotations free (`_close_open_loop`).
+   first round or, where that round's filters took out the images at the gap, once they are registered again,
+   the rotations held; and again before the final rounds, the rotations free (`_close_open_loop`).
 5. Catastrophic poses: a camera whose rays miss the points of its tracks after global positioning
    (`global_positioning.outlier_cameras`), and an image that keeps too few observations fitting within the gate
    after the rounds (fewer than abs_pose_min_inliers, or under abs_pose_min_inlier_ratio of its triangulated
@@ -105,6 +108,7 @@ _LARGE_MODEL = 100
 _START_POINTS_PER_IMAGE = 50
 _CALIBRATION_PASSES = 3  # coarse models that refine a guessed focal (`_calibrate_by_bundle`)
 _CALIBRATION_IMAGES = 60  # images of the coarse models (`_calibration_pairs`)
+_SUBSET_LENS_MIN_IMAGES = 3 * _CALIBRATION_IMAGES  # a set this large gets its lens from a subset's model first
 _MAX_ROTATION_ERROR_DEG = 5.0  # GLOMAP's threshold on a pair's rotation residual
 _MIN_VIEWS = 3  # images of a consistent view graph the mapper makes a model of
 _RECALIBRATIONS = 2  # view graphs again at a model's refined calibration (`_recalibrated`)
@@ -254,6 +258,9 @@ class GlobalMapper:
                 for c in wide if better else []:
                     scratch.cameras[c] = other.cameras[c]
             start = self._clock("calibration", start)
+        if len(self.image_ids) >= _SUBSET_LENS_MIN_IMAGES:
+            self._lens_from_subset(scratch)
+            start = self._clock("calibration", start)
         reasons = dict(self.reasons)
         graph = relative_poses(scratch, self.pairs, self.config, workers=self.workers)
         start = self._clock("view_graph", start)
@@ -361,6 +368,39 @@ class GlobalMapper:
             if k + 1 < _CALIBRATION_PASSES:
                 graph = relative_poses(scratch, sample, self.config, COARSE_SAMPLE, self.workers)
         return fit
+
+    def _lens_from_subset(self, scratch: Reconstruction) -> None:
+        """Give each guessed camera of `scratch` the lens, focal and distortion, that a model of the calibration
+        subset (`_calibration_pairs`: its view graph at full matches, then `_map_component`'s rounds) refines,
+        for the cameras holding distortion_min_images images of that model. Relative rotations estimated at a
+        focal a few percent off and without the lens's distortion are biased where the camera turns, and rotation
+        averaging sums those biases round a long loop: on a 1,000-frame street loop, the coarse models' 462 or 482
+        px for the true 450 (k 0 for -0.02) gave rotations 0.6 and 5.6 deg from the truth (medians), the subset
+        model's 450.0 px, k -0.020, 0.4 deg (the mapping's AUC@5 at that seed 0.30 -> 0.95: docs/benchmarks.md,
+        "Global mapper: the lens from a subset's model"). Only in a set of `_SUBSET_LENS_MIN_IMAGES` images or
+        more, where the subset costs a small share of the mapping: at 100 images it added a third to half of the
+        mapping time and changed no model by more than 0.001 of AUC@5; in the smaller sets `_recalibrated` maps
+        again from the models' lens where it moved far. The subset's model keeps the cameras' models (no lens
+        choice: the whole set's mapping chooses), and its steps' time counts as the calibration's."""
+        cams = sorted(calibratable_cameras(scratch.cameras, self.camera_of))
+        if not cams:
+            return
+        sample = self._calibration_pairs(cams)
+        inside = np.zeros(len(self.image_ids), bool)
+        inside[np.array(list(sample), dtype=np.int64).ravel()] = True
+        graph = relative_poses(scratch, sample, self.config, workers=self.workers)
+        reasons, choose_lens, seconds = self.reasons, self.choose_lens, dict(self.seconds)
+        self.reasons, self.choose_lens = {}, False
+        try:
+            m, _ = self._map_component(scratch.cameras, graph, list(graph.edges), inside) if graph.edges else (None, 0)
+        finally:
+            self.reasons, self.choose_lens, self.seconds = reasons, choose_lens, seconds
+        for c in cams if m is not None else []:
+            if int((m.registered & (m.camera_of == c)).sum()) >= self.config.distortion_min_images:
+                log.info("camera %d: lens %s from a model of %d images (was %s)", c,
+                         np.round(m.cameras[c].params, 4).tolist(), int(m.registered.sum()),
+                         np.round(scratch.cameras[c].params, 4).tolist())
+                scratch.cameras[c] = replace(m.cameras[c], params=m.cameras[c].params.copy())
 
     def _calibrate_by_bundle(self, cameras, graph) -> tuple[dict, tuple[int, int]]:
         """Camera id -> parameters with the focal refined by a coarse global model (one round of triangulation
@@ -485,7 +525,9 @@ class GlobalMapper:
         matches support are taken out, and the images of `pool` left out (poses lost to the filters, or never
         placed by the averaging) are registered by absolute pose against the points, as the incremental mapper
         does, in rounds while images join (an image next to one just registered needs that one's points: a
-        12-view wide orbit whose averaging placed 6 ended in models of 9 and 3 with one round); then final rounds
+        12-view wide orbit whose averaging placed 6 ended in models of 9 and 3 with one round); a loop whose gap
+        the first round's filters hid (the images at the gap fit neither end and lost every view) is looked for
+        again there, once those images are back, each beside its own end; then final rounds
         of retriangulation, BA and filtering until a round changes under `_FINAL_MIN_CHANGE` of the observations
         (COLMAP's iterative global refinement): on a facade of identical windows one round left the poses short
         of where the next rounds took them, each filtering the views the sharper poses no longer explain
@@ -520,9 +562,9 @@ class GlobalMapper:
             m.priors = None  # the next BAs go by the images alone
             self._filter(m, loose)
             if k == 0:
-                closed = self._close_open_loop(m, loose, first_round=True)
+                closed = self._close_open_loop(m, loose, rotations_held=True)
         if closed:
-            self._close_open_loop(m, cfg, first_round=False)
+            self._close_open_loop(m, cfg, rotations_held=False)
         dropped = self._drop_unsupported(m)
         added = self._register_left(m, pool)
         out = np.zeros(len(self.image_ids), bool)  # images taken out after a round: not registered again
@@ -538,6 +580,8 @@ class GlobalMapper:
                 self._filter(m, cfg)
             out[dropped] = True
             added = self._register_left(m, pool & ~out) if added else []
+        if not closed and self._close_open_loop(m, cfg, rotations_held=True):
+            self._close_open_loop(m, cfg, rotations_held=False)
         m.priors = self.priors  # held again from the final rounds on
         if cfg.view_sigmas_by_scale:
             m.refresh_view_sigmas(cfg.global_huber_px)
@@ -562,30 +606,31 @@ class GlobalMapper:
             self._bundle(m, intrinsics=True, subset=final_subset)
             self._filter(m, cfg)
 
-    def _close_open_loop(self, m: Reconstruction, config: MapperConfig, first_round: bool) -> bool:
-        """Close an open loop of the model (sfm/loop_closure.py); True if a closure was kept. After the first round
-        (`first_round`, at its gate), where the two ends of the cameras placed in turn round a loop met apart (a
-        hinge whose other pose lies `_LOOP_GAP` camera spacings or more from its own): the pose graph at every
-        hinge spreads the gap over the centres and scales with the rotations held (rotation averaging solved them
-        for the whole loop at once), the points are joined and triangulated again, and the closure is kept unless
-        the model then holds under `1 - _LOOP_VIEWS_TOLERANCE` of the views it holds triangulated again without it
-        (the scale it spreads moves some views past the gate; a closure that bends the model loses far more); the
-        rounds that follow adjust the model. Before the final rounds, once a gap was closed: where those rounds'
-        bundle adjustments left the loop open at its weakest links (the corners of a street loop, a street turned
-        3 deg against the next), the pose graph with the rotations free, the views joined, a bundle adjustment
-        and the filters, kept when the model then holds more views, as the incremental mapper closes its loops.
-        A street loop of 1,000 frames: AUC@5 0.54 -> 0.95 (docs/benchmarks.md, "Global mapper: a loop whose ends
-        met apart")."""
+    def _close_open_loop(self, m: Reconstruction, config: MapperConfig, rotations_held: bool) -> bool:
+        """Close an open loop of the model (sfm/loop_closure.py); True if a closure was kept. With
+        `rotations_held` (after the first round at its gate, or once the images it took out are registered
+        again), where the two ends of the cameras placed in turn round a loop met apart (a hinge whose other
+        pose lies `_LOOP_GAP` camera spacings or more from its own): the pose graph at every hinge spreads the
+        gap over the centres and scales with the rotations held (rotation averaging solved them for the whole
+        loop at once), the points are joined and triangulated again, and the closure is kept unless the model
+        then holds under `1 - _LOOP_VIEWS_TOLERANCE` of the views it holds triangulated again without it (the
+        scale it spreads moves some views past the gate; a closure that bends the model loses far more); the
+        rounds that follow adjust the model. Without (before the final rounds, once a gap was closed): where
+        those rounds' bundle adjustments left the loop open at its weakest links (the corners of a street
+        loop, a street turned 3 deg against the next), the pose graph with the rotations free, the views
+        joined, a bundle adjustment and the filters, kept when the model then holds more views, as the
+        incremental mapper closes its loops. A street loop of 1,000 frames: AUC@5 0.54 -> 0.95
+        (docs/benchmarks.md, "Global mapper: a loop whose ends met apart")."""
 
         def settle() -> None:
             continue_points(m, self.tracks, config)
-            if first_round:
+            if rotations_held:
                 retriangulate(m, self.tracks, config, config.seed)
             else:
                 self._bundle(m, intrinsics=True, subset=True)
             self._filter(m, config)
 
-        if first_round:
+        if rotations_held:
             return bool(close_open_loop(m, self.tracks, self.config, settle, hold_rotations=True, min_gap=_LOOP_GAP,
                                         settled_baseline=True, tolerance=_LOOP_VIEWS_TOLERANCE))
         return bool(close_open_loop(m, self.tracks, self.config, settle))

@@ -25,6 +25,7 @@ from mvrecon.sfm.global_mapper import GlobalMapper, map_correspondences_globally
 from mvrecon.sfm.incremental import MappingResult
 from mvrecon.sfm.loop_closure import find_hinges
 from mvrecon.sfm.model import Camera, Reconstruction
+from mvrecon.sfm.pair_poses import relative_poses
 from mvrecon.sfm.view_graph import calibration_shift_px
 from mvrecon.stages import mapping
 from tests.sfm.test_mapper import (
@@ -211,7 +212,9 @@ def test_a_loop_whose_ends_met_apart_is_closed_after_the_first_round_with_the_ro
     at that round's gate, and a bundle adjustment brings the poses back to the ground truth. A hinge nearer than
     `_LOOP_GAP` camera spacings (half the model's size) is left to the rounds. Once a gap was closed, the pose
     graph before the final rounds turns the rotations too (a side turned 3 deg). The mapper's own model has no
-    hinge, and the mapper looks for a gap once a model, after the first round at its gate."""
+    hinge; the mapper looks for a gap after the first round at its gate and, finding none, again at the config's
+    gate once the images that round took out are registered again, and a gap closed there is followed by the
+    closure with the rotations free."""
     gt, corr, result = scene
     mapper = GlobalMapper(corr, GLOBAL)
     first_gate = mapper._gated(global_mapper._GATES_PX[0])
@@ -228,13 +231,13 @@ def test_a_loop_whose_ends_met_apart_is_closed_after_the_first_round_with_the_ro
 
     near = split(turn_deg=(0.0, 0.0, 0.0))
     state = near.state()
-    assert not mapper._close_open_loop(near, first_gate, first_round=True)
+    assert not mapper._close_open_loop(near, first_gate, rotations_held=True)
     assert np.array_equal(near.xyz.data, state["xyz"]) and np.array_equal(near.t, state["t"])
 
     m = split(turn_deg=(0.0, 0.0, 0.0), shift=20.0)
     assert int(m.obs_alive.data.sum()) < 0.6 * views
     R = m.R.copy()
-    assert mapper._close_open_loop(m, first_gate, first_round=True)
+    assert mapper._close_open_loop(m, first_gate, rotations_held=True)
     assert max(rotation_error_deg(m.R[i], R[i]) for i in m.registered_images().tolist()) < 0.05
     assert int(m.obs_alive.data.sum()) > 0.95 * views
     mapper._bundle(m, intrinsics=True)
@@ -243,16 +246,45 @@ def test_a_loop_whose_ends_met_apart_is_closed_after_the_first_round_with_the_ro
     assert closed["registered"] == 8 and closed["auc@1"] >= 0.9
 
     m = split()  # turned 3 deg
-    assert mapper._close_open_loop(m, GLOBAL, first_round=False)
+    assert mapper._close_open_loop(m, GLOBAL, rotations_held=False)
     closed = accuracy_summary([model_poses(m)], gt)
     assert closed["registered"] == 8 and closed["auc@1"] >= 0.9
     assert int(m.obs_alive.data.sum()) > 0.95 * views
 
     calls = []
-    monkeypatch.setattr(GlobalMapper, "_close_open_loop", lambda self, model, config, first_round: calls.append(
-        (config.max_reproj_error_px, first_round)))
+
+    def looked_for(self, model, config, rotations_held):
+        calls.append((config.max_reproj_error_px, rotations_held))
+        return config.max_reproj_error_px < global_mapper._GATES_PX[0] and rotations_held  # a gap found late
+
+    monkeypatch.setattr(GlobalMapper, "_close_open_loop", looked_for)
     assert map_correspondences_globally(corr, GLOBAL).models
-    assert calls and set(calls) == {(global_mapper._GATES_PX[0], True)}
+    gate = GLOBAL.max_reproj_error_px
+    assert calls == [(global_mapper._GATES_PX[0], True), (gate, True), (gate, False)]
+
+
+@pytest.mark.parametrize("from_subset", [True, False])
+def test_a_large_set_gives_its_view_graph_the_lens_a_subsets_model_refines(scene, monkeypatch, from_subset):
+    """From `_SUBSET_LENS_MIN_IMAGES` images (here the synthetic scene's 8, its guessed focal 660 px for the
+    true 600 and no distortion for k 0.02) the view graph of every pair is estimated at the focal and distortion
+    a model of the calibration subset refined; below, at the focal the coarse models found, without distortion.
+    Either way the mapping is accurate."""
+    gt, corr, _ = scene
+    monkeypatch.setattr(global_mapper, "_SUBSET_LENS_MIN_IMAGES", 8 if from_subset else 9)
+    lenses = []
+
+    def estimated(model, pairs, config, *sample, **kwargs):
+        if not sample:  # not a coarse model's view graph (a sample of each pair's matches)
+            lenses.append(model.cameras[1].params.copy())
+        return relative_poses(model, pairs, config, *sample, **kwargs)
+
+    monkeypatch.setattr(global_mapper, "relative_poses", estimated)
+    result = map_correspondences_globally(corr, GLOBAL)
+    assert abs(lenses[0][3]) < 1e-6  # the subset's view graph, or the whole set's: the coarse models' focal, k 0
+    if from_subset:
+        assert abs(lenses[1][0] - 600.0) < 3.0 and abs(lenses[1][3] - 0.02) < 0.01
+    summary = accuracy_summary(estimated_poses(result), gt)
+    assert summary["registered"] == 8 and summary["median_rotation_error_deg"] < 0.1
 
 
 def test_bundle_adjustments_optimise_the_points_three_images_see_unless_a_pose_would_lose_its_hold(scene):
