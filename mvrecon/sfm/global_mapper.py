@@ -389,13 +389,17 @@ class GlobalMapper:
         inside = np.zeros(len(self.image_ids), bool)
         inside[np.array(list(sample), dtype=np.int64).ravel()] = True
         graph = relative_poses(scratch, sample, self.config, workers=self.workers)
+        if not graph.edges:
+            return
         reasons, choose_lens, seconds = self.reasons, self.choose_lens, dict(self.seconds)
         self.reasons, self.choose_lens = {}, False
         try:
-            m, _ = self._map_component(scratch.cameras, graph, list(graph.edges), inside) if graph.edges else (None, 0)
+            m, _ = self._map_component(scratch.cameras, graph, list(graph.edges), inside)
         finally:
             self.reasons, self.choose_lens, self.seconds = reasons, choose_lens, seconds
-        for c in cams if m is not None else []:
+        if m is None:
+            return
+        for c in cams:
             if int((m.registered & (m.camera_of == c)).sum()) >= self.config.distortion_min_images:
                 log.info("camera %d: lens %s from a model of %d images (was %s)", c,
                          np.round(m.cameras[c].params, 4).tolist(), int(m.registered.sum()),
