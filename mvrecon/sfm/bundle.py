@@ -23,7 +23,9 @@ fix many sigmas off barely pulls; with three or more such images spread in two d
 gauge and the pose and scale priors above are left out.
 
 The graph is built once per call in a single pass over the observation arrays; `optimizer="sfm"` runs
-gtsam.SfmLevenbergMarquardtOptimizer with Schur elimination of the points, "lm" plain Levenberg-Marquardt.
+gtsam.SfmLevenbergMarquardtOptimizer with Schur elimination of the points, "lm" plain Levenberg-Marquardt, its
+steps solved by sequential Cholesky, or by conjugate gradients where the factorisation would fill in
+(`MapperConfig.ba_iterative_fill`).
 """
 
 import logging
@@ -49,6 +51,8 @@ MIN_SUB_VIEWS = 8  # the least views per sub-point a split point's views are sha
 ORDERED_POSES = 100  # from this many optimised poses a BA eliminates them in `_pose_order`'s order
 _SQUARE_SIGMA_PX = 0.01  # how far apart fx and fy may be held by `_add_square_pixels`, pixels
 _CERES_LAMBDA = 1e-4  # LM's initial damping (CeresDefaults), except in BAs of shared cameras (MapperConfig)
+PCG_ITERATIONS = 500  # conjugate-gradient iterations an LM step may take (`_optimize`'s "pcg")
+PCG_TOLERANCE = 1e-3  # the residual, relative to the right-hand side's, at which conjugate gradients stop
 
 
 @dataclass
@@ -161,7 +165,12 @@ def bundle_adjust(model: Reconstruction, variable_images: np.ndarray | list[int]
     point_keys, xyz = _keys("l", points), model.xyz.data
     for k, p in zip(point_keys, points.tolist()):
         values.insertPoint3(k, xyz[p])  # `insert` would store a dynamic Vector, cast at every access
-    window.split, sub_points = _split_long_tracks(window, config.ba_memory_mb)
+    poses, fill = _pose_order(window)
+    kind = optimizer or config.optimizer
+    if kind == "lm" and 0 < config.ba_iterative_fill <= fill:
+        kind = "pcg"
+    # conjugate gradients factor nothing: no blocks to bound
+    window.split, sub_points = _split_long_tracks(window, 0 if kind == "pcg" else config.ba_memory_mb)
     sub_keys = _keys("s", range(len(sub_points)))
     for k, p in zip(sub_keys, sub_points.tolist()):
         values.insertPoint3(k, xyz[p])
@@ -173,19 +182,17 @@ def bundle_adjust(model: Reconstruction, variable_images: np.ndarray | list[int]
     # points first (the Schur complement, and no COLAMD run over the whole graph per call), then poses
     # (`_pose_order`), calibrations last: every reduced factor touches the calibration, so eliminating it before
     # the poses joins them all at once (an LM iteration of templeRing's final BA: 98 ms median against 114)
-    ordering = gtsam.Ordering([*point_keys, *sub_keys, *_keys("x", _pose_order(window)),
-                               *_keys("k", list(var_cams))])
+    ordering = gtsam.Ordering([*point_keys, *sub_keys, *_keys("x", poses), *_keys("k", list(var_cams))])
     lam = config.ba_shared_initial_lambda if model.cameras_shared(optimised) else _CERES_LAMBDA
     tolerance = relative_tolerance or config.ba_relative_tolerance
-    result, used, initial, final = _optimize(gtsam, graph, values, optimizer or config.optimizer, iterations,
-                                             tolerance, ordering, lam)
+    result, used, initial, final = _optimize(gtsam, graph, values, kind, iterations, tolerance, ordering, lam)
 
     focals = _write_back(gtsam, model, result, optimised, points, window, sub_points, refined_cams, cal_kind)
     out = BundleResult(float(initial), float(final), used, time.perf_counter() - start, len(window.obs),
                        len(sub_points))
-    log.debug("BA %d images (%d constant), %d points (%d sub-points), %d observations: cost %.4g -> %.4g in %d "
-              "iterations, %.3f s%s", len(optimised), held_images, len(points), len(sub_points),
-              len(window.obs), out.initial_error,
+    log.debug("BA %d images (%d constant), %d points (%d sub-points), %d observations, fill %.3g, %s: cost %.4g -> "
+              "%.4g in %d iterations, %.3f s%s", len(optimised), held_images, len(points), len(sub_points),
+              len(window.obs), fill, kind, out.initial_error,
               out.final_error, used, out.seconds, "".join(f"; {f}" for f in focals))
     return out
 
@@ -206,16 +213,18 @@ def _window(model, variable_images, point_ids) -> _Window | None:
     return _Window(variable, obs, obs_img, obs_pt, obs_kp)
 
 
-def _pose_order(window: _Window) -> list[int]:
-    """The order in which a BA eliminates its poses, after the points: from ORDERED_POSES poses on, COLAMD's
-    (approximate minimum degree) order of the graph of the images that share a point, else image order.
-    Eliminating the points joins every two images that see one, and eliminating a pose then joins all its
-    neighbours still to come: a fill-reducing order keeps that fill, and the factorisation's work, small, at the
-    same result. Image order is such an order for a sequence, not for two rings of views numbered one after the
-    other, nor for a survey's flight lines (docs/benchmarks.md, "Pose order")."""
+def _pose_order(window: _Window) -> tuple[list[int], float]:
+    """The order in which a BA eliminates its poses, after the points, and the fill of that elimination: from
+    ORDERED_POSES poses on, COLAMD's (approximate minimum degree) order of the graph of the images that share a
+    point, else image order. Eliminating the points joins every two images that see one, and eliminating a pose
+    then joins all its neighbours still to come: a fill-reducing order keeps that fill, and the factorisation's
+    work, small, at the same result. Image order is such an order for a sequence, not for two rings of views
+    numbered one after the other, nor for a survey's flight lines (docs/benchmarks.md, "Pose order"). The fill
+    is the sum over the poses of the square of the number of poses each is joined to when it is eliminated,
+    which the factorisation's work grows with; 0 below ORDERED_POSES poses, where it is small."""
     optimised = np.flatnonzero(window.variable)
     if len(optimised) < ORDERED_POSES:
-        return optimised.tolist()
+        return optimised.tolist(), 0.0
     column = np.full(len(window.variable), -1, np.int64)
     column[optimised] = np.arange(len(optimised))
     views = column[window.obs_img] >= 0
@@ -229,7 +238,9 @@ def _pose_order(window: _Window) -> list[int]:
     for a in range(len(optimised)):  # an image sharing no point is still ordered
         graph.push_factor(a)
     order = gtsam.Ordering.ColamdSymbolicFactorGraph(graph)
-    return optimised[[order.at(k) for k in range(order.size())]].tolist()
+    eliminated = graph.eliminateSequential(order)
+    fill = float(sum(eliminated.at(k).nrParents() ** 2 for k in range(eliminated.size())))
+    return optimised[[order.at(k) for k in range(order.size())]].tolist(), fill
 
 
 def _split_long_tracks(window: _Window, memory_mb: float) -> tuple[np.ndarray | None, np.ndarray]:
@@ -241,9 +252,9 @@ def _split_long_tracks(window: _Window, memory_mb: float) -> tuple[np.ndarray | 
     drawn across the track (a fixed scramble, not in turn: images must not fall into classes that share no
     variable); K is the largest that fits (at least MIN_SUB_VIEWS). Every view stays in the BA; the sub-points
     of a point are not tied to each other, and it is written back as their mean. Fires on no set of the mapper
-    suite; on a 1,000-view dense orbit AUC@1 -0.001 (docs/benchmarks.md, "Mapper rules"). Returns, per
-    observation, its sub-point (-1: the point itself; None when nothing is split), and the point of each
-    sub-point."""
+    suite; on a 1,000-view dense orbit AUC@1 -0.001 (docs/benchmarks.md, "Mapper rules"). A BA solved by conjugate
+    gradients factors nothing and is given 0. Returns, per observation, its sub-point (-1: the point itself; None
+    when nothing is split), and the point of each sub-point."""
     none = None, np.zeros(0, np.int64)
     if memory_mb <= 0:
         return none
@@ -447,18 +458,29 @@ def _optimize(gtsam, graph, values, kind: str, iterations: int, relative_toleran
     reports as an error. Plain LM gets the points-first `ordering` (a COLAMD ordering of the whole graph cost
     ~0.6 s per call on 5000 points) and solves by sequential Cholesky: multifrontal Cholesky, faster on a large
     survey, took far more memory on a dense orbit at no gain there (docs/benchmarks.md, "Pose order: COLAMD's");
-    the Sfm optimizer builds its own Schur ordering."""
+    the Sfm optimizer builds its own Schur ordering. "pcg" is plain LM whose steps are solved by conjugate
+    gradients preconditioned by the variables' diagonal blocks: where the cameras' system fills in (a dense orbit's
+    long tracks join nearly every two of its cameras) a step costs a few products with the Jacobian instead of a
+    dense factorisation, at the same cost reached (docs/benchmarks.md, "Bundle adjustment by conjugate
+    gradients")."""
     if kind == "sfm":
         params = gtsam.SfmLevenbergMarquardtParams.ceresDefaults()
         params.setEliminationMode(gtsam.SfmEliminationMode.Schur)
         make = gtsam.SfmLevenbergMarquardtOptimizer
-    elif kind == "lm":
+    elif kind in ("lm", "pcg"):
         params = gtsam.LevenbergMarquardtParams.CeresDefaults()
-        params.setLinearSolverType("SEQUENTIAL_CHOLESKY")
+        if kind == "lm":
+            params.setLinearSolverType("SEQUENTIAL_CHOLESKY")
+        else:
+            params.setLinearSolver(gtsam.NonlinearOptimizerParams.LinearSolverType.Iterative)
+            solver = gtsam.PCGSolverParameters()
+            solver.preconditioner = gtsam.BlockJacobiPreconditionerParameters()
+            solver.maxIterations, solver.epsilon_rel = PCG_ITERATIONS, PCG_TOLERANCE
+            params.setIterativeParams(solver)
         params.setOrdering(ordering)
         make = gtsam.LevenbergMarquardtOptimizer
     else:
-        raise ValueError(f"unknown optimizer {kind!r}; use 'sfm' or 'lm'")
+        raise ValueError(f"unknown optimizer {kind!r}; use 'sfm', 'lm' or 'pcg'")
     params.setMaxIterations(iterations)
     params.setRelativeErrorTol(relative_tolerance)
     params.setlambdaInitial(initial_lambda)

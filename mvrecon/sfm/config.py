@@ -109,6 +109,9 @@ class MapperConfig:
     partition_size: int = bounded(0, 0)
     # MB a bundle adjustment's point blocks may take; past it the longest tracks are split (sfm/bundle.py; 0: never)
     ba_memory_mb: float = bounded(1000.0, 0.0)
+    # a BA whose cameras' elimination would fill in this much (sfm/bundle.py, `_pose_order`) solves its LM steps by
+    # conjugate gradients instead of a factorisation (0: never)
+    ba_iterative_fill: float = bounded(5e7, 0.0)
     # "lm": Levenberg-Marquardt with points eliminated first; "sfm": gtsam.SfmLevenbergMarquardtOptimizer
     optimizer: str = "lm"
     # images a model needs, at most 0.8 x the images, else the largest one stays (COLMAP: min_model_size)

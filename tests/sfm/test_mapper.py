@@ -1317,8 +1317,8 @@ def test_a_large_bundle_adjustment_eliminates_its_poses_in_a_fill_reducing_order
     of 10 x 10 images numbered in a scrambled order, each point seen by a 2 x 2 block of neighbours, the
     factorisation's work (the sum of each eliminated pose's squared count of neighbours still to come) is at
     most that of the grid's row-major order and under a fifth of image order's; below ORDERED_POSES, image
-    order. The order changes the work, not the result: a BA of 20 disturbed poses ends at the same poses either
-    way."""
+    order. `_pose_order` gives that work as its fill. The order changes the work, not the result: a BA of 20
+    disturbed poses ends at the same poses either way."""
     side = 10
     n = side * side
     image_at = np.random.default_rng(0).permutation(n)  # the image at each place of the grid
@@ -1342,21 +1342,15 @@ def test_a_large_bundle_adjustment_eliminates_its_poses_in_a_fill_reducing_order
         return total
 
     monkeypatch.setattr(bundle, "ORDERED_POSES", n + 1)
-    assert bundle._pose_order(window) == list(range(n))
+    assert bundle._pose_order(window) == (list(range(n)), 0.0)
     monkeypatch.setattr(bundle, "ORDERED_POSES", n)
-    order = bundle._pose_order(window)
+    order, fill = bundle._pose_order(window)
     assert sorted(order) == list(range(n))
     ordered, row_major, numbered = work(order), work(image_at.tolist()), work(range(n))
     assert ordered <= row_major and 5 * ordered < numbered, (ordered, row_major, numbered)
+    assert fill == ordered  # the fill `_pose_order` gives is that work
 
-    path = tmp_path / "database.db"
-    synthetic_database(path, num_images=20, num_points=600)
-    built = incremental.IncrementalMapper(database.read_correspondences(path), MapperConfig(seed=3)).run().models[0]
-    images = built.registered_images()
-    assert len(images) == 20
-    rng = np.random.default_rng(1)
-    for i in images.tolist():
-        built.R[i] = Rotation.from_rotvec(np.deg2rad(0.3) * rng.normal(size=3) / np.sqrt(3)).as_matrix() @ built.R[i]
+    built, images = _disturbed_model(tmp_path)
     adjusted = []
     for least in (1000, 2):
         monkeypatch.setattr(bundle, "ORDERED_POSES", least)
@@ -1367,6 +1361,55 @@ def test_a_large_bundle_adjustment_eliminates_its_poses_in_a_fill_reducing_order
     assert np.allclose(adjusted[0].centers()[images], adjusted[1].centers()[images], atol=1e-6)
     assert np.degrees(max(Rotation.from_matrix(adjusted[0].R[i] @ built.R[i].T).magnitude() for i in images)) > 0.05
 
+
+
+def _disturbed_model(tmp_path):
+    """A 20-image synthetic model whose rotations are each turned 0.3 deg at random, and its images."""
+    path = tmp_path / "database.db"
+    synthetic_database(path, num_images=20, num_points=600)
+    built = incremental.IncrementalMapper(database.read_correspondences(path), MapperConfig(seed=3)).run().models[0]
+    images = built.registered_images()
+    assert len(images) == 20
+    rng = np.random.default_rng(1)
+    for i in images.tolist():
+        built.R[i] = Rotation.from_rotvec(np.deg2rad(0.3) * rng.normal(size=3) / np.sqrt(3)).as_matrix() @ built.R[i]
+    return built, images
+
+
+def test_a_bundle_adjustment_whose_factorisation_would_fill_in_solves_by_conjugate_gradients_to_the_same_poses(
+        tmp_path, monkeypatch):
+    """A BA whose cameras' elimination fills in to `ba_iterative_fill` or more solves its LM steps by conjugate
+    gradients ("pcg"), below it (and with 0) by sequential Cholesky ("lm"); both end at the same cost (within
+    0.01%) and poses (within 0.002 deg and 1e-4 of the scene's size), far closer to each other than to the
+    disturbed start (0.3 deg a rotation). Only the factorisation's blocks split long tracks past `ba_memory_mb`."""
+    built, images = _disturbed_model(tmp_path)
+    monkeypatch.setattr(bundle, "ORDERED_POSES", 2)
+    kinds, optimize = [], bundle._optimize
+
+    def spied(gtsam, graph, values, kind, *args):
+        kinds.append(kind)
+        return optimize(gtsam, graph, values, kind, *args)
+
+    monkeypatch.setattr(bundle, "_optimize", spied)
+    fill = bundle._pose_order(bundle._window(built, images, None))[1]
+    adjusted, costs = [], []
+    for threshold in (fill, 0.0, fill + 1):
+        adjusted.append(m := copy.deepcopy(built))
+        costs.append(bundle.bundle_adjust(m, images, MapperConfig(ba_iterative_fill=threshold),
+                                          refine_intrinsics=True, relative_tolerance=1e-8).final_error)
+    assert fill > 0 and kinds == ["pcg", "lm", "lm"]
+    assert costs[0] < 1.0001 * costs[1], costs
+    pcg, lm = adjusted[:2]
+    turned = [np.degrees(Rotation.from_matrix(pcg.R[i] @ lm.R[i].T).magnitude()) for i in images]
+    assert max(turned) < 2e-3, max(turned)
+    size = np.ptp(lm.centers()[images], axis=0).max()
+    assert np.abs(pcg.centers()[images] - lm.centers()[images]).max() < 1e-4 * size
+    assert np.degrees(max(Rotation.from_matrix(lm.R[i] @ built.R[i].T).magnitude() for i in images)) > 0.05
+    # conjugate gradients factor nothing: a memory budget the factorisation's blocks would pass splits no track
+    tight = {"ba_memory_mb": 1e-6, "ba_iterative_fill": fill}
+    assert bundle.bundle_adjust(copy.deepcopy(built), images, MapperConfig(**tight), max_iterations=1).sub_points == 0
+    tight["ba_iterative_fill"] = 0.0
+    assert bundle.bundle_adjust(copy.deepcopy(built), images, MapperConfig(**tight), max_iterations=1).sub_points > 0
 
 @pytest.mark.parametrize("camera_model", ["PINHOLE", "OPENCV", "OPENCV_FISHEYE"])
 def test_square_pixels_hold_the_two_focals_of_a_guessed_camera_equal(camera_model):
