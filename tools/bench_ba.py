@@ -104,7 +104,7 @@ def final_ba(run: Path, solver: str) -> dict:
     before = rss_mb([os.getpid()])
     # each solver by itself: the mapper's own choice of conjugate gradients where the factorisation fills in is off
     out = bundle_adjust(m, m.registered_images(), MapperConfig(ba_iterative_fill=0), point_ids=m.alive_points(),
-                        refine_intrinsics=True, optimizer={"sfm": "sfm", "pcg": "pcg"}.get(solver, "lm"))
+                        refine_intrinsics=True, optimizer=solver if solver in ("sfm", "pcg") else "lm")
     return {"solver": solver, "seconds": out.seconds, "iterations": out.iterations, "final_cost": out.final_error,
             "peak_above_mb": main_peak_mb() - before, "observations": out.num_observations,
             "images": int(m.registered.sum()), "points": len(m.alive_points()),
