@@ -17,6 +17,7 @@ from mvrecon.sfm.global_positioning import (
     _pair_slots,
     _reduce_points,
     _solve_reduced,
+    _split_long_tracks,
     global_positions,
     outlier_cameras,
     solve_positions,
@@ -42,6 +43,40 @@ def test_centres_are_recovered_up_to_a_similarity():
     assert similarity_error(found, C) < 1e-3
     off = np.linalg.norm(umeyama(found, C).apply(points) - X, axis=1)  # the points, by the centres' similarity
     assert np.mean(off < 1e-2) > 0.95
+
+
+def test_long_tracks_are_solved_as_interleaved_parts_past_the_budget_and_the_cameras_are_placed():
+    """40 cameras on a ring round 300 points, each point seen by 25-40 of them, exact rays. Within the budget nothing
+    is split. Past it, each point of more than K views becomes the fewest parts of at most K, K the largest that keeps
+    the pairs of observations of a point, summed, within the budget; its images are dealt out to the parts in turn
+    (each part spans its track), every ray is kept, and the centres solved from the parts are the true ones up to a
+    similarity."""
+    rng = np.random.default_rng(3)
+    n, m, budget = 40, 300, 120_000
+    angle = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    C = np.c_[6 * np.cos(angle), 6 * np.sin(angle), rng.normal(scale=0.3, size=n)]
+    X = rng.normal(size=(m, 3))
+    views = [np.sort(rng.choice(n, rng.integers(25, 41), replace=False)) for _ in range(m)]
+    cam = np.concatenate(views)
+    point = np.repeat(np.arange(m), [len(v) for v in views])
+    shuffle = rng.permutation(len(cam))  # the observations in no order
+    cam, point = cam[shuffle], point[shuffle]
+    assert np.array_equal(_split_long_tracks(cam, point, budget=np.sum(np.bincount(point) ** 2)), point)
+    split = _split_long_tracks(cam, point, budget)
+    K = np.bincount(split).max()
+
+    def pairs(k):  # the sum of squares of the fewest parts of at most k, as equal as can be
+        return sum(np.sum(np.bincount(np.arange(len(v)) % -(-len(v) // k)) ** 2) for v in views)
+
+    assert 10 <= K < 25 and np.sum(np.bincount(split) ** 2) == pairs(K) <= budget < pairs(K + 1)
+    for p in range(m):
+        k = -(-len(views[p]) // K)
+        in_order = split[point == p][np.argsort(cam[point == p])]  # each view's part, the views in their images' order
+        assert len(np.unique(in_order[:k])) == k and np.array_equal(in_order, np.resize(in_order[:k], len(in_order)))
+        assert len(np.unique(in_order)) == k and not np.isin(in_order, split[point != p]).any()
+    ids, split = np.unique(split, return_inverse=True)
+    found, _ = solve_positions(cam, split, rays(C, X, cam, point), n, len(ids))
+    assert similarity_error(found, C) < 1e-3
 
 
 def test_centres_are_the_same_whether_the_reduced_system_is_factorised_dense_or_sparse_or_solved_iteratively(
