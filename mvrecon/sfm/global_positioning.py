@@ -33,7 +33,7 @@ from .tracks import Tracks
 
 _TRACKS_PER_IMAGE = 500  # tracks are taken longest first while one of their images holds fewer than this
 _PAIR_BUDGET = 2e7  # a step's work: the pairs of observations of one point, summed; past it the longest tracks are
-_MIN_PART_VIEWS = 10  # solved as interleaved parts (`_split_long_tracks`) of no fewer views than this
+_MIN_PART_VIEWS = 10  # solved as parts (`_split_long_tracks`) of no fewer views than this
 _MIN_OBSERVATIONS = 6  # a camera with fewer selected observations is left out of the problem
 _HUBER = 0.1  # GLOMAP's loss width, on the unit directions
 _CAUCHY = 0.01  # the redescending loss's width that follows (0.6 deg; the shared sets' rays miss by 0.01-0.06)
@@ -139,7 +139,7 @@ def global_positions(model: Reconstruction, R: np.ndarray, solved: np.ndarray, t
     cams = np.flatnonzero(placed)
     local = np.full(n, -1)
     local[cams] = np.arange(len(cams))
-    point = _split_long_tracks(image, point)
+    point = _split_long_tracks(point, _PAIR_BUDGET)
     pts, point = np.unique(point, return_inverse=True)
     rays = np.c_[x, np.ones(len(x))]
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
@@ -156,17 +156,18 @@ def global_positions(model: Reconstruction, R: np.ndarray, solved: np.ndarray, t
     return PositioningResult(centers, placed, len(pts), len(v), residual)
 
 
-def _split_long_tracks(image: np.ndarray, point: np.ndarray, budget: float = _PAIR_BUDGET) -> np.ndarray:
-    """Point ids for the observations (`image`, `point`, one per observation): where the pairs of observations of
+def _split_long_tracks(point: np.ndarray, budget: float) -> np.ndarray:
+    """Point ids for the observations (`point`, one per observation): where the pairs of observations of
     one point, summed over the points, pass `budget`, each point of more than K observations is split into the
-    fewest points of at most K, K the largest (not under `_MIN_PART_VIEWS`) that brings the sum within the budget;
-    a split point's observations are dealt out in turn in the order of their images, so that each part spans the
-    whole track. Every ray is kept, and each part still ties together cameras from one end of the track to the
-    other; what is given up is only that the parts meet. Why: a step's work and memory grow with those pairs
-    (`_reduce_points`, `_pair_slots`), and round an object seen by 1,000 cameras the tracks taken have 47 views on
-    average and up to 312: 48 million pairs a step. Why only past a budget: along a 1,000-frame street (tracks of 17
-    views on average) parts of at most 20 views bent the loop (AUC@5 0.77 against 0.96; docs/benchmarks.md, "Global
-    positioning: long tracks solved as interleaved parts past a budget")."""
+    fewest points of at most K, K the largest (not under `_MIN_PART_VIEWS`) that brings the sum within the budget,
+    its observations dealt out at random (the same for the same input), each part a sample of the whole track.
+    Every ray is kept; what is given up is only that the parts meet. Why at random: dealt in the order of their
+    images, parts of tracks that all 8 images of a set see split the cameras into two sets, the even and the odd,
+    with no point between them, and their centres came out 36% of their spread off. Why split: a step's work and
+    memory grow with those pairs (`_reduce_points`, `_pair_slots`), and round an object seen by 1,000 cameras the
+    tracks taken have 47 views on average and up to 312: 48 million pairs a step. Why only past a budget: along a
+    1,000-frame street (tracks of 17 views on average) parts of at most 20 (dealt in order) bent the loop (AUC@5
+    0.77 against 0.96; docs/benchmarks.md, "Global positioning: long tracks solved as parts past a budget")."""
     if len(point) == 0:
         return point
     views = np.bincount(point)
@@ -184,7 +185,7 @@ def _split_long_tracks(image: np.ndarray, point: np.ndarray, budget: float = _PA
         mid = (lo + hi) // 2
         lo, hi = (mid, hi) if pairs(mid) <= budget else (lo, mid)
     parts = -(-views // lo)
-    order = np.lexsort((image, point))
+    order = np.lexsort((np.random.default_rng(0).random(len(point)), point))
     sorted_point = point[order]
     rank = np.arange(len(point)) - np.r_[0, np.cumsum(views)[:-1]][sorted_point]
     split = np.empty_like(point)

@@ -45,12 +45,11 @@ def test_centres_are_recovered_up_to_a_similarity():
     assert np.mean(off < 1e-2) > 0.95
 
 
-def test_long_tracks_are_solved_as_interleaved_parts_past_the_budget_and_the_cameras_are_placed():
+def test_long_tracks_are_solved_as_parts_past_the_budget_and_the_cameras_are_placed():
     """40 cameras on a ring round 300 points, each point seen by 25-40 of them, exact rays. Within the budget nothing
-    is split. Past it, each point of more than K views becomes the fewest parts of at most K, K the largest that keeps
-    the pairs of observations of a point, summed, within the budget; its images are dealt out to the parts in turn
-    (each part spans its track), every ray is kept, and the centres solved from the parts are the true ones up to a
-    similarity."""
+    is split. Past it, each point of more than K views becomes the fewest parts of at most K, as equal as can be, K
+    the largest that keeps the pairs of observations of a point, summed, within the budget; every ray is kept, and
+    the centres solved from the parts are the true ones up to a similarity."""
     rng = np.random.default_rng(3)
     n, m, budget = 40, 300, 120_000
     angle = np.linspace(0, 2 * np.pi, n, endpoint=False)
@@ -59,10 +58,8 @@ def test_long_tracks_are_solved_as_interleaved_parts_past_the_budget_and_the_cam
     views = [np.sort(rng.choice(n, rng.integers(25, 41), replace=False)) for _ in range(m)]
     cam = np.concatenate(views)
     point = np.repeat(np.arange(m), [len(v) for v in views])
-    shuffle = rng.permutation(len(cam))  # the observations in no order
-    cam, point = cam[shuffle], point[shuffle]
-    assert np.array_equal(_split_long_tracks(cam, point, budget=np.sum(np.bincount(point) ** 2)), point)
-    split = _split_long_tracks(cam, point, budget)
+    assert np.array_equal(_split_long_tracks(point, budget=np.sum(np.bincount(point) ** 2)), point)
+    split = _split_long_tracks(point, budget)
     K = np.bincount(split).max()
 
     def pairs(k):  # the sum of squares of the fewest parts of at most k, as equal as can be
@@ -70,10 +67,10 @@ def test_long_tracks_are_solved_as_interleaved_parts_past_the_budget_and_the_cam
 
     assert 10 <= K < 25 and np.sum(np.bincount(split) ** 2) == pairs(K) <= budget < pairs(K + 1)
     for p in range(m):
-        k = -(-len(views[p]) // K)
-        in_order = split[point == p][np.argsort(cam[point == p])]  # each view's part, the views in their images' order
-        assert len(np.unique(in_order[:k])) == k and np.array_equal(in_order, np.resize(in_order[:k], len(in_order)))
-        assert len(np.unique(in_order)) == k and not np.isin(in_order, split[point != p]).any()
+        sizes = np.bincount(split[point == p])
+        sizes = sizes[sizes > 0]
+        assert len(sizes) == -(-len(views[p]) // K) and np.ptp(sizes) <= 1
+        assert not np.isin(split[point == p], split[point != p]).any()
     ids, split = np.unique(split, return_inverse=True)
     found, _ = solve_positions(cam, split, rays(C, X, cam, point), n, len(ids))
     assert similarity_error(found, C) < 1e-3
@@ -342,16 +339,23 @@ def test_two_starts_solved_at_once_give_the_centres_of_one_after_the_other():
         assert similarity_error(beside, truth) < 0.02
 
 
+def true_synthetic_scene(tmp_path):
+    """pycolmap's synthetic scene as the global mapper reads it: (mapper, a model with the true calibration, the true
+    rotations, the true centres)."""
+    gt = synthetic_database(tmp_path / "database.db")
+    mapper = GlobalMapper(database.read_correspondences(tmp_path / "database.db"), MapperConfig(mapper="global"))
+    model = mapper._new_model(mapper.cameras)
+    model.cameras[1].params = np.array([600.0, 320.0, 240.0, 0.02])
+    R = np.array([gt[name][0] for name in mapper.names])
+    C = np.array([-gt[name][0].T @ gt[name][1] for name in mapper.names])
+    return mapper, model, R, C
+
+
 @pytest.mark.parametrize("turn_deg", [10.0, 40.0])
 def test_a_flipped_camera_is_found_by_its_rays(tmp_path, turn_deg):
     """pycolmap's synthetic scene with its true rotations, but one camera's turned (a rotation the averaging got
     wrong): that camera alone is an outlier, with a reason, and the others are placed right."""
-    gt = synthetic_database(tmp_path / "database.db")
-    mapper = GlobalMapper(database.read_correspondences(tmp_path / "database.db"), MapperConfig(mapper="global"))
-    model = mapper._new_model(mapper.cameras)
-    model.cameras[1].params = np.array([600.0, 320.0, 240.0, 0.02])  # the true calibration
-    R = np.array([gt[name][0] for name in mapper.names])
-    C = np.array([-gt[name][0].T @ gt[name][1] for name in mapper.names])
+    mapper, model, R, C = true_synthetic_scene(tmp_path)
     R[5] = angle_axis_to_rotmat(np.radians(turn_deg) * np.array([0.6, 0.8, 0.0])) @ R[5]
     result = global_positions(model, R, np.ones(len(R), bool), mapper.tracks)
     assert result.solved.all() and result.points > 100
@@ -359,6 +363,21 @@ def test_a_flipped_camera_is_found_by_its_rays(tmp_path, turn_deg):
     assert list(out) == [5] and out[5].startswith("its global pose was an outlier: its rays miss")
     good = np.arange(len(R)) != 5
     assert similarity_error(result.centers[good], C[good]) < 0.02
+
+
+def test_global_positions_solves_long_tracks_as_parts_past_the_budget(tmp_path, monkeypatch):
+    """pycolmap's synthetic scene (8 images, every point seen by all of them) with its true rotations and
+    calibration, global positioning's budget of pairs of observations set so low that every track is solved as parts
+    of at most 3 views: every ray is still used, there are three times the points, and the centres are as right as
+    with the tracks whole (parts dealt in the images' order would leave no point between the even and the odd
+    cameras)."""
+    mapper, model, R, C = true_synthetic_scene(tmp_path)
+    whole = global_positions(model, R, np.ones(len(R), bool), mapper.tracks)
+    monkeypatch.setattr(global_positioning, "_PAIR_BUDGET", 1.0)
+    monkeypatch.setattr(global_positioning, "_MIN_PART_VIEWS", 3)
+    parts = global_positions(model, R, np.ones(len(R), bool), mapper.tracks)
+    assert parts.solved.all() and parts.observations == whole.observations and parts.points == 3 * whole.points
+    assert similarity_error(whole.centers, C) < 0.01 and similarity_error(parts.centers, C) < 0.01
 
 
 def test_a_survey_of_150_cameras_is_placed_from_neighbours_alone():
