@@ -42,6 +42,7 @@ from scipy.sparse import csr_matrix, triu
 from .config import MapperConfig
 from .georef import spread_enough
 from .model import Reconstruction, sum_rows
+from .track_parts import deal_long_tracks, scrambled
 
 log = logging.getLogger("mvrecon.sfm")
 _TIGHT = 1e-6
@@ -260,40 +261,15 @@ def _split_long_tracks(window: _Window, memory_mb: float) -> tuple[np.ndarray | 
         return none
     points, inverse = np.unique(window.obs_pt, return_inverse=True)
     k = np.bincount(inverse, weights=window.variable[window.obs_img], minlength=len(points)).astype(np.int64)
-    budget = memory_mb * 2 ** 20 / BYTES_PER_BLOCK
-
-    def blocks(cap: int) -> tuple[float, np.ndarray]:
-        n = np.maximum(-(-k // cap), 1)
-        q, r = np.divmod(k, n)
-        return float((r * (q + 1) ** 2 + (n - r) * q ** 2).sum()), n
-
-    if blocks(int(k.max(initial=1)))[0] <= budget:
+    dealt = deal_long_tracks(inverse, k, memory_mb * 2 ** 20 / BYTES_PER_BLOCK, MIN_SUB_VIEWS,
+                             scrambled(window.obs_pt, window.obs_img))
+    if dealt is None:
         return none
-    low, high = MIN_SUB_VIEWS, max(int(k.max()), MIN_SUB_VIEWS)  # the largest cap whose blocks fit
-    while low < high:
-        mid = (low + high + 1) // 2
-        low, high = (mid, high) if blocks(mid)[0] <= budget else (low, mid - 1)
-    per_point = blocks(low)[1]
-    n = per_point[inverse]
-    # views in a scrambled order (fixed by image and point): in image order every track of a set seen by all its
-    # images splits the same way, and the two halves of the images then share no variable at all
-    order = np.lexsort((_scrambled(window.obs_pt, window.obs_img), inverse))
-    start = np.searchsorted(inverse[order], inverse[order])
-    turn = np.empty(len(order), np.int64)
-    turn[order] = (np.arange(len(order)) - start) % n[order]  # 0, 1, ..., n - 1, 0, 1, ... in that order
+    turn, per_point = dealt
     # sub-points numbered point by point; turn 0 keeps the point's own variable
     added = per_point - 1
     first = np.r_[0, np.cumsum(added)[:-1]]
     return np.where(turn > 0, first[inverse] + turn - 1, -1), np.repeat(points, added)
-
-
-def _scrambled(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """A fixed pseudo-random 64-bit key per pair (a, b) (splitmix64's mix): orders that differ from one `a` to
-    the next, where a linear key would order every `a`'s `b`s alike."""
-    x = (a.astype(np.uint64) << np.uint64(32)) ^ b.astype(np.uint64)
-    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    return x ^ (x >> np.uint64(31))
 
 
 def _refined_cameras(model, variable, cameras) -> set:

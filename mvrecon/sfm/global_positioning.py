@@ -29,6 +29,7 @@ from scipy.sparse.linalg import splu
 from ..executor import in_background
 from ..geometry.kernels import symmetric_inverses
 from .model import Reconstruction, sum_rows
+from .track_parts import deal_long_tracks
 from .tracks import Tracks
 
 _TRACKS_PER_IMAGE = 500  # tracks are taken longest first while one of their images holds fewer than this
@@ -160,37 +161,21 @@ def _split_long_tracks(point: np.ndarray, budget: float) -> np.ndarray:
     """Point ids for the observations (`point`, one per observation): where the pairs of observations of
     one point, summed over the points, pass `budget`, each point of more than K observations is split into the
     fewest points of at most K, K the largest (not under `_MIN_PART_VIEWS`) that brings the sum within the budget,
-    its observations dealt out at random (the same for the same input), each part a sample of the whole track.
-    Every ray is kept; what is given up is only that the parts meet. Why at random: dealt in the order of their
-    images, parts of tracks that all 8 images of a set see split the cameras into two sets, the even and the odd,
-    with no point between them, and their centres came out 36% of their spread off. Why split: a step's work and
-    memory grow with those pairs (`_reduce_points`, `_pair_slots`), and round an object seen by 1,000 cameras the
-    tracks taken have 47 views on average and up to 312: 48 million pairs a step. Why only past a budget: along a
-    1,000-frame street (tracks of 17 views on average) parts of at most 20 (dealt in order) bent the loop (AUC@5
-    0.77 against 0.96; docs/benchmarks.md, "Global positioning: long tracks solved as parts past a budget")."""
+    its observations dealt out at random (the same for the same input; `track_parts.deal_long_tracks`), each part a
+    sample of the whole track. Every ray is kept; what is given up is only that the parts meet. Why split: a step's
+    work and memory grow with those pairs (`_reduce_points`, `_pair_slots`), and round an object seen by 1,000
+    cameras the tracks taken have 47 views on average and up to 312: 48 million pairs a step. Why only past a
+    budget: along a 1,000-frame street (tracks of 17 views on average) parts of at most 20 (dealt in order) bent
+    the loop (AUC@5 0.77 against 0.96; docs/benchmarks.md, "Global positioning: long tracks solved as parts past a
+    budget")."""
     if len(point) == 0:
         return point
-    views = np.bincount(point)
-
-    def pairs(k: int) -> float:
-        parts = np.maximum(-(-views // k), 1)  # a point id left without observations counts none
-        q, r = views // parts, views % parts
-        return float((r * (q + 1) ** 2 + (parts - r) * q ** 2).sum())
-
-    longest = int(views.max())
-    if pairs(longest) <= budget:
+    dealt = deal_long_tracks(point, np.bincount(point), budget, _MIN_PART_VIEWS,
+                             np.random.default_rng(0).random(len(point)))
+    if dealt is None:
         return point
-    lo, hi = _MIN_PART_VIEWS, longest  # the largest k in [lo, hi) within the budget, else lo
-    while hi - lo > 1:
-        mid = (lo + hi) // 2
-        lo, hi = (mid, hi) if pairs(mid) <= budget else (lo, mid)
-    parts = -(-views // lo)
-    order = np.lexsort((np.random.default_rng(0).random(len(point)), point))
-    sorted_point = point[order]
-    rank = np.arange(len(point)) - np.r_[0, np.cumsum(views)[:-1]][sorted_point]
-    split = np.empty_like(point)
-    split[order] = np.r_[0, np.cumsum(parts)[:-1]][sorted_point] + rank % parts[sorted_point]
-    return split
+    turn, parts = dealt
+    return np.r_[0, np.cumsum(parts)[:-1]][point] + turn
 
 
 def solve_positions(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams: int, num_points: int,
