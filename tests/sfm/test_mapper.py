@@ -1362,7 +1362,6 @@ def test_a_large_bundle_adjustment_eliminates_its_poses_in_a_fill_reducing_order
     assert np.degrees(max(Rotation.from_matrix(adjusted[0].R[i] @ built.R[i].T).magnitude() for i in images)) > 0.05
 
 
-
 def _disturbed_model(tmp_path):
     """A 20-image synthetic model whose rotations are each turned 0.3 deg at random, and its images."""
     path = tmp_path / "database.db"
@@ -1410,6 +1409,7 @@ def test_a_bundle_adjustment_whose_factorisation_would_fill_in_solves_by_conjuga
     assert bundle.bundle_adjust(copy.deepcopy(built), images, MapperConfig(**tight), max_iterations=1).sub_points == 0
     tight["ba_iterative_fill"] = 0.0
     assert bundle.bundle_adjust(copy.deepcopy(built), images, MapperConfig(**tight), max_iterations=1).sub_points > 0
+
 
 @pytest.mark.parametrize("camera_model", ["PINHOLE", "OPENCV", "OPENCV_FISHEYE"])
 def test_square_pixels_hold_the_two_focals_of_a_guessed_camera_equal(camera_model):
