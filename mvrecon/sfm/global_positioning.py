@@ -104,13 +104,14 @@ def global_positions(model: Reconstruction, R: np.ndarray, solved: np.ndarray, t
                      workers: int = 1) -> PositioningResult:
     """Camera centres of the `solved` images (rotations R, cam_from_world) from their tracks (see the module
     docstring), the model's current calibration turning keypoints into rays. Images with too few observations are
-    left out; the centres are up to a similarity. The problem is solved from a random start, from centres placed in
-    turn, and, where those leave a camera unplaced, from centres placed in turn again from points seen at a narrower
-    angle and from the centres `initial()` gives (n,3; NaN where unknown) when given, and the solution of lowest
-    cost is kept (`solve_positions`): from random centres a street of cameras moving straight ahead can stop in a
-    wrong minimum, which centres placed in turn start clear of (a walk round a block, whose streets the pairs'
-    directions leave short) and, where those stop short, centres from the pairs' directions (a street seen far
-    ahead). With `workers` > 1 two starts are solved at once (`solve_positions`)."""
+    left out; the centres are up to a similarity. The problem is solved from a random start and from centres placed
+    in turn; where those leave a camera unplaced or end above the random start's cost, also from centres placed in
+    turn again from points seen at a narrower angle; where a camera is left unplaced, also from the centres
+    `initial()` gives (n,3; NaN where unknown) when given; the solution of lowest cost is kept (`solve_positions`):
+    from random centres a street of cameras moving straight ahead can stop in a wrong minimum, which centres placed
+    in turn start clear of (a walk round a block, whose streets the pairs' directions leave short) and, where those
+    stop short, centres from the pairs' directions (a street seen far ahead). With `workers` > 1 two starts are
+    solved at once (`solve_positions`)."""
     n = len(R)
     centers = np.full((n, 3), np.nan)
     chosen = select_tracks(tracks, solved)
@@ -185,16 +186,22 @@ def solve_positions(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams:
     """(centres (num_cams,3), points (num_points,3)) minimising sum rho(|v_k - s_k (X_point[k] - C_cam[k])|) from a
     random start (uniform in [-1, 1]^3, scales 1), rho Huber's loss and then Cauchy's; camera 0 is held (the gauge), and
     the result is moved and scaled to centres of zero mean and unit RMS distance from it. It is solved from the centres
-    placed in turn (`centres_in_turn`) too and, where those leave a camera unplaced, from the centres placed in turn
-    again from points seen at `_TURN_NARROW_ANGLE_DEG` (the cameras ready longest first, `_TURN_READY_POINTS`) and from
-    the centres `initial()` gives (num_cams,3; NaN where unknown) when given (`_start`), asked for only then (the
-    mapper's come from translation averaging); the solution of the lowest final cost is returned. Why the second
-    placing: through a narrow lens (640 px wide at 768 px focal) a camera that has turned a corner of a street shares
-    with the placed cameras few points seen at 2 deg or more, so placing stops there while the cameras behind the first
-    pair are placed the long way round a loop; on such a 300-frame walk round a block every frame ended misplaced (AUC@5
-    0.26), and with the second placing none at two mapper seeds of three (AUC@5 0.76 and 0.65; docs/benchmarks.md,
-    "Global positioning: a second placing at 1 deg where the first stops"); the mapper suite's models are unchanged. A
-    start already near the best solution (`_near`) is not solved from: it would end there. Why the `initial` start only
+    placed in turn (`centres_in_turn`) too; where those leave a camera unplaced, or their solution ends at a cost no
+    lower than the random start's, from the centres placed in turn again from points seen at `_TURN_NARROW_ANGLE_DEG`
+    (the cameras ready longest first, `_TURN_READY_POINTS`); and where a camera is left unplaced, from the centres
+    `initial()` gives (num_cams,3; NaN where unknown) when given (`_start`), asked for only then (the mapper's come
+    from translation averaging); the solution of the lowest final cost is returned. Why the second placing: through a
+    narrow lens (640 px wide at 768 px focal) a camera that has turned a corner of a street shares with the placed
+    cameras few points seen at 2 deg or more, so placing stops there while the cameras behind the first pair are placed
+    the long way round a loop; on such a 300-frame walk round a block every frame ended misplaced (AUC@5 0.26), and
+    with the second placing none at two mapper seeds of three (AUC@5 0.76 and 0.65; docs/benchmarks.md, "Global
+    positioning: a second placing at 1 deg where the first stops"). Why also where the first placing ends above the
+    random start: the centres placed in turn are the informed start, and on that walk at other seeds the placing at
+    2 deg placed every camera, but crossed a corner on a few far points and made the far side's steps 3-4.5x too
+    long; its solution and the random start's ended 0.44-0.80 of the centres' spread off, the second placing's 0.02
+    (docs/benchmarks.md, "Global positioning: placed again where the first placing ends above the random start").
+    The mapper suite's models are unchanged by either. A start already near the best solution (`_near`) is not
+    solved from: it would end there. Why the `initial` start only
     then: where every camera is placed in turn, the mapper suite's models are better without it on the whole over three
     seeds, and a solve is saved (docs/benchmarks.md, "Global positioning: compiled steps, and the pairs' start only
     where cameras are left unplaced"). With `workers` > 1 the random start is solved in a second thread while the
@@ -222,14 +229,18 @@ def solve_positions(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams:
         from_turn = solve_from(in_turn, stop=lambda: random.done() and random.exception() is None
                                and _near(in_turn, random.result()[0]))  # moot once near the random solution
     best = solve_random() if random is None else random.result()
-    narrow = None if complete else centres_in_turn(cam, point, v, num_cams, num_points, _TURN_NARROW_ANGLE_DEG,
-                                                   _TURN_READY_POINTS)
-    for start in (in_turn, narrow, None if complete or initial is None else initial()):
-        if not usable(start) or _near(start, best[0]):
-            continue
-        other = from_turn if start is in_turn and from_turn is not None else solve_from(start)
-        if other[2] < best[2]:
-            best = other
+    placing_lost = False  # the centres placed in turn ended above the random start's cost: they went astray
+    if usable(in_turn) and not _near(in_turn, best[0]):
+        other = from_turn if from_turn is not None else solve_from(in_turn)
+        placing_lost = other[2] >= best[2]
+        best = other if other[2] < best[2] else best
+    narrow = None
+    if not complete or placing_lost:
+        narrow = centres_in_turn(cam, point, v, num_cams, num_points, _TURN_NARROW_ANGLE_DEG, _TURN_READY_POINTS)
+    for start in (narrow, None if complete or initial is None else initial()):
+        if usable(start) and not _near(start, best[0]):
+            other = solve_from(start)
+            best = other if other[2] < best[2] else best
     C, X, _ = best
     C0 = C.mean(axis=0)
     scale = _spread(C) or 1.0

@@ -3,6 +3,7 @@
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from mvrecon.geometry.rotation import angle_axis_to_rotmat
 from mvrecon.sfm.rotation_averaging import average_rotations, edge_residuals_deg
 
 
@@ -51,3 +52,21 @@ def test_the_largest_of_two_components_is_averaged():
     result = average_rotations(len(R), ij[split], Rij[split], np.ones(int(split.sum())))
     assert np.array_equal(result.solved, np.arange(30) >= 12)
     assert errors_deg(result.R, R, np.arange(12, 30)).max() < 0.01
+
+
+def test_a_street_whose_average_shonan_cannot_certify_is_still_averaged():
+    """60 images along a street, each paired with the next four, every relative rotation 1.5 deg off at random:
+    no rank up to 6 of GTSAM's Shonan averaging is certified optimal there (on a 100-frame street rendered from
+    another seed the global mapper failed with it), so the local optimum at rank 3 is kept. Every rotation comes
+    out, as near the truth as at the seeds Shonan certifies (medians 1.4-2.4 deg there: the error of a chain
+    grows along it)."""
+    rng = np.random.default_rng(2)
+    n = 60
+    R = np.array([angle_axis_to_rotmat(rng.normal(size=3) * 0.3) for _ in range(n)])
+    ij = np.array([(i, j) for i in range(n) for j in range(i + 1, min(n, i + 5))])
+    Rij = np.array([angle_axis_to_rotmat(np.radians(1.5) * rng.normal(size=3)) @ R[j] @ R[i].T for i, j in ij])
+    result = average_rotations(n, ij, Rij, np.ones(len(ij)))
+    U, _, Vt = np.linalg.svd(np.einsum("nji,njk->ik", result.R, R))  # the gauge that fits every rotation best
+    errors = np.degrees(Rotation.from_matrix(result.R @ (U @ Vt) @ R.transpose(0, 2, 1)).magnitude())
+    assert result.solved.all() and result.inliers.mean() > 0.95
+    assert np.median(errors) < 3.0 and errors.max() < 6.0
