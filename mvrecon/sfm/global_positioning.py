@@ -197,18 +197,18 @@ def solve_positions(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams:
     with the second placing none at two mapper seeds of three (AUC@5 0.76 and 0.65; docs/benchmarks.md, "Global
     positioning: a second placing at 1 deg where the first stops"). Why also where the first placing ends above the
     random start: the centres placed in turn are the informed start, and on that walk at other seeds the placing at
-    2 deg placed every camera, but crossed a corner on a few far points and made the far side's steps 3-4.5x too
-    long; its solution and the random start's ended 0.44-0.80 of the centres' spread off, the second placing's 0.02
-    (docs/benchmarks.md, "Global positioning: placed again where the first placing ends above the random start").
-    The mapper suite's models are unchanged by either. A start already near the best solution (`_near`) is not
-    solved from: it would end there. Why the `initial` start only
-    then: where every camera is placed in turn, the mapper suite's models are better without it on the whole over three
-    seeds, and a solve is saved (docs/benchmarks.md, "Global positioning: compiled steps, and the pairs' start only
-    where cameras are left unplaced"). With `workers` > 1 the random start is solved in a second thread while the
-    cameras are placed in turn and solved from there (the compiled steps, the conjugate gradients and LAPACK run without
-    the GIL); that solve stops, and its solution is dropped, once the start proves near the random one's solution: the
-    same result as one after the other, in about the time of the longer of the two (docs/benchmarks.md, "Global
-    positioning: two starts at once")."""
+    2 deg placed every camera, but crossed a corner on a few far points and made the far side's steps about 5x the
+    near side's; its solution and the random start's ended 0.44-0.80 of the centres' spread off, the second
+    placing's 0.02 (docs/benchmarks.md, "Global positioning: placed again where the first placing ends above the
+    random start"). The mapper suite's models are unchanged by either. A start already near the best solution
+    (`_near`) is not solved from: it would end there. Why the `initial` start only then: where every camera is
+    placed in turn, the mapper suite's models are better without it on the whole over three seeds, and a solve is
+    saved (docs/benchmarks.md, "Global positioning: compiled steps, and the pairs' start only where cameras are left
+    unplaced"). With `workers` > 1 the random start is solved in a second thread while the cameras are placed in turn
+    and solved from there (the compiled steps, the conjugate gradients and LAPACK run without the GIL); that solve
+    stops, and its solution is dropped, once the start proves near the random one's solution: the same result as one
+    after the other, in about the time of the longer of the two (docs/benchmarks.md, "Global positioning: two starts
+    at once")."""
     rng = np.random.default_rng(seed)
     C = rng.uniform(-1, 1, (num_cams, 3))
     X = rng.uniform(-1, 1, (num_points, 3))

@@ -472,10 +472,10 @@ def test_a_walk_round_a_block_through_a_narrow_lens_is_placed_again_where_placin
 
 def test_cameras_placed_in_turn_that_end_above_the_random_start_are_placed_again_at_the_narrow_angle(monkeypatch):
     """Through a narrow lens the placing at 2 deg can place every camera and still go astray: on a 300-frame walk
-    round a block it crossed a corner on a few far points and made the far side's steps 3-5x too long. Here the
-    placing at 2 deg gives such a start (the walk's steps from its 60th camera on 3x too long), whose solution ends
-    above the random start's cost; the cameras are then placed again from points seen at 1 deg, and that solution
-    is within 1% of the truth (without it the random start's was kept, 0.41 off)."""
+    round a block it crossed a corner on a few far points and made the far side's steps about 5x the near side's.
+    Here the placing at 2 deg gives such a start (the walk's steps from its 60th camera on 3x too long), whose
+    solution ends above the random start's cost; the cameras are then placed again from points seen at 1 deg, and
+    that solution is within 1% of the truth (without it the random start's was kept, 0.41 off)."""
     rng = np.random.default_rng(7)
     C, X, cam, point = block_walk(rng, n=120, fov_deg=22.0, reach=25.0)
     v = rays(C, X, cam, point) + rng.normal(scale=np.radians(0.1), size=(len(cam), 3))
