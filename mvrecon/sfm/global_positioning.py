@@ -514,14 +514,17 @@ def _triangulate(points, by_point, bounds, cam, v, placed, C, X, cos_max):  # pr
 class _ReducedLayout:
     """Where each term of the reduced camera system goes, fixed by which cameras see which points: the system is
     sparse, a 3x3 block per pair of cameras that share a point and one per camera, in CSR order (`indptr`,
-    `block_col`); each ordered pair of observations of one point adds to one block (`slot_of_pair`, in the
-    order of `order`, the observations sorted by point, `bounds` each point's range)."""
+    `block_col`); each unordered pair of observations of one point adds to one block of the upper triangle
+    (`slot_of_pair`, in the order of `order`, the observations sorted by point, `bounds` each point's range), and
+    each block below the diagonal (`lower`) is the transpose of one above it (`upper`)."""
     order: np.ndarray
     bounds: np.ndarray
     indptr: np.ndarray
     block_col: np.ndarray
     slot_of_pair: np.ndarray
     slot_of_cam: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
     gauge: np.ndarray  # the blocks of camera 0's row and column: held, its rows and columns are the identity's
 
     @classmethod
@@ -532,8 +535,13 @@ class _ReducedLayout:
         cam_bounds = np.r_[0, np.cumsum(np.bincount(cam, minlength=num_cams))]
         indptr, block_col = _camera_blocks(cam, point, order, bounds, by_cam, cam_bounds)
         block_row = np.repeat(np.arange(num_cams), np.diff(indptr))
+        lower = np.flatnonzero(block_row > block_col)
+        # the blocks in column order are the transposed blocks in row order: block (r, c) is the k-th of column c
+        # exactly where (c, r) is the k-th of row c
+        by_col = np.lexsort((block_row, block_col))
+        upper = by_col[lower] if len(lower) else lower
         return cls(order, bounds, indptr, block_col, _pair_slots(cam, order, bounds, indptr, block_col),
-                   np.flatnonzero(block_row == block_col), (block_row == 0) | (block_col == 0))
+                   np.flatnonzero(block_row == block_col), lower, upper, (block_row == 0) | (block_col == 0))
 
 
 def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout, robust_iterations: int = _ROBUST_ITERATIONS,
@@ -560,7 +568,8 @@ def _minimise(cam, point, v, C, X, s, iterations, layout: _ReducedLayout, robust
             Xinv = symmetric_inverses(H_XX)
             blocks = np.zeros((len(layout.block_col), 3, 3))
             blocks[slot_of_cam] = H_CC
-            _reduce_points(cam, order, bounds, layout.slot_of_pair, e, d, coef, Xinv, rhs_X, blocks, rhs_C)
+            _reduce_points(cam, order, bounds, layout.slot_of_pair, layout.lower, layout.upper, e, d, coef, Xinv,
+                           rhs_X, blocks, rhs_C)
             blocks[gauge] = 0.0
             blocks[slot_of_cam[0]] = eye
             rhs_C[0] = 0.0
@@ -736,19 +745,23 @@ def _camera_blocks(cam, point, order, bounds, by_cam, cam_bounds):  # pragma: no
 
 @njit(cache=True)
 def _pair_slots(cam, order, bounds, indptr, cols):  # pragma: no cover - compiled
-    """For every ordered pair (k, l) of observations of one point, point by point in `order`, the block of
-    (cam[k], cam[l]) in the CSR layout of `_camera_blocks`: 4 bytes a pair."""
+    """For every unordered pair (k, l) of observations of one point, k no later than l in `order`, point by point,
+    the block of (cam[k], cam[l]) in the upper triangle of `_camera_blocks`' CSR layout (row <= column): 4 bytes
+    a pair."""
     total = 0
     for p in range(len(bounds) - 1):
-        total += (bounds[p + 1] - bounds[p]) ** 2
+        n = bounds[p + 1] - bounds[p]
+        total += n * (n + 1) // 2
     slots = np.empty(total, np.int32)
     q = 0
     for p in range(len(bounds) - 1):
         for a in range(bounds[p], bounds[p + 1]):
-            row = cam[order[a]]
-            lo, hi = indptr[row], indptr[row + 1]
-            for b in range(bounds[p], bounds[p + 1]):
-                slots[q] = lo + np.searchsorted(cols[lo:hi], cam[order[b]])
+            ca = cam[order[a]]
+            for b in range(a, bounds[p + 1]):
+                cb = cam[order[b]]
+                row, col = min(ca, cb), max(ca, cb)
+                lo, hi = indptr[row], indptr[row + 1]
+                slots[q] = lo + np.searchsorted(cols[lo:hi], col)
                 q += 1
     return slots
 
@@ -835,10 +848,15 @@ def _q_block(e, d, coef, k, out):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _reduce_points(cam, order, bounds, slot, e, d, coef, Xinv, rhs_X, blocks, rhs_C):  # pragma: no cover - compiled
-    """The points eliminated from the normal equations: blocks[slot] -= Q_k Xinv_p Q_l for every ordered pair
-    (k, l) of observations of one point p, in `_pair_slots`'s order, and rhs_C[cam_k] -= Q_k Xinv_p rhs_X[p];
-    in one pass over the points, each point's products formed once."""
+def _reduce_points(cam, order, bounds, slot, lower, upper, e, d, coef, Xinv, rhs_X, blocks,
+                   rhs_C):  # pragma: no cover - compiled
+    """The points eliminated from the normal equations: blocks[(cam_k, cam_l)] -= Q_k Xinv_p Q_l for every ordered
+    pair (k, l) of observations of one point p, and rhs_C[cam_k] -= Q_k Xinv_p rhs_X[p]; in one pass over the
+    points, each point's products formed once. Each unordered pair's product goes to its block in the upper
+    triangle alone (`_pair_slots`; Q_l Xinv Q_k is (Q_k Xinv Q_l)^T), and the blocks below the diagonal (`lower`)
+    are the transposes of theirs (`upper`) at the end: each pair writes one block instead of two in different rows,
+    and its slot takes half the memory (docs/benchmarks.md, "Global positioning: each pair of a point's views
+    summed once")."""
     q = 0
     longest = 0
     for p in range(len(bounds) - 1):
@@ -856,16 +874,25 @@ def _reduce_points(cam, order, bounds, slot, e, d, coef, Xinv, rhs_X, blocks, rh
                                    + Qs[a, i, 2] * Xinv[p, 2, j])
             for i in range(3):
                 rhs_C[cam[k], i] -= QX[a, i, 0] * rhs_X[p, 0] + QX[a, i, 1] * rhs_X[p, 1] + QX[a, i, 2] * rhs_X[p, 2]
-        for a in range(n):  # Q_b Xinv Q_a is (Q_a Xinv Q_b)^T: each pair's product once
+        for a in range(n):
+            ca = cam[order[bounds[p] + a]]
             for b in range(a, n):
-                t, u = slot[q + a * n + b], slot[q + b * n + a]
+                cb = cam[order[bounds[p] + b]]
+                t = slot[q]
+                q += 1
+                straight = ca <= cb
+                transposed = ca > cb or (ca == cb and a != b)  # its transpose is another pair's product
                 for i in range(3):
                     for j in range(3):
                         m = QX[a, i, 0] * Qs[b, 0, j] + QX[a, i, 1] * Qs[b, 1, j] + QX[a, i, 2] * Qs[b, 2, j]
-                        blocks[t, i, j] -= m
-                        if b != a:
-                            blocks[u, j, i] -= m
-        q += n * n
+                        if straight:
+                            blocks[t, i, j] -= m
+                        if transposed:
+                            blocks[t, j, i] -= m
+    for k in range(len(lower)):
+        for i in range(3):
+            for j in range(3):
+                blocks[lower[k], i, j] = blocks[upper[k], j, i]
 
 
 @njit(cache=True, nogil=True)

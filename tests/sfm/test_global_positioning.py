@@ -140,8 +140,9 @@ def test_a_reduced_system_that_is_not_positive_definite_is_solved_by_lu_and_a_si
 
 
 def test_the_reduced_systems_blocks_are_the_camera_pairs_that_share_a_point():
-    """The reduced camera system's CSR blocks are exactly the ordered camera pairs seen together in a point, and
-    every ordered pair of a point's observations is given its own cameras' block."""
+    """The reduced camera system's CSR blocks are exactly the ordered camera pairs seen together in a point; every
+    unordered pair of a point's observations is given its own cameras' block above the diagonal, and each block
+    below it is paired with its transpose."""
     rng = np.random.default_rng(4)
     views = [rng.choice(25, rng.integers(2, 8), replace=False) for _ in range(300)]
     cam = np.concatenate(views)
@@ -154,18 +155,22 @@ def test_the_reduced_systems_blocks_are_the_camera_pairs_that_share_a_point():
     rows = np.repeat(np.arange(25), np.diff(indptr))
     assert set(zip(rows.tolist(), cols.tolist())) == {(a, b) for v in views for a in v.tolist() for b in v.tolist()}
     slots = _pair_slots(cam, order, bounds, indptr, cols)
-    pairs = [(a, b) for p in range(300) for a in cam[order[bounds[p]:bounds[p + 1]]].tolist()
-             for b in cam[order[bounds[p]:bounds[p + 1]]].tolist()]
+    seen = [cam[order[bounds[p]:bounds[p + 1]]].tolist() for p in range(300)]
+    pairs = [(min(v[a], v[b]), max(v[a], v[b])) for v in seen for a in range(len(v)) for b in range(a, len(v))]
     assert len(slots) == len(pairs)
     assert list(zip(rows[slots].tolist(), cols[slots].tolist())) == pairs
+    layout = global_positioning._ReducedLayout.of(cam, point, 25, 300)
+    assert (rows[layout.lower] > cols[layout.lower]).all() and len(layout.lower) == np.sum(rows > cols)
+    assert (rows[layout.upper] == cols[layout.lower]).all() and (cols[layout.upper] == rows[layout.lower]).all()
 
 
 def test_the_points_are_eliminated_into_the_schur_complement():
     """The reduced system's blocks and right-hand side, as `_reduce_points` sums them point by point, equal the
-    Schur complement - H_CX H_XX^-1 H_XC and - H_CX H_XX^-1 rhs_X formed densely."""
+    Schur complement - H_CX H_XX^-1 H_XC and - H_CX H_XX^-1 rhs_X formed densely, also where one camera sees a
+    point twice (every fourth point's views drawn with repeats)."""
     rng = np.random.default_rng(7)
     num_cams, num_points = 6, 40
-    views = [rng.choice(num_cams, rng.integers(2, 6), replace=False) for _ in range(num_points)]
+    views = [rng.choice(num_cams, rng.integers(2, 6), replace=p % 4 == 0) for p in range(num_points)]
     cam = np.concatenate(views)
     point = np.repeat(np.arange(num_points), [len(v) for v in views])
     e, d, coef = rng.normal(size=(len(cam), 3)), rng.uniform(1, 2, len(cam)), rng.uniform(0, 0.5, len(cam))
@@ -175,14 +180,11 @@ def test_the_points_are_eliminated_into_the_schur_complement():
     H_XX += 0.1 * np.eye(3)
     Xinv = np.linalg.inv(H_XX)
     rhs_X = rng.normal(size=(num_points, 3))
-    order = np.argsort(point, kind="stable")
-    bounds = np.r_[0, np.cumsum(np.bincount(point, minlength=num_points))]
-    by_cam = np.argsort(cam, kind="stable")
-    cam_bounds = np.r_[0, np.cumsum(np.bincount(cam, minlength=num_cams))]
-    indptr, cols = _camera_blocks(cam, point, order, bounds, by_cam, cam_bounds)
+    layout = global_positioning._ReducedLayout.of(cam, point, num_cams, num_points)
+    indptr, cols = layout.indptr, layout.block_col
     blocks, rhs_C = np.zeros((len(cols), 3, 3)), np.zeros((num_cams, 3))
-    _reduce_points(cam, order, bounds, _pair_slots(cam, order, bounds, indptr, cols), e, d, coef, Xinv, rhs_X,
-                   blocks, rhs_C)
+    _reduce_points(cam, layout.order, layout.bounds, layout.slot_of_pair, layout.lower, layout.upper, e, d, coef,
+                   Xinv, rhs_X, blocks, rhs_C)
     H_CX = np.zeros((3 * num_cams, 3 * num_points))
     for k, (a, p) in enumerate(zip(cam.tolist(), point.tolist())):
         H_CX[3 * a:3 * a + 3, 3 * p:3 * p + 3] += Q[k]
