@@ -536,8 +536,8 @@ class _ReducedLayout:
         indptr, block_col = _camera_blocks(cam, point, order, bounds, by_cam, cam_bounds)
         block_row = np.repeat(np.arange(num_cams), np.diff(indptr))
         lower = np.flatnonzero(block_row > block_col)
-        # the blocks in column order are the transposed blocks in row order: block (r, c) is the k-th of column c
-        # exactly where (c, r) is the k-th of row c
+        # the pattern is symmetric, so the blocks sorted by column, then row, are one for one the transposes of the
+        # blocks in CSR order
         by_col = np.lexsort((block_row, block_col))
         upper = by_col[lower] if len(lower) else lower
         return cls(order, bounds, indptr, block_col, _pair_slots(cam, order, bounds, indptr, block_col),
