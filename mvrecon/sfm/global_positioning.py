@@ -538,8 +538,7 @@ class _ReducedLayout:
         lower = np.flatnonzero(block_row > block_col)
         # the pattern is symmetric, so the blocks sorted by column, then row, are one for one the transposes of the
         # blocks in CSR order
-        by_col = np.lexsort((block_row, block_col))
-        upper = by_col[lower] if len(lower) else lower
+        upper = np.lexsort((block_row, block_col))[lower]
         return cls(order, bounds, indptr, block_col, _pair_slots(cam, order, bounds, indptr, block_col),
                    np.flatnonzero(block_row == block_col), lower, upper, (block_row == 0) | (block_col == 0))
 
