@@ -186,29 +186,32 @@ def solve_positions(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams:
     """(centres (num_cams,3), points (num_points,3)) minimising sum rho(|v_k - s_k (X_point[k] - C_cam[k])|) from a
     random start (uniform in [-1, 1]^3, scales 1), rho Huber's loss and then Cauchy's; camera 0 is held (the gauge), and
     the result is moved and scaled to centres of zero mean and unit RMS distance from it. It is solved from the centres
-    placed in turn (`centres_in_turn`) too; where those leave a camera unplaced, or their solution ends at a cost no
-    lower than the random start's, from the centres placed in turn again from points seen at `_TURN_NARROW_ANGLE_DEG`
-    (the cameras ready longest first, `_TURN_READY_POINTS`); and where a camera is left unplaced, from the centres
-    `initial()` gives (num_cams,3; NaN where unknown) when given (`_start`), asked for only then (the mapper's come
-    from translation averaging); the solution of the lowest final cost is returned. Why the second placing: through a
-    narrow lens (640 px wide at 768 px focal) a camera that has turned a corner of a street shares with the placed
-    cameras few points seen at 2 deg or more, so placing stops there while the cameras behind the first pair are placed
-    the long way round a loop; on such a 300-frame walk round a block every frame ended misplaced (AUC@5 0.26), and
-    with the second placing none at two mapper seeds of three (AUC@5 0.76 and 0.65; docs/benchmarks.md, "Global
-    positioning: a second placing at 1 deg where the first stops"). Why also where the first placing ends above the
-    random start: the centres placed in turn are the informed start, and on that walk at other seeds the placing at
-    2 deg placed every camera, but crossed a corner on a few far points and made the far side's steps about 5x the
-    near side's; its solution and the random start's ended 0.44-0.80 of the centres' spread off, the second
-    placing's 0.02 (docs/benchmarks.md, "Global positioning: placed again where the first placing ends above the
-    random start"). The mapper suite's models are unchanged by either. A start already near the best solution
-    (`_near`) is not solved from: it would end there. Why the `initial` start only then: where every camera is
-    placed in turn, the mapper suite's models are better without it on the whole over three seeds, and a solve is
-    saved (docs/benchmarks.md, "Global positioning: compiled steps, and the pairs' start only where cameras are left
-    unplaced"). With `workers` > 1 the random start is solved in a second thread while the cameras are placed in turn
-    and solved from there (the compiled steps, the conjugate gradients and LAPACK run without the GIL); that solve
-    stops, and its solution is dropped, once the start proves near the random one's solution: the same result as one
-    after the other, in about the time of the longer of the two (docs/benchmarks.md, "Global positioning: two starts
-    at once")."""
+    placed in turn (`centres_in_turn`) too; where those leave a camera unplaced, or their solution ends away from the
+    random start's (`_near`) at a cost no lower than it, from the centres placed in turn again from points seen at
+    `_TURN_NARROW_ANGLE_DEG` (the cameras ready longest first, `_TURN_READY_POINTS`); and where a camera is left
+    unplaced, from the centres `initial()` gives (num_cams,3; NaN where unknown) when given (`_start`), asked for only
+    then (the mapper's come from translation averaging); the solution of the lowest final cost is returned. Why the
+    second placing: through a narrow lens (640 px wide at 768 px focal) a camera that has turned a corner of a street
+    shares with the placed cameras few points seen at 2 deg or more, so placing stops there while the cameras behind the
+    first pair are placed the long way round a loop; on such a 300-frame walk round a block every frame ended misplaced
+    (AUC@5 0.26), and with the second placing none at two mapper seeds of three (AUC@5 0.76 and 0.65;
+    docs/benchmarks.md, "Global positioning: a second placing at 1 deg where the first stops"). Why also where the first
+    placing ends above the random start: the centres placed in turn are the informed start, and on that walk at other
+    seeds the placing at 2 deg placed every camera, but crossed a corner on a few far points and made the far side's
+    steps about 5x the near side's; its solution and the random start's ended 0.44-0.80 of the centres' spread off, the
+    second placing's 0.02 (docs/benchmarks.md, "Global positioning: placed again where the first placing ends above the
+    random start"). Why not where it ends at the random start's centres: two solves of one problem stop at slightly
+    different points and scales, so one of them ends a hair above the other, and placing again solves the same problem a
+    third time (round the 1,000-view orbit, half of positioning's time; docs/benchmarks.md, "Global positioning: no
+    third placing where two starts end together"). The mapper suite's models are unchanged by each of these. A start
+    already near the best solution (`_near`) is not solved from: it would end there. Why the `initial` start only then:
+    where every camera is placed in turn, the mapper suite's models are better without it on the whole over three seeds,
+    and a solve is saved (docs/benchmarks.md, "Global positioning: compiled steps, and the pairs' start only where
+    cameras are left unplaced"). With `workers` > 1 the random start is solved in a second thread while the cameras are
+    placed in turn and solved from there (the compiled steps, the conjugate gradients and LAPACK run without the GIL);
+    that solve stops, and its solution is dropped, once the start proves near the random one's solution: the same result
+    as one after the other, in about the time of the longer of the two (docs/benchmarks.md, "Global positioning: two
+    starts at once")."""
     rng = np.random.default_rng(seed)
     C = rng.uniform(-1, 1, (num_cams, 3))
     X = rng.uniform(-1, 1, (num_points, 3))
@@ -229,10 +232,10 @@ def solve_positions(cam: np.ndarray, point: np.ndarray, v: np.ndarray, num_cams:
         from_turn = solve_from(in_turn, stop=lambda: random.done() and random.exception() is None
                                and _near(in_turn, random.result()[0]))  # moot once near the random solution
     best = solve_random() if random is None else random.result()
-    placing_lost = False  # the centres placed in turn ended above the random start's cost: they went astray
+    placing_lost = False  # the centres placed in turn ended elsewhere above the random start's cost: they went astray
     if usable(in_turn) and not _near(in_turn, best[0]):
         other = from_turn if from_turn is not None else solve_from(in_turn)
-        placing_lost = other[2] >= best[2]
+        placing_lost = other[2] >= best[2] and not _near(other[0], best[0])
         best = other if other[2] < best[2] else best
     narrow = None
     if not complete or placing_lost:
