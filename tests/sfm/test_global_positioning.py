@@ -515,9 +515,13 @@ def test_cameras_placed_in_turn_that_end_at_the_random_starts_centres_are_not_pl
     C, cam, point, v = noisy_grid(np.random.default_rng(3), 6, 8, 1500)
     n, m = len(C), len(np.unique(point))
     moved = C + np.random.default_rng(1).normal(scale=0.1, size=C.shape)
-    placings = []
-    monkeypatch.setattr(global_positioning, "centres_in_turn",
-                        lambda *a, **k: placings.append(len(a) + len(k)) or moved.copy())
+    placings = []  # the angle of each placing asked for
+
+    def placing(cam, point, v, n, m, min_angle_deg=global_positioning._TURN_MIN_ANGLE_DEG, ready_points=np.inf):
+        placings.append(min_angle_deg)
+        return moved.copy()
+
+    monkeypatch.setattr(global_positioning, "centres_in_turn", placing)
     solves = []
     minimise = global_positioning._minimise
 
@@ -530,6 +534,6 @@ def test_cameras_placed_in_turn_that_end_at_the_random_starts_centres_are_not_pl
     found, _ = solve_positions(cam, point, v, n, m)
     assert len(solves) == 2 and not global_positioning._near(moved, solves[0])
     assert global_positioning._near(solves[1], solves[0])
-    assert placings == [5]
+    assert placings == [global_positioning._TURN_MIN_ANGLE_DEG]
     assert similarity_error(found, C) < 0.02
 
