@@ -3,11 +3,12 @@
 GLOMAP's pipeline on GTSAM and the incremental mapper's own parts:
 1. View graph (view_graph.py): guessed focal lengths calibrated from the pairs' fundamental matrices, then one
    relative pose per verified pair (pair_poses.py); a guessed focal the pairs cannot tell is refined by coarse
-   global models first, and in a set of `_SUBSET_LENS_MIN_IMAGES` images or more by a model of a subset of them
-   too, focal and distortion (`_lens_from_subset`). A set where half the images or more are each the only image
-   of their camera is mapped with those focals at the guess and again with them calibrated too, and the
-   calibrated mapping is kept unless
-   the other fits clearly more observations within the BAs' Huber width (`_single_cameras_calibrated`).
+   global models first (where those from the guess keep few images, from a wide lens's focal too, `lens.WIDE_TRY`:
+   from the 768 px guess for a 100 deg lens's 269 they kept 5-7 of 12), and in a set of `_SUBSET_LENS_MIN_IMAGES`
+   images or more by a model of a subset of them too, focal and distortion (`_lens_from_subset`). A set where half
+   the images or more are each the only image of their camera is mapped with those focals at the guess and again
+   with them calibrated too, and the calibrated mapping is kept unless the other fits clearly more observations
+   within the BAs' Huber width (`_single_cameras_calibrated`).
 2. Rotation averaging (rotation_averaging.py): robust initialisation, L1-IRLS, `gtsam.ShonanAveraging3`;
    pairs whose rotation disagrees by more than 5 degrees are outliers; the largest consistent component is a
    model.
@@ -39,9 +40,7 @@ GLOMAP's pipeline on GTSAM and the incremental mapper's own parts:
    a pair's inlier threshold in the image and its focal by more than `_RECALIBRATION_FOCAL_CHANGE` (a guessed
    focal found only near), the view graph is estimated again at the refined calibration and the models are made
    again from it (at most `_RECALIBRATIONS` times).
-7. The camera model chosen from the data (`choose_lens`, the model left open; sfm/lens.py): a focal the view
-   graph cannot tell whose coarse models keep few images (`lens.WIDE_TRY`; a 100 deg lens's kept 2 of 12 from
-   the guess) is calibrated from a wide lens's start too (`lens.WIDE_FOCAL`, kept by `lens.fits_better`), each
+7. The camera model chosen from the data (`choose_lens`, the model left open; sfm/lens.py): each
    finished model tries its cameras with the richer models, and a switch maps everything again from the chosen
    lens, as every pose came from relative poses at the old one (fisheye_orbit_small: AUC@5 0.00 -> 0.99); that
    mapping is kept unless it registers fewer images.
@@ -234,33 +233,8 @@ class GlobalMapper:
     def _map_all(self, cameras: dict, bar) -> tuple[list[Reconstruction], object]:
         """(models, view graph) of every image from the starting `cameras`: the view graph calibrated and
         estimated, then a model per consistent component (see the module docstring)."""
+        scratch = self._calibrated(cameras)
         start = time.perf_counter()
-        scratch = self._new_model(cameras)
-        found = calibrate_focals(scratch, self.pairs, self.config.seed, self.calibrate_single)
-        # a focal the view graph could not calibrate is found by coarse models first, from rougher relative poses
-        # of the pairs of a bounded, well-connected set of images (`_calibration_pairs`); not a camera of a single
-        # image, which no coarse model refines (`_calibrate_by_bundle`)
-        uncalibrated = sorted(calibratable_cameras(scratch.cameras, self.camera_of) - set(found))
-        if uncalibrated:
-            sample = self._calibration_pairs(uncalibrated)
-            fit = self._calibrate(scratch, sample)
-            # a lens left open may be wide: when the guess's coarse model kept few of the images, one from a wide
-            # focal too, kept where it fits better
-            wide = [c for c in uncalibrated if self.choose_lens and scratch.cameras[c].model == lens.MODEL]
-            if wide and fit[0] < lens.WIDE_TRY * len(np.unique(np.array(list(sample)))):
-                other = self._new_model(cameras)
-                for c in wide:
-                    other.cameras[c].set_focal(lens.WIDE_FOCAL * max(other.cameras[c].width, other.cameras[c].height))
-                wide_fit = self._calibrate(other, sample)
-                better = lens.fits_better(wide_fit, fit)
-                log.info("coarse model from a wide focal: %d images, %d observations within the gate, against %d "
-                         "and %d from the guess; %s", *wide_fit, *fit, "kept" if better else "not kept")
-                for c in wide if better else []:
-                    scratch.cameras[c] = other.cameras[c]
-            start = self._clock("calibration", start)
-        if len(self.image_ids) >= _SUBSET_LENS_MIN_IMAGES:
-            self._lens_from_subset(scratch)
-            start = self._clock("calibration", start)
         reasons = dict(self.reasons)
         graph = relative_poses(scratch, self.pairs, self.config, workers=self.workers)
         start = self._clock("view_graph", start)
@@ -288,6 +262,38 @@ class GlobalMapper:
         bar.update(sum(int(m.registered.sum()) for m in models))
         self._clock("models", start)
         return models, graph
+
+    def _calibrated(self, cameras: dict) -> Reconstruction:
+        """An empty model of the starting `cameras` with the guessed focals calibrated for the view graph: by the
+        pairs' fundamental matrices, then where they cannot tell by coarse models, and in a large set the lens
+        from a subset's model (see the module docstring); its time counts as the calibration's."""
+        start = time.perf_counter()
+        scratch = self._new_model(cameras)
+        found = calibrate_focals(scratch, self.pairs, self.config.seed, self.calibrate_single)
+        # a focal the view graph could not calibrate is found by coarse models first, from rougher relative poses
+        # of the pairs of a bounded, well-connected set of images (`_calibration_pairs`); not a camera of a single
+        # image, which no coarse model refines (`_calibrate_by_bundle`)
+        uncalibrated = sorted(calibratable_cameras(scratch.cameras, self.camera_of) - set(found))
+        if uncalibrated:
+            sample = self._calibration_pairs(uncalibrated)
+            fit = self._calibrate(scratch, sample)
+            # a guessed focal may be a wide lens's: when the guess's coarse model kept few of the images, one from a
+            # wide focal too, kept where it fits better, whichever model the lens has (a lens named OPENCV or
+            # OPENCV_FISHEYE with no focal is as likely wide as one left open)
+            if fit[0] < lens.WIDE_TRY * len(np.unique(np.array(list(sample)))):
+                other = self._new_model(cameras)
+                for c in uncalibrated:
+                    other.cameras[c].set_focal(lens.WIDE_FOCAL * max(other.cameras[c].width, other.cameras[c].height))
+                wide_fit = self._calibrate(other, sample)
+                better = lens.fits_better(wide_fit, fit)
+                log.info("coarse model from a wide focal: %d images, %d observations within the gate, against %d "
+                         "and %d from the guess; %s", *wide_fit, *fit, "kept" if better else "not kept")
+                for c in uncalibrated if better else []:
+                    scratch.cameras[c] = other.cameras[c]
+        if len(self.image_ids) >= _SUBSET_LENS_MIN_IMAGES:
+            self._lens_from_subset(scratch)
+        self._clock("calibration", start)
+        return scratch
 
     def _models(self, cameras, graph) -> list[Reconstruction]:
         """The models of the view graph, largest first: the largest consistent component, then the largest of

@@ -484,7 +484,13 @@ def test_wide_angle_lens_with_its_own_camera_model(wide_scene, tmp_path):
 def test_wide_angle_lens_with_its_own_camera_model_mapped_globally(wide_scene, tmp_path):
     """The same with --mapper global. From the 768 px guess the two focals of an OPENCV camera left free drift
     apart in its bundle adjustments (fx / fy 568 / 851 at the end, every pose wrong); held equal, as a guess
-    starts and pixels are, they find the lens."""
+    starts and pixels are, they find the lens. And the view graph is made at the lens's focal: the coarse models
+    from the guess keep few of the images, so the focal is calibrated from a wide lens's start too, for a named
+    model as for one left open (204 px from there, distortion still unknown; without that, the first view graph
+    stayed at 768 px, and whether the model found the lens from there turned on the seed)."""
+    from mvrecon.sfm.config import MapperConfig
+    from mvrecon.sfm.global_mapper import GlobalMapper
+
     summary, params = _reconstruct_wide(wide_scene, tmp_path / "run", "--camera-model", "OPENCV", "--mapper",
                                         "global")
     assert summary["registered"] == 12 and summary["components"] == 1
@@ -492,6 +498,10 @@ def test_wide_angle_lens_with_its_own_camera_model_mapped_globally(wide_scene, t
     assert summary["auc@1"] >= 0.9 and summary["auc@5"] >= 0.95
     assert abs(params[0] - params[1]) < 0.1
     assert abs(params[0] - 269.0) < 0.01 * 269.0 and abs(params[4] + 0.22) < 0.005
+    mapper = GlobalMapper(database.read_correspondences(tmp_path / "run" / "database.db"), MapperConfig())
+    (c, camera), = mapper.cameras.items()
+    assert camera.model == "OPENCV" and camera.focal() == 768.0 and not camera.prior_trusted
+    assert 0.6 * 269.0 < mapper._calibrated(mapper.cameras).cameras[c].focal() < 1.4 * 269.0  # 204 measured
 
 
 @pytest.mark.parametrize("name, lens", [("wide_orbit_small", "OPENCV"), ("fisheye_orbit_small", "OPENCV_FISHEYE")])
