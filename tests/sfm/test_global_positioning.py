@@ -536,4 +536,3 @@ def test_cameras_placed_in_turn_that_end_at_the_random_starts_centres_are_not_pl
     assert global_positioning._near(solves[1], solves[0])
     assert placings == [global_positioning._TURN_MIN_ANGLE_DEG]
     assert similarity_error(found, C) < 0.02
-
